@@ -1,0 +1,64 @@
+"""Errors raised by multibody_sim: one base class, leaves that also subclass the builtin meaning."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .trajectory import Trajectory
+
+
+class MultibodySimError(Exception):
+    """Base class of every error this package raises on purpose."""
+
+
+class InvalidArgumentError(MultibodySimError, ValueError):
+    """An argument has the wrong shape, type or value (the message names it and what was expected)."""
+
+
+class UnknownNameError(MultibodySimError, LookupError):
+    """A name (robot, integrator, ...) is not in its registry; the message lists close matches."""
+
+    def __str__(self) -> str:  # LookupError would quote the message like a dict key
+        return str(self.args[0]) if self.args else ""
+
+
+class RobotNotFoundError(UnknownNameError):
+    """The robot source is neither a catalog name nor an existing URDF file."""
+
+
+class UnknownIntegratorError(UnknownNameError):
+    """The integrator name is not in the registry."""
+
+
+class ModelError(MultibodySimError, ValueError):
+    """A URDF (or model) file is missing, malformed or describes something we cannot simulate."""
+
+
+class TrajectoryFileError(MultibodySimError, ValueError):
+    """A trajectory file is missing, truncated, corrupted or not one of ours."""
+
+
+class SimulationError(MultibodySimError, RuntimeError):
+    """A simulation stopped before reaching its duration.
+
+    Attributes:
+        status: why it stopped ("diverged", ...).
+        trajectory: every finite sample computed before the stop.
+    """
+
+    def __init__(self, message: str, *, status: str, trajectory: Trajectory | None = None, **details: Any):
+        super().__init__(message)
+        self.status = status
+        self.trajectory = trajectory
+        self.details = details
+
+
+class SimulationInterrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGTERM in the CLI) stopped a simulation; `.trajectory` holds the samples so far."""
+
+    def __init__(self, message: str, *, trajectory: Trajectory | None = None, signal_name: str = "SIGINT"):
+        super().__init__(message)
+        self.status = "interrupted"
+        self.trajectory = trajectory
+        self.signal_name = signal_name

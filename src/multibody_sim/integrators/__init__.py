@@ -1,0 +1,46 @@
+"""The registry of integrators: every method by name, and the lookup that lists valid names on a miss."""
+
+from __future__ import annotations
+
+import difflib
+
+from ..exceptions import InvalidArgumentError, UnknownIntegratorError
+from .base import Integrator, System
+from .explicit_rk import ExplicitRungeKutta
+from .partitioned import SemiImplicitEuler
+from .tableau import EULER, MIDPOINT, RK4, ButcherTableau
+
+INTEGRATORS: dict[str, Integrator] = {
+    method.name: method
+    for method in [
+        ExplicitRungeKutta("euler", EULER, "explicit (forward) Euler", notes="gains energy on oscillators"),
+        SemiImplicitEuler(),
+        ExplicitRungeKutta("midpoint", MIDPOINT, "explicit midpoint (RK2)"),
+        ExplicitRungeKutta("rk4", RK4, "classical Runge–Kutta"),
+    ]
+}
+
+
+def get_integrator(integrator: str | Integrator) -> Integrator:
+    """The integrator named `integrator` (or the object itself).
+
+    Raises:
+        UnknownIntegratorError: not a registry name; the message lists the valid ones.
+    """
+    if isinstance(integrator, Integrator):
+        return integrator
+    if not isinstance(integrator, str):
+        raise InvalidArgumentError(
+            f"integrator must be a name or an Integrator, got {type(integrator).__name__}"
+        )
+    if integrator in INTEGRATORS:
+        return INTEGRATORS[integrator]
+    close = difflib.get_close_matches(integrator, INTEGRATORS, n=1, cutoff=0.6)
+    hint = f"did you mean {close[0]}? " if close else ""
+    raise UnknownIntegratorError(
+        f"unknown integrator '{integrator}' ({hint}valid: {', '.join(sorted(INTEGRATORS))})"
+    )
+
+
+__all__ = ["INTEGRATORS", "ButcherTableau", "ExplicitRungeKutta", "Integrator", "SemiImplicitEuler", "System",
+           "get_integrator"]

@@ -1,0 +1,73 @@
+"""The integrator contract: one step of a method on a system, plus the flags users choose by."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Protocol
+
+import numpy as np
+
+from ..state import ConfigurationSpace
+
+
+class System(Protocol):
+    """What an integrator needs from a robot or scene (unchecked, hot-path methods)."""
+
+    nq: int
+    nv: int
+    space: ConfigurationSpace
+
+    def unchecked_forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """Accelerations v' [rad/s², m/s²], shape (nv,)."""
+        ...
+
+    def ledger_power(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """Power [W] through each energy-ledger element, shape (n_elements,)."""
+        ...
+
+
+class Integrator(ABC):
+    """One method of advancing (q, v) by a step, with the torque held constant over the step.
+
+    Attributes:
+        name: registry name.
+        order: classical order of convergence of the state.
+        description: one line for `multibody-sim integrators`.
+        evaluations_per_step: forward-dynamics evaluations per step (fixed-step methods).
+        adaptive: chooses its own steps under error control.
+        implicit: solves equations at each step.
+        symplectic: preserves the symplectic form for general M(q).
+        a_stable: stable on every decaying linear mode at any step.
+        notes: what users should know that the flags do not say.
+    """
+
+    name: str
+    order: int
+    description: str
+    evaluations_per_step: int
+    adaptive: bool = False
+    implicit: bool = False
+    symplectic: bool = False
+    a_stable: bool = False
+    notes: str = ""
+
+    @abstractmethod
+    def step(
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Advance one step.
+
+        Args:
+            system: the robot or scene.
+            q: configuration at the step's start, shape (nq,).
+            v: velocity at the step's start, shape (nv,).
+            tau: torque held over the step [N·m, N], shape (nv,).
+            dt: step [s].
+
+        Returns:
+            (q_next, v_next, flows): the new state and the energy [J] that went through each ledger element
+            over the step, integrated with the method's own quadrature.
+        """
+
+    def __repr__(self) -> str:
+        return f"<integrator {self.name}: order {self.order}>"

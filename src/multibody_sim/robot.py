@@ -1,0 +1,281 @@
+"""Robot: dynamics terms and energies of one Pinocchio model (pure maths, no stepping, no files)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from .exceptions import InvalidArgumentError
+from .state import ConfigurationSpace
+
+_WORLD = pin.Convention.WORLD
+_UNBOUNDED = 1e300  # Pinocchio writes ±DBL_MAX for "no limit"
+
+
+class Robot:
+    """A rigid multibody system loaded from a URDF: M(q), C(q, v), g(q), energies and forward dynamics.
+
+    Equations of motion: ``M(q) v' + C(q, v) v + g(q) = tau - D v`` with D the joint viscous damping
+    (diagonal, from the URDF's ``<dynamics damping>``; zero when loaded with ``damping=False``).
+    For a floating base, q = [x y z qx qy qz qw, joints...] and v = [linear, angular (base frame),
+    joints...], so q' != v; the first 6 entries of tau act on the unactuated base and must be zero.
+
+    Build one with :func:`multibody_sim.load_robot`.
+
+    Attributes:
+        name: catalog name or URDF file stem.
+        model, data: the underlying Pinocchio objects, for experts.
+        nq, nv: configuration and velocity sizes.
+        joint_names: movable joints in velocity order (a floating base's root joint first).
+        dof_names: one name per velocity coordinate, length nv.
+        floating_base: whether the root is a free-flyer joint.
+        damping: joint viscous damping coefficients D [N·m·s/rad or N·s/m], shape (nv,).
+        effort_limit: |tau| bounds [N·m or N], shape (nv,); inf where the URDF gives none (or 0).
+        lower_limit, upper_limit: position limits, shape (nq,); ±inf where there is none.
+        space: the configuration manifold (integrate, difference).
+        source: how the robot was loaded (the full load_robot arguments, URDF path and SHA-256).
+    """
+
+    def __init__(
+        self,
+        model: pin.Model,
+        *,
+        name: str,
+        floating_base: bool,
+        damping: bool = True,
+        source: dict[str, Any] | None = None,
+    ):
+        self.model = model
+        self.data = model.createData()
+        self.name = name
+        self.floating_base = floating_base
+        self.source = dict(source or {})
+        self.space = ConfigurationSpace(model)
+        self.nq = model.nq
+        self.nv = model.nv
+        self.joint_names = [model.names[i] for i in range(1, model.njoints) if model.joints[i].nv > 0]
+        self.dof_names = _dof_names(model)
+        self.damping = np.array(model.damping, dtype=float) if damping else np.zeros(self.nv)
+        if floating_base:
+            self.damping[:6] = 0.0
+        self._damped = bool(np.any(self.damping))
+        self.effort_limit = _effort_limits(model, floating_base)
+        self.lower_limit, self.upper_limit = _position_limits(model)
+        self._limited = np.isfinite(self.lower_limit)
+        self._n_base = 6 if floating_base else 0
+        self.total_mass = float(pin.computeTotalMass(model))
+
+    def __repr__(self) -> str:
+        base = "floating" if self.floating_base else "fixed"
+        return f"Robot({self.name!r}, nq={self.nq}, nv={self.nv}, base={base})"
+
+    # ---- configurations ------------------------------------------------------------------------------
+    def neutral(self) -> np.ndarray:
+        """The neutral configuration (zero joint angles, identity base orientation), shape (nq,)."""
+        return pin.neutral(self.model)
+
+    def random_configuration(self, rng: np.random.Generator | int | None = None) -> np.ndarray:
+        """A random configuration, shape (nq,).
+
+        Uniform within finite joint limits and in [-pi, pi] where there is none; a uniformly random unit
+        quaternion for spherical joints and the floating base, whose position is uniform in [-1, 1]^3 m.
+        """
+        rng = np.random.default_rng(rng)
+        q = self.neutral()
+        for joint in self.model.joints[1:]:
+            i, nq, nv = joint.idx_q, joint.nq, joint.nv
+            if nq == nv:  # plain coordinates (revolute, prismatic, translation, spherical-ZYX, ...)
+                lo = np.where(np.isfinite(self.lower_limit[i : i + nq]), self.lower_limit[i : i + nq], -np.pi)
+                hi = np.where(np.isfinite(self.upper_limit[i : i + nq]), self.upper_limit[i : i + nq], np.pi)
+                q[i : i + nq] = rng.uniform(lo, hi)
+            elif (nq, nv) == (2, 1):  # continuous joint: (cos, sin)
+                angle = rng.uniform(-np.pi, np.pi)
+                q[i : i + 2] = np.cos(angle), np.sin(angle)
+            elif (nq, nv) == (4, 3) and joint.shortname() == "JointModelPlanar":
+                angle = rng.uniform(-np.pi, np.pi)
+                q[i : i + 4] = *rng.uniform(-1.0, 1.0, 2), np.cos(angle), np.sin(angle)
+            elif (nq, nv) == (4, 3):  # spherical: unit quaternion (x, y, z, w)
+                q[i : i + 4] = _random_unit_quaternion(rng)
+            elif (nq, nv) == (7, 6):  # free-flyer: position then unit quaternion
+                q[i : i + 3] = rng.uniform(-1.0, 1.0, 3)
+                q[i + 3 : i + 7] = _random_unit_quaternion(rng)
+            else:
+                raise InvalidArgumentError(f"random_configuration: unsupported joint type {joint.shortname()}")
+        return q
+
+    def integrate(self, q: Any, dv: Any) -> np.ndarray:
+        """q ⊕ dv on the configuration manifold, shape (nq,)."""
+        return self.space.integrate(self.check_q(q), self.check_v(dv, "dv"))
+
+    def difference(self, q0: Any, q1: Any) -> np.ndarray:
+        """q1 ⊖ q0 in the tangent space, shape (nv,)."""
+        return self.space.difference(self.check_q(q0, "q0"), self.check_q(q1, "q1"))
+
+    # ---- dynamics terms ------------------------------------------------------------------------------
+    def mass_matrix(self, q: Any) -> np.ndarray:
+        """Joint-space inertia matrix M(q) [kg·m², kg], shape (nv, nv), symmetric positive definite."""
+        M = pin.crba(self.model, self.data, self.check_q(q))
+        return np.triu(M) + np.triu(M, 1).T
+
+    def coriolis_matrix(self, q: Any, v: Any) -> np.ndarray:
+        """Coriolis matrix C(q, v), shape (nv, nv): C v is the Coriolis/centrifugal term, Ṁ - 2C is skew."""
+        return pin.computeCoriolisMatrix(self.model, self.data, self.check_q(q), self.check_v(v)).copy()
+
+    def gravity(self, q: Any) -> np.ndarray:
+        """Generalized gravity g(q) [N·m, N], shape (nv,)."""
+        return pin.computeGeneralizedGravity(self.model, self.data, self.check_q(q)).copy()
+
+    def nonlinear_effects(self, q: Any, v: Any) -> np.ndarray:
+        """C(q, v) v + g(q), shape (nv,) (without damping)."""
+        return pin.nonLinearEffects(self.model, self.data, self.check_q(q), self.check_v(v)).copy()
+
+    def forward_dynamics(self, q: Any, v: Any, tau: Any) -> np.ndarray:
+        """Accelerations v' = M^-1 (tau - D v - C v - g), shape (nv,), by the articulated-body algorithm."""
+        return self.unchecked_forward_dynamics(self.check_q(q), self.check_v(v), self.check_tau(tau))
+
+    def inverse_dynamics(self, q: Any, v: Any, a: Any) -> np.ndarray:
+        """Torques tau = M a + C v + g + D v that produce accelerations a, shape (nv,), by RNEA.
+
+        For a floating base the first 6 entries are the wrench the base would need (not an actuator's).
+        """
+        q, v, a = self.check_q(q), self.check_v(v), self.check_v(a, "a")
+        tau = pin.rnea(self.model, self.data, q, v, a).copy()
+        return tau + self.damping * v if self._damped else tau
+
+    def unchecked_forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """forward_dynamics without argument checks: the stepping loop's hot path."""
+        if self._damped:
+            tau = tau - self.damping * v
+        return pin.aba(self.model, self.data, q, v, tau, _WORLD)
+
+    # ---- energies ------------------------------------------------------------------------------------
+    def kinetic_energy(self, q: Any, v: Any) -> float:
+        """T = ½ vᵀ M(q) v [J]."""
+        return float(pin.computeKineticEnergy(self.model, self.data, self.check_q(q), self.check_v(v)))
+
+    def potential_energy(self, q: Any) -> float:
+        """Gravitational potential energy V(q) [J], zero at world z = 0 (bodies welded to the world excluded)."""
+        return float(pin.computePotentialEnergy(self.model, self.data, self.check_q(q)))
+
+    def total_energy(self, q: Any, v: Any) -> float:
+        """Hamiltonian H = T + V [J]."""
+        return self.kinetic_energy(q, v) + self.potential_energy(q)
+
+    # Ledger: the power flowing in (work) or out (dissipated) through each element, integrated by the
+    # integrator with its own quadrature so that the ledger is as accurate as the trajectory.
+    @property
+    def ledger_elements(self) -> list[tuple[str, str]]:
+        """(name, kind) of every energy-ledger element, kind "work" (in) or "dissipated" (out)."""
+        elements = [("joint_torques", "work")]
+        if self._damped:
+            elements.append(("joint_damping", "dissipated"))
+        return elements
+
+    def ledger_power(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """Power of each ledger element [W] at (q, v, tau), in ledger_elements order (no checks)."""
+        if self._damped:
+            return np.array([tau @ v, v @ (self.damping * v)])
+        return np.array([tau @ v])
+
+    def unchecked_energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
+        """(T, V) [J] without argument checks."""
+        T = pin.computeKineticEnergy(self.model, self.data, q, v)
+        return float(T), float(pin.computePotentialEnergy(self.model, self.data, q))
+
+    @property
+    def energy_scale(self) -> float:
+        """A natural energy unit [J]: lifting the whole robot by one metre (floor for blow-up detection)."""
+        return max(self.total_mass * float(np.linalg.norm(self.model.gravity.linear)), 1e-6)
+
+    # ---- limits --------------------------------------------------------------------------------------
+    def limit_excess(self, Q: np.ndarray) -> np.ndarray:
+        """How far each configuration coordinate is outside its position limits, shape like Q (0 inside)."""
+        Q = np.atleast_2d(Q)
+        excess = np.zeros_like(Q)
+        if self._limited.any():
+            lim = self._limited
+            excess[:, lim] = np.maximum(self.lower_limit[lim] - Q[:, lim], 0.0) + np.maximum(
+                Q[:, lim] - self.upper_limit[lim], 0.0
+            )
+        return excess
+
+    # ---- argument checks ----------------------------------------------------------------------------
+    def check_q(self, q: Any, name: str = "q") -> np.ndarray:
+        """q as a float array of shape (nq,), finite and normalized, or InvalidArgumentError."""
+        q = _as_vector(q, self.nq, name)
+        if not self.space.is_normalized(q):
+            raise InvalidArgumentError(
+                f"{name} is not a valid configuration: its quaternion / (cos, sin) entries must have unit norm"
+            )
+        return q
+
+    def check_v(self, v: Any, name: str = "v") -> np.ndarray:
+        """v as a float array of shape (nv,), finite, or InvalidArgumentError."""
+        return _as_vector(v, self.nv, name)
+
+    def check_tau(self, tau: Any, name: str = "tau") -> np.ndarray:
+        """tau as a float array of shape (nv,), finite, zero on a floating base's 6 unactuated entries."""
+        tau = _as_vector(tau, self.nv, name)
+        if self._n_base and np.any(tau[:6]):
+            raise InvalidArgumentError(
+                f"{name}[0:6] acts on the unactuated floating base and must be zero, got {tau[:6].tolist()}"
+            )
+        return tau
+
+
+def _as_vector(value: Any, size: int, name: str) -> np.ndarray:
+    try:
+        arr = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InvalidArgumentError(f"{name} must be an array of {size} numbers, got {type(value).__name__}") from None
+    if arr.shape != (size,):
+        raise InvalidArgumentError(f"{name} must have shape ({size},), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        bad = np.flatnonzero(~np.isfinite(arr)).tolist()
+        raise InvalidArgumentError(f"{name} must be finite, got non-finite entries at indices {bad}")
+    return arr
+
+
+def _random_unit_quaternion(rng: np.random.Generator) -> np.ndarray:
+    x = rng.normal(size=4)  # an isotropic Gaussian, normalized, is uniform on S³
+    return x / np.linalg.norm(x)
+
+
+def _dof_names(model: pin.Model) -> list[str]:
+    names = []
+    for i in range(1, model.njoints):
+        joint, name = model.joints[i], model.names[i]
+        if joint.nv == 1:
+            names.append(name)
+        elif joint.nv == 6:
+            names += [f"{name}.{c}" for c in ("vx", "vy", "vz", "wx", "wy", "wz")]
+        elif joint.shortname() == "JointModelPlanar":
+            names += [f"{name}.{c}" for c in ("vx", "vy", "wz")]
+        elif joint.nv == 3 and joint.nq == 4:
+            names += [f"{name}.{c}" for c in ("wx", "wy", "wz")]
+        else:
+            names += [f"{name}[{k}]" for k in range(joint.nv)]
+    return names
+
+
+def _effort_limits(model: pin.Model, floating_base: bool) -> np.ndarray:
+    effort = np.array(model.effortLimit, dtype=float)
+    effort[(effort <= 0.0) | (effort >= _UNBOUNDED)] = np.inf  # 0 or absent means "no limit"
+    if floating_base:
+        effort[:6] = np.inf
+    return effort
+
+
+def _position_limits(model: pin.Model) -> tuple[np.ndarray, np.ndarray]:
+    """Finite limits only on 1-coordinate joints whose URDF declares a real range (lower < upper)."""
+    lower = np.full(model.nq, -np.inf)
+    upper = np.full(model.nq, np.inf)
+    for joint in model.joints[1:]:
+        if joint.nq == 1 and joint.nv == 1:
+            i = joint.idx_q
+            lo, hi = model.lowerPositionLimit[i], model.upperPositionLimit[i]
+            if -_UNBOUNDED < lo < hi < _UNBOUNDED:
+                lower[i], upper[i] = lo, hi
+    return lower, upper
