@@ -209,9 +209,11 @@ class _Run:
         error = T + V - self.KIN[0] - self.POT[0] - work + dissipated
         bound = BLOWUP_FACTOR * (self.energy_scale + abs(work) + abs(dissipated))
         if not math.isfinite(T + V) or abs(error) > bound:
+            fastest = int(np.argmax(np.abs(v)))
             return "diverged", (
                 f"diverged at t = {t:.6g} s (step {self.k}): the energy error {error:.3g} J exceeds "
-                f"{BLOWUP_FACTOR:g} times the run's energy scale ({bound / BLOWUP_FACTOR:.3g} J); {self._cure()}"
+                f"{BLOWUP_FACTOR:g} times the run's energy scale ({bound / BLOWUP_FACTOR:.3g} J), fastest in "
+                f"'{self.system.dof_names[fastest]}' ({v[fastest]:.3g}); {self._cure()}"
             )
         return None
 

@@ -1,0 +1,62 @@
+"""Shared fixtures: cached catalog robots and small URDFs written in code."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+import multibody_sim as ms
+
+
+@functools.lru_cache(maxsize=None)
+def _cached_robot(name: str, floating_base: bool | None, damping: bool) -> ms.Robot:
+    return ms.load_robot(name, floating_base=floating_base, damping=damping)
+
+
+@pytest.fixture(scope="session")
+def robot() -> Callable[..., ms.Robot]:
+    """robot(name, floating_base=None, damping=True): a catalog robot, loaded once per session.
+
+    Robots hold a Pinocchio Data workspace: tests must not rely on its contents between calls.
+    """
+
+    def get(name: str, floating_base: bool | None = None, damping: bool = True) -> ms.Robot:
+        return _cached_robot(name, floating_base, damping)
+
+    return get
+
+
+@pytest.fixture
+def write_urdf(tmp_path: Path) -> Callable[[str, str], Path]:
+    """write_urdf(text, name="robot.urdf") -> path: a URDF file in a fresh temporary folder."""
+
+    def write(text: str, name: str = "robot.urdf") -> Path:
+        path = tmp_path / name
+        path.write_text(text)
+        return path
+
+    return write
+
+
+def link(name: str, mass: float = 1.0, com: str = "0 0 -0.5", inertia: str = "0.01 0.01 0.01") -> str:
+    """URDF text of a link with a diagonal inertia (ixx iyy izz)."""
+    ixx, iyy, izz = inertia.split()
+    return (f'<link name="{name}"><inertial><origin xyz="{com}"/><mass value="{mass}"/>'
+            f'<inertia ixx="{ixx}" ixy="0" ixz="0" iyy="{iyy}" iyz="0" izz="{izz}"/></inertial></link>')
+
+
+def joint(name: str, parent: str, child: str, kind: str = "revolute", xyz: str = "0 0 0", axis: str = "0 1 0",
+          limits: str = 'lower="-3" upper="3" effort="10" velocity="10"', damping: float | None = None) -> str:
+    """URDF text of a joint."""
+    dyn = f'<dynamics damping="{damping}"/>' if damping is not None else ""
+    lim = f"<limit {limits}/>" if kind in ("revolute", "prismatic") else ""
+    return (f'<joint name="{name}" type="{kind}"><parent link="{parent}"/><child link="{child}"/>'
+            f'<origin xyz="{xyz}"/><axis xyz="{axis}"/>{lim}{dyn}</joint>')
+
+
+def urdf(*parts: str, name: str = "test_robot") -> str:
+    """A whole URDF document from link() and joint() parts."""
+    return f'<?xml version="1.0"?><robot name="{name}">{"".join(parts)}</robot>'
