@@ -150,6 +150,23 @@ class Robot:
             tau = tau - self.damping * v
         return pin.aba(self.model, self.data, q, v, tau, _WORLD)
 
+    def unchecked_dynamics_derivatives(
+        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Analytic partial derivatives of forward dynamics (damping included), from Pinocchio's ABA derivatives.
+
+        Returns:
+            (da_dq, da_dv, da_dtau), each shape (nv, nv); da_dq is taken in the tangent space at q (a variation
+            dq moves q to q ⊕ dq), and da_dtau = M(q)^-1.
+        """
+        if self._damped:
+            tau = tau - self.damping * v
+        da_dq, da_dv, da_dtau = pin.computeABADerivatives(self.model, self.data, q, v, tau)
+        da_dq, da_dv, da_dtau = da_dq.copy(), da_dv.copy(), da_dtau.copy()
+        if self._damped:
+            da_dv -= da_dtau * self.damping  # a depends on v through tau - D v as well
+        return da_dq, da_dv, da_dtau
+
     # ---- energies ------------------------------------------------------------------------------------
     def kinetic_energy(self, q: Any, v: Any) -> float:
         """T = ½ vᵀ M(q) v [J]."""

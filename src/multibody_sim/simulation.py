@@ -10,7 +10,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
-from .integrators import INTEGRATORS, Integrator, get_integrator
+from .integrators import INTEGRATORS, Integrator, StepFailure, get_integrator
 from .robot import Robot
 from .trajectory import LedgerEntry, LimitViolations, Trajectory
 
@@ -171,7 +171,14 @@ class _Run:
                 if problem:
                     return problem
             h = dt if k < n_steps - 1 else self.duration - t
-            q_next, v_next, step_flows = step(system, q, v, tau, h)
+            try:
+                q_next, v_next, step_flows = step(system, q, v, tau, h)
+            except StepFailure as failure:
+                self.tau = tau
+                self._record_current()
+                return failure.status, (
+                    f"{failure.status} at t = {t:.6g} s (step {k + 1}): {failure}; {self._cure()}"
+                )
             # Cheap finiteness check on every step: NaN or inf anywhere makes the sum non-finite.
             if not math.isfinite(q_next @ q_next + v_next @ v_next):
                 self.tau = tau

@@ -5,7 +5,7 @@ from __future__ import annotations
 import difflib
 
 from ..exceptions import InvalidArgumentError, UnknownIntegratorError
-from .base import Integrator, System
+from .base import Integrator, StepFailure, System
 from .explicit_rk import ExplicitRungeKutta
 from .partitioned import SemiImplicitEuler
 from .tableau import EULER, MIDPOINT, RK4, ButcherTableau
@@ -42,5 +42,5 @@ def get_integrator(integrator: str | Integrator) -> Integrator:
     )
 
 
-__all__ = ["INTEGRATORS", "ButcherTableau", "ExplicitRungeKutta", "Integrator", "SemiImplicitEuler", "System",
+__all__ = ["INTEGRATORS", "ButcherTableau", "ExplicitRungeKutta", "Integrator", "SemiImplicitEuler", "StepFailure", "System",
            "get_integrator"]

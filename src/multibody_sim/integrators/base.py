@@ -10,6 +10,20 @@ import numpy as np
 from ..state import ConfigurationSpace
 
 
+class StepFailure(Exception):
+    """An integrator could not complete a step (e.g. Newton did not converge); never a silently wrong state.
+
+    The stepping loop ends the run with ``status`` (fixed-step) or retries a shorter step (adaptive).
+
+    Attributes:
+        status: the run status this failure maps to, e.g. "newton_failed".
+    """
+
+    def __init__(self, message: str, *, status: str):
+        super().__init__(message)
+        self.status = status
+
+
 class System(Protocol):
     """What an integrator needs from a robot or scene (unchecked, hot-path methods)."""
 
