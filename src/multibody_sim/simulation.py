@@ -11,11 +11,15 @@ import numpy as np
 
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
 from .integrators import INTEGRATORS, Integrator, StepFailure, get_integrator
+from .integrators.explicit_rk import EmbeddedRungeKutta
 from .robot import Robot
+from .step_control import PIController
 from .trajectory import LedgerEntry, LimitViolations, Trajectory
 
 # Energy blow-up: |energy_error| beyond this many times the run's energy scale is divergence, not error.
 BLOWUP_FACTOR = 1e3
+# An adaptive step below this fraction of the duration has collapsed.
+MIN_STEP_FRACTION = 1e-12
 _FIXED_STEP_OPTIONS = ("control_dt", "output_dt")
 _ADAPTIVE_OPTIONS = ("atol", "control_dt", "max_step", "output_dt", "rtol")
 
@@ -44,18 +48,23 @@ def simulate(
         q0: initial configuration, shape (nq,).
         v0: initial velocity, shape (nv,).
         duration: simulated time [s], > 0.
-        dt: integration step [s], > 0; the last step is shortened so that t[-1] == duration.
+        dt: integration step [s], > 0; fixed-step methods shorten the last step so that t[-1] == duration;
+            adaptive methods take it as their first trial step.
         integrator: a registry name (`multibody-sim integrators` lists them) or an Integrator.
         controller: ``controller(t, q, v) -> tau`` (shape (nv,)), zero-order held; None applies no torque.
-        **options: ``output_dt`` (sampling period [s], a multiple of dt; default every step) and
-            ``control_dt`` (controller period [s], a multiple of dt; default every step).
+        **options: ``output_dt``: sampling period [s] (a multiple of dt for fixed-step methods; adaptive methods
+            sample it by dense output); default: every step. ``control_dt``: controller period [s] (a multiple
+            of dt for fixed-step methods; adaptive methods shorten steps to land on it); default: every step.
+            Adaptive methods only: ``rtol`` and ``atol`` (required: the error tolerances, relative and absolute,
+            on configurations in the tangent space and on velocities) and ``max_step`` [s].
 
     Returns:
         The trajectory, with status "completed".
 
     Raises:
         InvalidArgumentError: a bad argument or option (the message names it).
-        SimulationError: the state diverged; ``.trajectory`` holds every finite sample so far.
+        SimulationError: the run stopped early (status "diverged", "newton_failed", "step_collapsed");
+            ``.trajectory`` holds every finite sample so far.
         SimulationInterrupted: Ctrl-C; ``.trajectory`` holds every sample so far.
     """
     method = get_integrator(integrator)
@@ -66,9 +75,11 @@ def simulate(
     dt = _positive(dt, "dt")
     if controller is not None and not callable(controller):
         raise InvalidArgumentError(f"controller must be callable as controller(t, q, v), got {type(controller).__name__}")
-    output_every = _steps_per(options.get("output_dt"), dt, "output_dt")
-    control_every = _steps_per(options.get("control_dt"), dt, "control_dt")
-    run = _Run(system, method, q0, v0, duration, dt, controller, output_every, control_every, options)
+    method.check_system(system)
+    if isinstance(method, EmbeddedRungeKutta):
+        run: _Run = _AdaptiveRun(system, method, q0, v0, duration, dt, controller, options)
+    else:
+        run = _FixedStepRun(system, method, q0, v0, duration, dt, controller, options)
     return run.execute()
 
 
@@ -84,15 +95,22 @@ def _check_options(method: Integrator, options: dict[str, Any]) -> None:
                 f"option '{name}' does not apply to the fixed-step integrator '{method.name}'{where}"
             )
         raise InvalidArgumentError(f"unknown option '{name}' (valid for '{method.name}': {', '.join(valid)})")
+    if method.adaptive:
+        missing = [name for name in ("rtol", "atol") if options.get(name) is None]
+        if missing:
+            raise InvalidArgumentError(
+                f"integrator '{method.name}' is adaptive: pass {' and '.join(missing)} (error tolerances; "
+                "e.g. rtol=1e-6, atol=1e-8)"
+            )
 
 
-def _positive(value: Any, name: str) -> float:
+def _positive(value: Any, name: str, unit: str = "seconds") -> float:
     try:
         value = float(value)
     except (TypeError, ValueError):
-        raise InvalidArgumentError(f"{name} must be a positive number of seconds, got {value!r}") from None
+        raise InvalidArgumentError(f"{name} must be a positive number of {unit}, got {value!r}") from None
     if not (math.isfinite(value) and value > 0):
-        raise InvalidArgumentError(f"{name} must be a positive number of seconds, got {value!r}")
+        raise InvalidArgumentError(f"{name} must be a positive number of {unit}, got {value!r}")
     return value
 
 
@@ -107,35 +125,52 @@ def _steps_per(period: Any, dt: float, name: str) -> int:
     return k
 
 
+class _Samples:
+    """Growable per-sample arrays (preallocated when the number of samples is known)."""
+
+    def __init__(self, nq: int, nv: int, n_elements: int, capacity: int):
+        self.n = 0
+        self.T = np.empty(capacity)
+        self.Q = np.empty((capacity, nq))
+        self.V = np.empty((capacity, nv))
+        self.TAU = np.empty((capacity, nv))
+        self.KIN = np.empty(capacity)
+        self.POT = np.empty(capacity)
+        self.FLOWS = np.empty((capacity, n_elements))
+
+    def append(self, t: float, q: np.ndarray, v: np.ndarray, tau: np.ndarray, kinetic: float, potential: float,
+               flows: np.ndarray) -> None:
+        i = self.n
+        if i == len(self.T):
+            for name in ("T", "Q", "V", "TAU", "KIN", "POT", "FLOWS"):
+                old = getattr(self, name)
+                new = np.empty((2 * len(old) + 16, *old.shape[1:]))
+                new[:i] = old
+                setattr(self, name, new)
+        self.T[i], self.Q[i], self.V[i], self.TAU[i] = t, q, v, tau
+        self.KIN[i], self.POT[i], self.FLOWS[i] = kinetic, potential, flows
+        self.n = i + 1
+
+
 class _Run:
-    """One simulation's state while it runs; execute() is the stepping loop."""
+    """One simulation's state while it runs: recording, control, early stops; subclasses hold the loop."""
 
     def __init__(self, system: Robot, method: Integrator, q0: np.ndarray, v0: np.ndarray, duration: float,
-                 dt: float, controller: Controller | None, output_every: int, control_every: int,
-                 options: dict[str, Any]):
+                 dt: float, controller: Controller | None, options: dict[str, Any], capacity: int):
         self.system, self.method = system, method
         self.duration, self.dt = duration, dt
         self.controller = controller
-        self.output_every, self.control_every = output_every, control_every
         self.options = options
-        # Never count a last sliver of round-off as a step: 1.0 / 0.1 is 10 steps, not 11.
-        self.n_steps = max(1, math.ceil(duration / dt - 1e-9))
-        n_samples = (self.n_steps - 1) // output_every + 2
-        nq, nv = system.nq, system.nv
         self.elements = system.ledger_elements
-        self.T = np.empty(n_samples)
-        self.Q = np.empty((n_samples, nq))
-        self.V = np.empty((n_samples, nv))
-        self.TAU = np.empty((n_samples, nv))
-        self.KIN = np.empty(n_samples)
-        self.POT = np.empty(n_samples)
-        self.FLOWS = np.empty((n_samples, len(self.elements)))
+        self.samples = _Samples(system.nq, system.nv, len(self.elements), capacity)
         self.is_work = np.array([kind == "work" for _, kind in self.elements])
-        self.n = 0  # samples recorded
+        # The latest accepted state, kept current so that an early stop loses nothing.
         self.q, self.v, self.t, self.k = q0, v0, 0.0, 0
-        self.tau = np.zeros(nv)
+        self.tau = np.zeros(system.nv)
         self.flows = np.zeros(len(self.elements))
         self.controller_calls = 0
+        self.evaluations = 0
+        self.rejected = 0
         self.energy_scale = 0.0
 
     def execute(self) -> Trajectory:
@@ -146,8 +181,7 @@ class _Run:
             self._record_current()
             traj = self._trajectory("interrupted", time.perf_counter() - start)
             raise SimulationInterrupted(
-                f"interrupted at t = {self.t:.6g} s (step {self.k} of {self.n_steps}); "
-                f"{len(traj)} samples kept", trajectory=traj
+                f"interrupted at t = {self.t:.6g} s (step {self.k}); {len(traj)} samples kept", trajectory=traj
             ) from None
         wall = time.perf_counter() - start
         if status is not None:
@@ -157,63 +191,32 @@ class _Run:
 
     def _loop(self) -> tuple[str, str] | None:
         """Step to the end; returns (status, message) on an early stop, None on completion."""
-        system, step, dt, n_steps = self.system, self.method.step, self.dt, self.n_steps
-        controller, control_every, output_every = self.controller, self.control_every, self.output_every
-        nv = system.nv
-        q, v, tau, flows = self.q, self.v, self.tau, self.flows
-        for k in range(n_steps):
-            t = k * dt
-            if controller is not None and k % control_every == 0:
-                tau = self._control(controller, t, q, v, nv)
-            if k % output_every == 0:
-                self.tau = tau
-                problem = self._record(t, q, v, flows)
-                if problem:
-                    return problem
-            h = dt if k < n_steps - 1 else self.duration - t
-            try:
-                q_next, v_next, step_flows = step(system, q, v, tau, h)
-            except StepFailure as failure:
-                self.tau = tau
-                self._record_current()
-                return failure.status, (
-                    f"{failure.status} at t = {t:.6g} s (step {k + 1}): {failure}; {self._cure()}"
-                )
-            # Cheap finiteness check on every step: NaN or inf anywhere makes the sum non-finite.
-            if not math.isfinite(q_next @ q_next + v_next @ v_next):
-                self.tau = tau
-                return self._diverged_nonfinite(k, t, q_next, v_next)
-            q, v = q_next, v_next
-            flows = flows + step_flows
-            self.q, self.v, self.t, self.k, self.flows = q, v, t + h, k + 1, flows
-        self.tau = tau
-        self.t = self.duration
-        return self._record(self.duration, q, v, flows)
+        raise NotImplementedError
 
-    def _control(self, controller: Controller, t: float, q: np.ndarray, v: np.ndarray, nv: int) -> np.ndarray:
+    def _control(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        assert self.controller is not None
         q.setflags(write=False)  # the controller sees the state; it must not edit it
         v.setflags(write=False)
-        tau = controller(t, q, v)
+        tau = self.controller(t, q, v)
         self.controller_calls += 1
         if type(tau) is not np.ndarray or tau.dtype != np.float64:
             tau = np.asarray(tau, dtype=float)
-        if tau.shape != (nv,) or not math.isfinite(tau @ tau) or (self.system.floating_base and tau[:6].any()):
-            self.system.check_tau(tau, f"controller output at t = {t:.6g} s")  # raises with the precise reason
+        system = self.system
+        if tau.shape != (system.nv,) or not math.isfinite(tau @ tau) or (system.floating_base and tau[:6].any()):
+            system.check_tau(tau, f"controller output at t = {t:.6g} s")  # raises with the precise reason
         return tau
 
     def _record(self, t: float, q: np.ndarray, v: np.ndarray, flows: np.ndarray) -> tuple[str, str] | None:
-        """Store a sample; returns (status, message) if the energy has blown up."""
-        i = self.n
+        """Store a sample (with the torque in force from t on); returns (status, message) if energy blew up."""
+        samples = self.samples
         T, V = self.system.unchecked_energies(q, v)
-        self.T[i], self.Q[i], self.V[i], self.TAU[i] = t, q, v, self.tau
-        self.KIN[i], self.POT[i], self.FLOWS[i] = T, V, flows
-        self.n = i + 1
-        if i == 0:
+        samples.append(t, q, v, self.tau, T, V, flows)
+        if samples.n == 1:
             self.energy_scale = T + abs(V) + self.system.energy_scale
             return None
         work = flows[self.is_work].sum()
         dissipated = flows[~self.is_work].sum()
-        error = T + V - self.KIN[0] - self.POT[0] - work + dissipated
+        error = T + V - samples.KIN[0] - samples.POT[0] - work + dissipated
         bound = BLOWUP_FACTOR * (self.energy_scale + abs(work) + abs(dissipated))
         if not math.isfinite(T + V) or abs(error) > bound:
             fastest = int(np.argmax(np.abs(v)))
@@ -226,41 +229,48 @@ class _Run:
 
     def _record_current(self) -> None:
         """Keep the latest state as a last sample if it is not one already (early stops lose nothing)."""
-        if self.n and self.T[self.n - 1] == self.t:
+        samples = self.samples
+        if samples.n and samples.T[samples.n - 1] == self.t:
             return
         self._record(self.t, self.q, self.v, self.flows)
 
-    def _diverged_nonfinite(self, k: int, t: float, q: np.ndarray, v: np.ndarray) -> tuple[str, str]:
+    def _stopped(self, status: str, message: str) -> tuple[str, str]:
         self._record_current()
+        return status, message
+
+    def _diverged_nonfinite(self, t_next: float, q: np.ndarray, v: np.ndarray) -> tuple[str, str]:
         bad_v = ~np.isfinite(v)
-        dof = int(np.argmax(bad_v)) if bad_v.any() else int(np.argmax(~np.isfinite(self.system.space.difference(
-            self.q, np.where(np.isfinite(q), q, 0.0)))))
-        name = self.system.dof_names[dof]
-        return "diverged", (
-            f"diverged at t = {t:.6g} s (step {k + 1}): the state became non-finite in '{name}'; {self._cure()}"
-        )
+        if bad_v.any():
+            dof = int(np.argmax(bad_v))
+        else:
+            finite_q = np.where(np.isfinite(q), q, 0.0)
+            dof = int(np.argmax(~np.isfinite(self.system.space.difference(self.q, finite_q))))
+        return self._stopped("diverged", (
+            f"diverged at t = {t_next:.6g} s (step {self.k + 1}): the state became non-finite in "
+            f"'{self.system.dof_names[dof]}'; {self._cure()}"
+        ))
 
     def _cure(self) -> str:
-        implicit = sorted(n for n, m in INTEGRATORS.items() if m.implicit)
+        implicit = sorted(n for n, m in INTEGRATORS.items() if m.implicit and m.a_stable)
         also = f", or an implicit integrator ({', '.join(implicit)})" if implicit else ""
         return f"try a smaller dt (now {self.dt:g} s){also}"
 
     def _trajectory(self, status: str, wall_time: float) -> Trajectory:
-        n, system = self.n, self.system
-        t, Q = self.T[:n].copy(), self.Q[:n].copy()
-        kinetic, potential, flows = self.KIN[:n].copy(), self.POT[:n].copy(), self.FLOWS[:n]
+        s, system = self.samples, self.system
+        n = s.n
+        t, Q = s.T[:n].copy(), s.Q[:n].copy()
+        kinetic, potential, flows = s.KIN[:n].copy(), s.POT[:n].copy(), s.FLOWS[:n]
         ledger = {name: LedgerEntry(kind, flows[:, j].copy()) for j, (name, kind) in enumerate(self.elements)}
         work = flows[:, self.is_work].sum(axis=1)
         dissipated = flows[:, ~self.is_work].sum(axis=1)
         total = kinetic + potential
         error = total - total[0] - work + dissipated if n else total
-        steps = self.k
         return Trajectory(
-            t=t, q=Q, v=self.V[:n].copy(), tau=self.TAU[:n].copy(),
+            t=t, q=Q, v=s.V[:n].copy(), tau=s.TAU[:n].copy(),
             kinetic_energy=kinetic, potential_energy=potential, total_energy=total,
             work=work, dissipated=dissipated, energy_error=error, ledger=ledger,
             limit_violations=_limit_violations(system, t, Q),
-            stats={"steps": steps, "rejected_steps": 0, "evaluations": steps * self.method.evaluations_per_step,
+            stats={"steps": self.k, "rejected_steps": self.rejected, "evaluations": self.evaluations,
                    "controller_calls": self.controller_calls, "wall_time": wall_time},
             status=status,
             metadata=self._metadata(),
@@ -277,6 +287,137 @@ class _Run:
             "controller": None if self.controller is None else getattr(
                 self.controller, "__qualname__", type(self.controller).__qualname__),
         }
+
+
+class _FixedStepRun(_Run):
+    """Steps of dt, the last one shortened to land on the duration."""
+
+    def __init__(self, system: Robot, method: Integrator, q0: np.ndarray, v0: np.ndarray, duration: float,
+                 dt: float, controller: Controller | None, options: dict[str, Any]):
+        self.output_every = _steps_per(options.get("output_dt"), dt, "output_dt")
+        self.control_every = _steps_per(options.get("control_dt"), dt, "control_dt")
+        # Never count a last sliver of round-off as a step: 1.0 / 0.1 is 10 steps, not 11.
+        self.n_steps = max(1, math.ceil(duration / dt - 1e-9))
+        capacity = (self.n_steps - 1) // self.output_every + 2
+        super().__init__(system, method, q0, v0, duration, dt, controller, options, capacity)
+
+    def _loop(self) -> tuple[str, str] | None:
+        system, step, dt, n_steps = self.system, self.method.step, self.dt, self.n_steps
+        controller, control_every, output_every = self.controller, self.control_every, self.output_every
+        method = self.method
+        count_evaluations = method.implicit  # Newton iterations vary; explicit methods have a fixed count
+        q, v, tau, flows = self.q, self.v, self.tau, self.flows
+        for k in range(n_steps):
+            t = k * dt
+            if controller is not None and k % control_every == 0:
+                tau = self._control(t, q, v)
+            self.tau = tau
+            if k % output_every == 0:
+                problem = self._record(t, q, v, flows)
+                if problem:
+                    return problem
+            h = dt if k < n_steps - 1 else self.duration - t
+            try:
+                q_next, v_next, step_flows = step(system, q, v, tau, h)
+            except StepFailure as failure:
+                return self._stopped(failure.status, (
+                    f"{failure.status} at t = {t:.6g} s (step {k + 1}): {failure}; {self._cure()}"
+                ))
+            self.evaluations += method.last_evaluations if count_evaluations else method.evaluations_per_step
+            # Cheap finiteness check on every step: NaN or inf anywhere makes the sum non-finite.
+            if not math.isfinite(q_next @ q_next + v_next @ v_next):
+                return self._diverged_nonfinite(t + h, q_next, v_next)
+            q, v = q_next, v_next
+            flows = flows + step_flows
+            self.q, self.v, self.t, self.k, self.flows = q, v, t + h, k + 1, flows
+        self.t = self.duration
+        return self._record(self.duration, q, v, flows)
+
+
+class _AdaptiveRun(_Run):
+    """Steps chosen by a PI controller on an embedded error estimate; samples by dense output."""
+
+    method: EmbeddedRungeKutta
+
+    def __init__(self, system: Robot, method: EmbeddedRungeKutta, q0: np.ndarray, v0: np.ndarray,
+                 duration: float, dt: float, controller: Controller | None, options: dict[str, Any]):
+        self.rtol = _positive(options["rtol"], "rtol", "units")
+        self.atol = _positive(options["atol"], "atol", "units")
+        self.max_step = _positive(options["max_step"], "max_step") if options.get("max_step") is not None else math.inf
+        self.output_dt = _positive(options["output_dt"], "output_dt") if options.get("output_dt") is not None else None
+        self.control_dt = (_positive(options["control_dt"], "control_dt")
+                           if options.get("control_dt") is not None else None)
+        capacity = math.ceil(duration / self.output_dt) + 2 if self.output_dt else 1024
+        super().__init__(system, method, q0, v0, duration, dt, controller, options, capacity)
+
+    def _loop(self) -> tuple[str, str] | None:
+        system, method, duration = self.system, self.method, self.duration
+        rtol, atol, output_dt, control_dt = self.rtol, self.atol, self.output_dt, self.control_dt
+        controller = PIController(method.embedded_order, max_step=self.max_step,
+                                  min_step=MIN_STEP_FRACTION * duration)
+        fsal = method.tableau.fsal
+        q, v, flows, t = self.q, self.v, self.flows, 0.0
+        tau = self._control(t, q, v) if self.controller is not None else self.tau
+        self.tau = tau
+        problem = self._record(t, q, v, flows)
+        if problem:
+            return problem
+        next_output, next_control = 1, 1  # indices of the next output and control instants
+        h = min(self.dt, self.max_step)
+        first_stage = None
+        while t < duration:
+            # Land exactly on the duration and on control instants (the torque changes there).
+            t_stop = duration if control_dt is None else min(duration, next_control * control_dt)
+            landing = t + h >= t_stop - 1e-12 * duration
+            h_try = t_stop - t if landing else h
+            attempt = method.attempt(system, q, v, tau, h_try, rtol=rtol, atol=atol, first_stage=first_stage)
+            self.evaluations += attempt.evaluations
+            accepted, h = controller.next_step(h_try, attempt.error)
+            if not accepted:
+                self.rejected += 1
+                first_stage = (attempt.stages[1][0], attempt.stages[2][0])  # same start state, same torque
+                if h < controller.min_step:
+                    return self._stopped("step_collapsed", (
+                        f"step_collapsed at t = {t:.6g} s (step {self.k + 1}): the step fell to {h:.3g} s, below "
+                        f"the {controller.min_step:.3g} s minimum (error norm {attempt.error:.3g}); the problem may "
+                        f"be stiff or singular here: {self._stiff_cure()}"
+                    ))
+                continue
+            t_next = t_stop if landing else t + h_try
+            if output_dt is not None:  # dense output at the sample instants inside the step
+                while next_output * output_dt < min(t_next, duration) - 1e-12 * duration:
+                    t_out = next_output * output_dt
+                    q_out, v_out, flows_out = method.dense_output(system, q, v, attempt, h_try, (t_out - t) / h_try)
+                    problem = self._record(t_out, q_out, v_out, flows + flows_out)
+                    if problem:
+                        return problem
+                    next_output += 1
+            q, v, t = attempt.q, attempt.v, t_next
+            flows = flows + attempt.flows
+            self.q, self.v, self.t, self.k, self.flows = q, v, t, self.k + 1, flows
+            first_stage = (attempt.stages[1][-1], attempt.stages[2][-1]) if fsal else None
+            reached_control = control_dt is not None and landing and t_stop == next_control * control_dt
+            if reached_control:
+                next_control += 1
+            if self.controller is not None and t < duration and (control_dt is None or reached_control):
+                tau = self._control(t, q, v)
+                self.tau = tau
+                first_stage = None  # the stage depends on the torque
+            if output_dt is None or t >= duration:
+                problem = self._record(t, q, v, flows)
+                if problem:
+                    return problem
+            elif abs(t - next_output * output_dt) <= 1e-12 * duration:
+                problem = self._record(t, q, v, flows)
+                if problem:
+                    return problem
+                next_output += 1
+        return None
+
+    def _stiff_cure(self) -> str:
+        implicit = sorted(n for n, m in INTEGRATORS.items() if m.implicit and m.a_stable)
+        return (f"try an implicit integrator ({', '.join(implicit)}) or looser tolerances" if implicit
+                else "try looser tolerances")
 
 
 def _limit_violations(system: Robot, t: np.ndarray, Q: np.ndarray) -> LimitViolations:

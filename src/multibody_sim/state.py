@@ -25,6 +25,7 @@ class ConfigurationSpace:
         nq: configuration size.
         nv: tangent (velocity) size.
         curved_blocks: (start, stop) velocity-index ranges whose chart Jacobian is not the identity.
+        neutral: the neutral configuration, shape (nq,) (do not modify).
     """
 
     def __init__(self, model: pin.Model):
@@ -32,6 +33,7 @@ class ConfigurationSpace:
         self.nq = model.nq
         self.nv = model.nv
         self.curved_blocks = _curved_blocks(model)
+        self.neutral = pin.neutral(model)
 
     @property
     def is_flat(self) -> bool:
@@ -57,7 +59,12 @@ class ConfigurationSpace:
         J = pin.dIntegrate(self.model, q_base, xi, _ARG_V)
         xi_dot = v.copy()
         for start, stop in self.curved_blocks:
-            xi_dot[start:stop] = np.linalg.solve(J[start:stop, start:stop], v[start:stop])
+            try:
+                xi_dot[start:stop] = np.linalg.solve(J[start:stop, start:stop], v[start:stop])
+            except np.linalg.LinAlgError:
+                # The chart is singular only where a stage rotated by 2π within one step: the step is far too
+                # long or the state has diverged. NaN lets the loop report it as divergence.
+                xi_dot[start:stop] = np.nan
         return xi_dot
 
     def is_normalized(self, q: np.ndarray, tolerance: float = 1e-6) -> bool:

@@ -6,9 +6,9 @@ import difflib
 
 from ..exceptions import InvalidArgumentError, UnknownIntegratorError
 from .base import Integrator, StepFailure, System
-from .explicit_rk import ExplicitRungeKutta
+from .explicit_rk import EmbeddedRungeKutta, ExplicitRungeKutta
 from .partitioned import SemiImplicitEuler
-from .tableau import EULER, MIDPOINT, RK4, ButcherTableau
+from .tableau import BOGACKI_SHAMPINE_32, DORMAND_PRINCE_54, EULER, MIDPOINT, RK4, ButcherTableau, EmbeddedTableau
 
 INTEGRATORS: dict[str, Integrator] = {
     method.name: method
@@ -17,6 +17,8 @@ INTEGRATORS: dict[str, Integrator] = {
         SemiImplicitEuler(),
         ExplicitRungeKutta("midpoint", MIDPOINT, "explicit midpoint (RK2)"),
         ExplicitRungeKutta("rk4", RK4, "classical Runge–Kutta"),
+        EmbeddedRungeKutta("bs32", BOGACKI_SHAMPINE_32, "Bogacki–Shampine 3(2), adaptive, cubic Hermite dense output"),
+        EmbeddedRungeKutta("dp54", DORMAND_PRINCE_54, "Dormand–Prince 5(4), adaptive, 4th-order dense output"),
     ]
 }
 
@@ -42,5 +44,5 @@ def get_integrator(integrator: str | Integrator) -> Integrator:
     )
 
 
-__all__ = ["INTEGRATORS", "ButcherTableau", "ExplicitRungeKutta", "Integrator", "SemiImplicitEuler", "StepFailure", "System",
+__all__ = ["INTEGRATORS", "ButcherTableau", "EmbeddedRungeKutta", "EmbeddedTableau", "ExplicitRungeKutta", "Integrator", "SemiImplicitEuler", "StepFailure", "System",
            "get_integrator"]

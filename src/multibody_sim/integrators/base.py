@@ -83,5 +83,8 @@ class Integrator(ABC):
             over the step, integrated with the method's own quadrature.
         """
 
+    def check_system(self, system: System) -> None:
+        """Refuse, before any step, a system this method cannot integrate (raise InvalidArgumentError)."""
+
     def __repr__(self) -> str:
         return f"<integrator {self.name}: order {self.order}>"

@@ -1,0 +1,387 @@
+"""The `multibody-sim` command line: argparse subcommands over the public API, with contract exit codes."""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import importlib.metadata
+import math
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from types import FrameType, ModuleType
+from typing import Any, NoReturn
+
+PROG = "multibody-sim"
+COMMANDS = ("run", "models", "inspect", "integrators")
+
+# Exit codes (CONTRACTS.md).
+EXIT_OK = 0
+EXIT_SIMULATION_FAILED = 1
+EXIT_BAD_INPUT = 2
+EXIT_SIGINT = 128 + signal.SIGINT  # 130
+EXIT_SIGTERM = 128 + signal.SIGTERM  # 143
+
+_FLOATING_NOTE = (
+    "floating base: q = [x y z qx qy qz qw, joints...] (unit quaternion, scalar last) and "
+    "v = [linear, angular (both in the base frame), joints...], so nq = nv + 1 and dq/dt != v"
+)
+
+
+class _UsageError(Exception):
+    """Bad command-line input, reported as one line and exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line and exit 2, with no usage dump.
+
+    Raising instead of exiting lets main() return the code (tests call main() in-process).
+    """
+
+    def error(self, message: str) -> NoReturn:
+        raise _UsageError(message)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line.
+
+    Args:
+        argv: the arguments after the program name; None reads sys.argv[1:].
+
+    Returns:
+        The exit code: 0 success, 1 the simulation failed, 2 bad input, 130 / 143 interrupted by
+        SIGINT / SIGTERM.
+    """
+    _tolerate_unencodable_output()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = _parse(argv)
+    except _UsageError as exc:
+        return _error(str(exc))
+    except SystemExit as exc:  # --help and --version exit through argparse
+        return exc.code if isinstance(exc.code, int) else EXIT_OK
+    # Imported only now so that --help and argument mistakes answer at once (Pinocchio takes ~1 s to import).
+    import multibody_sim as ms
+
+    bad_input = (ms.InvalidArgumentError, ms.UnknownNameError, ms.ModelError, ms.TrajectoryFileError, _UsageError)
+    try:
+        return int(args.handler(args, ms))
+    except bad_input as exc:
+        return _error(str(exc))
+    except ms.MultibodySimError as exc:  # not bad input and not caught by the command: a failure
+        return _error(str(exc), EXIT_SIMULATION_FAILED)
+    except KeyboardInterrupt:  # Ctrl-C outside the stepping loop (loading, writing): nothing to keep
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return EXIT_SIGINT
+
+
+# ---- arguments ---------------------------------------------------------------------------------------
+def _parse(argv: list[str]) -> argparse.Namespace:
+    # argparse words the "no command" and "unknown command" errors differently across Python versions and
+    # offers no close match: check the command name ourselves.
+    if not argv:
+        raise _UsageError(f"no command given (choose from: {', '.join(COMMANDS)}; see {PROG} --help)")
+    if not argv[0].startswith("-") and argv[0] not in COMMANDS:
+        close = difflib.get_close_matches(argv[0], COMMANDS, n=1, cutoff=0.5)
+        hint = f"did you mean {close[0]}? " if close else ""
+        raise _UsageError(f"unknown command '{argv[0]}' ({hint}choose from: {', '.join(COMMANDS)})")
+    return _build_parser().parse_args(argv)
+
+
+def _build_parser() -> _Parser:
+    parser = _Parser(
+        prog=PROG,
+        description="Simulate URDF robots on Pinocchio with swappable integrators and an energy ledger.",
+        epilog="Exit codes: 0 success, 1 the simulation failed (partial samples written to --out), "
+        "2 bad input, 130 / 143 interrupted by SIGINT / SIGTERM (partial samples written to --out).",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    robot_options = _Parser(add_help=False)
+    robot_options.add_argument(
+        "robot", metavar="ROBOT_OR_URDF", help=f"a catalog name (`{PROG} models` lists them) or a URDF file"
+    )
+    base = robot_options.add_mutually_exclusive_group()
+    base.add_argument("--floating-base", dest="floating_base", action="store_const", const=True, default=None,
+                      help="add a free-flyer root joint (default: the catalog's natural base; fixed for files)")
+    base.add_argument("--fixed-base", dest="floating_base", action="store_const", const=False,
+                      help="weld the root link to the world")
+    robot_options.add_argument("--no-damping", action="store_true",
+                               help="ignore the URDF's joint viscous damping (default: apply it)")
+    robot_options.add_argument("--package-dir", metavar="DIR", nargs="+", action="extend", default=[],
+                               help="folder that package://NAME/... URIs resolve against (repeatable)")
+
+    run = commands.add_parser(
+        "run", parents=[robot_options], help="simulate a robot and print a summary",
+        description="Simulate ROBOT_OR_URDF from (q0, v0) with no applied torque and print the run's summary.",
+    )
+    run.add_argument("--integrator", metavar="NAME", default="rk4",
+                     help=f"integration method (default: rk4; `{PROG} integrators` lists them)")
+    run.add_argument("--dt", metavar="S", type=float, default=1e-3, help="integration step [s] (default: 0.001)")
+    run.add_argument("--duration", metavar="S", type=float, default=1.0,
+                     help="simulated time [s] (default: 1)")
+    run.add_argument("--q0", metavar="V", type=float, nargs="+",
+                     help="initial configuration, nq space-separated numbers (default: the neutral "
+                     "configuration; a floating base's quaternion is x y z w)")
+    run.add_argument("--v0", metavar="V", type=float, nargs="+",
+                     help="initial velocity, nv space-separated numbers (default: zeros)")
+    run.add_argument("--output-dt", metavar="S", type=float,
+                     help="sampling period of the output [s], a multiple of dt (default: every step)")
+    run.add_argument("--control-dt", metavar="S", type=float,
+                     help="controller period [s], a multiple of dt (default: every step)")
+    run.add_argument("--out", metavar="FILE.npz",
+                     help="write the trajectory here (also the partial one if the run fails or is interrupted)")
+    run.set_defaults(handler=_cmd_run)
+
+    models = commands.add_parser("models", help="list the robot catalog",
+                                 description="List the catalog robots: name, nq, nv, natural base, description.")
+    models.set_defaults(handler=_cmd_models)
+
+    inspect = commands.add_parser(
+        "inspect", parents=[robot_options], help="show a robot's joints, bodies and source",
+        description="Show a robot's joints (type, limits, effort limit, damping), body masses, sizes and source.",
+    )
+    inspect.set_defaults(handler=_cmd_inspect)
+
+    integrators = commands.add_parser("integrators", help="list the integration methods",
+                                      description="List the integration methods with their order and properties.")
+    integrators.set_defaults(handler=_cmd_integrators)
+    return parser
+
+
+def _version() -> str:
+    try:
+        return importlib.metadata.version("multibody-sim")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+# ---- commands ----------------------------------------------------------------------------------------
+def _load(args: argparse.Namespace, ms: ModuleType) -> Any:
+    return ms.load_robot(args.robot, floating_base=args.floating_base, damping=not args.no_damping,
+                         package_dirs=args.package_dir or None)
+
+
+def _cmd_run(args: argparse.Namespace, ms: ModuleType) -> int:
+    out = _check_out(args.out) if args.out else None
+    robot = _load(args, ms)
+    method = ms.get_integrator(args.integrator)
+    # Checked before the header so that a wrong vector is the only thing printed.
+    q0 = robot.neutral() if args.q0 is None else robot.check_q(args.q0, "q0")
+    v0 = [0.0] * robot.nv if args.v0 is None else robot.check_v(args.v0, "v0")
+    options = {name: getattr(args, name) for name in ("output_dt", "control_dt") if getattr(args, name) is not None}
+    base = "floating" if robot.floating_base else "fixed"
+    with _SigtermAsInterrupt() as signals:
+        try:
+            # Printed (and flushed) with the handlers in place, just before stepping: a watcher may signal
+            # as soon as it reads this line.
+            print(f"run: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
+                  f"dt {args.dt:g} s, duration {args.duration:g} s", flush=True)
+            trajectory = ms.simulate(robot, q0, v0, duration=args.duration, dt=args.dt, integrator=method,
+                                     **options)
+        except ms.SimulationError as exc:
+            failure: BaseException | None = exc
+        except KeyboardInterrupt as exc:  # SimulationInterrupted, or a signal before the first step
+            failure = exc
+        else:
+            failure = None
+    if failure is None:
+        print(trajectory.summary())
+        if out is not None:
+            _save(trajectory, out)
+            print(f"wrote {out}")
+        return EXIT_OK
+    partial = getattr(failure, "trajectory", None)
+    if partial is not None and len(partial):
+        print(partial.summary(), flush=True)
+    kept = _save_partial(partial, out)
+    if isinstance(failure, ms.SimulationError):
+        return _error(f"{failure}; {kept}", EXIT_SIMULATION_FAILED)
+    # The stepping loop cannot tell which signal raised the KeyboardInterrupt; our handler can.
+    name = signals.received or "SIGINT"
+    where = str(failure) or "interrupted before the first step"
+    print(f"{PROG}: {name}: {where}; {kept}", file=sys.stderr)
+    return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
+
+
+def _cmd_models(args: argparse.Namespace, ms: ModuleType) -> int:
+    from multibody_sim.catalog import catalog_table
+
+    rows = catalog_table()
+    print(_table(["name", "nq", "nv", "base", "description"],
+                 [[r["name"], r["nq"], r["nv"], r["base"], r["description"]] for r in rows]))
+    return EXIT_OK
+
+
+def _cmd_inspect(args: argparse.Namespace, ms: ModuleType) -> int:
+    robot = _load(args, ms)
+    model = robot.model
+    entry = ms.CATALOG.get(args.robot)
+    lines = [f"{robot.name}" + (f": {entry.description}" if entry is not None else "")]
+    source = robot.source
+    lines += [f"URDF: {source.get('urdf_path')}", f"sha256: {source.get('urdf_sha256')}"]
+    base = "floating (free-flyer root joint)" if robot.floating_base else "fixed (root link welded to the world)"
+    lines += [f"base: {base}", f"nq: {robot.nq}  nv: {robot.nv}"]
+    welded = float(model.inertias[0].mass)
+    lines.append(f"total mass: {robot.total_mass:.6g} kg" + (
+        f" (moving bodies; {welded:.6g} kg welded to the world not counted)" if welded > 0 else ""))
+    if robot.floating_base:
+        lines.append(_FLOATING_NOTE)
+
+    joint_rows = []
+    for jid in range(1, model.njoints):
+        joint = model.joints[jid]
+        if joint.nv == 0:
+            continue
+        iq, iv = joint.idx_q, joint.idx_v
+        kind = _joint_kind(joint.shortname())
+        unit = "m" if kind == "prismatic" else "rad"
+        if joint.nq == 1 and math.isfinite(robot.lower_limit[iq]):
+            limits = f"[{robot.lower_limit[iq]:.6g}, {robot.upper_limit[iq]:.6g}] {unit}"
+        else:
+            limits = "none"
+        if robot.floating_base and iv < 6:
+            effort = "unactuated"
+        elif joint.nv == 1 and math.isfinite(robot.effort_limit[iv]):
+            effort = f"{robot.effort_limit[iv]:.6g} {'N' if kind == 'prismatic' else 'N·m'}"
+        else:
+            effort = "none"
+        damping = ", ".join(f"{d:.6g}" for d in robot.damping[iv : iv + joint.nv])
+        joint_rows.append([model.names[jid], kind, limits, effort, damping])
+    lines += ["", "joints (Pinocchio order):",
+              _table(["name", "type", "position limits", "effort limit", "damping"], joint_rows, indent=2)]
+
+    # Pinocchio merges links joined by fixed joints into one body per joint; list the links in each.
+    links: dict[int, list[str]] = {}
+    for frame in model.frames:
+        if frame.type.name == "BODY":
+            links.setdefault(frame.parentJoint, []).append(frame.name)
+    body_rows = []
+    for jid in range(model.njoints):
+        mass = float(model.inertias[jid].mass)
+        if jid == 0 and mass == 0.0:
+            continue
+        moved_by = "(welded to the world)" if jid == 0 else model.names[jid]
+        body_rows.append([moved_by, f"{mass:.6g}", ", ".join(links.get(jid, []))])
+    lines += ["", "bodies (links joined by fixed joints are merged):",
+              _table(["moved by joint", "mass [kg]", "links"], body_rows, indent=2)]
+    print("\n".join(lines))
+    return EXIT_OK
+
+
+def _cmd_integrators(args: argparse.Namespace, ms: ModuleType) -> int:
+    rows, notes = [], []
+    for name, method in ms.INTEGRATORS.items():
+        flags = [flag for flag, on in (("adaptive", method.adaptive), ("implicit", method.implicit),
+                                       ("symplectic", method.symplectic), ("A-stable", method.a_stable)) if on]
+        evaluations = method.evaluations_per_step if not method.adaptive else f"{method.evaluations_per_step}/trial"
+        rows.append([name, method.order, evaluations, ", ".join(flags) or "-", method.description])
+        if method.notes:
+            notes.append(f"  {name}: {method.notes}")
+    print(_table(["name", "order", "evaluations/step", "flags", "description"], rows))
+    if notes:
+        print("\nnotes:\n" + "\n".join(notes))
+    return EXIT_OK
+
+
+# ---- helpers -----------------------------------------------------------------------------------------
+def _error(message: str, code: int = EXIT_BAD_INPUT) -> int:
+    """Print one line on stderr and return the exit code."""
+    print(f"{PROG}: error: {' '.join(message.splitlines())}", file=sys.stderr)
+    return code
+
+
+def _check_out(name: str) -> Path:
+    """--out must be writable before a possibly long run, not after it."""
+    path = Path(name).expanduser()
+    if path.is_dir():
+        raise _UsageError(f"--out {name}: is a directory, expected a file name such as run.npz")
+    folder = path.absolute().parent
+    while not folder.exists():  # Trajectory.save creates missing folders
+        folder = folder.parent
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise _UsageError(f"--out {name}: cannot create a file in {folder} (not a writable folder)")
+    return path
+
+
+def _save(trajectory: Any, path: Path) -> None:
+    try:
+        trajectory.save(path)
+    except OSError as exc:
+        raise _UsageError(f"--out {path}: cannot write the trajectory ({exc.strerror or exc})") from None
+
+
+def _save_partial(trajectory: Any, out: Path | None) -> str:
+    """Write a failed or interrupted run's samples; returns the clause that says what was kept."""
+    if trajectory is None or not len(trajectory):
+        return "no samples to keep"
+    span = f"partial trajectory ({len(trajectory)} samples, t = {trajectory.t[0]:g}..{trajectory.t[-1]:g} s)"
+    if out is None:
+        return f"{span} not saved (pass --out FILE.npz to keep it)"
+    try:
+        trajectory.save(out)
+    except OSError as exc:
+        return f"{span} could not be written to {out} ({exc.strerror or exc})"
+    return f"{span} written to {out}"
+
+
+class _SigtermAsInterrupt:
+    """While active, SIGTERM raises KeyboardInterrupt, so a `kill` takes Ctrl-C's path and keeps the samples.
+
+    Attributes:
+        received: "SIGTERM" once the handler ran, else None.
+    """
+
+    def __init__(self) -> None:
+        self.received: str | None = None
+        self._previous: Any = None
+        # Python only lets the main thread install handlers; elsewhere SIGTERM keeps its default.
+        self._active = threading.current_thread() is threading.main_thread()
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        self.received = "SIGTERM"
+        raise KeyboardInterrupt
+
+    def __enter__(self) -> _SigtermAsInterrupt:
+        if self._active:
+            self._previous = signal.signal(signal.SIGTERM, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._active:
+            signal.signal(signal.SIGTERM, self._previous)
+
+
+def _joint_kind(shortname: str) -> str:
+    """The URDF word for a Pinocchio joint model (JointModelRZ -> revolute, JointModelRUBX -> continuous)."""
+    short = shortname.removeprefix("JointModel")
+    if short.startswith("RUB") or short.startswith("RevoluteUnbounded"):
+        return "continuous"
+    if short in ("RX", "RY", "RZ") or short.startswith("Revolute"):
+        return "revolute"
+    if short in ("PX", "PY", "PZ") or short.startswith("Prismatic"):
+        return "prismatic"
+    return {"FreeFlyer": "floating", "Planar": "planar", "Spherical": "spherical"}.get(short, short)
+
+
+def _table(headers: list[str], rows: list[list[Any]], indent: int = 0) -> str:
+    """Left-aligned columns separated by two spaces."""
+    cells = [[str(c) for c in row] for row in [headers, *rows]]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
+    pad = " " * indent
+    return "\n".join(pad + "  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in cells)
+
+
+def _tolerate_unencodable_output() -> None:
+    """Print descriptions with non-ASCII characters (Runge–Kutta) even on a non-UTF-8 terminal."""
+    reconfigure: Callable[..., None] | None = getattr(sys.stdout, "reconfigure", None)
+    if reconfigure is not None:
+        reconfigure(errors="replace")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
