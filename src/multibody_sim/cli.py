@@ -12,8 +12,11 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from types import FrameType, ModuleType
+from types import FrameType
 from typing import Any, NoReturn
+
+import multibody_sim as ms
+from multibody_sim.catalog import catalog_table
 
 PROG = "multibody-sim"
 COMMANDS = ("run", "models", "inspect", "integrators")
@@ -63,12 +66,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _error(str(exc))
     except SystemExit as exc:  # --help and --version exit through argparse
         return exc.code if isinstance(exc.code, int) else EXIT_OK
-    # Imported only now so that --help and argument mistakes answer at once (Pinocchio takes ~1 s to import).
-    import multibody_sim as ms
-
     bad_input = (ms.InvalidArgumentError, ms.UnknownNameError, ms.ModelError, ms.TrajectoryFileError, _UsageError)
     try:
-        return int(args.handler(args, ms))
+        return int(args.handler(args))
     except bad_input as exc:
         return _error(str(exc))
     except ms.MultibodySimError as exc:  # not bad input and not caught by the command: a failure
@@ -161,14 +161,14 @@ def _version() -> str:
 
 
 # ---- commands ----------------------------------------------------------------------------------------
-def _load(args: argparse.Namespace, ms: ModuleType) -> Any:
+def _load(args: argparse.Namespace) -> Any:
     return ms.load_robot(args.robot, floating_base=args.floating_base, damping=not args.no_damping,
                          package_dirs=args.package_dir or None)
 
 
-def _cmd_run(args: argparse.Namespace, ms: ModuleType) -> int:
+def _cmd_run(args: argparse.Namespace) -> int:
     out = _check_out(args.out) if args.out else None
-    robot = _load(args, ms)
+    robot = _load(args)
     method = ms.get_integrator(args.integrator)
     # Checked before the header so that a wrong vector is the only thing printed.
     q0 = robot.neutral() if args.q0 is None else robot.check_q(args.q0, "q0")
@@ -208,17 +208,15 @@ def _cmd_run(args: argparse.Namespace, ms: ModuleType) -> int:
     return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
 
 
-def _cmd_models(args: argparse.Namespace, ms: ModuleType) -> int:
-    from multibody_sim.catalog import catalog_table
-
+def _cmd_models(args: argparse.Namespace) -> int:
     rows = catalog_table()
     print(_table(["name", "nq", "nv", "base", "description"],
                  [[r["name"], r["nq"], r["nv"], r["base"], r["description"]] for r in rows]))
     return EXIT_OK
 
 
-def _cmd_inspect(args: argparse.Namespace, ms: ModuleType) -> int:
-    robot = _load(args, ms)
+def _cmd_inspect(args: argparse.Namespace) -> int:
+    robot = _load(args)
     model = robot.model
     entry = ms.CATALOG.get(args.robot)
     lines = [f"{robot.name}" + (f": {entry.description}" if entry is not None else "")]
@@ -273,7 +271,7 @@ def _cmd_inspect(args: argparse.Namespace, ms: ModuleType) -> int:
     return EXIT_OK
 
 
-def _cmd_integrators(args: argparse.Namespace, ms: ModuleType) -> int:
+def _cmd_integrators(args: argparse.Namespace) -> int:
     rows, notes = [], []
     for name, method in ms.INTEGRATORS.items():
         flags = [flag for flag, on in (("adaptive", method.adaptive), ("implicit", method.implicit),

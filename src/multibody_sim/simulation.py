@@ -383,6 +383,12 @@ class _AdaptiveRun(_Run):
                         f"be stiff or singular here: {self._stiff_cure()}"
                     ))
                 continue
+            if h < controller.min_step:
+                return self._stopped("step_collapsed", (
+                    f"step_collapsed at t = {t:.6g} s (step {self.k + 1}): the step fell to {h:.3g} s, below "
+                    f"the {controller.min_step:.3g} s minimum; the problem may be stiff or singular here: "
+                    f"{self._stiff_cure()}"
+                ))
             t_next = t_stop if landing else t + h_try
             if output_dt is not None:  # dense output at the sample instants inside the step
                 while next_output * output_dt < min(t_next, duration) - 1e-12 * duration:

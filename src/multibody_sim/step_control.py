@@ -27,7 +27,7 @@ class PIController:
     safety: float = 0.9
     factor_min: float = 0.2
     factor_max: float = 5.0
-    _previous_error: float = field(default=1e-4, init=False)
+    _previous_error: float = field(default=1.0, init=False)  # neutral: the first step is a plain P step
     _rejected_last: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:
