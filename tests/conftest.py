@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import pytest
 
 import multibody_sim as ms
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _cached_robot(name: str, floating_base: bool | None, damping: bool) -> ms.Robot:
     return ms.load_robot(name, floating_base=floating_base, damping=damping)
 
@@ -44,17 +44,29 @@ def write_urdf(tmp_path: Path) -> Callable[[str, str], Path]:
 def link(name: str, mass: float = 1.0, com: str = "0 0 -0.5", inertia: str = "0.01 0.01 0.01") -> str:
     """URDF text of a link with a diagonal inertia (ixx iyy izz)."""
     ixx, iyy, izz = inertia.split()
-    return (f'<link name="{name}"><inertial><origin xyz="{com}"/><mass value="{mass}"/>'
-            f'<inertia ixx="{ixx}" ixy="0" ixz="0" iyy="{iyy}" iyz="0" izz="{izz}"/></inertial></link>')
+    return (
+        f'<link name="{name}"><inertial><origin xyz="{com}"/><mass value="{mass}"/>'
+        f'<inertia ixx="{ixx}" ixy="0" ixz="0" iyy="{iyy}" iyz="0" izz="{izz}"/></inertial></link>'
+    )
 
 
-def joint(name: str, parent: str, child: str, kind: str = "revolute", xyz: str = "0 0 0", axis: str = "0 1 0",
-          limits: str = 'lower="-3" upper="3" effort="10" velocity="10"', damping: float | None = None) -> str:
+def joint(
+    name: str,
+    parent: str,
+    child: str,
+    kind: str = "revolute",
+    xyz: str = "0 0 0",
+    axis: str = "0 1 0",
+    limits: str = 'lower="-3" upper="3" effort="10" velocity="10"',
+    damping: float | None = None,
+) -> str:
     """URDF text of a joint."""
     dyn = f'<dynamics damping="{damping}"/>' if damping is not None else ""
     lim = f"<limit {limits}/>" if kind in ("revolute", "prismatic") else ""
-    return (f'<joint name="{name}" type="{kind}"><parent link="{parent}"/><child link="{child}"/>'
-            f'<origin xyz="{xyz}"/><axis xyz="{axis}"/>{lim}{dyn}</joint>')
+    return (
+        f'<joint name="{name}" type="{kind}"><parent link="{parent}"/><child link="{child}"/>'
+        f'<origin xyz="{xyz}"/><axis xyz="{axis}"/>{lim}{dyn}</joint>'
+    )
 
 
 def urdf(*parts: str, name: str = "test_robot") -> str:

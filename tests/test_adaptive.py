@@ -47,8 +47,7 @@ def test_global_error_follows_the_tolerance(name: str, robot) -> None:
     tolerances = np.array([1e-5, 1e-7, 1e-9])
     errors = []
     for tol in tolerances:
-        traj = ms.simulate(pendulum, q0, v0, duration=1.0, dt=1e-3, integrator=name, rtol=tol, atol=tol,
-                           output_dt=0.02)
+        traj = ms.simulate(pendulum, q0, v0, duration=1.0, dt=1e-3, integrator=name, rtol=tol, atol=tol, output_dt=0.02)
         np.testing.assert_allclose(traj.t, reference.t, atol=1e-12)
         errors.append(np.abs(traj.q - reference.q).max())
         assert errors[-1] < 100 * tol
@@ -77,8 +76,9 @@ def test_dense_output_and_error_estimate_orders(name: str, robot_name: str, step
         attempt = method.attempt(system, q, v, tau, h, rtol=1.0, atol=1.0)
         q_dense, v_dense, _ = method.dense_output(system, q, v, attempt, h, 0.4)
         exact = ms.simulate(system, q, v, duration=0.4 * h, dt=0.4 * h / 200, integrator="rk4")
-        dense_errors.append(max(np.abs(system.difference(exact.q[-1], q_dense)).max(),
-                                np.abs(exact.v[-1] - v_dense).max()))
+        dense_errors.append(
+            max(np.abs(system.difference(exact.q[-1], q_dense)).max(), np.abs(exact.v[-1] - v_dense).max())
+        )
         estimates.append(attempt.error)
     dense_order = {"dp54": 4, "bs32": 3}[name]
     assert slope(np.array(steps), np.array(dense_errors)) == pytest.approx(dense_order + 1, abs=0.5)
@@ -87,8 +87,7 @@ def test_dense_output_and_error_estimate_orders(name: str, robot_name: str, step
 
 def test_fsal_reuses_the_last_stage(robot) -> None:
     pendulum = robot("double_pendulum", damping=False)
-    traj = ms.simulate(pendulum, [2.0, 0.0], [0.0, 0.0], duration=1.0, dt=1e-3, integrator="dp54", rtol=1e-8,
-                       atol=1e-8)
+    traj = ms.simulate(pendulum, [2.0, 0.0], [0.0, 0.0], duration=1.0, dt=1e-3, integrator="dp54", rtol=1e-8, atol=1e-8)
     attempts = traj.stats["steps"] + traj.stats["rejected_steps"]
     # 7 stages on the first attempt, 6 new ones on every later attempt (the last stage of an accepted step,
     # or the first stage of a rejected one, is the next attempt's first).
@@ -112,8 +111,19 @@ def test_control_instants_are_landed_on(robot) -> None:
         calls.append(t)
         return np.array([0.5 if int(round(t / 0.05)) % 2 == 0 else -0.5])
 
-    traj = ms.simulate(pendulum, [0.3], [0.0], duration=1.0, dt=0.2, integrator="dp54", rtol=1e-9, atol=1e-9,
-                       control_dt=0.05, output_dt=0.01, controller=torque)
+    traj = ms.simulate(
+        pendulum,
+        [0.3],
+        [0.0],
+        duration=1.0,
+        dt=0.2,
+        integrator="dp54",
+        rtol=1e-9,
+        atol=1e-9,
+        control_dt=0.05,
+        output_dt=0.01,
+        controller=torque,
+    )
     np.testing.assert_allclose(calls, np.arange(20) * 0.05, atol=1e-12)
     np.testing.assert_allclose(traj.t, np.arange(101) * 0.01, atol=1e-12)
     # Torque rows: the value in force from each sample on.
@@ -125,8 +135,15 @@ def test_control_instants_are_landed_on(robot) -> None:
     # The same chain of constant-torque segments, integrated separately by rk4 at a fine step, agrees.
     q, v = np.array([0.3]), np.array([0.0])
     for k in range(20):
-        seg = ms.simulate(pendulum, q, v, duration=0.05, dt=0.05 / 200, integrator="rk4",
-                          controller=lambda t, q, v, k=k: np.array([0.5 if k % 2 == 0 else -0.5]))
+        seg = ms.simulate(
+            pendulum,
+            q,
+            v,
+            duration=0.05,
+            dt=0.05 / 200,
+            integrator="rk4",
+            controller=lambda t, q, v, k=k: np.array([0.5 if k % 2 == 0 else -0.5]),
+        )
         q, v = seg.q[-1], seg.v[-1]
     assert np.abs(traj.q[-1] - q).max() < 1e-7
 
@@ -136,13 +153,12 @@ def test_floating_body_conserves_energy_and_momentum() -> None:
     body.model.gravity.linear = np.zeros(3)  # a free body in space: pure rotation, energy all kinetic
     q0 = body.neutral()
     v0 = np.array([0.0, 0.0, 0.0, 0.05, 6.0, 0.05])  # spin near the intermediate axis: it tumbles
-    traj = ms.simulate(body, q0, v0, duration=5.0, dt=1e-3, integrator="dp54", rtol=1e-9, atol=1e-9,
-                       output_dt=0.05)
+    traj = ms.simulate(body, q0, v0, duration=5.0, dt=1e-3, integrator="dp54", rtol=1e-9, atol=1e-9, output_dt=0.05)
     assert traj.max_abs_energy_error < 1e-6 * traj.total_energy[0]
     # World-frame angular momentum R(q) I ω is conserved by the exact flow (gravity acts at the centre of mass).
     inertia = body.model.inertias[1].inertia
     rotations = [ms_rotation(q) for q in traj.q]
-    momenta = np.array([R @ inertia @ v[3:] for R, v in zip(rotations, traj.v)])
+    momenta = np.array([R @ inertia @ v[3:] for R, v in zip(rotations, traj.v, strict=True)])
     assert np.abs(momenta - momenta[0]).max() < 1e-6 * np.linalg.norm(momenta[0])
     # ... and it tumbles: the body-frame spin about y reverses.
     assert traj.v[:, 4].min() < -0.5 * v0[4]
@@ -150,11 +166,13 @@ def test_floating_body_conserves_energy_and_momentum() -> None:
 
 def ms_rotation(q: np.ndarray) -> np.ndarray:
     x, y, z, w = q[3:7]
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 class _BlowUp(ms.Robot):
@@ -168,12 +186,16 @@ def test_step_collapse_stops_cleanly(robot) -> None:
     base = robot("pendulum")
     blow_up = _BlowUp(base.model, name="blow_up", floating_base=False)
     with pytest.raises(ms.SimulationError) as caught:
-        ms.simulate(blow_up, [0.0], [1.0], duration=1.0, dt=1e-3, integrator="dp54", rtol=1e-8, atol=1e-8,
-                    output_dt=1.0)
+        ms.simulate(
+            blow_up, [0.0], [1.0], duration=1.0, dt=1e-3, integrator="dp54", rtol=1e-8, atol=1e-8, output_dt=1.0
+        )
     error = caught.value
     assert error.status == "step_collapsed"
-    assert re.match(r"step_collapsed at t = 0\.2[45]\d* s \(step \d+\): the step fell to .* s, below the 1e-12 s "
-                    r"minimum", str(error)), str(error)
+    assert re.match(
+        r"step_collapsed at t = 0\.2[45]\d* s \(step \d+\): the step fell to .* s, below the 1e-12 s "
+        r"minimum",
+        str(error),
+    ), str(error)
     traj = error.trajectory
     assert np.all(np.isfinite(traj.q)) and np.all(np.isfinite(traj.v))
     assert traj.t[-1] == pytest.approx(0.25, abs=1e-3)  # the singularity at t* = 1/4 s
@@ -181,9 +203,12 @@ def test_step_collapse_stops_cleanly(robot) -> None:
 
 def test_adaptive_methods_need_tolerances(robot) -> None:
     pendulum = robot("pendulum")
-    with pytest.raises(ms.InvalidArgumentError, match=re.escape(
-        "integrator 'dp54' is adaptive: pass rtol and atol (error tolerances; e.g. rtol=1e-6, atol=1e-8)"
-    )):
+    with pytest.raises(
+        ms.InvalidArgumentError,
+        match=re.escape(
+            "integrator 'dp54' is adaptive: pass rtol and atol (error tolerances; e.g. rtol=1e-6, atol=1e-8)"
+        ),
+    ):
         ms.simulate(pendulum, [0.1], [0.0], duration=1.0, dt=1e-3, integrator="dp54")
     with pytest.raises(ms.InvalidArgumentError, match=re.escape("integrator 'bs32' is adaptive: pass atol")):
         ms.simulate(pendulum, [0.1], [0.0], duration=1.0, dt=1e-3, integrator="bs32", rtol=1e-6)
@@ -193,8 +218,9 @@ def test_adaptive_methods_need_tolerances(robot) -> None:
 
 def test_max_step_is_respected(robot) -> None:
     pendulum = robot("pendulum")
-    traj = ms.simulate(pendulum, [0.1], [0.0], duration=2.0, dt=1e-3, integrator="dp54", rtol=1e-4, atol=1e-4,
-                       max_step=0.01)
+    traj = ms.simulate(
+        pendulum, [0.1], [0.0], duration=2.0, dt=1e-3, integrator="dp54", rtol=1e-4, atol=1e-4, max_step=0.01
+    )
     assert np.diff(traj.t).max() <= 0.01 + 1e-12
 
 

@@ -57,10 +57,18 @@ CATALOG: dict[str, CatalogEntry] = {
     for e in [
         _shipped("pendulum", "pendulum/pendulum.urdf", False, "simple pendulum: 1 kg bob on a light 1 m rod"),
         _shipped("free_body", "free_body/free_body.urdf", True, "free rigid box with distinct principal inertias"),
-        _erd("double_pendulum", "double_pendulum_description/urdf/double_pendulum.urdf", False,
-             "planar double pendulum (q = 0 is upright; hanging is [pi, 0])"),
-        _erd("double_pendulum_continuous", "double_pendulum_description/urdf/double_pendulum_continuous.urdf",
-             False, "double pendulum with continuous joints (nq = 4, nv = 2)"),
+        _erd(
+            "double_pendulum",
+            "double_pendulum_description/urdf/double_pendulum.urdf",
+            False,
+            "planar double pendulum (q = 0 is upright; hanging is [pi, 0])",
+        ),
+        _erd(
+            "double_pendulum_continuous",
+            "double_pendulum_description/urdf/double_pendulum_continuous.urdf",
+            False,
+            "double pendulum with continuous joints (nq = 4, nv = 2)",
+        ),
         _erd("ur3", "ur_description/urdf/ur3_robot.urdf", False, "Universal Robots UR3 arm"),
         _erd("ur5", "ur_description/urdf/ur5_robot.urdf", False, "Universal Robots UR5 arm"),
         _erd("ur10", "ur_description/urdf/ur10_robot.urdf", False, "Universal Robots UR10 arm"),
@@ -130,8 +138,12 @@ def load_robot(
         RobotNotFoundError: source is neither a catalog name nor an existing file.
         ModelError: the URDF is malformed or describes something that cannot be simulated.
     """
-    arguments = {"source": os.fspath(source), "floating_base": floating_base, "damping": damping,
-                 "package_dirs": [os.fspath(p) for p in package_dirs or []]}
+    arguments = {
+        "source": os.fspath(source),
+        "floating_base": floating_base,
+        "damping": damping,
+        "package_dirs": [os.fspath(p) for p in package_dirs or []],
+    }
     name = os.fspath(source)
     dirs = [Path(p).resolve() for p in package_dirs or []]
     if name in CATALOG:
@@ -187,8 +199,9 @@ def read_urdf(path: Path) -> bytes:
 
 def parse_urdf(xml: bytes, path: Path) -> yourdfpy.URDF:
     """Parse URDF bytes safely (no DTD, no entities, no network) into yourdfpy's description."""
-    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False,
-                             remove_comments=True, remove_pis=True)
+    parser = etree.XMLParser(
+        resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False, remove_comments=True, remove_pis=True
+    )
     try:
         root = etree.fromstring(xml, parser=parser)
     except etree.XMLSyntaxError as exc:
@@ -200,8 +213,12 @@ def parse_urdf(xml: bytes, path: Path) -> yourdfpy.URDF:
     if "name" not in root.attrib:
         raise ModelError(f"{path}: the <robot> element has no 'name' attribute")
     try:
-        return yourdfpy.URDF(robot=yourdfpy.URDF._parse_robot(xml_element=root), build_scene_graph=False,
-                             load_meshes=False, load_collision_meshes=False)
+        return yourdfpy.URDF(
+            robot=yourdfpy.URDF._parse_robot(xml_element=root),
+            build_scene_graph=False,
+            load_meshes=False,
+            load_collision_meshes=False,
+        )
     except (ValueError, TypeError, KeyError, AttributeError) as exc:
         raise ModelError(f"{path}: invalid URDF ({exc})") from None
 
@@ -225,11 +242,15 @@ def check_urdf(description: yourdfpy.URDF, path: Path, *, package_dirs: list[Pat
             if link not in links:
                 raise ModelError(f"{path}: joint '{joint.name}' names {role} link '{link}', which does not exist")
         if joint.child in children:
-            raise ModelError(f"{path}: link '{joint.child}' is the child of two joints "
-                             f"('{children[joint.child]}' and '{joint.name}')")
+            raise ModelError(
+                f"{path}: link '{joint.child}' is the child of two joints "
+                f"('{children[joint.child]}' and '{joint.name}')"
+            )
         children[joint.child] = joint.name
-        if joint.type in ("revolute", "continuous", "prismatic") and joint.axis is not None and not (
-            np.all(np.isfinite(joint.axis)) and np.linalg.norm(joint.axis) > 1e-9
+        if (
+            joint.type in ("revolute", "continuous", "prismatic")
+            and joint.axis is not None
+            and not (np.all(np.isfinite(joint.axis)) and np.linalg.norm(joint.axis) > 1e-9)
         ):
             raise ModelError(f"{path}: joint '{joint.name}' has a zero or non-finite axis")
     roots = links - set(children)
@@ -266,8 +287,10 @@ def _check_body_inertias(model: pin.Model, path: Path) -> None:
         inertia = model.inertias[i].inertia
         a, b, c = np.linalg.eigvalsh(inertia)
         if a + b < c - 1e-6 * max(np.trace(inertia), 1e-300):
-            raise ModelError(f"{path}: the body moved by joint '{model.names[i]}' has principal inertias "
-                             f"{a:.3g}, {b:.3g}, {c:.3g} that violate the triangle inequality")
+            raise ModelError(
+                f"{path}: the body moved by joint '{model.names[i]}' has principal inertias "
+                f"{a:.3g}, {b:.3g}, {c:.3g} that violate the triangle inequality"
+            )
 
 
 def resolve_mesh_uri(uri: str, urdf_path: Path, package_dirs: list[Path]) -> Path | None:
@@ -280,10 +303,10 @@ def resolve_mesh_uri(uri: str, urdf_path: Path, package_dirs: list[Path]) -> Pat
     """
     roots = [p.resolve() for p in package_dirs]
     if uri.startswith("package://"):
-        package, _, rest = uri[len("package://"):].partition("/")
+        package, _, rest = uri[len("package://") :].partition("/")
         candidates = [root / package / rest for root in roots] + [root / rest for root in roots if root.name == package]
     elif uri.startswith("file://"):
-        candidates = [Path(uri[len("file://"):])]
+        candidates = [Path(uri[len("file://") :])]
     elif "://" in uri:
         raise ModelError(f"{urdf_path}: mesh URI '{uri}' has an unsupported scheme (use package:// or a file path)")
     else:
@@ -292,8 +315,10 @@ def resolve_mesh_uri(uri: str, urdf_path: Path, package_dirs: list[Path]) -> Pat
     for candidate in candidates:
         resolved = candidate.resolve()
         if not any(resolved.is_relative_to(root) for root in roots):
-            raise ModelError(f"{urdf_path}: mesh '{uri}' resolves outside the allowed folders "
-                             f"({', '.join(str(r) for r in roots)}); add its folder to package_dirs")
+            raise ModelError(
+                f"{urdf_path}: mesh '{uri}' resolves outside the allowed folders "
+                f"({', '.join(str(r) for r in roots)}); add its folder to package_dirs"
+            )
         if found is None and resolved.is_file():
             found = resolved
     return found
@@ -329,8 +354,13 @@ def catalog_table() -> list[dict[str, Any]]:
     rows = []
     for entry in CATALOG.values():
         robot = load_robot(entry.name)
-        rows.append({"name": entry.name, "nq": robot.nq, "nv": robot.nv,
-                     "base": "floating" if robot.floating_base else "fixed", "description": entry.description})
+        rows.append(
+            {
+                "name": entry.name,
+                "nq": robot.nq,
+                "nv": robot.nv,
+                "base": "floating" if robot.floating_base else "fixed",
+                "description": entry.description,
+            }
+        )
     return rows
-
-

@@ -208,15 +208,22 @@ class Robot:
 
     # ---- limits --------------------------------------------------------------------------------------
     def limit_excess(self, Q: np.ndarray) -> np.ndarray:
-        """How far each configuration coordinate is outside its position limits, shape like Q (0 inside)."""
-        Q = np.atleast_2d(Q)
+        """How far each configuration coordinate is outside its position limits, shape like Q (0 inside).
+
+        Args:
+            Q: one configuration (nq,) or a stack of them (n, nq).
+        """
+        single = np.ndim(Q) == 1
+        Q = np.atleast_2d(np.asarray(Q, dtype=float))
+        if Q.ndim != 2 or Q.shape[1] != self.nq:
+            raise InvalidArgumentError(f"Q must have shape ({self.nq},) or (n, {self.nq}), got {np.shape(Q)}")
         excess = np.zeros_like(Q)
         if self._limited.any():
             lim = self._limited
             excess[:, lim] = np.maximum(self.lower_limit[lim] - Q[:, lim], 0.0) + np.maximum(
                 Q[:, lim] - self.upper_limit[lim], 0.0
             )
-        return excess
+        return excess[0] if single else excess
 
     # ---- argument checks ----------------------------------------------------------------------------
     def check_q(self, q: Any, name: str = "q") -> np.ndarray:
@@ -243,10 +250,14 @@ class Robot:
 
 
 def _as_vector(value: Any, size: int, name: str) -> np.ndarray:
+    got = f"dtype {value.dtype}" if isinstance(value, np.ndarray) else type(value).__name__
     try:
-        arr = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InvalidArgumentError(f"{name} must be an array of {size} numbers, got {type(value).__name__}") from None
+        raw = np.asarray(value)
+    except ValueError:  # ragged nesting
+        raw = None
+    if raw is None or raw.dtype.kind not in "biuf":  # refuse strings, objects and complex rather than coerce
+        raise InvalidArgumentError(f"{name} must be an array of {size} real numbers, got {got}")
+    arr = np.array(raw, dtype=float)
     if arr.shape != (size,):
         raise InvalidArgumentError(f"{name} must have shape ({size},), got {arr.shape}")
     if not np.all(np.isfinite(arr)):

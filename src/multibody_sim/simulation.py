@@ -74,7 +74,9 @@ def simulate(
     duration = _positive(duration, "duration")
     dt = _positive(dt, "dt")
     if controller is not None and not callable(controller):
-        raise InvalidArgumentError(f"controller must be callable as controller(t, q, v), got {type(controller).__name__}")
+        raise InvalidArgumentError(
+            f"controller must be callable as controller(t, q, v), got {type(controller).__name__}"
+        )
     method.check_system(system)
     if isinstance(method, EmbeddedRungeKutta):
         run: _Run = _AdaptiveRun(system, method, q0, v0, duration, dt, controller, options)
@@ -138,8 +140,16 @@ class _Samples:
         self.POT = np.empty(capacity)
         self.FLOWS = np.empty((capacity, n_elements))
 
-    def append(self, t: float, q: np.ndarray, v: np.ndarray, tau: np.ndarray, kinetic: float, potential: float,
-               flows: np.ndarray) -> None:
+    def append(
+        self,
+        t: float,
+        q: np.ndarray,
+        v: np.ndarray,
+        tau: np.ndarray,
+        kinetic: float,
+        potential: float,
+        flows: np.ndarray,
+    ) -> None:
         i = self.n
         if i == len(self.T):
             for name in ("T", "Q", "V", "TAU", "KIN", "POT", "FLOWS"):
@@ -155,8 +165,18 @@ class _Samples:
 class _Run:
     """One simulation's state while it runs: recording, control, early stops; subclasses hold the loop."""
 
-    def __init__(self, system: Robot, method: Integrator, q0: np.ndarray, v0: np.ndarray, duration: float,
-                 dt: float, controller: Controller | None, options: dict[str, Any], capacity: int):
+    def __init__(
+        self,
+        system: Robot,
+        method: Integrator,
+        q0: np.ndarray,
+        v0: np.ndarray,
+        duration: float,
+        dt: float,
+        controller: Controller | None,
+        options: dict[str, Any],
+        capacity: int,
+    ):
         self.system, self.method = system, method
         self.duration, self.dt = duration, dt
         self.controller = controller
@@ -245,10 +265,13 @@ class _Run:
         else:
             finite_q = np.where(np.isfinite(q), q, 0.0)
             dof = int(np.argmax(~np.isfinite(self.system.space.difference(self.q, finite_q))))
-        return self._stopped("diverged", (
-            f"diverged at t = {t_next:.6g} s (step {self.k + 1}): the state became non-finite in "
-            f"'{self.system.dof_names[dof]}'; {self._cure()}"
-        ))
+        return self._stopped(
+            "diverged",
+            (
+                f"diverged at t = {t_next:.6g} s (step {self.k + 1}): the state became non-finite in "
+                f"'{self.system.dof_names[dof]}'; {self._cure()}"
+            ),
+        )
 
     def _cure(self) -> str:
         implicit = sorted(n for n, m in INTEGRATORS.items() if m.implicit and m.a_stable)
@@ -266,12 +289,25 @@ class _Run:
         total = kinetic + potential
         error = total - total[0] - work + dissipated if n else total
         return Trajectory(
-            t=t, q=Q, v=s.V[:n].copy(), tau=s.TAU[:n].copy(),
-            kinetic_energy=kinetic, potential_energy=potential, total_energy=total,
-            work=work, dissipated=dissipated, energy_error=error, ledger=ledger,
+            t=t,
+            q=Q,
+            v=s.V[:n].copy(),
+            tau=s.TAU[:n].copy(),
+            kinetic_energy=kinetic,
+            potential_energy=potential,
+            total_energy=total,
+            work=work,
+            dissipated=dissipated,
+            energy_error=error,
+            ledger=ledger,
             limit_violations=_limit_violations(system, t, Q),
-            stats={"steps": self.k, "rejected_steps": self.rejected, "evaluations": self.evaluations,
-                   "controller_calls": self.controller_calls, "wall_time": wall_time},
+            stats={
+                "steps": self.k,
+                "rejected_steps": self.rejected,
+                "evaluations": self.evaluations,
+                "controller_calls": self.controller_calls,
+                "wall_time": wall_time,
+            },
             status=status,
             metadata=self._metadata(),
         )
@@ -280,20 +316,37 @@ class _Run:
         system = self.system
         return {
             "versions": _versions(),
-            "robot": {"name": system.name, "nq": system.nq, "nv": system.nv, "floating_base": system.floating_base,
-                      "joint_names": system.joint_names, "dof_names": system.dof_names, **system.source},
+            "robot": {
+                "name": system.name,
+                "nq": system.nq,
+                "nv": system.nv,
+                "floating_base": system.floating_base,
+                "joint_names": system.joint_names,
+                "dof_names": system.dof_names,
+                **system.source,
+            },
             "integrator": self.method.name,
             "options": {"dt": self.dt, "duration": self.duration, **self.options},
-            "controller": None if self.controller is None else getattr(
-                self.controller, "__qualname__", type(self.controller).__qualname__),
+            "controller": None
+            if self.controller is None
+            else getattr(self.controller, "__qualname__", type(self.controller).__qualname__),
         }
 
 
 class _FixedStepRun(_Run):
     """Steps of dt, the last one shortened to land on the duration."""
 
-    def __init__(self, system: Robot, method: Integrator, q0: np.ndarray, v0: np.ndarray, duration: float,
-                 dt: float, controller: Controller | None, options: dict[str, Any]):
+    def __init__(
+        self,
+        system: Robot,
+        method: Integrator,
+        q0: np.ndarray,
+        v0: np.ndarray,
+        duration: float,
+        dt: float,
+        controller: Controller | None,
+        options: dict[str, Any],
+    ):
         self.output_every = _steps_per(options.get("output_dt"), dt, "output_dt")
         self.control_every = _steps_per(options.get("control_dt"), dt, "control_dt")
         # Never count a last sliver of round-off as a step: 1.0 / 0.1 is 10 steps, not 11.
@@ -320,9 +373,9 @@ class _FixedStepRun(_Run):
             try:
                 q_next, v_next, step_flows = step(system, q, v, tau, h)
             except StepFailure as failure:
-                return self._stopped(failure.status, (
-                    f"{failure.status} at t = {t:.6g} s (step {k + 1}): {failure}; {self._cure()}"
-                ))
+                return self._stopped(
+                    failure.status, (f"{failure.status} at t = {t:.6g} s (step {k + 1}): {failure}; {self._cure()}")
+                )
             self.evaluations += method.last_evaluations if count_evaluations else method.evaluations_per_step
             # Cheap finiteness check on every step: NaN or inf anywhere makes the sum non-finite.
             if not math.isfinite(q_next @ q_next + v_next @ v_next):
@@ -339,22 +392,31 @@ class _AdaptiveRun(_Run):
 
     method: EmbeddedRungeKutta
 
-    def __init__(self, system: Robot, method: EmbeddedRungeKutta, q0: np.ndarray, v0: np.ndarray,
-                 duration: float, dt: float, controller: Controller | None, options: dict[str, Any]):
+    def __init__(
+        self,
+        system: Robot,
+        method: EmbeddedRungeKutta,
+        q0: np.ndarray,
+        v0: np.ndarray,
+        duration: float,
+        dt: float,
+        controller: Controller | None,
+        options: dict[str, Any],
+    ):
         self.rtol = _positive(options["rtol"], "rtol", "units")
         self.atol = _positive(options["atol"], "atol", "units")
         self.max_step = _positive(options["max_step"], "max_step") if options.get("max_step") is not None else math.inf
         self.output_dt = _positive(options["output_dt"], "output_dt") if options.get("output_dt") is not None else None
-        self.control_dt = (_positive(options["control_dt"], "control_dt")
-                           if options.get("control_dt") is not None else None)
+        self.control_dt = (
+            _positive(options["control_dt"], "control_dt") if options.get("control_dt") is not None else None
+        )
         capacity = math.ceil(duration / self.output_dt) + 2 if self.output_dt else 1024
         super().__init__(system, method, q0, v0, duration, dt, controller, options, capacity)
 
     def _loop(self) -> tuple[str, str] | None:
         system, method, duration = self.system, self.method, self.duration
         rtol, atol, output_dt, control_dt = self.rtol, self.atol, self.output_dt, self.control_dt
-        controller = PIController(method.embedded_order, max_step=self.max_step,
-                                  min_step=MIN_STEP_FRACTION * duration)
+        controller = PIController(method.embedded_order, max_step=self.max_step, min_step=MIN_STEP_FRACTION * duration)
         fsal = method.tableau.fsal
         q, v, flows, t = self.q, self.v, self.flows, 0.0
         tau = self._control(t, q, v) if self.controller is not None else self.tau
@@ -377,18 +439,24 @@ class _AdaptiveRun(_Run):
                 self.rejected += 1
                 first_stage = (attempt.stages[1][0], attempt.stages[2][0])  # same start state, same torque
                 if h < controller.min_step:
-                    return self._stopped("step_collapsed", (
-                        f"step_collapsed at t = {t:.6g} s (step {self.k + 1}): the step fell to {h:.3g} s, below "
-                        f"the {controller.min_step:.3g} s minimum (error norm {attempt.error:.3g}); the problem may "
-                        f"be stiff or singular here: {self._stiff_cure()}"
-                    ))
+                    return self._stopped(
+                        "step_collapsed",
+                        (
+                            f"step_collapsed at t = {t:.6g} s (step {self.k + 1}): the step fell to {h:.3g} s, below "
+                            f"the {controller.min_step:.3g} s minimum (error norm {attempt.error:.3g}); "
+                            f"the problem may be stiff or singular here: {self._stiff_cure()}"
+                        ),
+                    )
                 continue
             if h < controller.min_step:
-                return self._stopped("step_collapsed", (
-                    f"step_collapsed at t = {t:.6g} s (step {self.k + 1}): the step fell to {h:.3g} s, below "
-                    f"the {controller.min_step:.3g} s minimum; the problem may be stiff or singular here: "
-                    f"{self._stiff_cure()}"
-                ))
+                return self._stopped(
+                    "step_collapsed",
+                    (
+                        f"step_collapsed at t = {t:.6g} s (step {self.k + 1}): the step fell to {h:.3g} s, below "
+                        f"the {controller.min_step:.3g} s minimum; the problem may be stiff or singular here: "
+                        f"{self._stiff_cure()}"
+                    ),
+                )
             t_next = t_stop if landing else t + h_try
             if output_dt is not None:  # dense output at the sample instants inside the step
                 while next_output * output_dt < min(t_next, duration) - 1e-12 * duration:
@@ -422,8 +490,11 @@ class _AdaptiveRun(_Run):
 
     def _stiff_cure(self) -> str:
         implicit = sorted(n for n, m in INTEGRATORS.items() if m.implicit and m.a_stable)
-        return (f"try an implicit integrator ({', '.join(implicit)}) or looser tolerances" if implicit
-                else "try looser tolerances")
+        return (
+            f"try an implicit integrator ({', '.join(implicit)}) or looser tolerances"
+            if implicit
+            else "try looser tolerances"
+        )
 
 
 def _limit_violations(system: Robot, t: np.ndarray, Q: np.ndarray) -> LimitViolations:
@@ -434,10 +505,18 @@ def _limit_violations(system: Robot, t: np.ndarray, Q: np.ndarray) -> LimitViola
     if not outside.any():
         return LimitViolations()
     i, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
-    joint = next(system.model.names[jid] for jid in range(1, system.model.njoints)
-                 if system.model.joints[jid].idx_q <= j < system.model.joints[jid].idx_q + system.model.joints[jid].nq)
-    return LimitViolations(count=int(outside.sum()), samples=int(outside.any(axis=1).sum()), worst_joint=joint,
-                           worst_excess=float(excess[i, j]), worst_time=float(t[i]))
+    joint = next(
+        system.model.names[jid]
+        for jid in range(1, system.model.njoints)
+        if system.model.joints[jid].idx_q <= j < system.model.joints[jid].idx_q + system.model.joints[jid].nq
+    )
+    return LimitViolations(
+        count=int(outside.sum()),
+        samples=int(outside.any(axis=1).sum()),
+        worst_joint=joint,
+        worst_excess=float(excess[i, j]),
+        worst_time=float(t[i]),
+    )
 
 
 def _versions() -> dict[str, str]:

@@ -16,8 +16,18 @@ from .exceptions import TrajectoryFileError
 
 FORMAT = "multibody-sim trajectory"
 FORMAT_VERSION = 1
-_ARRAYS = ("t", "q", "v", "tau", "kinetic_energy", "potential_energy", "total_energy", "work", "dissipated",
-           "energy_error")
+_ARRAYS = (
+    "t",
+    "q",
+    "v",
+    "tau",
+    "kinetic_energy",
+    "potential_energy",
+    "total_energy",
+    "work",
+    "dissipated",
+    "energy_error",
+)
 _LEDGER_PREFIX = "ledger/"
 
 
@@ -55,8 +65,10 @@ class LimitViolations:
     def describe(self) -> str:
         if not self.count:
             return "no position-limit violations"
-        return (f"{self.count} position-limit violations in {self.samples} samples; worst: '{self.worst_joint}' "
-                f"{self.worst_excess:.3g} outside its limit at t = {self.worst_time:.6g} s")
+        return (
+            f"{self.count} position-limit violations in {self.samples} samples; worst: '{self.worst_joint}' "
+            f"{self.worst_excess:.3g} outside its limit at t = {self.worst_time:.6g} s"
+        )
 
 
 @dataclass
@@ -187,8 +199,9 @@ class Trajectory:
         for name in _ARRAYS:
             arr = contents[name]
             if arr.dtype.kind != "f" or arr.ndim not in (1, 2) or arr.shape[0] != n:
-                raise TrajectoryFileError(f"{path}: array '{name}' has shape {arr.shape} and dtype {arr.dtype}, "
-                                          f"inconsistent with {n} samples")
+                raise TrajectoryFileError(
+                    f"{path}: array '{name}' has shape {arr.shape} and dtype {arr.dtype}, inconsistent with {n} samples"
+                )
         kinds = header.get("ledger_kinds", {})
         ledger = {}
         for name, kind in kinds.items():

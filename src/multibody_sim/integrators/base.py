@@ -83,7 +83,7 @@ class Integrator(ABC):
             over the step, integrated with the method's own quadrature.
         """
 
-    def check_system(self, system: System) -> None:
+    def check_system(self, system: System) -> None:  # noqa: B027 (deliberately a no-op by default)
         """Refuse, before any step, a system this method cannot integrate (raise InvalidArgumentError)."""
 
     def __repr__(self) -> str:

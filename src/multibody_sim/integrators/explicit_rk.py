@@ -94,8 +94,16 @@ class EmbeddedRungeKutta(ExplicitRungeKutta):
         self._dense = [(i, d) for i, d in enumerate(tableau.dense) if d != 0.0]
 
     def attempt(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, *, rtol: float,
-        atol: float, first_stage: tuple[np.ndarray, np.ndarray] | None = None,
+        self,
+        system: System,
+        q: np.ndarray,
+        v: np.ndarray,
+        tau: np.ndarray,
+        h: float,
+        *,
+        rtol: float,
+        atol: float,
+        first_stage: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> Attempt:
         """Try a step of h [s]; `first_stage` = (acceleration, power) at (q, v, tau) from the previous step's
         last stage (FSAL), when the torque has not changed."""
