@@ -168,7 +168,7 @@ def load_robot(
         name=name,
         floating_base=floating,
         damping=damping,
-        source={**arguments, "urdf_path": str(path), "urdf_sha256": hashlib.sha256(xml).hexdigest()},
+        source={"load_robot": arguments, "urdf_path": str(path), "urdf_sha256": hashlib.sha256(xml).hexdigest()},
     )
     _check_mass_matrix(robot, path)
     return robot
@@ -199,6 +199,8 @@ def read_urdf(path: Path) -> bytes:
 
 def parse_urdf(xml: bytes, path: Path) -> yourdfpy.URDF:
     """Parse URDF bytes safely (no DTD, no entities, no network) into yourdfpy's description."""
+    if b"<!DOCTYPE" in xml[:65536].upper():  # before any parsing: entities never get a chance to expand
+        raise ModelError(f"{path}: DOCTYPE declarations are not allowed in a URDF (entities could expand)")
     parser = etree.XMLParser(
         resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False, remove_comments=True, remove_pis=True
     )
@@ -254,6 +256,8 @@ def check_urdf(description: yourdfpy.URDF, path: Path, *, package_dirs: list[Pat
         ):
             raise ModelError(f"{path}: joint '{joint.name}' has a zero or non-finite axis")
     roots = links - set(children)
+    if not roots:
+        raise ModelError(f"{path}: the joints form a cycle (every link has a parent joint)")
     if len(roots) != 1:
         raise ModelError(f"{path}: the links must form one tree, found {len(roots)} roots ({', '.join(sorted(roots))})")
     for link in robot.links:
@@ -342,7 +346,8 @@ def _check_mass_matrix(robot: Robot, path: Path) -> None:
         try:
             np.linalg.cholesky(M)
         except np.linalg.LinAlgError:
-            weak = int(np.argmin(np.abs(np.diag(M))))
+            eigenvalues, eigenvectors = np.linalg.eigh(M)
+            weak = int(np.argmax(np.abs(eigenvectors[:, 0])))  # the main dof of the null direction
             raise ModelError(
                 f"{path}: the mass matrix is singular: the subtree moved by '{robot.dof_names[weak]}' has no mass "
                 "or inertia"

@@ -190,11 +190,17 @@ class Robot:
             elements.append(("joint_damping", "dissipated"))
         return elements
 
-    def ledger_power(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
-        """Power of each ledger element [W] at (q, v, tau), in ledger_elements order (no checks)."""
+    def ledger_power(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Power of each ledger element [W] at (q, v, tau), in ledger_elements order (no checks).
+
+        Writes into `out` (shape (n_elements,)) when given, so the stepping loop allocates nothing.
+        """
+        if out is None:
+            out = np.empty(2 if self._damped else 1)
+        out[0] = tau @ v
         if self._damped:
-            return np.array([tau @ v, v @ (self.damping * v)])
-        return np.array([tau @ v])
+            out[1] = v @ (self.damping * v)
+        return out
 
     def unchecked_energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
         """(T, V) [J] without argument checks."""

@@ -107,13 +107,11 @@ def _check_options(method: Integrator, options: dict[str, Any]) -> None:
 
 
 def _positive(value: Any, name: str, unit: str = "seconds") -> float:
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise InvalidArgumentError(f"{name} must be a positive number of {unit}, got {value!r}") from None
-    if not (math.isfinite(value) and value > 0):
+    # Numbers only: float() would also take "0.5" and True (1 s), which hide mistakes at the public boundary.
+    is_number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    if not is_number or not (math.isfinite(value) and value > 0):
         raise InvalidArgumentError(f"{name} must be a positive number of {unit}, got {value!r}")
-    return value
+    return float(value)
 
 
 def _steps_per(period: Any, dt: float, name: str) -> int:
@@ -196,7 +194,8 @@ class _Run:
     def execute(self) -> Trajectory:
         start = time.perf_counter()
         try:
-            status = self._loop()
+            with np.errstate(over="ignore", invalid="ignore"):  # divergence is detected and reported, not warned
+                status = self._loop()
         except KeyboardInterrupt:
             self._record_current()
             traj = self._trajectory("interrupted", time.perf_counter() - start)
@@ -219,17 +218,25 @@ class _Run:
         v.setflags(write=False)
         tau = self.controller(t, q, v)
         self.controller_calls += 1
-        if type(tau) is not np.ndarray or tau.dtype != np.float64:
-            tau = np.asarray(tau, dtype=float)
         system = self.system
-        if tau.shape != (system.nv,) or not math.isfinite(tau @ tau) or (system.floating_base and tau[:6].any()):
-            system.check_tau(tau, f"controller output at t = {t:.6g} s")  # raises with the precise reason
+        fast = type(tau) is np.ndarray and tau.dtype == np.float64 and tau.shape == (system.nv,)
+        if not fast or not math.isfinite(tau @ tau) or (system.floating_base and tau[:6].any()):
+            try:  # the full check, with the precise reason
+                tau = system.check_tau(tau)
+            except InvalidArgumentError as exc:
+                raise InvalidArgumentError(f"controller output at t = {t:.6g} s: {exc}") from None
         return tau
 
     def _record(self, t: float, q: np.ndarray, v: np.ndarray, flows: np.ndarray) -> tuple[str, str] | None:
         """Store a sample (with the torque in force from t on); returns (status, message) if energy blew up."""
         samples = self.samples
         T, V = self.system.unchecked_energies(q, v)
+        if not math.isfinite(T + V):  # a huge state whose energy overflows: keep only finite samples
+            fastest = int(np.argmax(np.abs(v)))
+            return "diverged", (
+                f"diverged at t = {t:.6g} s (step {self.k}): the energy became non-finite, fastest in "
+                f"'{self.system.dof_names[fastest]}' ({v[fastest]:.3g}); {self._cure()}"
+            )
         samples.append(t, q, v, self.tau, T, V, flows)
         if samples.n == 1:
             self.energy_scale = T + abs(V) + self.system.energy_scale
@@ -238,7 +245,7 @@ class _Run:
         dissipated = flows[~self.is_work].sum()
         error = T + V - samples.KIN[0] - samples.POT[0] - work + dissipated
         bound = BLOWUP_FACTOR * (self.energy_scale + abs(work) + abs(dissipated))
-        if not math.isfinite(T + V) or abs(error) > bound:
+        if abs(error) > bound:
             fastest = int(np.argmax(np.abs(v)))
             return "diverged", (
                 f"diverged at t = {t:.6g} s (step {self.k}): the energy error {error:.3g} J exceeds "
@@ -321,9 +328,10 @@ class _Run:
                 "nq": system.nq,
                 "nv": system.nv,
                 "floating_base": system.floating_base,
+                "damping": bool(system.source.get("load_robot", {}).get("damping", True)),
                 "joint_names": system.joint_names,
                 "dof_names": system.dof_names,
-                **system.source,
+                **system.source,  # load_robot (the full arguments), urdf_path, urdf_sha256
             },
             "integrator": self.method.name,
             "options": {"dt": self.dt, "duration": self.duration, **self.options},
@@ -377,8 +385,11 @@ class _FixedStepRun(_Run):
                     failure.status, (f"{failure.status} at t = {t:.6g} s (step {k + 1}): {failure}; {self._cure()}")
                 )
             self.evaluations += method.last_evaluations if count_evaluations else method.evaluations_per_step
-            # Cheap finiteness check on every step: NaN or inf anywhere makes the sum non-finite.
-            if not math.isfinite(q_next @ q_next + v_next @ v_next):
+            # Cheap finiteness check on every step: NaN or inf anywhere makes the sum non-finite (so can a huge
+            # but finite state, whose squares overflow: the exact check below tells them apart).
+            if not math.isfinite(q_next @ q_next + v_next @ v_next) and not (
+                np.isfinite(q_next).all() and np.isfinite(v_next).all()
+            ):
                 return self._diverged_nonfinite(t + h, q_next, v_next)
             q, v = q_next, v_next
             flows = flows + step_flows
@@ -437,7 +448,7 @@ class _AdaptiveRun(_Run):
             accepted, h = controller.next_step(h_try, attempt.error)
             if not accepted:
                 self.rejected += 1
-                first_stage = (attempt.stages[1][0], attempt.stages[2][0])  # same start state, same torque
+                first_stage = attempt.stages[0]  # same start state, same torque
                 if h < controller.min_step:
                     return self._stopped(
                         "step_collapsed",
@@ -469,7 +480,7 @@ class _AdaptiveRun(_Run):
             q, v, t = attempt.q, attempt.v, t_next
             flows = flows + attempt.flows
             self.q, self.v, self.t, self.k, self.flows = q, v, t, self.k + 1, flows
-            first_stage = (attempt.stages[1][-1], attempt.stages[2][-1]) if fsal else None
+            first_stage = attempt.stages[-1] if fsal else None
             reached_control = control_dt is not None and landing and t_stop == next_control * control_dt
             if reached_control:
                 next_control += 1

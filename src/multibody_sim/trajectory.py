@@ -171,8 +171,13 @@ class Trajectory:
         """
         path = Path(path)
         try:
+            with path.open("rb") as f:
+                if f.read(4) != b"PK\x03\x04":  # zip's signature: anything else is not an .npz at all
+                    raise TrajectoryFileError(f"{path}: not a trajectory file (not an .npz archive)")
             with np.load(path, allow_pickle=False) as npz:
                 contents = {name: npz[name] for name in npz.files}
+        except TrajectoryFileError:
+            raise
         except FileNotFoundError:
             raise TrajectoryFileError(f"{path}: no such trajectory file") from None
         except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:

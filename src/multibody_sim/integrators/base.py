@@ -35,8 +35,15 @@ class System(Protocol):
         """Accelerations v' [rad/s², m/s²], shape (nv,)."""
         ...
 
-    def ledger_power(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
-        """Power [W] through each energy-ledger element, shape (n_elements,)."""
+    @property
+    def ledger_elements(self) -> list[tuple[str, str]]:
+        """(name, kind) of each energy-ledger element; kind "work" or "dissipated"."""
+        ...
+
+    def ledger_power(
+        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, out: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Power [W] through each energy-ledger element, shape (n_elements,), written into `out` if given."""
         ...
 
 

@@ -14,10 +14,11 @@ from .tableau import ButcherTableau, EmbeddedTableau
 class ExplicitRungeKutta(Integrator):
     """An explicit Runge–Kutta method given by its tableau.
 
-    Stages are built in the local chart around the step's start q_n (see ConfigurationSpace): the stage
-    configuration is ``integrate(q_n, dt Σ a_ij xi'_j)`` with chart rates ``xi'_j``, which keeps the
-    tableau's order on floating bases. The energy ledger is integrated as extra ODE components with the
-    same tableau, so its error has the method's order too.
+    The step integrates the extended state y = (xi, v, ledger) where xi is the chart coordinate around the
+    step's start q_n (see ConfigurationSpace): stage configurations are ``integrate(q_n, xi_i)`` with
+    ``xi_i = h Σ a_ij xi'_j``, which keeps the tableau's order on floating bases, and the energy ledger's
+    work and dissipation are integrated with the same tableau, so the ledger is as accurate as the trajectory.
+    Stage derivatives are the rows of one matrix K, so each stage costs one small matrix product.
     """
 
     def __init__(self, name: str, tableau: ButcherTableau, description: str, *, notes: str = ""):
@@ -27,41 +28,50 @@ class ExplicitRungeKutta(Integrator):
         self.description = description
         self.notes = notes
         self.evaluations_per_step = tableau.stages
-        # Only non-zero coefficients are ever multiplied (RK4's a is mostly zeros).
-        self._rows = [[(j, a_ij) for j, a_ij in enumerate(row) if a_ij != 0.0] for row in tableau.a]
-        self._weights = [(i, b_i) for i, b_i in enumerate(tableau.b) if b_i != 0.0]
+        self._a = np.array(tableau.a, dtype=float)
+        self._b = np.array(tableau.b, dtype=float)
 
     def step(
         self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        K, _, _ = self._stages(system, q, v, tau, dt)
+        nv = len(v)
+        increment = (self._b @ K) * dt
+        return system.space.integrate(q, increment[:nv]), v + increment[nv : 2 * nv], increment[2 * nv :]
+
+    def _stages(
+        self,
+        system: System,
+        q: np.ndarray,
+        v: np.ndarray,
+        tau: np.ndarray,
+        h: float,
+        first_row: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Stage derivatives K, shape (s, 2 nv + n_ledger), rows (xi', v', ledger power); and the last stage's
+        (q, v). `first_row` is a known first row (FSAL reuse)."""
         space = system.space
         flat = space.is_flat
-        chart_rates: list[np.ndarray] = []
-        accelerations: list[np.ndarray] = []
-        powers: list[np.ndarray] = []
-        for row in self._rows:
-            if row:
-                xi = _combine(chart_rates, row, dt)
-                v_stage = v + _combine(accelerations, row, dt)
+        nv = len(v)
+        a = self._a
+        K = np.empty((len(a), 2 * nv + len(system.ledger_elements)))
+        q_stage, v_stage = q, v
+        for i in range(len(a)):
+            row = K[i]
+            if i == 0:  # at the step's start: xi = 0, where the chart Jacobian is the identity
+                row[:nv] = v
+                if first_row is not None:  # its chart rate was taken in the previous step's chart: not reused
+                    row[nv:] = first_row[nv:]
+                    continue
+            else:
+                y = (a[i, :i] @ K[:i]) * h
+                xi = y[:nv]
+                v_stage = v + y[nv : 2 * nv]
                 q_stage = space.integrate(q, xi)
-                chart_rates.append(v_stage if flat else space.chart_velocity(q, xi, v_stage))
-            else:  # the chart Jacobian is the identity at xi = 0
-                v_stage, q_stage = v, q
-                chart_rates.append(v)
-            accelerations.append(system.unchecked_forward_dynamics(q_stage, v_stage, tau))
-            powers.append(system.ledger_power(q_stage, v_stage, tau))
-        q_next = space.integrate(q, _combine(chart_rates, self._weights, dt))
-        v_next = v + _combine(accelerations, self._weights, dt)
-        return q_next, v_next, _combine(powers, self._weights, dt)
-
-
-def _combine(values: list[np.ndarray], coefficients: list[tuple[int, float]], dt: float) -> np.ndarray:
-    """dt · Σ c_j values[j] over the given non-zero coefficients."""
-    (j, c), *rest = coefficients
-    total = values[j] * (dt * c)
-    for j, c in rest:
-        total += values[j] * (dt * c)
-    return total
+                row[:nv] = v_stage if flat else space.chart_velocity(q, xi, v_stage)
+            row[nv : 2 * nv] = system.unchecked_forward_dynamics(q_stage, v_stage, tau)
+            system.ledger_power(q_stage, v_stage, tau, out=row[2 * nv :])
+        return K, q_stage, v_stage
 
 
 class Attempt(NamedTuple):
@@ -71,7 +81,7 @@ class Attempt(NamedTuple):
     v: np.ndarray
     flows: np.ndarray
     error: float  # scaled RMS error norm: accept when ≤ 1
-    stages: tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]  # chart rates, accelerations, powers
+    stages: np.ndarray  # K: the stage derivatives (xi', v', ledger power), one row per stage
     evaluations: int
 
 
@@ -89,9 +99,8 @@ class EmbeddedRungeKutta(ExplicitRungeKutta):
         super().__init__(name, tableau, description, notes=notes)
         self.tableau: EmbeddedTableau = tableau
         self.embedded_order = tableau.embedded_order
-        error_weights = np.array(tableau.b) - np.array(tableau.b_hat)
-        self._error_weights = [(i, e) for i, e in enumerate(error_weights) if e != 0.0]
-        self._dense = [(i, d) for i, d in enumerate(tableau.dense) if d != 0.0]
+        self._e = self._b - np.array(tableau.b_hat, dtype=float)
+        self._d = np.array(tableau.dense, dtype=float) if tableau.dense else None
 
     def attempt(
         self,
@@ -103,63 +112,45 @@ class EmbeddedRungeKutta(ExplicitRungeKutta):
         *,
         rtol: float,
         atol: float,
-        first_stage: tuple[np.ndarray, np.ndarray] | None = None,
+        first_stage: np.ndarray | None = None,
     ) -> Attempt:
-        """Try a step of h [s]; `first_stage` = (acceleration, power) at (q, v, tau) from the previous step's
-        last stage (FSAL), when the torque has not changed."""
-        space = system.space
-        flat = space.is_flat
-        chart_rates: list[np.ndarray] = []
-        accelerations: list[np.ndarray] = []
-        powers: list[np.ndarray] = []
-        evaluations = 0
-        q_stage, v_stage = q, v
-        for row in self._rows:
-            if row:
-                xi = _combine(chart_rates, row, h)
-                v_stage = v + _combine(accelerations, row, h)
-                q_stage = space.integrate(q, xi)
-                chart_rates.append(v_stage if flat else space.chart_velocity(q, xi, v_stage))
-            else:
-                chart_rates.append(v)
-                if first_stage is not None:
-                    accelerations.append(first_stage[0])
-                    powers.append(first_stage[1])
-                    continue
-            accelerations.append(system.unchecked_forward_dynamics(q_stage, v_stage, tau))
-            powers.append(system.ledger_power(q_stage, v_stage, tau))
-            evaluations += 1
+        """Try a step of h [s]. `first_stage`: the first row of K at (q, v, tau) if already known (the last stage
+        of the previous accepted step with an FSAL tableau, or the first of a rejected attempt)."""
+        K, q_last, v_last = self._stages(system, q, v, tau, h, first_stage)
+        nv = len(v)
+        increment = (self._b @ K) * h
         if self.tableau.fsal:  # the last stage is the new state
-            q_next, v_next = q_stage, v_stage
+            q_next, v_next = q_last, v_last
         else:
-            q_next = space.integrate(q, _combine(chart_rates, self._weights, h))
-            v_next = v + _combine(accelerations, self._weights, h)
-        flows = _combine(powers, self._weights, h)
-        error_xi = _combine(chart_rates, self._error_weights, h)
-        error_v = _combine(accelerations, self._error_weights, h)
-        size_q = np.abs(space.difference(space.neutral, q_next))
-        scale_q = atol + rtol * np.maximum(np.abs(space.difference(space.neutral, q)), size_q)
-        scale_v = atol + rtol * np.maximum(np.abs(v), np.abs(v_next))
-        squares = (error_xi / scale_q) @ (error_xi / scale_q) + (error_v / scale_v) @ (error_v / scale_v)
-        error = math.sqrt(squares / (2 * len(v)))
-        if not math.isfinite(error) or not math.isfinite(q_next @ q_next + v_next @ v_next):
-            error = math.inf
-        return Attempt(q_next, v_next, flows, error, (chart_rates, accelerations, powers), evaluations)
+            q_next, v_next = system.space.integrate(q, increment[:nv]), v + increment[nv : 2 * nv]
+        error = (self._e @ K[:, : 2 * nv]) * h
+        space = system.space
+        scale = np.empty(2 * nv)
+        scale[:nv] = np.maximum(
+            np.abs(space.difference(space.neutral, q)), np.abs(space.difference(space.neutral, q_next))
+        )
+        scale[nv:] = np.maximum(np.abs(v), np.abs(v_next))
+        scaled = error / (atol + rtol * scale)
+        norm = math.sqrt((scaled @ scaled) / (2 * nv))
+        if not math.isfinite(norm) or not math.isfinite(q_next @ q_next + v_next @ v_next):
+            norm = math.inf
+        evaluations = len(K) - (first_stage is not None)
+        return Attempt(q_next, v_next, increment[2 * nv :], norm, K, evaluations)
 
     def dense_output(
         self, system: System, q: np.ndarray, v: np.ndarray, attempt: Attempt, h: float, theta: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(q, v, flows since the step's start) at time t_n + θh, 0 ≤ θ ≤ 1, from an accepted attempt."""
-        chart_rates, accelerations, powers = attempt.stages
-        xi_end = _combine(chart_rates, self._weights, 1.0)  # r1 per unit h
-        xi = self._continuous(chart_rates, xi_end, h, theta)
-        dv = self._continuous(accelerations, _combine(accelerations, self._weights, 1.0), h, theta)
-        flows = self._continuous(powers, _combine(powers, self._weights, 1.0), h, theta)
-        return system.space.integrate(q, xi), v + dv, flows
+        """(q, v, ledger flows since the step's start) at t_n + θh, 0 ≤ θ ≤ 1, from an accepted attempt.
 
-    def _continuous(self, k: list[np.ndarray], r1: np.ndarray, h: float, theta: float) -> np.ndarray:
-        """h θ (r1 + (1-θ)(r2 + θ(r3 + (1-θ) r4))): the increment from the step's start at θ."""
-        r2 = k[0] - r1
-        r3 = 2.0 * r1 - k[0] - k[-1]
-        inner = r3 + (1.0 - theta) * _combine(k, self._dense, 1.0) if self._dense else r3
-        return h * theta * (r1 + (1.0 - theta) * (r2 + theta * inner))
+        The continuous extension h θ (r1 + (1-θ)(r2 + θ(r3 + (1-θ) r4))) with r1 = Σ b_i k_i,
+        r2 = k_1 - r1, r3 = 2 r1 - k_1 - k_s, r4 = Σ d_i k_i, applied to the extended chart state.
+        """
+        K = attempt.stages
+        nv = len(v)
+        r1 = self._b @ K
+        r2 = K[0] - r1
+        r3 = 2.0 * r1 - K[0] - K[-1]
+        if self._d is not None and self._d.any():
+            r3 = r3 + (1.0 - theta) * (self._d @ K)
+        y = h * theta * (r1 + (1.0 - theta) * (r2 + theta * r3))
+        return system.space.integrate(q, y[:nv]), v + y[nv : 2 * nv], y[2 * nv :]

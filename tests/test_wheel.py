@@ -1,0 +1,125 @@
+"""The built wheel ships models/ as package data: every catalog entry loads from an installed wheel."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+import zipfile
+from pathlib import Path
+
+import pytest
+
+import multibody_sim as ms
+
+REPO = Path(__file__).resolve().parents[1]
+# What a wheel is built from: the project's metadata, its code and the models it ships (never build/ or caches).
+SOURCES = ("pyproject.toml", "README.md", "CHANGELOG.md", "LICENSE", "src", "models")
+IGNORED = shutil.ignore_patterns("__pycache__", "*.egg-info", "*.pyc")
+
+
+def shipped_model_files() -> list[str]:
+    """Every file under the repository's models/ (the data package), relative to it."""
+    return sorted(
+        p.relative_to(REPO / "models").as_posix()
+        for p in (REPO / "models").rglob("*")
+        if p.is_file() and "__pycache__" not in p.parts
+    )
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A wheel built from a copy of the checkout (building in place would race other test runs)."""
+    source = tmp_path_factory.mktemp("source")
+    for name in SOURCES:
+        if (REPO / name).is_dir():
+            shutil.copytree(REPO / name, source / name, ignore=IGNORED)
+        elif (REPO / name).is_file():
+            shutil.copy2(REPO / name, source / name)
+    out = tmp_path_factory.mktemp("dist")
+    if importlib.util.find_spec("build") is not None:  # the [test] extra brings it
+        command = [sys.executable, "-m", "build", "--wheel", "--outdir", str(out), str(source)]
+    else:
+        command = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--wheel-dir", str(out), str(source)]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, f"building the wheel failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    wheels = list(out.glob("multibody_sim-*.whl"))
+    assert len(wheels) == 1, wheels
+    return wheels[0]
+
+
+def test_the_wheel_holds_every_model_file_as_package_data(wheel):
+    names = set(zipfile.ZipFile(wheel).namelist())
+    models = shipped_model_files()
+    assert {"pendulum/pendulum.urdf", "free_body/free_body.urdf", "__init__.py"} <= set(models)
+    missing = [f for f in models if f"multibody_sim/models/{f}" not in names]
+    assert not missing, f"models/ files left out of the wheel (package-data patterns?): {missing}"
+    with zipfile.ZipFile(wheel) as archive:
+        for f in models:
+            assert archive.read(f"multibody_sim/models/{f}") == (REPO / "models" / f).read_bytes(), f
+    assert "multibody_sim/py.typed" in names
+    # The data package lives inside multibody_sim: no top-level `models` package to collide with others.
+    assert not any(name.startswith("models/") for name in names)
+
+
+def test_every_catalog_entry_loads_from_the_installed_wheel(wheel, tmp_path):
+    site = tmp_path / "site"
+    install = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--no-deps",
+            "--no-index",
+            "--no-compile",
+            "--disable-pip-version-check",
+            "--target",
+            str(site),
+            str(wheel),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert install.returncode == 0, install.stderr[-3000:]
+    elsewhere = tmp_path / "elsewhere"  # neither the checkout nor its src/ on the path by accident
+    elsewhere.mkdir()
+    probe = textwrap.dedent("""
+        import json
+        import multibody_sim as ms
+        from multibody_sim.catalog import CATALOG, load_robot, shipped_models_dir
+        sizes = {}
+        for name in CATALOG:
+            robot = load_robot(name)
+            sizes[name] = [robot.nq, robot.nv, robot.floating_base, robot.source["urdf_path"]]
+        print(json.dumps({"file": ms.__file__, "models": str(shipped_models_dir()), "sizes": sizes}))
+    """)
+    # The installed copy comes first on the path; dependencies (pin, ...) come from this environment.
+    result = subprocess.run(
+        [sys.executable, "-c", probe],
+        cwd=elsewhere,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**_clean_env(), "PYTHONPATH": str(site)},
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    assert Path(report["file"]).resolve().is_relative_to(site.resolve()), report["file"]
+    assert Path(report["models"]).resolve() == (site / "multibody_sim" / "models").resolve()
+    assert set(report["sizes"]) == set(ms.CATALOG)
+    for name, (nq, nv, floating, urdf_path) in report["sizes"].items():
+        here = ms.load_robot(name)
+        assert (nq, nv, floating) == (here.nq, here.nv, here.floating_base), name
+        if ms.CATALOG[name].provider == "multibody-sim":  # shipped models come from the wheel, not the checkout
+            assert Path(urdf_path).resolve().is_relative_to(site.resolve()), urdf_path
+
+
+def _clean_env() -> dict[str, str]:
+    """This process's environment without anything that would put the checkout on the path."""
+    return {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "PYTHONSTARTUP")}
