@@ -342,7 +342,8 @@ def test_bad_controller_output_names_the_time(pendulum, output, reason):
 
 def test_controller_output_that_is_not_numbers_names_the_time(pendulum):
     with pytest.raises(
-        ms.InvalidArgumentError, match=exact("controller output at t = 0 s: tau must be an array of 1 real numbers, got str")
+        ms.InvalidArgumentError,
+        match=exact("controller output at t = 0 s: tau must be an array of 1 real numbers, got str"),
     ):
         ms.simulate(pendulum, [0.3], [0.0], duration=0.1, dt=0.01, controller=lambda t, q, v: "push")
 
