@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import importlib.metadata
+import io
 import math
 import os
 import signal
@@ -27,6 +28,11 @@ EXIT_SIMULATION_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_SIGINT = 128 + signal.SIGINT  # 130
 EXIT_SIGTERM = 128 + signal.SIGTERM  # 143
+EXIT_SIGPIPE = 141  # what a shell reports for a process that wrote into a closed pipe
+
+# The API makes adaptive runs name their tolerances; the command line offers these middle-of-the-road ones.
+ADAPTIVE_RTOL = 1e-6
+ADAPTIVE_ATOL = 1e-8
 
 _FLOATING_NOTE = (
     "floating base: q = [x y z qx qy qz qw, joints...] (unit quaternion, scalar last) and "
@@ -76,6 +82,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # Ctrl-C outside the stepping loop (loading, writing): nothing to keep
         print(f"{PROG}: interrupted", file=sys.stderr)
         return EXIT_SIGINT
+    except BrokenPipeError:  # the reader of a listing left (`multibody-sim models | head`): stop quietly
+        _discard_stdout()
+        return EXIT_SIGPIPE
 
 
 # ---- arguments ---------------------------------------------------------------------------------------
@@ -106,49 +115,110 @@ def _build_parser() -> _Parser:
         "robot", metavar="ROBOT_OR_URDF", help=f"a catalog name (`{PROG} models` lists them) or a URDF file"
     )
     base = robot_options.add_mutually_exclusive_group()
-    base.add_argument("--floating-base", dest="floating_base", action="store_const", const=True, default=None,
-                      help="add a free-flyer root joint (default: the catalog's natural base; fixed for files)")
-    base.add_argument("--fixed-base", dest="floating_base", action="store_const", const=False,
-                      help="weld the root link to the world")
-    robot_options.add_argument("--no-damping", action="store_true",
-                               help="ignore the URDF's joint viscous damping (default: apply it)")
-    robot_options.add_argument("--package-dir", metavar="DIR", nargs="+", action="extend", default=[],
-                               help="folder that package://NAME/... URIs resolve against (repeatable)")
+    base.add_argument(
+        "--floating-base",
+        dest="floating_base",
+        action="store_const",
+        const=True,
+        default=None,
+        help="add a free-flyer root joint (default: the catalog's natural base; fixed for files)",
+    )
+    base.add_argument(
+        "--fixed-base", dest="floating_base", action="store_const", const=False, help="weld the root link to the world"
+    )
+    robot_options.add_argument(
+        "--no-damping", action="store_true", help="ignore the URDF's joint viscous damping (default: apply it)"
+    )
+    robot_options.add_argument(
+        "--package-dir",
+        metavar="DIR",
+        action="append",  # one folder per flag: a list would swallow a ROBOT_OR_URDF written after it
+        default=[],
+        help="folder that package://NAME/... URIs resolve against (repeat the option for several)",
+    )
 
     run = commands.add_parser(
-        "run", parents=[robot_options], help="simulate a robot and print a summary",
+        "run",
+        parents=[robot_options],
+        help="simulate a robot and print a summary",
         description="Simulate ROBOT_OR_URDF from (q0, v0) with no applied torque and print the run's summary.",
     )
-    run.add_argument("--integrator", metavar="NAME", default="rk4",
-                     help=f"integration method (default: rk4; `{PROG} integrators` lists them)")
-    run.add_argument("--dt", metavar="S", type=float, default=1e-3, help="integration step [s] (default: 0.001)")
-    run.add_argument("--duration", metavar="S", type=float, default=1.0,
-                     help="simulated time [s] (default: 1)")
-    run.add_argument("--q0", metavar="V", type=float, nargs="+",
-                     help="initial configuration, nq space-separated numbers (default: the neutral "
-                     "configuration; a floating base's quaternion is x y z w)")
-    run.add_argument("--v0", metavar="V", type=float, nargs="+",
-                     help="initial velocity, nv space-separated numbers (default: zeros)")
-    run.add_argument("--output-dt", metavar="S", type=float,
-                     help="sampling period of the output [s], a multiple of dt (default: every step)")
-    run.add_argument("--control-dt", metavar="S", type=float,
-                     help="controller period [s], a multiple of dt (default: every step)")
-    run.add_argument("--out", metavar="FILE.npz",
-                     help="write the trajectory here (also the partial one if the run fails or is interrupted)")
+    run.add_argument(
+        "--integrator",
+        metavar="NAME",
+        default="rk4",
+        help=f"integration method (default: rk4; `{PROG} integrators` lists them)",
+    )
+    run.add_argument(
+        "--dt",
+        metavar="S",
+        type=float,
+        default=1e-3,
+        help="integration step [s]; an adaptive integrator's first trial step (default: 0.001)",
+    )
+    run.add_argument("--duration", metavar="S", type=float, default=1.0, help="simulated time [s] (default: 1)")
+    run.add_argument(
+        "--q0",
+        metavar="V",
+        type=float,
+        nargs="+",
+        help="initial configuration, nq space-separated numbers (default: the neutral "
+        "configuration; a floating base's quaternion is x y z w)",
+    )
+    run.add_argument(
+        "--v0", metavar="V", type=float, nargs="+", help="initial velocity, nv space-separated numbers (default: zeros)"
+    )
+    run.add_argument(
+        "--rtol",
+        metavar="TOL",
+        type=float,
+        help=f"relative error tolerance of adaptive integrators (default: {ADAPTIVE_RTOL:g})",
+    )
+    run.add_argument(
+        "--atol",
+        metavar="TOL",
+        type=float,
+        help=f"absolute error tolerance of adaptive integrators (default: {ADAPTIVE_ATOL:g})",
+    )
+    run.add_argument(
+        "--max-step", metavar="S", type=float, help="largest step of adaptive integrators [s] (default: no limit)"
+    )
+    run.add_argument(
+        "--output-dt",
+        metavar="S",
+        type=float,
+        help="sampling period of the output [s], a multiple of dt (default: every step)",
+    )
+    run.add_argument(
+        "--control-dt", metavar="S", type=float, help="controller period [s], a multiple of dt (default: every step)"
+    )
+    run.add_argument(
+        "--out",
+        metavar="FILE.npz",
+        help="write the trajectory here (also the partial one if the run fails or is interrupted)",
+    )
     run.set_defaults(handler=_cmd_run)
 
-    models = commands.add_parser("models", help="list the robot catalog",
-                                 description="List the catalog robots: name, nq, nv, natural base, description.")
+    models = commands.add_parser(
+        "models",
+        help="list the robot catalog",
+        description="List the catalog robots: name, nq, nv, natural base, description.",
+    )
     models.set_defaults(handler=_cmd_models)
 
     inspect = commands.add_parser(
-        "inspect", parents=[robot_options], help="show a robot's joints, bodies and source",
+        "inspect",
+        parents=[robot_options],
+        help="show a robot's joints, bodies and source",
         description="Show a robot's joints (type, limits, effort limit, damping), body masses, sizes and source.",
     )
     inspect.set_defaults(handler=_cmd_inspect)
 
-    integrators = commands.add_parser("integrators", help="list the integration methods",
-                                      description="List the integration methods with their order and properties.")
+    integrators = commands.add_parser(
+        "integrators",
+        help="list the integration methods",
+        description="List the integration methods with their order and properties.",
+    )
     integrators.set_defaults(handler=_cmd_integrators)
     return parser
 
@@ -162,8 +232,9 @@ def _version() -> str:
 
 # ---- commands ----------------------------------------------------------------------------------------
 def _load(args: argparse.Namespace) -> Any:
-    return ms.load_robot(args.robot, floating_base=args.floating_base, damping=not args.no_damping,
-                         package_dirs=args.package_dir or None)
+    return ms.load_robot(
+        args.robot, floating_base=args.floating_base, damping=not args.no_damping, package_dirs=args.package_dir or None
+    )
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -173,16 +244,23 @@ def _cmd_run(args: argparse.Namespace) -> int:
     # Checked before the header so that a wrong vector is the only thing printed.
     q0 = robot.neutral() if args.q0 is None else robot.check_q(args.q0, "q0")
     v0 = [0.0] * robot.nv if args.v0 is None else robot.check_v(args.v0, "v0")
-    options = {name: getattr(args, name) for name in ("output_dt", "control_dt") if getattr(args, name) is not None}
+    names = ("rtol", "atol", "max_step", "output_dt", "control_dt")
+    options = {name: getattr(args, name) for name in names if getattr(args, name) is not None}
+    tolerances = ""
+    if method.adaptive:
+        options.setdefault("rtol", ADAPTIVE_RTOL)
+        options.setdefault("atol", ADAPTIVE_ATOL)
+        tolerances = f", rtol {options['rtol']:g}, atol {options['atol']:g}"
     base = "floating" if robot.floating_base else "fixed"
     with _SigtermAsInterrupt() as signals:
         try:
             # Printed (and flushed) with the handlers in place, just before stepping: a watcher may signal
             # as soon as it reads this line.
-            print(f"run: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
-                  f"dt {args.dt:g} s, duration {args.duration:g} s", flush=True)
-            trajectory = ms.simulate(robot, q0, v0, duration=args.duration, dt=args.dt, integrator=method,
-                                     **options)
+            _say(
+                f"run: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
+                f"dt {args.dt:g} s{tolerances}, duration {args.duration:g} s"
+            )
+            trajectory = ms.simulate(robot, q0, v0, duration=args.duration, dt=args.dt, integrator=method, **options)
         except ms.SimulationError as exc:
             failure: BaseException | None = exc
         except KeyboardInterrupt as exc:  # SimulationInterrupted, or a signal before the first step
@@ -190,15 +268,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
         else:
             failure = None
     if failure is None:
-        print(trajectory.summary())
         if out is not None:
             _save(trajectory, out)
-            print(f"wrote {out}")
+        _say(trajectory.summary() + (f"\nwrote {out}" if out is not None else ""))
         return EXIT_OK
     partial = getattr(failure, "trajectory", None)
-    if partial is not None and len(partial):
-        print(partial.summary(), flush=True)
     kept = _save_partial(partial, out)
+    if partial is not None and len(partial):
+        _say(partial.summary())
     if isinstance(failure, ms.SimulationError):
         return _error(f"{failure}; {kept}", EXIT_SIMULATION_FAILED)
     # The stepping loop cannot tell which signal raised the KeyboardInterrupt; our handler can.
@@ -210,8 +287,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _cmd_models(args: argparse.Namespace) -> int:
     rows = catalog_table()
-    print(_table(["name", "nq", "nv", "base", "description"],
-                 [[r["name"], r["nq"], r["nv"], r["base"], r["description"]] for r in rows]))
+    print(
+        _table(
+            ["name", "nq", "nv", "base", "description"],
+            [[r["name"], r["nq"], r["nv"], r["base"], r["description"]] for r in rows],
+        )
+    )
     return EXIT_OK
 
 
@@ -225,8 +306,10 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     base = "floating (free-flyer root joint)" if robot.floating_base else "fixed (root link welded to the world)"
     lines += [f"base: {base}", f"nq: {robot.nq}  nv: {robot.nv}"]
     welded = float(model.inertias[0].mass)
-    lines.append(f"total mass: {robot.total_mass:.6g} kg" + (
-        f" (moving bodies; {welded:.6g} kg welded to the world not counted)" if welded > 0 else ""))
+    lines.append(
+        f"total mass: {robot.total_mass:.6g} kg"
+        + (f" (moving bodies; {welded:.6g} kg welded to the world not counted)" if welded > 0 else "")
+    )
     if robot.floating_base:
         lines.append(_FLOATING_NOTE)
 
@@ -250,8 +333,11 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
             effort = "none"
         damping = ", ".join(f"{d:.6g}" for d in robot.damping[iv : iv + joint.nv])
         joint_rows.append([model.names[jid], kind, limits, effort, damping])
-    lines += ["", "joints (Pinocchio order):",
-              _table(["name", "type", "position limits", "effort limit", "damping"], joint_rows, indent=2)]
+    lines += [
+        "",
+        "joints (Pinocchio order):",
+        _table(["name", "type", "position limits", "effort limit", "damping"], joint_rows, indent=2),
+    ]
 
     # Pinocchio merges links joined by fixed joints into one body per joint; list the links in each.
     links: dict[int, list[str]] = {}
@@ -265,8 +351,11 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
             continue
         moved_by = "(welded to the world)" if jid == 0 else model.names[jid]
         body_rows.append([moved_by, f"{mass:.6g}", ", ".join(links.get(jid, []))])
-    lines += ["", "bodies (links joined by fixed joints are merged):",
-              _table(["moved by joint", "mass [kg]", "links"], body_rows, indent=2)]
+    lines += [
+        "",
+        "bodies (links joined by fixed joints are merged):",
+        _table(["moved by joint", "mass [kg]", "links"], body_rows, indent=2),
+    ]
     print("\n".join(lines))
     return EXIT_OK
 
@@ -274,10 +363,9 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
 def _cmd_integrators(args: argparse.Namespace) -> int:
     rows, notes = [], []
     for name, method in ms.INTEGRATORS.items():
-        flags = [flag for flag, on in (("adaptive", method.adaptive), ("implicit", method.implicit),
-                                       ("symplectic", method.symplectic), ("A-stable", method.a_stable)) if on]
-        evaluations = method.evaluations_per_step if not method.adaptive else f"{method.evaluations_per_step}/trial"
-        rows.append([name, method.order, evaluations, ", ".join(flags) or "-", method.description])
+        properties = {"adaptive": method.adaptive, "implicit": method.implicit, "symplectic": method.symplectic}
+        flags = [flag for flag, on in {**properties, "A-stable": method.a_stable}.items() if on]
+        rows.append([name, method.order, method.evaluations_per_step, ", ".join(flags) or "-", method.description])
         if method.notes:
             notes.append(f"  {name}: {method.notes}")
     print(_table(["name", "order", "evaluations/step", "flags", "description"], rows))
@@ -350,8 +438,8 @@ class _SigtermAsInterrupt:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self._active:
-            signal.signal(signal.SIGTERM, self._previous)
+        if self._active:  # None: the previous handler was not installed from Python; restore the default
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if self._previous is None else self._previous)
 
 
 def _joint_kind(shortname: str) -> str:
@@ -371,7 +459,24 @@ def _table(headers: list[str], rows: list[list[Any]], indent: int = 0) -> str:
     cells = [[str(c) for c in row] for row in [headers, *rows]]
     widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
     pad = " " * indent
-    return "\n".join(pad + "  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in cells)
+    return "\n".join(pad + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in cells)
+
+
+def _say(text: str) -> None:
+    """Print a run's progress; a reader that left (`| head`) must not cost the run or its file."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        _discard_stdout()
+
+
+def _discard_stdout() -> None:
+    """Point stdout at /dev/null so that the interpreter's final flush does not fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):
+        pass  # not a real file (tests capture stdout): nothing will be flushed to a closed pipe
 
 
 def _tolerate_unencodable_output() -> None:

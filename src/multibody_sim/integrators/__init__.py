@@ -10,6 +10,7 @@ from .explicit_rk import EmbeddedRungeKutta, ExplicitRungeKutta
 from .implicit import ImplicitEuler, ImplicitMidpoint
 from .partitioned import SemiImplicitEuler
 from .tableau import BOGACKI_SHAMPINE_32, DORMAND_PRINCE_54, EULER, MIDPOINT, RK4, ButcherTableau, EmbeddedTableau
+from .variational import VariationalIntegrator
 
 INTEGRATORS: dict[str, Integrator] = {
     method.name: method
@@ -22,6 +23,7 @@ INTEGRATORS: dict[str, Integrator] = {
         EmbeddedRungeKutta("dp54", DORMAND_PRINCE_54, "Dormand–Prince 5(4), adaptive, 4th-order dense output"),
         ImplicitEuler(),
         ImplicitMidpoint(),
+        VariationalIntegrator(),
     ]
 }
 

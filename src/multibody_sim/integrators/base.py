@@ -35,6 +35,12 @@ class System(Protocol):
         """Accelerations v' [rad/s², m/s²], shape (nv,)."""
         ...
 
+    def unchecked_dynamics_derivatives(
+        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(da/dq in the tangent space, da/dv, da/dtau), each (nv, nv): what implicit methods' Newton needs."""
+        ...
+
     @property
     def ledger_elements(self) -> list[tuple[str, str]]:
         """(name, kind) of each energy-ledger element; kind "work" or "dissipated"."""
@@ -71,6 +77,7 @@ class Integrator(ABC):
     symplectic: bool = False
     a_stable: bool = False
     notes: str = ""
+    last_evaluations: int = 0  # implicit methods: dynamics evaluations of the latest step (Newton varies)
 
     @abstractmethod
     def step(

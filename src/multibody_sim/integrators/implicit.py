@@ -64,7 +64,7 @@ def residual_jacobian(
         x: trial velocity, shape (nv,).
         q_x: ``q ⊕ s x`` as returned by residual(), shape (nq,).
     """
-    da_dq, da_dv, _ = system.unchecked_dynamics_derivatives(q_x, x, tau)  # type: ignore[attr-defined]
+    da_dq, da_dv, _ = system.unchecked_dynamics_derivatives(q_x, x, tau)
     space = system.space
     if not space.is_flat:
         # dIntegrate is block-diagonal, the identity except on non-commutative joints (free-flyer, ...).
@@ -77,11 +77,12 @@ def residual_jacobian(
 
 
 @dataclass
-class _Solution:
-    x: np.ndarray
-    iterations: int
-    evaluations: int
-    jacobians: int
+class _Counts:
+    """What one Newton solve cost, kept up to date as it runs (so a failed solve is counted too)."""
+
+    iterations: int = 0
+    evaluations: int = 0  # forward-dynamics (ABA) calls
+    jacobians: int = 0  # ABA-derivative calls
 
 
 def _solve(
@@ -94,7 +95,8 @@ def _solve(
     max_iterations: int,
     rtol: float,
     atol: float,
-) -> _Solution:
+    counts: _Counts,
+) -> np.ndarray:
     """Solve R(x) = 0 by simplified Newton from x = v; raises StepFailure(status="newton_failed").
 
     The Jacobian is factorised once and reused while the iteration contracts fast (rate θ ≤ 0.5), and
@@ -107,21 +109,20 @@ def _solve(
     factors: tuple[np.ndarray, np.ndarray] | None = None
     fresh = False  # whether the factorised Jacobian was taken at the current iterate
     previous_update = theta = math.nan
-    jacobians = 0
     residual_norm = update_norm = math.nan
     for iteration in range(1, max_iterations + 1):
         R, q_x = residual(system, q, v, tau, s, x)
-        evaluations = iteration  # one forward-dynamics call per residual
+        counts.iterations = counts.evaluations = iteration  # one forward-dynamics call per residual
         residual_norm = float(np.max(np.abs(R)))
         if not math.isfinite(residual_norm):
+            after = f" (last update norm {update_norm:.3g})" if iteration > 1 else " (at the step's start velocity)"
             raise StepFailure(
-                f"Newton's residual became non-finite at iteration {iteration} "
-                f"(last update norm {update_norm:.3g})",
-                status="newton_failed",
+                f"Newton's residual became non-finite at iteration {iteration}{after}", status="newton_failed"
             )
         if factors is None or (not fresh and theta > 0.5):
-            factors = _factorise(residual_jacobian(system, q, tau, s, x, q_x), iteration, residual_norm)
-            jacobians += 1
+            jacobian = residual_jacobian(system, q, tau, s, x, q_x)
+            counts.jacobians += 1
+            factors = _factorise(jacobian, iteration, residual_norm)
             fresh = True
         else:
             fresh = False
@@ -130,8 +131,7 @@ def _solve(
         update_norm = float(np.max(np.abs(update)))
         if not math.isfinite(update_norm):
             raise StepFailure(
-                f"Newton's iterate became non-finite at iteration {iteration} "
-                f"(residual norm {residual_norm:.3g})",
+                f"Newton's iterate became non-finite at iteration {iteration} (residual norm {residual_norm:.3g})",
                 status="newton_failed",
             )
         if iteration == 1:  # no rate yet, but the Jacobian is fresh, so the error left is quadratic
@@ -142,7 +142,7 @@ def _solve(
         previous_update = update_norm
         tolerance = atol + rtol * max(float(np.max(np.abs(x))), float(np.max(np.abs(v))))
         if error <= tolerance:
-            return _Solution(x, iteration, evaluations, jacobians)
+            return x
     plural = "s" if max_iterations != 1 else ""
     rate = f", contraction {theta:.3g}" if max_iterations > 1 else ""
     raise StepFailure(
@@ -156,8 +156,7 @@ def _factorise(jacobian: np.ndarray, iteration: int, residual_norm: float) -> tu
     """LU factors of the Newton Jacobian; StepFailure when it is non-finite or numerically singular."""
     if not np.all(np.isfinite(jacobian)):
         raise StepFailure(
-            f"Newton's Jacobian became non-finite at iteration {iteration} "
-            f"(residual norm {residual_norm:.3g})",
+            f"Newton's Jacobian became non-finite at iteration {iteration} (residual norm {residual_norm:.3g})",
             status="newton_failed",
         )
     with warnings.catch_warnings():
@@ -182,8 +181,8 @@ class _ImplicitOneStage(Integrator):
         max_iterations: Newton iterations allowed per step before StepFailure.
         rtol, atol: Newton stops when its estimated error in x is at most ``atol + rtol·max(‖x‖∞, ‖v_n‖∞)``
             [m/s, rad/s].
-        last_evaluations: forward-dynamics (ABA) evaluations of the latest step; the real count, where
-            ``evaluations_per_step`` is only typical because the Newton iterations vary.
+        last_evaluations: forward-dynamics (ABA) evaluations of the latest step, failed or not; the real count,
+            where ``evaluations_per_step`` is only typical because the Newton iterations vary.
         last_jacobian_evaluations: ABA-derivative evaluations of the latest step (each costs about 2.5–5 ABA
             calls).
         last_iterations: Newton iterations of the latest step.
@@ -197,9 +196,7 @@ class _ImplicitOneStage(Integrator):
     rtol = 1e-10
     atol = 1e-10
 
-    def __init__(
-        self, *, max_iterations: int | None = None, rtol: float | None = None, atol: float | None = None
-    ):
+    def __init__(self, *, max_iterations: int | None = None, rtol: float | None = None, atol: float | None = None):
         """A method instance, optionally with its own Newton settings (the registry's use the defaults).
 
         Raises:
@@ -219,13 +216,15 @@ class _ImplicitOneStage(Integrator):
         self.last_iterations = 0
 
     def _newton(self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, s: float) -> np.ndarray:
-        solution = _solve(
-            system, q, v, tau, s, max_iterations=self.max_iterations, rtol=self.rtol, atol=self.atol
-        )
-        self.last_evaluations = solution.evaluations
-        self.last_jacobian_evaluations = solution.jacobians
-        self.last_iterations = solution.iterations
-        return solution.x
+        counts = _Counts()
+        try:
+            return _solve(
+                system, q, v, tau, s, max_iterations=self.max_iterations, rtol=self.rtol, atol=self.atol, counts=counts
+            )
+        finally:  # a failed solve costs evaluations too
+            self.last_evaluations = counts.evaluations
+            self.last_jacobian_evaluations = counts.jacobians
+            self.last_iterations = counts.iterations
 
 
 class ImplicitEuler(_ImplicitOneStage):
@@ -239,10 +238,7 @@ class ImplicitEuler(_ImplicitOneStage):
     name = "implicit_euler"
     order = 1
     description = "implicit (backward) Euler, Newton with analytic ABA derivatives"
-    notes = (
-        "A- and L-stable, for stiff systems; damps oscillations "
-        "(energy x 1/(1 + (w h)^2) per step at frequency w)"
-    )
+    notes = "A- and L-stable, for stiff systems; damps oscillations (energy × 1/(1 + (ωh)²) per step at frequency ω)"
 
     def step(
         self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float
@@ -268,8 +264,8 @@ class ImplicitMidpoint(_ImplicitOneStage):
     order = 2
     description = "implicit midpoint rule, Newton with analytic ABA derivatives"
     notes = (
-        "A-stable, not L-stable (stiff modes ring instead of decaying); keeps linear oscillators' amplitude; "
-        "symplectic only where M is constant, not for general M(q)"
+        "A-stable, not L-stable (stiff modes ring with alternating sign and decay slowly); keeps linear "
+        "oscillators' amplitude; symplectic only where M is constant, not for general M(q)"
     )
 
     def step(

@@ -31,7 +31,7 @@ class ButcherTableau:
         if np.any(np.triu(a) != 0.0):
             raise ValueError("an explicit tableau's a must be strictly lower-triangular")
         if abs(b.sum() - 1.0) > 1e-12:
-            raise ValueError(f"tableau weights b must sum to 1, got {b.sum()!r}")
+            raise ValueError(f"tableau weights b must sum to 1, got {float(b.sum())!r}")
         if np.max(np.abs(a.sum(axis=1) - c)) > 1e-12:
             raise ValueError("tableau rows of a must sum to c")
         if self.order < 1:

@@ -10,14 +10,18 @@ midpoint (f⁻ = f⁺ = (h/2) F(q̄, w)). In position–momentum form, with p = 
     R(w)    = M(q̄) w − (h/2) ∂L/∂q(q̄, w) − (h/2) F − p_k = 0        (solved for w by Newton)
     p_{k+1} = M(q̄) w + (h/2) ∂L/∂q(q̄, w) + (h/2) F,   v_{k+1} = M(q_{k+1})⁻¹ p_{k+1}.
 
-Every term comes from one Pinocchio RNEA-derivatives call at (q̄, 0, w): ``rnea(q, 0, w) = M(q) w + g(q)``
-gives M = ∂τ/∂a and K + ∂g/∂q = ∂τ/∂q with K = ∂(M(q) w)/∂q, and ∂T/∂q(q, w) = ½ Kᵀ w (because
-∂T/∂q_i = ½ wᵀ (∂M/∂q_i) w = ½ Σ_j w_j K_ji).
+The map (q_k, p_k) -> (q_{k+1}, p_{k+1}) is symplectic; storing v = M(q)⁻¹ p instead of p is a fixed change of
+coordinates at each q, so the integrator stays stateless.
+
+The terms come from Pinocchio's RNEA derivatives at (q̄, 0, w): ``rnea(q, 0, w) = M(q) w + g(q)`` gives
+M = ∂τ/∂a and K + ∂g/∂q = ∂τ/∂q with K = ∂(M(q) w)/∂q, and ∂T/∂q(q, w) = ½ Kᵀ w (because
+∂T/∂q_i = ½ wᵀ (∂M/∂q_i) w = ½ Σ_j w_j K_ji; it also equals C(q, w)ᵀ w for Pinocchio's C).
 
 Newton's Jacobian is dR/dw = M + (h/2)(K − Kᵀ) + (h²/4) ∂g/∂q + (h/2) D − (h²/4) ∂²T/∂q². Pinocchio has no
-second-order RNEA derivatives in Python, so the last term is dropped: the iteration then contracts linearly
-with factor ‖J⁻¹ (h²/4) ∂²T/∂q²‖ ≈ (h |w| / 2)² times the relative curvature of M, a few digits per iteration
-at ordinary steps.
+second-order RNEA derivatives in Python, so the last term is dropped: alone, the iteration then contracts
+linearly with factor ≈ ‖J⁻¹ (h²/4) ∂²T/∂q²‖ = O(h²), several digits per iteration at ordinary steps but close to
+1 at coarse ones. A structured secant (Broyden) correction learns the dropped term along the directions the
+iteration explores, which keeps coarse steps converging superlinearly.
 
 Only flat configuration spaces (revolute, prismatic and continuous joints) are handled: there q ⊕ (h/2) w has
 tangent derivative (h/2) I and Pinocchio's tangent-space derivatives are coordinate derivatives.
@@ -31,12 +35,15 @@ from typing import Any, NamedTuple
 
 import numpy as np
 import pinocchio as pin
+from scipy.linalg.lapack import dgesv
 
 from ..exceptions import InvalidArgumentError
 from .base import Integrator, StepFailure, System
 
-_WORLD = pin.Convention.WORLD
 _LEDGER = ("joint_torques", "joint_damping")
+_ALTERNATIVES = "use rk4, dp54 or another explicit integrator"
+# Relative residual below which the secant correction stops learning (its differences would be round-off).
+_SECANT_FLOOR = 1e-9
 
 
 class Evaluation(NamedTuple):
@@ -44,9 +51,9 @@ class Evaluation(NamedTuple):
 
     Attributes:
         residual: R(w) [N·m·s, N·s], shape (nv,).
-        jacobian: Newton's dR/dw without the (h²/4) ∂²T/∂q² term, shape (nv, nv).
+        jacobian: Newton's dR/dw without the -(h²/4) ∂²T/∂q² term, shape (nv, nv).
         momentum_next: p_{k+1} that this w gives, shape (nv,).
-        scale: the size of the terms R sums [N·m·s, N·s], for the relative convergence test.
+        scale: the largest term R sums (max-norm) [N·m·s, N·s], for the relative convergence test.
     """
 
     residual: np.ndarray
@@ -77,25 +84,25 @@ def evaluate(
         w: trial midpoint velocity (q_{k+1} ⊖ q_k) / h, shape (nv,).
 
     Returns:
-        The residual, Jacobian, next momentum and scale at w; 3 Pinocchio dynamics calls.
+        The residual, Jacobian, next momentum and scale at w (3 Pinocchio dynamics calls).
     """
     half = 0.5 * h
+    n = len(w)
     q_mid = pin.integrate(model, q, half * w)
-    dtau_dq, _, M = pin.computeRNEADerivatives(model, data, q_mid, np.zeros_like(w), w)
-    dtau_dq = dtau_dq.copy()  # the next calls reuse the workspace
-    M = _symmetric(M)
     dg_dq = pin.computeGeneralizedGravityDerivatives(model, data, q_mid)
-    K = dtau_dq - dg_dq  # ∂(M(q) w)/∂q at q̄
     g = pin.computeGeneralizedGravity(model, data, q_mid)
+    # Last: these two are views into Pinocchio's workspace, used before any other call can overwrite it.
+    dtau_dq, _, M = pin.computeRNEADerivatives(model, data, q_mid, _zeros(n), w)
+    K = dtau_dq - dg_dq  # ∂(M(q) w)/∂q at q̄
+    M = _symmetric(M)
     Mw = M @ w
-    dL_dq = 0.5 * (w @ K) - g
-    force = tau - damping * w
-    half_terms = half * (dL_dq + force)
-    residual = Mw - half_terms - p
+    half_dL_dq = (0.5 * half) * (w @ K) - half * g
+    half_force = half * (tau - damping * w)
+    half_terms = half_dL_dq + half_force
     jacobian = M + half * (K - K.T) + (half * half) * dg_dq
-    jacobian.flat[:: len(w) + 1] += half * damping
-    scale = float(np.abs(np.concatenate((p, Mw, half * dL_dq, half * force))).max(initial=0.0))
-    return Evaluation(residual, jacobian, Mw + half_terms, scale)
+    jacobian.flat[:: n + 1] += half * damping
+    scale = float(np.abs(np.concatenate((p, Mw, half_dL_dq, half_force))).max(initial=0.0))
+    return Evaluation(Mw - half_terms - p, jacobian, Mw + half_terms, scale)
 
 
 class VariationalIntegrator(Integrator):
@@ -112,27 +119,27 @@ class VariationalIntegrator(Integrator):
     Attributes:
         tolerance: converged when max|R| ≤ tolerance · (largest term of R, max-norm).
         max_iterations: Newton iterations before the step fails with status "newton_failed".
-        last_evaluations: Pinocchio dynamics calls (CRBA, ABA, RNEA derivatives, gravity and its derivatives)
-            of the last step: 3 + 3 per Newton iteration.
-        last_iterations: Newton iterations of the last step.
+        last_evaluations: Pinocchio dynamics calls of the last step (CRBA, ABA, RNEA derivatives, gravity and
+            its derivatives each count one): 3 + 3 per residual evaluation.
+        last_iterations: Newton iterations (solves) of the last step.
         last_residual: relative residual max|R| / scale at which the last step stopped.
     """
 
     name = "variational"
     order = 2
-    description = "variational midpoint (discrete Euler–Lagrange), implicit, Newton-solved to 1e-12"
+    description = "variational midpoint (discrete Euler–Lagrange), symplectic, Newton-solved to 1e-12"
     implicit = True
     symplectic = True
-    # Linear mechanical systems (M q'' + D q' + K q = tau, M constant) make the scheme exactly the trapezoidal
-    # rule, which is A-stable (tested against its closed form); see notes for what that does not promise.
+    # On linear mechanical systems (M q'' + D q' + K q = tau, M constant) the scheme is exactly the trapezoidal
+    # rule, which is A-stable (tested against its closed form); the notes say what that does not promise.
     a_stable = True
     notes = (
         "fixed bases only; conserves symmetry momenta to solver tolerance and keeps energy errors bounded; "
         "on linear(ised) systems it is the trapezoidal rule: A-stable but not L-stable (a stiff damped mode "
-        "flips sign each step, decaying slowly, instead of being damped out)"
+        "flips sign each step and decays slowly instead of being damped out)"
     )
-    # Nominal count, 2 Newton iterations; the loop reads last_evaluations for the real one.
-    evaluations_per_step = 9
+    # Nominal: 2 Newton iterations (3 evaluations); the stepping loop reads last_evaluations for the real count.
+    evaluations_per_step = 12
 
     def __init__(self, *, tolerance: float = 1e-12, max_iterations: int = 50):
         self.tolerance = tolerance
@@ -146,30 +153,29 @@ class VariationalIntegrator(Integrator):
 
         Raises:
             InvalidArgumentError: a floating base, a spherical or planar joint, or energy-ledger elements
-                other than joint torques and joint damping (scene elements).
+                other than joint torques and joint damping (scene elements such as springs).
         """
         name = getattr(system, "name", type(system).__name__)
         if getattr(system, "floating_base", False):
             raise InvalidArgumentError(
                 f"integrator 'variational' does not support floating bases yet (robot '{name}' has one); "
-                "use rk4, dp54 or another explicit integrator"
+                f"{_ALTERNATIVES}"
             )
         space = system.space
         if not space.is_flat:
             model = system.model  # type: ignore[attr-defined]
             start = space.curved_blocks[0][0]
-            joint = next(model.names[i] for i in range(1, model.njoints) if model.joints[i].idx_v == start)
+            joint = next(j for j in range(1, model.njoints) if model.joints[j].idx_v == start)
+            kind = model.joints[joint].shortname().removeprefix("JointModel").lower()
             raise InvalidArgumentError(
-                f"integrator 'variational' supports only revolute, prismatic and continuous joints yet "
-                f"(robot '{name}' has joint '{joint}' of type {model.joints[model.getJointId(joint)].shortname()}); "
-                "use rk4, dp54 or another explicit integrator"
+                "integrator 'variational' supports only revolute, prismatic and continuous joints yet (robot "
+                f"'{name}' has the {kind} joint '{model.names[joint]}'); {_ALTERNATIVES}"
             )
-        elements = [element for element, _ in getattr(system, "ledger_elements", [])]
-        if not hasattr(system, "model") or any(element not in _LEDGER for element in elements):
-            others = [element for element in elements if element not in _LEDGER]
+        others = [element for element, _ in system.ledger_elements if element not in _LEDGER]
+        if others:
             raise InvalidArgumentError(
-                f"integrator 'variational' handles joint torques and joint damping only, not {others or name}; "
-                "use rk4, dp54 or another explicit integrator"
+                "integrator 'variational' models joint torques and joint damping only, but "
+                f"'{name}' also has: {', '.join(others)}; {_ALTERNATIVES}"
             )
 
     def step(
@@ -179,39 +185,54 @@ class VariationalIntegrator(Integrator):
             self.check_system(system)
         robot: Any = system
         model, data, damping = robot.model, robot.data, robot.damping
-        M = pin.crba(model, data, q)
-        p = _symmetric(M) @ v
+        p = _symmetric(pin.crba(model, data, q)) @ v
         # The midpoint velocity is v(t + h/2) + O(h²): start Newton there (one ABA call).
         w = v + (0.5 * dt) * robot.unchecked_forward_dynamics(q, v, tau)
         evaluations, iterations = 2, 0
-        while True:
-            ev = evaluate(model, data, damping, q, p, tau, dt, w)
-            evaluations += 3
-            error = float(np.abs(ev.residual).max(initial=0.0))
-            relative = error / ev.scale if ev.scale > 0.0 else error
-            if relative <= self.tolerance:
-                break
-            if not math.isfinite(error) or iterations == self.max_iterations:
-                self.last_evaluations, self.last_iterations, self.last_residual = evaluations, iterations, relative
-                raise StepFailure(
-                    f"Newton did not solve the discrete Euler–Lagrange equations in {iterations} iterations "
-                    f"(relative residual {relative:.3g}, tolerance {self.tolerance:g})",
-                    status="newton_failed",
-                )
-            try:
-                w = w - np.linalg.solve(ev.jacobian, ev.residual)
-            except np.linalg.LinAlgError:
-                self.last_evaluations, self.last_iterations, self.last_residual = evaluations, iterations, relative
-                raise StepFailure("Newton's Jacobian is singular", status="newton_failed") from None
-            iterations += 1
+        correction = np.zeros((len(v), len(v)))
+        previous_residual = step_w = None
+        with np.errstate(all="ignore"):  # a diverging iterate becomes a StepFailure below, not warnings
+            while True:
+                ev = evaluate(model, data, damping, q, p, tau, dt, w)
+                evaluations += 3
+                error = float(np.abs(ev.residual).max(initial=0.0))
+                relative = error / ev.scale if ev.scale > 0.0 else error
+                if relative <= self.tolerance:
+                    break
+                if not math.isfinite(relative) or iterations == self.max_iterations:
+                    self._record(evaluations, iterations, relative)
+                    raise StepFailure(
+                        "Newton did not solve the discrete Euler–Lagrange equations: relative residual "
+                        f"{relative:.3g} > tolerance {self.tolerance:g} after {iterations} iteration(s)",
+                        status="newton_failed",
+                    )
+                if step_w is not None and relative > _SECANT_FLOOR:
+                    # Structured secant (Broyden) update of the dropped -(h²/4) ∂²T/∂q² along the last step;
+                    # skipped near round-off, where the secant would only learn noise.
+                    mismatch = ev.residual - previous_residual - (ev.jacobian + correction) @ step_w
+                    correction += np.outer(mismatch, step_w / (step_w @ step_w))
+                step_w, singular = _solve(ev.jacobian + correction, -ev.residual)
+                if singular:
+                    self._record(evaluations, iterations, relative)
+                    raise StepFailure("Newton's Jacobian is singular", status="newton_failed")
+                w = w + step_w
+                previous_residual = ev.residual
+                iterations += 1
         q_next = pin.integrate(model, q, dt * w)
-        v_next = np.linalg.solve(_symmetric(pin.crba(model, data, q_next)), ev.momentum_next)
-        evaluations += 1
+        v_next, _ = _solve(_symmetric(pin.crba(model, data, q_next)), ev.momentum_next)  # M is positive definite
+        self._record(evaluations + 1, iterations, relative)
+        if len(robot.ledger_elements) == 1:
+            return q_next, v_next, np.array([dt * (tau @ w)])
+        return q_next, v_next, np.array([dt * (tau @ w), dt * (w @ (damping * w))])
+
+    def _record(self, evaluations: int, iterations: int, relative: float) -> None:
         self.last_evaluations, self.last_iterations, self.last_residual = evaluations, iterations, relative
-        flows = [dt * (tau @ w)]
-        if len(robot.ledger_elements) > 1:
-            flows.append(dt * (w @ (damping * w)))
-        return q_next, v_next, np.array(flows)
+
+
+def _solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
+    """x with A x = b and whether A was singular (LAPACK directly: numpy's solve costs 5x more on small A)."""
+    _, _, x, info = dgesv(A, b)
+    return x, info != 0
 
 
 def _symmetric(upper: np.ndarray) -> np.ndarray:
@@ -219,6 +240,13 @@ def _symmetric(upper: np.ndarray) -> np.ndarray:
     return np.where(_upper_mask(len(upper)), upper, upper.T)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _upper_mask(n: int) -> np.ndarray:
     return np.triu(np.ones((n, n), dtype=bool))
+
+
+@functools.cache
+def _zeros(n: int) -> np.ndarray:
+    zeros = np.zeros(n)
+    zeros.setflags(write=False)
+    return zeros
