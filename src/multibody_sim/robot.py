@@ -204,8 +204,10 @@ class Robot:
 
     def unchecked_energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
         """(T, V) [J] without argument checks."""
-        T = pin.computeKineticEnergy(self.model, self.data, q, v)
-        return float(T), float(pin.computePotentialEnergy(self.model, self.data, q))
+        pin.forwardKinematics(self.model, self.data, q, v)  # once, for both energies
+        return float(pin.computeKineticEnergy(self.model, self.data)), float(
+            pin.computePotentialEnergy(self.model, self.data)
+        )
 
     @property
     def energy_scale(self) -> float:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import importlib.metadata
 import math
 import time
@@ -327,7 +328,7 @@ class _Run:
     def _metadata(self) -> dict[str, Any]:
         system = self.system
         return {
-            "versions": _versions(),
+            "versions": dict(_versions()),
             "robot": {
                 "name": system.name,
                 "nq": system.nq,
@@ -550,6 +551,7 @@ def _limit_violations(system: Robot, t: np.ndarray, Q: np.ndarray) -> LimitViola
     )
 
 
+@functools.cache
 def _versions() -> dict[str, str]:
     versions = {}
     for dist in ("multibody-sim", "pin", "example-robot-data", "numpy", "yourdfpy"):

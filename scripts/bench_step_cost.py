@@ -1,0 +1,960 @@
+"""Benchmark of the stepping loop's per-step cost against its Pinocchio floor and MuJoCo.
+
+Writes docs/step_cost.md. For each robot, in one run and round-robin (the machine is shared and noisy, so each
+figure is a median over rounds in which every variant was timed once, under the same conditions):
+
+- ``simulate`` with zero torque from a random state, per integrator: µs/step from the process's CPU time of
+  the whole call (minus the fixed per-call cost), beside the wall time of the loop (``stats["wall_time"]``)
+  and of the whole call;
+- the floor: 4 × ``pin.aba`` (WORLD convention) + 4 × ``pin.integrate`` per step in a tight Python loop;
+- MuJoCo as a peer on the same URDF (RK4, dt = 1 ms, what Pinocchio does not model disabled): ``mj_step``
+  in a Python loop and ``mujoco.rollout``, plus a check that MuJoCo's accelerations equal Pinocchio's.
+
+Then it breaks one RK4 step into its parts (the Pinocchio calls and the robot's hot-path methods timed alone,
+and a cProfile of one robot's loop) and writes the report. MuJoCo is optional (``pip install mujoco``; a
+benchmark-only dependency): without it those columns are skipped with a note.
+
+Usage:
+    .venv/bin/python scripts/bench_step_cost.py [--repeats 31] [--steps 500] [--out docs/step_cost.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import datetime
+import gc
+import io
+import math
+import os
+import platform
+import pstats
+import statistics
+import sys
+import time
+import xml.etree.ElementTree as ET
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from multibody_sim import INTEGRATORS, load_robot, simulate
+
+try:
+    import mujoco
+except ImportError:  # a benchmark-only dependency: the report says it was skipped
+    mujoco = None
+
+try:
+    from mujoco import rollout as mj_rollout
+except ImportError:
+    mj_rollout = None
+
+ROBOTS = ("double_pendulum", "ur5", "panda", "solo12", "talos")
+METHODS = ("euler", "semi_implicit_euler", "midpoint", "rk4")
+DT = 1e-3
+SEED = 0
+V0_SCALE = 0.1  # "small random v0": standard deviation of the Gaussian velocity [rad/s, m/s]
+PROFILED_ROBOT = "solo12"  # a floating base exercises every part of the RK step, the chart map included
+PROFILED_STEPS = 2000
+_WORLD = pin.Convention.WORLD
+ROOT = Path(__file__).resolve().parent.parent
+
+Profile = tuple[str, float, int, list[tuple[str, int, float]]]  # robot, total [s], steps, (function, calls, share)
+
+
+def para(text: str) -> str:
+    """One Markdown paragraph from a wrapped triple-quoted string (whitespace runs become single spaces)."""
+    return " ".join(text.split())
+
+
+def median(values: list[float]) -> float:
+    return statistics.median(values) if values else math.nan
+
+
+def fmt(x: float | None, digits: int = 1) -> str:
+    if x is None or math.isnan(x):
+        return "—"
+    return f"{x:.{digits}f}"
+
+
+@dataclass
+class Samples:
+    """Per-round measurements of one robot: CPU time of this process unless stated, µs per step.
+
+    CPU time is the headline because the machine is time-shared: wall time also counts the time other
+    processes held the core. The stepping loop's own wall time (stats["wall_time"]) is kept alongside.
+    """
+
+    call: dict[str, list[float]] = field(default_factory=dict)  # whole simulate() call / steps, per method
+    fixed_ms: dict[str, list[float]] = field(default_factory=dict)  # a one-step call: the fixed cost [ms]
+    stats_wall: dict[str, list[float]] = field(default_factory=dict)  # stats["wall_time"] / steps (wall)
+    call_wall: dict[str, list[float]] = field(default_factory=dict)  # whole call / steps (wall)
+    rk4_sparse: list[float] = field(default_factory=list)  # rk4 with output_dt = 10 dt, whole call / steps
+    floor: list[float] = field(default_factory=list)
+    mj_step: list[float] = field(default_factory=list)
+    mj_rollout: list[float] = field(default_factory=list)
+    cpu_share: list[float] = field(default_factory=list)  # CPU time / wall time of the timed calls
+
+    def loop(self, method: str, steps: int) -> float:
+        """CPU µs per step of the stepping loop: the call's cost minus its fixed per-call cost."""
+        return median(self.call[method]) - median(self.fixed_ms[method]) * 1e3 / steps
+
+    def loop_sparse(self, steps: int) -> float:
+        return median(self.rk4_sparse) - median(self.fixed_ms["rk4"]) * 1e3 / steps
+
+
+@dataclass
+class RobotResult:
+    """Everything the report shows for one robot."""
+
+    name: str
+    nq: int
+    nv: int
+    floating: bool
+    samples: Samples
+    parts: dict[str, float] = field(default_factory=dict)  # the parts of one RK4 step, timed alone [µs/step]
+    extras: dict[str, float] = field(default_factory=dict)  # related costs, not in the parts' sum [µs/step]
+    qacc_error: float = math.nan  # max |qacc_MuJoCo - a_Pinocchio| at (q0, v0)
+    qacc_scale: float = math.nan  # max |a_Pinocchio|
+    final_state_error: float = math.nan  # max |state difference| after the same RK4 steps, ours vs MuJoCo
+
+
+# ---- MuJoCo: the same URDF, the same dynamics --------------------------------------------------------------
+def mujoco_model(robot: Any) -> Any:
+    """MuJoCo model of the robot's URDF with only what Pinocchio models: rigid bodies, joints and gravity.
+
+    Visual and collision geometry go (their package:// paths would not resolve, and geometry costs time
+    that has nothing to do with dynamics); a floating robot gets a free joint on its root body (MuJoCo welds a
+    URDF's root); damping, armature and friction loss are zeroed; equality constraints (panda's finger
+    mimic), joint limits and contacts are disabled. RK4 with the same 1 ms step.
+    """
+    tree = ET.parse(robot.source["urdf_path"])
+    for parent in tree.getroot().iter():
+        for child in list(parent):
+            if child.tag in ("visual", "collision", "transmission", "gazebo"):
+                parent.remove(child)
+    spec = mujoco.MjSpec.from_string(ET.tostring(tree.getroot(), encoding="unicode"))
+    if robot.floating_base:
+        spec.worldbody.first_body().add_freejoint()
+    model = spec.compile()
+    model.dof_damping[:] = 0.0
+    model.dof_armature[:] = 0.0
+    model.dof_frictionloss[:] = 0.0
+    model.opt.integrator = int(mujoco.mjtIntegrator.mjINT_RK4)
+    model.opt.timestep = DT
+    off = mujoco.mjtDisableBit
+    model.opt.disableflags |= int(off.mjDSBL_EQUALITY) | int(off.mjDSBL_LIMIT) | int(off.mjDSBL_CONTACT)
+    return model
+
+
+class StateMap:
+    """Pinocchio (q, v, v̇) to MuJoCo (qpos, qvel, qacc), joint by joint by name (talos's orders differ).
+
+    Free joint: Pinocchio q = [p, (x y z w)], v = [R^T ṗ, ω_body]; MuJoCo qpos = [p, (w x y z)],
+    qvel = [ṗ in the world frame, ω_body]. So MuJoCo's linear acceleration is
+    d/dt(R v_lin) = R (v̇_lin + ω × v_lin).
+    """
+
+    def __init__(self, robot: Any, model: Any):
+        self.nq_mj, self.nv_mj = model.nq, model.nv
+        self.joints: list[tuple[str, int, int, int, int]] = []  # kind, pin idx_q, idx_v, mj qposadr, dofadr
+        free = [j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
+        for name in robot.joint_names:
+            joint = robot.model.joints[robot.model.getJointId(name)]
+            kind = {(7, 6): "free", (1, 1): "scalar", (2, 1): "continuous"}.get((joint.nq, joint.nv))
+            if kind is None:
+                raise NotImplementedError(f"StateMap: joint '{name}' ({joint.shortname()}) is not mapped")
+            j = free[0] if kind == "free" else model.joint(name).id
+            self.joints.append((kind, joint.idx_q, joint.idx_v, model.jnt_qposadr[j], model.jnt_dofadr[j]))
+
+    def state(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """MuJoCo (qpos, qvel) of the Pinocchio state (q, v)."""
+        qpos, qvel = np.zeros(self.nq_mj), np.zeros(self.nv_mj)
+        for kind, iq, iv, jq, jv in self.joints:
+            if kind == "free":
+                x, y, z, w = q[iq + 3 : iq + 7]
+                rotation = pin.Quaternion(w, x, y, z).toRotationMatrix()
+                qpos[jq : jq + 7] = [*q[iq : iq + 3], w, x, y, z]
+                qvel[jv : jv + 3] = rotation @ v[iv : iv + 3]
+                qvel[jv + 3 : jv + 6] = v[iv + 3 : iv + 6]
+            elif kind == "continuous":
+                qpos[jq], qvel[jv] = math.atan2(q[iq + 1], q[iq]), v[iv]
+            else:
+                qpos[jq], qvel[jv] = q[iq], v[iv]
+        return qpos, qvel
+
+    def acceleration(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """MuJoCo qacc of the Pinocchio acceleration a at (q, v)."""
+        qacc = np.zeros(self.nv_mj)
+        for kind, iq, iv, _, jv in self.joints:
+            if kind == "free":
+                x, y, z, w = q[iq + 3 : iq + 7]
+                rotation = pin.Quaternion(w, x, y, z).toRotationMatrix()
+                v_lin, omega = v[iv : iv + 3], v[iv + 3 : iv + 6]
+                qacc[jv : jv + 3] = rotation @ (a[iv : iv + 3] + np.cross(omega, v_lin))
+                qacc[jv + 3 : jv + 6] = a[iv + 3 : iv + 6]
+            else:
+                qacc[jv] = a[iv]
+        return qacc
+
+
+def mj_set_state(model: Any, data: Any, qpos: np.ndarray, qvel: np.ndarray) -> None:
+    mujoco.mj_resetData(model, data)
+    data.qpos[:], data.qvel[:] = qpos, qvel
+
+
+# ---- the free-flyer chart map's accuracy ---------------------------------------------------------------------
+_BERNOULLI = (1.0, -1 / 2, 1 / 6, 0.0, -1 / 30, 0.0, 1 / 42, 0.0, -1 / 30, 0.0, 5 / 66, 0.0, -691 / 2730, 0.0, 7 / 6)
+
+
+def _hat(x: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -x[2], x[1]], [x[2], 0.0, -x[0]], [-x[1], x[0], 0.0]])
+
+
+def inverse_right_jacobian_series(xi: np.ndarray) -> np.ndarray:
+    """J_r(xi)^-1 of SE(3) for a small twist xi = (linear, angular), by its Bernoulli series Σ B_n (-ad)^n / n!.
+
+    Independent of Pinocchio's closed forms, and accurate to round-off for |xi| ≤ 0.1 with these 15 terms.
+    """
+    ad = np.zeros((6, 6))
+    ad[:3, :3] = ad[3:, 3:] = _hat(xi[3:])
+    ad[:3, 3:] = _hat(xi[:3])
+    result, power = np.zeros((6, 6)), np.eye(6)
+    for n, b in enumerate(_BERNOULLI):
+        result += (b / math.factorial(n)) * power
+        power = -power @ ad
+    return result
+
+
+def chart_map_accuracy(robot: Any, seed: int = SEED) -> dict[str, tuple[float, float]]:
+    """Worst error [per unit velocity] and where (|xi|) of free-flyer chart rates against the series.
+
+    Both the translation and rotation parts of the stage twist xi have norm θ, swept over 1e-6 … 1e-1; an RK4
+    stage at dt = 1 ms has θ ≈ 1e-3 · |v| to 5e-4 · |v|.
+    """
+    rng = np.random.default_rng(seed)
+    q = robot.random_configuration(rng)
+    worst = {"chart_velocity (dIntegrate + solve)": (0.0, 0.0), "Jlog6(exp6(xi))": (0.0, 0.0)}
+    for theta in np.logspace(-6, -1, 21):
+        for _ in range(10):
+            xi = np.zeros(robot.nv)
+            xi[:3], xi[3:6] = rng.normal(size=3), rng.normal(size=3)
+            xi[:3] *= theta / np.linalg.norm(xi[:3])
+            xi[3:6] *= theta / np.linalg.norm(xi[3:6])
+            v = rng.normal(size=robot.nv)
+            v /= np.max(np.abs(v[:6]))
+            reference = inverse_right_jacobian_series(xi[:6]) @ v[:6]
+            candidates = {
+                "chart_velocity (dIntegrate + solve)": robot.space.chart_velocity(q, xi, v)[:6],
+                "Jlog6(exp6(xi))": pin.Jlog6(pin.exp6(xi[:6])) @ v[:6],
+            }
+            for name, rates in candidates.items():
+                error = float(np.max(np.abs(rates - reference)))
+                if error > worst[name][0]:
+                    worst[name] = (error, float(theta))
+    return worst
+
+
+IN_USE = "chart_velocity inside rk4 runs"
+IN_USE_JLOG = "Jlog6(exp6(xi)) on the same stages"
+
+
+def chart_map_in_use(robot: Any, steps: int = 200, seed: int = SEED) -> dict[str, tuple[float, float]]:
+    """Worst error of the chart rates the rk4 integrator actually uses, against the series (and where); and
+    of the closed form Jlog6 on the same stages.
+
+    Wraps the robot's own `space.chart_velocity` for a few runs in which the base spins at 0.3, 0.6 and 1.2
+    rad/s, so that the stage twists sweep θ ≈ 1.5e-4 … 1.2e-3 at dt = 1 ms. In a stage the velocity is
+    nearly parallel to the twist, unlike the general-position sweep of chart_map_accuracy.
+    """
+    space = robot.space
+    original = space.chart_velocity
+    worst = {IN_USE: (0.0, 0.0), IN_USE_JLOG: (0.0, 0.0)}
+
+    def checked(q_base: np.ndarray, xi: np.ndarray, v: np.ndarray) -> np.ndarray:
+        rates = original(q_base, xi, v)
+        reference = inverse_right_jacobian_series(xi[:6]) @ v[:6]
+        theta = float(np.linalg.norm(xi[3:6]))
+        for name, candidate in ((IN_USE, rates[:6]), (IN_USE_JLOG, pin.Jlog6(pin.exp6(xi[:6])) @ v[:6])):
+            error = float(np.max(np.abs(candidate - reference)))
+            if error > worst[name][0]:
+                worst[name] = (error, theta)
+        return rates
+
+    rng = np.random.default_rng(seed)
+    space.chart_velocity = checked  # an instance attribute shadows the method for these runs only
+    try:
+        for speed in (0.3, 0.6, 1.2):
+            q0 = robot.random_configuration(rng)
+            v0 = rng.normal(size=robot.nv)
+            v0[3:6] *= speed / np.linalg.norm(v0[3:6])
+            simulate(robot, q0, v0, duration=steps * DT, dt=DT, integrator="rk4")
+    finally:
+        del space.chart_velocity
+    return worst
+
+
+# ---- timed pieces ------------------------------------------------------------------------------------------
+def time_simulate(
+    robot: Any, q0: np.ndarray, v0: np.ndarray, steps: int, method: str, **options: Any
+) -> tuple[float, float, float]:
+    """(CPU µs/step of the whole call, wall µs/step of the whole call, stats["wall_time"] µs/step)."""
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    traj = simulate(robot, q0, v0, duration=steps * DT, dt=DT, integrator=method, **options)
+    cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    n = traj.stats["steps"]
+    return cpu / n * 1e6, wall / n * 1e6, traj.stats["wall_time"] / n * 1e6
+
+
+def time_floor(robot: Any, q: np.ndarray, v: np.ndarray, steps: int) -> float:
+    """µs per step of 4 aba + 4 integrate, the Pinocchio calls an RK4 step cannot avoid (unrolled)."""
+    model, data, tau, dv = robot.model, robot.data, np.zeros(robot.nv), v * DT
+    aba, integrate = pin.aba, pin.integrate
+    start = time.process_time()
+    for _ in range(steps):
+        aba(model, data, q, v, tau, _WORLD)
+        aba(model, data, q, v, tau, _WORLD)
+        aba(model, data, q, v, tau, _WORLD)
+        aba(model, data, q, v, tau, _WORLD)
+        integrate(model, q, dv)
+        integrate(model, q, dv)
+        integrate(model, q, dv)
+        integrate(model, q, dv)
+    return (time.process_time() - start) / steps * 1e6
+
+
+def time_mj_step(model: Any, data: Any, qpos: np.ndarray, qvel: np.ndarray, steps: int) -> float:
+    """µs per mj_step (RK4) in a Python loop, from (qpos, qvel)."""
+    mj_set_state(model, data, qpos, qvel)
+    step = mujoco.mj_step
+    start = time.process_time()
+    for _ in range(steps):
+        step(model, data)
+    return (time.process_time() - start) / steps * 1e6
+
+
+def time_mj_rollout(model: Any, data: Any, state0: np.ndarray, steps: int) -> float:
+    """µs per step of mujoco.rollout (one trajectory, one thread, its output allocation included)."""
+    start = time.process_time()
+    mj_rollout.rollout(model, data, state0[None, :], nstep=steps)
+    return (time.process_time() - start) / steps * 1e6
+
+
+class PartTimer:
+    """Cost of each call an RK4 step makes, timed alone, times its count per step [µs/step]; and extras.
+
+    An RK4 step makes 4 forward-dynamics calls, 4 integrate calls (3 stages and the update), 4 ledger-power
+    calls, 3 chart-velocity maps on a floating base (stages 2 to 4), and the loop records energies every step
+    (the default output). The extras are related costs (the 6 × 6 solve inside the chart map, cheaper ways to
+    compute the same energies and chart rates), so the report can say whether a change would pay. Timed
+    once per round of the main measurement, so that both see the same machine.
+    """
+
+    def __init__(self, robot: Any, q: np.ndarray, v: np.ndarray):
+        self.calls, self.extras = _part_calls(robot, q, v)
+        self.runs: dict[str, list[float]] = {label: [] for label in [*self.calls, *self.extras]}
+
+    def time_round(self, reps: int) -> None:
+        for label, (_, fn) in [*self.calls.items(), *self.extras.items()]:
+            start = time.process_time()
+            for _ in range(reps):
+                fn()
+            self.runs[label].append((time.process_time() - start) / reps * 1e6)
+
+    def costs(self) -> tuple[dict[str, float], dict[str, float]]:
+        """(parts, extras) in µs per RK4 step: medians over rounds × calls per step."""
+        parts = {label: count * median(self.runs[label]) for label, (count, _) in self.calls.items()}
+        extras = {label: count * median(self.runs[label]) for label, (count, _) in self.extras.items()}
+        return parts, extras
+
+
+Calls = dict[str, tuple[int, Callable[[], Any]]]
+
+
+def _part_calls(robot: Any, q: np.ndarray, v: np.ndarray) -> tuple[Calls, Calls]:
+    model, data, tau, dv, space = robot.model, robot.data, np.zeros(robot.nv), v * DT, robot.space
+    power = np.empty(len(robot.ledger_elements))
+    try:
+        robot.ledger_power(q, v, tau, out=power)
+        ledger_power: Callable[[], Any] = lambda: robot.ledger_power(q, v, tau, out=power)  # noqa: E731
+    except TypeError:  # an older signature without `out`
+        ledger_power = lambda: robot.ledger_power(q, v, tau)  # noqa: E731
+
+    def energies_one_pass() -> tuple[float, float]:
+        pin.forwardKinematics(model, data, q, v)
+        return pin.computeKineticEnergy(model, data), pin.computePotentialEnergy(model, data)
+
+    calls: Calls = {
+        "4 × pin.aba": (4, lambda: pin.aba(model, data, q, v, tau, _WORLD)),
+        "4 × pin.integrate": (4, lambda: pin.integrate(model, q, dv)),
+        "4 × ledger_power": (4, ledger_power),
+        "1 × energies (record)": (1, lambda: robot.unchecked_energies(q, v)),
+    }
+    extras: Calls = {"energies, one kinematics pass": (1, energies_one_pass)}
+    if not space.is_flat:
+        calls["3 × chart_velocity"] = (3, lambda: space.chart_velocity(q, dv, v))
+        free = [(a, b) for a, b in space.curved_blocks if b - a == 6 and robot.floating_base and a == 0]
+        if free == list(space.curved_blocks):  # only a free-flyer: its chart Jacobian has a closed-form inverse
+
+            def chart_closed_form() -> np.ndarray:
+                rates = v.copy()
+                rates[:6] = pin.Jlog6(pin.exp6(dv[:6])) @ v[:6]
+                return rates
+
+            extras["chart rates, closed form"] = (3, chart_closed_form)
+            block = pin.dIntegrate(model, q, dv, pin.ArgumentPosition.ARG1)[:6, :6]
+            extras["np.linalg.solve, 6 × 6"] = (3, lambda: np.linalg.solve(block, v[:6]))
+    return calls, extras
+
+
+def time_numpy_op(n: int, reps: int = 20000) -> float:
+    """µs of one small-array numpy operation (`x * c` and `y += x`, averaged) on arrays of n floats."""
+    x, y = np.ones(n), np.ones(n)
+    runs = []
+    for _ in range(7):
+        start = time.process_time()
+        for _ in range(reps):
+            x * 0.5  # noqa: B018  # the allocation is what is timed
+            y += x
+        runs.append((time.process_time() - start) / (2 * reps) * 1e6)
+    return statistics.median(runs)
+
+
+def profile_rk4(robot: Any, q0: np.ndarray, v0: np.ndarray, steps: int) -> tuple[float, list[tuple[str, int, float]]]:
+    """cProfile of one rk4 simulate(): (total own time [s], top [(function, calls, share of own time)])."""
+    gc.collect()
+    profiler = cProfile.Profile()
+    profiler.enable()
+    simulate(robot, q0, v0, duration=steps * DT, dt=DT, integrator="rk4")
+    profiler.disable()
+    entries = pstats.Stats(profiler, stream=io.StringIO()).stats  # type: ignore[attr-defined]
+    total = sum(entry[2] for entry in entries.values())
+    rows = []
+    for (filename, _, func), (_, ncalls, tottime, _, _) in entries.items():
+        label = f"{Path(filename).name}:{func}" if filename != "~" else func
+        rows.append((label, ncalls, tottime / total if total else 0.0))
+    rows.sort(key=lambda row: -row[2])
+    return total, rows[:10]
+
+
+def profile_call_overhead(robot: Any, q0: np.ndarray, v0: np.ndarray, calls: int = 20) -> str:
+    """A sentence on what dominates simulate()'s fixed per-call cost (cProfile of short calls), or ""."""
+    simulate(robot, q0, v0, duration=2 * DT, dt=DT)
+    profiler = cProfile.Profile()
+    profiler.enable()
+    for _ in range(calls):
+        simulate(robot, q0, v0, duration=2 * DT, dt=DT)
+    profiler.disable()
+    entries = pstats.Stats(profiler, stream=io.StringIO()).stats  # type: ignore[attr-defined]
+    total = max((entry[3] for key, entry in entries.items() if key[2] == "simulate"), default=0.0)
+    lookups = [entry for key, entry in entries.items() if key[2] == "version" and "metadata" in key[0]]
+    if not total or not lookups:
+        return ""
+    entry = max(lookups, key=lambda e: e[3])  # the public importlib.metadata.version, which calls the others
+    callers = ", ".join(sorted({f"`{Path(f).name}:{func}`" for (f, _, func) in entry[4]}))
+    return para(f"""
+        cProfile of {calls} two-step `simulate` calls on {robot.name}: {entry[3] / total:.0%} of their time is
+        in `importlib.metadata.version` (called from {callers}, which looks the package versions up again for
+        every Trajectory's metadata); computing them once per process would remove most of the fixed cost.""")
+
+
+# ---- the run -----------------------------------------------------------------------------------------------
+def bench_robot(name: str, repeats: int, steps: int, methods: list[str]) -> RobotResult:
+    """All measurements of one robot."""
+    robot = load_robot(name, damping=False)  # no URDF damping: the MuJoCo peer's is zeroed too
+    rng = np.random.default_rng(SEED)
+    q0 = robot.random_configuration(rng)
+    v0 = rng.normal(scale=V0_SCALE, size=robot.nv)
+    samples = Samples(
+        call={m: [] for m in methods},
+        fixed_ms={m: [] for m in methods},
+        stats_wall={m: [] for m in methods},
+        call_wall={m: [] for m in methods},
+    )
+    result = RobotResult(name, robot.nq, robot.nv, robot.floating_base, samples)
+
+    mj = None
+    if mujoco is not None:
+        model = mujoco_model(robot)
+        data = mujoco.MjData(model)
+        smap = StateMap(robot, model)
+        qpos, qvel = smap.state(q0, v0)
+        # Sanity check, not a test: the same state must give the same accelerations.
+        mj_set_state(model, data, qpos, qvel)
+        mujoco.mj_forward(model, data)
+        a = pin.aba(robot.model, robot.data, q0, v0, np.zeros(robot.nv), _WORLD)
+        expected = smap.acceleration(q0, v0, a)
+        result.qacc_error = float(np.max(np.abs(data.qacc - expected)))
+        result.qacc_scale = float(np.max(np.abs(expected)))
+        full = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        state0 = np.empty(mujoco.mj_stateSize(model, full))
+        mujoco.mj_getState(model, data, state0, full)
+        mj = (model, data, qpos, qvel, state0)
+
+    # An untimed round first: caches, allocators and lazy initialisations of both libraries.
+    for method in methods:
+        time_simulate(robot, q0, v0, 50, method)
+    time_floor(robot, q0, v0, 50)
+    if mj:
+        time_mj_step(mj[0], mj[1], mj[2], mj[3], 50)
+
+    # Round-robin: each round times every variant once, so a slow phase of the machine hits all of them.
+    part_timer = PartTimer(robot, q0, v0)
+    for _ in range(repeats):
+        part_timer.time_round(reps=steps)
+        for method in methods:
+            cpu, wall, stats_wall = time_simulate(robot, q0, v0, steps, method)
+            samples.call[method].append(cpu)
+            samples.call_wall[method].append(wall)
+            samples.stats_wall[method].append(stats_wall)
+            samples.cpu_share.append(cpu / wall)
+            samples.fixed_ms[method].append(time_simulate(robot, q0, v0, 1, method)[0] * 1e-3)
+        samples.rk4_sparse.append(time_simulate(robot, q0, v0, steps, "rk4", output_dt=10 * DT)[0])
+        samples.floor.append(time_floor(robot, q0, v0, steps))
+        if mj:
+            samples.mj_step.append(time_mj_step(mj[0], mj[1], mj[2], mj[3], steps))
+            if mj_rollout is not None:
+                samples.mj_rollout.append(time_mj_rollout(mj[0], mj[1], mj[4], steps))
+
+    if mj:
+        # Both RK4s from the same state for the same steps: the two columns must time the same motion.
+        model, data, qpos, qvel, _ = mj
+        mj_set_state(model, data, qpos, qvel)
+        for _ in range(steps):
+            mujoco.mj_step(model, data)
+        traj = simulate(robot, q0, v0, duration=steps * DT, dt=DT, integrator="rk4")
+        ours_qpos, ours_qvel = smap.state(traj.q[-1], traj.v[-1])
+        mj_qpos = data.qpos.copy()
+        for kind, _, _, jq, _ in smap.joints:  # q and -q are the same rotation
+            if kind == "free" and mj_qpos[jq + 3 : jq + 7] @ ours_qpos[jq + 3 : jq + 7] < 0:
+                mj_qpos[jq + 3 : jq + 7] *= -1
+        result.final_state_error = float(
+            max(np.max(np.abs(mj_qpos - ours_qpos)), np.max(np.abs(data.qvel - ours_qvel)))
+        )
+
+    result.parts, result.extras = part_timer.costs()
+    return result
+
+
+# ---- the report --------------------------------------------------------------------------------------------
+def versions() -> dict[str, str]:
+    return {
+        "python": platform.python_version(),
+        "pin": pin.__version__,
+        "numpy": np.__version__,
+        "mujoco": mujoco.__version__ if mujoco is not None else "not installed",
+    }
+
+
+def load_average() -> float:
+    """The 1-minute load average (NaN where the platform has none)."""
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return math.nan
+
+
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
+def table(head: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows]
+
+
+def write_report(
+    path: Path,
+    results: list[RobotResult],
+    methods: list[str],
+    args: argparse.Namespace,
+    command: str,
+    elapsed: float,
+    profile: Profile | None,
+    call_profile: str,
+    numpy_op_us: float,
+    loads: tuple[float, float],
+    accuracy: dict[str, tuple[float, float]] | None,
+) -> str:
+    load_before, load_after = loads
+    v = versions()
+    mj_on = mujoco is not None
+    date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    lines = [
+        "# Per-step cost of the stepping loop",
+        "",
+        "Generated by `scripts/bench_step_cost.py`; do not edit by hand.",
+        "",
+        f"- Command: `{command}`",
+        f"- Date: {date}; the whole run took {elapsed:.0f} s",
+        f"- Versions: Python {v['python']}, pin {v['pin']}, numpy {v['numpy']}, mujoco {v['mujoco']}",
+        para(f"""- Machine: {cpu_name()}, {os.cpu_count()} cores, shared: timings drift by tens of percent
+            from minute to minute, so every variant is timed once per round, round-robin, and each figure is
+            the median over {args.repeats} rounds of {args.steps} steps."""),
+        para(f"""- Workload: `simulate(robot, q0, v0, duration={args.steps * DT:g}, dt={DT:g},
+            integrator=...)` with zero torque,
+            `q0 = robot.random_configuration(np.random.default_rng({SEED}))`,
+            v0 ~ N(0, {V0_SCALE}²) per coordinate, output every step (the default); robots loaded with
+            `damping=False` like the MuJoCo peer, whose damping is zeroed. Floating robots fall freely."""),
+        "",
+        "## Results (µs per step, medians; CPU time unless marked wall)",
+        "",
+    ]
+    steps = args.steps
+    head = [
+        "robot",
+        "nq/nv",
+        *methods,
+        "rk4 whole call",
+        "rk4 wall: stats wall_time / whole call",
+        "floor: 4 aba + 4 integrate",
+        "rk4 / floor",
+    ]
+    if mj_on:
+        head += ["MuJoCo mj_step (RK4)", "mujoco.rollout", "rk4 / mj_step"]
+    rows = []
+    for r in results:
+        s = r.samples
+        rk4, floor = s.loop("rk4", steps), median(s.floor)
+        row = [
+            r.name + (" (floating)" if r.floating else ""),
+            f"{r.nq}/{r.nv}",
+            *(fmt(s.loop(m, steps)) for m in methods),
+            fmt(median(s.call["rk4"])),
+            f"{fmt(median(s.stats_wall['rk4']))} / {fmt(median(s.call_wall['rk4']))}",
+            fmt(floor),
+            fmt(rk4 / floor, 2),
+        ]
+        if mj_on:
+            mj_step = median(s.mj_step)
+            row += [fmt(mj_step), fmt(median(s.mj_rollout)), fmt(rk4 / mj_step, 2)]
+        rows.append(row)
+    lines += table(head, rows)
+    fixed = ", ".join(f"{r.name} {fmt(median(r.samples.fixed_ms['rk4']), 2)} ms" for r in results)
+    shares = [x for r in results for x in r.samples.cpu_share]
+    lines += [
+        "",
+        para(f"""- Why CPU time: the machine is shared. During this run the 1-minute load average was
+            {load_before:.1f} at the start and {load_after:.1f} at the end on {os.cpu_count()} cores, and this
+            process got {median(shares):.0%} of a core in the median timed call, {min(shares):.0%} in the
+            worst. Wall time also counts the time other jobs held the core (the "rk4 wall" column shows
+            it: the loop's own `stats['wall_time']` and the whole call's); CPU time does not, though a
+            busy neighbour still slows the caches, so absolute figures from a loaded run are high by tens of
+            percent. The ratios, measured in the same rounds, are the robust figures."""),
+        para(f"""- Integrator columns: the CPU time of a {steps}-step `simulate` call minus that of a one-step
+            call (the fixed per-call cost), per step: the stepping loop alone. "rk4 whole call": the
+            {steps}-step call's CPU time per step, fixed cost included. That fixed cost (argument checks,
+            allocation, building the Trajectory with its limit report and metadata) is {fixed} per call, so
+            it matters only for short runs. {call_profile}"""),
+        para("""- Floor: 4 × `pin.aba(model, data, q, v, tau, pin.Convention.WORLD)` + 4 × `pin.integrate`
+            per step, unrolled in a tight Python loop: the Pinocchio calls an RK4 step cannot avoid, with
+            their Python call overhead."""),
+    ]
+    if mj_on:
+        rollout = (
+            "`mujoco.rollout.rollout` runs the same steps in C++ (one trajectory, one thread)."
+            if mj_rollout is not None
+            else "(`mujoco.rollout` is not available in this version.)"
+        )
+        lines.append(
+            para(f"""- MuJoCo: the same URDF through `mujoco.MjSpec.from_string` after removing its visual,
+            collision and transmission elements; a free joint added on the root body of floating robots;
+            `dof_damping`, `dof_armature` and `dof_frictionloss` zeroed; equality constraints (panda's finger
+            mimic), joint limits and contacts disabled with `opt.disableflags`; `opt.integrator = RK4`,
+            `opt.timestep = {DT:g}`. `mj_step` is called in a Python loop; {rollout}""")
+        )
+    lines += ["", "## Sanity checks (not tests)", ""]
+    if mj_on:
+        lines += [
+            para(f"""Same state, same accelerations: MuJoCo's `qacc` after `mj_forward` against Pinocchio's
+            ABA at (q0, v0), mapped joint by joint by name, with the free joint's quaternion reordered (MuJoCo
+            puts w first) and its velocity converted (MuJoCo's linear velocity is in the world frame,
+            Pinocchio's in the base frame, so MuJoCo's linear acceleration is R (v̇_lin + ω × v_lin)). Then
+            both RK4s run {args.steps} steps from that state and their final states are compared in MuJoCo's
+            coordinates, a check that both columns time the same motion."""),
+            "",
+        ]
+        lines += table(
+            [
+                "robot",
+                "max \\|a_MuJoCo − a_Pinocchio\\|",
+                "max \\|a\\|",
+                f"max state difference after {args.steps} steps",
+            ],
+            [[r.name, f"{r.qacc_error:.1e}", f"{r.qacc_scale:.3g}", f"{r.final_state_error:.1e}"] for r in results],
+        )
+    else:
+        lines.append("MuJoCo is not installed (`pip install mujoco` into .venv): its columns and checks were skipped.")
+
+    if accuracy:
+        lines += [
+            "",
+            para("""Free-flyer chart map: the stage rates xi' = J_r(xi)^-1 v that keep RK4's order on a floating
+            base, against the Bernoulli series of SE(3)'s inverse right Jacobian (Σ B_n (-ad_xi)^n / n!,
+            independent of Pinocchio), for stage twists whose linear and angular parts both have norm θ from
+            1e-6 to 1e-1 and velocities of unit size. At dt = 1 ms an RK4 stage has θ ≈ 0.5–1 ms × the
+            base's speed, so θ = 1e-4 … 1e-3 is the everyday range.
+            The last two rows use the stages of actual rk4 runs instead (the first floating robot's base
+            spinning at 0.3, 0.6 and 1.2 rad/s, dt = 1 ms)."""),
+            "",
+        ]
+        lines += table(
+            ["chart rates by", "worst error", "at θ"],
+            [[f"`{name}`", f"{err:.1e}", f"{th:.0e}"] for name, (err, th) in accuracy.items()],
+        )
+        worst_error, worst_theta = accuracy["chart_velocity (dIntegrate + solve)"]
+        in_use, in_use_jlog = accuracy[IN_USE][0], accuracy[IN_USE_JLOG][0]
+        if worst_error > 1e-12:
+            if in_use < 1e-11:
+                consequence = f"""Inside the rk4 runs (third row) today's map erred by at most {in_use:.0e}: a
+                    stage's velocity is nearly parallel to its twist (exactly so in RK4's second stage, where
+                    J_r(xi)^-1 v = v), where the exact map barely differs from the identity and the faulty
+                    coefficient hardly contributes, so it does not limit the integrator in practice."""
+            else:
+                consequence = f"""Inside the rk4 runs (third row) it reached {in_use:.0e}, which puts a floor
+                    under floating-base convergence studies."""
+            if in_use_jlog > 10 * max(in_use, 1e-16):
+                consequence += f""" Jlog6's error (fourth row, {in_use_jlog:.0e}) is not suppressed that way:
+                    it comes through log6 ∘ exp6 rather than through ad_xi."""
+            lines += [
+                "",
+                para(f"""The series is exact to round-off over this range, so the first two rows are errors of
+                Pinocchio's closed forms (`dIntegrate`'s free-flyer block is `Jexp6`) for twists and velocities
+                in general position, largest near θ = {worst_theta:.0e}: just above a small-angle switch, where
+                a closed-form coefficient loses digits to cancellation. {consequence}"""),
+            ]
+    lines += [
+        "",
+        "## Where the time goes in an RK4 step",
+        "",
+        para("""Each part timed alone in a tight loop (µs per step = cost per call × calls per step) against
+            the rk4 column; "rest" is what the step spends outside these calls: the Python-side arithmetic
+            that combines the stages, list handling and the loop's bookkeeping. The last column is rk4 with
+            `output_dt = 10 dt` (recording one step in ten)."""),
+        "",
+    ]
+    labels: list[str] = []
+    for r in results:
+        labels += [k for k in r.parts if k not in labels]
+    lines += table(
+        ["robot", "rk4", *labels, "rest", "rk4, output every 10 steps"],
+        [
+            [
+                r.name,
+                fmt(r.samples.loop("rk4", steps)),
+                *(fmt(r.parts.get(k)) for k in labels),
+                fmt(r.samples.loop("rk4", steps) - sum(r.parts.values())),
+                fmt(r.samples.loop_sparse(steps)),
+            ]
+            for r in results
+        ],
+    )
+    if profile is not None:
+        name, total, steps, top = profile
+        lines += [
+            "",
+            para(f"""cProfile of one rk4 `simulate` on {name} ({steps} steps), functions by their own time
+                (profiling inflates Python-level calls, so read the shares, not the times; the total own time
+                was {total * 1e3:.0f} ms):"""),
+            "",
+        ]
+        lines += table(["function", "calls", "share of own time"], [[f"`{f}`", str(c), f"{s:.0%}"] for f, c, s in top])
+    lines += ["", "## Reading", "", *interpretation(results, steps, numpy_op_us, profile, accuracy), ""]
+    text = "\n".join(lines)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")
+    return text
+
+
+def interpretation(
+    results: list[RobotResult],
+    steps: int,
+    numpy_op_us: float,
+    profile: Profile | None,
+    accuracy: dict[str, tuple[float, float]] | None,
+) -> list[str]:
+    """The paragraphs on where the time goes, written from this run's numbers.
+
+    Each suggestion is made only when this run measured that it would pay, so the text stays true as the
+    code changes.
+    """
+    rows = []
+    for r in results:
+        rk4, floor = r.samples.loop("rk4", steps), median(r.samples.floor)
+        rows.append((r, rk4, floor, rk4 - sum(r.parts.values()), rk4 - r.samples.loop_sparse(steps)))
+    ratios = [rk4 / floor for _, rk4, floor, _, _ in rows]
+    shares = ", ".join(f"{r.name} {floor / rk4:.0%}" for r, rk4, floor, _, _ in rows)
+    rests = ", ".join(f"{r.name} {fmt(rest)} µs ({rest / rk4:.0%})" for r, rk4, _, rest, _ in rows)
+    records = ", ".join(f"{r.name} {fmt(record)}" for r, _, _, _, record in rows)
+    text = [
+        para(f"""An rk4 step costs {min(ratios):.1f}–{max(ratios):.1f} times its Pinocchio floor: the 4 dynamics
+        evaluations and 4 configuration updates are {shares} of the step, so on every robot most of the
+        time is spent in Python around them. The table's "rest" (what remains after the calls timed alone)
+        is {rests}: the stage arithmetic and the step's and loop's bookkeeping, made of small-array numpy
+        operations at ~{numpy_op_us:.1f} µs each (measured in this run on 18-element arrays; each allocates)
+        and Python function calls. Recording every step costs {records} µs per step (rk4 with the default
+        output minus rk4 recording one step in ten: a difference of two noisy medians)."""),
+    ]
+    if profile is not None:
+        name, _, _, top = profile
+        listed = ", ".join(f"`{label}` {share:.0%}" for label, _, share in top[:6])
+        text += [
+            "",
+            para(f"""In the profile of {name}, the largest own-time shares are {listed}. cProfile does not see
+            Pinocchio's Boost.Python functions as calls of their own: their time is the own time of the
+            Python function that calls them (`unchecked_forward_dynamics` holds `pin.aba`, `integrate` holds
+            `pin.integrate`, `chart_velocity` holds `pin.dIntegrate`); numpy's Python-level wrappers (e.g.
+            `_linalg.py`) do show."""),
+        ]
+    suggestions = []
+    charts = [
+        (
+            r,
+            r.parts["3 × chart_velocity"],
+            r.extras["np.linalg.solve, 6 × 6"],
+            r.extras["chart rates, closed form"],
+            rk4,
+        )
+        for r, rk4, *_ in rows
+        if "np.linalg.solve, 6 × 6" in r.extras
+    ]
+    if charts and median([solve / rk4 for _, _, solve, _, rk4 in charts]) > 0.05:
+        listed = ", ".join(
+            f"{r.name} {fmt(solve)} of {fmt(now)} µs ({solve / rk4:.0%} of the step)"
+            for r, now, solve, _, rk4 in charts
+        )
+        closed = ", ".join(f"{r.name} {fmt(alt)} µs" for r, _, _, alt, _ in charts)
+        caveat = ""
+        if accuracy:
+            (e_now, _), (e_alt, th_alt) = accuracy[IN_USE], accuracy[IN_USE_JLOG]
+            if e_alt > 10 * e_now:
+                caveat = f"""; but it is less accurate: on the stages of the rk4 runs it errs by up to
+                    {e_alt:.0e} (at θ = {th_alt:.0e}) against the series where today's map errs by {e_now:.0e},
+                    see the sanity checks"""
+            else:
+                caveat = f""", and on the stages of the rk4 runs it is about as accurate ({e_alt:.0e} against
+                    {e_now:.0e} for today's map, see the sanity checks)"""
+        suggestions.append(
+            f"""in `state.py`, the chart map's `np.linalg.solve` on the free-flyer block costs {listed},
+            most of it numpy's per-call Python wrapper around LAPACK (its helpers such as `_commonType` show in
+            the profile), not the 6 × 6 factorisation. Calling LAPACK's gesv directly
+            (`scipy.linalg.lapack.dgesv`; scipy is already a dependency) keeps the same numerics at a fraction
+            of the cost. Pinocchio's closed form `Jlog6(exp6(xi)) @ v` (the inverse of SE(3)'s right
+            Jacobian) would take {closed} per step for the whole map{caveat}"""
+        )
+    beyond = [(r.name, record - r.parts["1 × energies (record)"], rk4) for r, rk4, _, _, record in rows]
+    if median([extra / rk4 for _, extra, rk4 in beyond]) > 0.05:
+        listed = ", ".join(f"{n} {fmt(extra)} µs" for n, extra, _ in beyond)
+        suggestions.append(
+            f"""in `simulation.py`, make recording a sample cheaper: beyond its energy calls it costs {listed}
+            (the call to store seven rows, boolean-mask indexing and sums for the blow-up check, arithmetic
+            on numpy scalars); the blow-up check can run on Python floats (`flows.tolist()` with
+            precomputed work/dissipated indices), or once every few samples"""
+        )
+    gains = []
+    for r, rk4, *_ in rows:
+        now, alt = r.parts.get("1 × energies (record)"), r.extras.get("energies, one kinematics pass")
+        if now is not None and alt is not None:
+            gains.append((r.name, now - alt, rk4))
+    if gains and median([g / rk4 for _, g, rk4 in gains]) > 0.02:
+        listed = ", ".join(f"{n} {fmt(g)} µs ({g / rk4:.0%})" for n, g, rk4 in gains)
+        suggestions.append(
+            f"""compute both energies after a single `forwardKinematics(model, data, q, v)` with the
+            data-only `computeKineticEnergy(model, data)` and `computePotentialEnergy(model, data)` instead
+            of two calls that each redo the kinematics: {listed} per recorded step"""
+        )
+    fixed = [median(r.samples.fixed_ms["rk4"]) for r in results]
+    if median(fixed) > 0.5:
+        suggestions.append(
+            f"""for short runs, cut the fixed per-call cost ({min(fixed):.1f}–{max(fixed):.1f} ms per
+            `simulate` call here; see the profile note under Results)"""
+        )
+    if suggestions:
+        text += [
+            "",
+            para(
+                "What this run says would help: " + "; ".join(f"({i + 1}) {x}" for i, x in enumerate(suggestions)) + "."
+            ),
+        ]
+    text += [
+        "",
+        para("""Past such fixes, what separates the loop from MuJoCo is the Python overhead of about ten
+        Pinocchio calls and a few dozen numpy operations per step; batching many trajectories per call
+        (`abaInParallel`) is the way beyond it."""),
+    ]
+    return text
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=31, help="rounds; each figure is a median over them")
+    parser.add_argument("--steps", type=int, default=500, help="steps per timed call")
+    parser.add_argument("--robots", default=",".join(ROBOTS), help="comma-separated catalog names")
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "step_cost.md")
+    args = parser.parse_args(argv)
+    python = Path(sys.executable)
+    python_shown = str(python.relative_to(ROOT)) if python.is_relative_to(ROOT) else "python"
+    command = " ".join([python_shown, "scripts/bench_step_cost.py", *(sys.argv[1:] if argv is None else argv)])
+    methods = [m for m in METHODS if m in INTEGRATORS]
+    if "rk4" not in methods:
+        raise SystemExit("the rk4 integrator is missing from INTEGRATORS; nothing to compare")
+    warnings: list[str] = []
+    if mujoco is None:
+        print("note: mujoco is not installed (pip install mujoco): its columns and checks are skipped")
+    else:  # keep the URDF importer's warnings instead of letting it write MUJOCO_LOG.TXT into the cwd
+        mujoco.set_mju_user_warning(lambda message: warnings.append(message.strip()))
+        if mj_rollout is None:
+            print("note: mujoco.rollout is not available: its column is skipped")
+
+    start = time.perf_counter()
+    load_before = load_average()
+    names = args.robots.split(",")
+    results = []
+    for name in names:
+        t0 = time.perf_counter()
+        r = bench_robot(name, args.repeats, args.steps, methods)
+        results.append(r)
+        print(
+            f"{name}: rk4 {r.samples.loop('rk4', args.steps):.1f} µs/step (CPU), "
+            f"floor {median(r.samples.floor):.1f}, "
+            f"mj_step {median(r.samples.mj_step):.1f} ({time.perf_counter() - t0:.0f} s)",
+            flush=True,
+        )
+    profile, call_profile = None, ""
+    floating = [r.name for r in results if r.floating]
+    accuracy = None
+    if floating:
+        chart_robot = load_robot(floating[0], damping=False)
+        accuracy = {**chart_map_accuracy(chart_robot), **chart_map_in_use(chart_robot)}
+    if PROFILED_ROBOT in names:
+        robot = load_robot(PROFILED_ROBOT, damping=False)
+        rng = np.random.default_rng(SEED)
+        q0 = robot.random_configuration(rng)
+        v0 = rng.normal(scale=V0_SCALE, size=robot.nv)
+        total, top = profile_rk4(robot, q0, v0, PROFILED_STEPS)
+        profile = (PROFILED_ROBOT, total, PROFILED_STEPS, top)
+        call_profile = profile_call_overhead(robot, q0, v0)
+    numpy_op_us = time_numpy_op(18)
+    for message in sorted(set(warnings)):
+        print(f"note: MuJoCo's URDF importer warned: {message}")
+    elapsed = time.perf_counter() - start
+    loads = (load_before, load_average())
+    text = write_report(
+        args.out, results, methods, args, command, elapsed, profile, call_profile, numpy_op_us, loads, accuracy
+    )
+    print(text)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
