@@ -1,6 +1,6 @@
 """multibody-sim: simulate URDF robots on Pinocchio with swappable integrators and an energy ledger."""
 
-from .catalog import CATALOG, load_robot
+from .catalog import CATALOG, catalog_table, load_robot
 from .exceptions import (
     InvalidArgumentError,
     ModelError,
@@ -38,6 +38,7 @@ __all__ = [
     "TrajectoryFileError",
     "UnknownIntegratorError",
     "UnknownNameError",
+    "catalog_table",
     "get_integrator",
     "load_robot",
     "simulate",

@@ -14,7 +14,6 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
-import yourdfpy
 from lxml import etree
 
 from .exceptions import ModelError, RobotNotFoundError
@@ -197,7 +196,7 @@ def read_urdf(path: Path) -> bytes:
         raise ModelError(f"{path}: cannot read URDF ({exc.strerror})") from None
 
 
-def parse_urdf(xml: bytes, path: Path) -> yourdfpy.URDF:
+def parse_urdf(xml: bytes, path: Path) -> Any:
     """Parse URDF bytes safely (no DTD, no entities, no network) into yourdfpy's description."""
     if b"<!DOCTYPE" in xml[:65536].upper():  # before any parsing: entities never get a chance to expand
         raise ModelError(f"{path}: DOCTYPE declarations are not allowed in a URDF (entities could expand)")
@@ -214,6 +213,8 @@ def parse_urdf(xml: bytes, path: Path) -> yourdfpy.URDF:
         raise ModelError(f"{path}: not a URDF: the root element is <{root.tag}>, expected <robot>")
     if "name" not in root.attrib:
         raise ModelError(f"{path}: the <robot> element has no 'name' attribute")
+    import yourdfpy  # lazily: it imports trimesh, a second of start-up that `--help` should not pay
+
     try:
         return yourdfpy.URDF(
             robot=yourdfpy.URDF._parse_robot(xml_element=root),
@@ -225,7 +226,7 @@ def parse_urdf(xml: bytes, path: Path) -> yourdfpy.URDF:
         raise ModelError(f"{path}: invalid URDF ({exc})") from None
 
 
-def check_urdf(description: yourdfpy.URDF, path: Path, *, package_dirs: list[Path]) -> None:
+def check_urdf(description: Any, path: Path, *, package_dirs: list[Path]) -> None:
     """Refuse what Pinocchio would mis-read: unsupported joints, broken trees, bad inertias, escaping URIs."""
     robot = description.robot
     links = {link.name for link in robot.links}

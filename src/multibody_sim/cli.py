@@ -17,7 +17,6 @@ from types import FrameType
 from typing import Any, NoReturn
 
 import multibody_sim as ms
-from multibody_sim.catalog import catalog_table
 
 PROG = "multibody-sim"
 COMMANDS = ("run", "models", "inspect", "integrators")
@@ -286,7 +285,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_models(args: argparse.Namespace) -> int:
-    rows = catalog_table()
+    rows = ms.catalog_table()
     print(
         _table(
             ["name", "nq", "nv", "base", "description"],

@@ -159,7 +159,7 @@ class Trajectory:
             "metadata": self.metadata,
         }
         arrays["header"] = np.array(json.dumps(header, default=_json_default))
-        write_atomically(path, lambda f: np.savez(f, **arrays))
+        write_atomically(path, lambda f: np.savez(f, **arrays))  # type: ignore[arg-type]
         return path
 
     @classmethod
@@ -235,6 +235,9 @@ def write_atomically(path: Path, write: Any) -> None:
     """
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    umask = os.umask(0)  # mkstemp makes 0600 files; a saved trajectory gets the usual permissions
+    os.umask(umask)
+    os.fchmod(fd, 0o666 & ~umask)
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)

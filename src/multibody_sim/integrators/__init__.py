@@ -37,17 +37,23 @@ def get_integrator(integrator: str | Integrator) -> Integrator:
     if isinstance(integrator, Integrator):
         return integrator
     if not isinstance(integrator, str):
-        raise InvalidArgumentError(
-            f"integrator must be a name or an Integrator, got {type(integrator).__name__}"
-        )
+        raise InvalidArgumentError(f"integrator must be a name or an Integrator, got {type(integrator).__name__}")
     if integrator in INTEGRATORS:
         return INTEGRATORS[integrator]
     close = difflib.get_close_matches(integrator, INTEGRATORS, n=1, cutoff=0.6)
     hint = f"did you mean {close[0]}? " if close else ""
-    raise UnknownIntegratorError(
-        f"unknown integrator '{integrator}' ({hint}valid: {', '.join(sorted(INTEGRATORS))})"
-    )
+    raise UnknownIntegratorError(f"unknown integrator '{integrator}' ({hint}valid: {', '.join(sorted(INTEGRATORS))})")
 
 
-__all__ = ["INTEGRATORS", "ButcherTableau", "EmbeddedRungeKutta", "EmbeddedTableau", "ExplicitRungeKutta", "Integrator", "SemiImplicitEuler", "StepFailure", "System",
-           "get_integrator"]
+__all__ = [
+    "INTEGRATORS",
+    "ButcherTableau",
+    "EmbeddedRungeKutta",
+    "EmbeddedTableau",
+    "ExplicitRungeKutta",
+    "Integrator",
+    "SemiImplicitEuler",
+    "StepFailure",
+    "System",
+    "get_integrator",
+]

@@ -46,9 +46,7 @@ class System(Protocol):
         """(name, kind) of each energy-ledger element; kind "work" or "dissipated"."""
         ...
 
-    def ledger_power(
-        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, out: np.ndarray | None = None
-    ) -> np.ndarray:
+    def ledger_power(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Power [W] through each energy-ledger element, shape (n_elements,), written into `out` if given."""
         ...
 
