@@ -364,7 +364,9 @@ def _cmd_integrators(args: argparse.Namespace) -> int:
     for name, method in ms.INTEGRATORS.items():
         properties = {"adaptive": method.adaptive, "implicit": method.implicit, "symplectic": method.symplectic}
         flags = [flag for flag, on in {**properties, "A-stable": method.a_stable}.items() if on]
-        rows.append([name, method.order, method.evaluations_per_step, ", ".join(flags) or "-", method.description])
+        # Newton's iterations vary, so an implicit method's count is typical, not exact.
+        evaluations = f"~{method.evaluations_per_step}" if method.implicit else method.evaluations_per_step
+        rows.append([name, method.order, evaluations, ", ".join(flags) or "-", method.description])
         if method.notes:
             notes.append(f"  {name}: {method.notes}")
     print(_table(["name", "order", "evaluations/step", "flags", "description"], rows))
