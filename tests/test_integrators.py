@@ -109,7 +109,7 @@ def test_integrator_of_the_wrong_type_is_a_value_error() -> None:
             (0.4, 0.5),
             (0.0, 0.5),
             1,
-            "tableau weights b must sum to 1, got ",
+            "tableau weights b must sum to 1, got 0.9",
             id="weights-sum",
         ),
         pytest.param(
@@ -150,15 +150,8 @@ def test_integrator_of_the_wrong_type_is_a_value_error() -> None:
 def test_tableau_validation_rejects_bad_coefficients(
     a: tuple[tuple[float, ...], ...], b: tuple[float, ...], c: tuple[float, ...], order: int, message: str
 ) -> None:
-    # The weights message ends in the offending sum; its formatting is tested on its own below.
-    anchor = "" if message.endswith("got ") else "$"
-    with pytest.raises(ValueError, match=f"^{re.escape(message)}{anchor}"):
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
         ms.ButcherTableau(a=a, b=b, c=c, order=order)
-
-
-def test_tableau_weights_message_shows_the_sum_as_a_plain_number() -> None:
-    with pytest.raises(ValueError, match=f"^{re.escape('tableau weights b must sum to 1, got 0.9')}$"):
-        ms.ButcherTableau(a=((0.0, 0.0), (0.5, 0.0)), b=(0.4, 0.5), c=(0.0, 0.5), order=1)
 
 
 def test_tableau_is_immutable() -> None:
