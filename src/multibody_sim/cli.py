@@ -196,6 +196,13 @@ def _build_parser() -> _Parser:
         metavar="FILE.npz",
         help="write the trajectory here (also the partial one if the run fails or is interrupted)",
     )
+    run.add_argument(
+        "--chunk",
+        metavar="N",
+        type=_positive_int,
+        help="stream samples to FILE.npz.parts/ every N samples and merge them into --out at the end or on an "
+        "early stop: memory stays bounded on long runs",
+    )
     run.set_defaults(handler=_cmd_run)
 
     models = commands.add_parser(
@@ -259,6 +266,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 f"run: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
                 f"dt {args.dt:g} s{tolerances}, duration {args.duration:g} s"
             )
+            if args.chunk is not None:  # streamed to disk by the loop itself, merged into --out at the end
+                if out is None:
+                    raise _UsageError("--chunk needs --out FILE.npz (the chunks are merged into it)")
+                options.update(out=out, chunk=args.chunk)
             trajectory = ms.simulate(robot, q0, v0, duration=args.duration, dt=args.dt, integrator=method, **options)
         except ms.SimulationError as exc:
             failure: BaseException | None = exc
@@ -266,13 +277,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
             failure = exc
         else:
             failure = None
+    streamed = args.chunk is not None
     if failure is None:
-        if out is not None:
+        if out is not None and not streamed:
             _save(trajectory, out)
         _say(trajectory.summary() + (f"\nwrote {out}" if out is not None else ""))
         return EXIT_OK
     partial = getattr(failure, "trajectory", None)
-    kept = _save_partial(partial, out)
+    kept = _save_partial(partial, out, already_written=streamed)
     if partial is not None and len(partial):
         _say(partial.summary())
     if isinstance(failure, ms.SimulationError):
@@ -382,6 +394,16 @@ def _error(message: str, code: int = EXIT_BAD_INPUT) -> int:
     return code
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive whole number, got '{text}'") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive whole number, got '{text}'")
+    return value
+
+
 def _check_out(name: str) -> Path:
     """--out must be writable before a possibly long run, not after it."""
     path = Path(name).expanduser()
@@ -402,13 +424,15 @@ def _save(trajectory: Any, path: Path) -> None:
         raise _UsageError(f"--out {path}: cannot write the trajectory ({exc.strerror or exc})") from None
 
 
-def _save_partial(trajectory: Any, out: Path | None) -> str:
+def _save_partial(trajectory: Any, out: Path | None, *, already_written: bool = False) -> str:
     """Write a failed or interrupted run's samples; returns the clause that says what was kept."""
     if trajectory is None or not len(trajectory):
         return "no samples to keep"
     span = f"partial trajectory ({len(trajectory)} samples, t = {trajectory.t[0]:g}..{trajectory.t[-1]:g} s)"
     if out is None:
         return f"{span} not saved (pass --out FILE.npz to keep it)"
+    if already_written:
+        return f"{span} written to {out}"
     try:
         trajectory.save(out)
     except OSError as exc:

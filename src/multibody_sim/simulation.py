@@ -5,7 +5,9 @@ from __future__ import annotations
 import functools
 import importlib.metadata
 import math
+import os
 import time
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -15,7 +17,15 @@ from .integrators import INTEGRATORS, Integrator, StepFailure, get_integrator
 from .integrators.explicit_rk import EmbeddedRungeKutta
 from .robot import Robot
 from .step_control import PIController
-from .trajectory import LedgerEntry, LimitViolations, Trajectory
+from .trajectory import (
+    PARTS_SUFFIX,
+    LedgerEntry,
+    LimitViolations,
+    Trajectory,
+    chunk_path,
+    combine_limit_violations,
+    merge_parts,
+)
 
 # Energy blow-up: |energy_error| beyond this many times the run's energy scale is divergence, not error.
 BLOWUP_FACTOR = 1e3
@@ -40,6 +50,8 @@ def simulate(
     dt: float,
     integrator: str | Integrator = "rk4",
     controller: Controller | None = None,
+    out: str | os.PathLike[str] | None = None,
+    chunk: int | None = None,
     **options: Any,
 ) -> Trajectory:
     """Integrate M(q) v' + C(q, v) v + g(q) = tau - D v from (q0, v0) for `duration` seconds.
@@ -53,6 +65,11 @@ def simulate(
             adaptive methods take it as their first trial step.
         integrator: a registry name (`multibody-sim integrators` lists them) or an Integrator.
         controller: ``controller(t, q, v) -> tau`` (shape (nv,)), zero-order held; None applies no torque.
+        out: write the trajectory to this .npz when the run ends, however it ends (completed, failed or
+            interrupted), atomically.
+        chunk: with `out`, stream the samples to disk every `chunk` samples (numbered files in out.npz.parts/,
+            merged into `out` at the end or on an early stop), so memory stays bounded; the returned
+            trajectory's arrays are then memory-mapped from `out`.
         **options: ``output_dt``: sampling period [s] (a multiple of dt for fixed-step methods; adaptive methods
             sample it by dense output); default: every step. ``control_dt``: controller period [s] (a multiple
             of dt for fixed-step methods; adaptive methods shorten steps to land on it); default: every step.
@@ -79,11 +96,29 @@ def simulate(
             f"controller must be callable as controller(t, q, v), got {type(controller).__name__}"
         )
     method.check_system(system)
+    sink = _Sink(out, chunk)
     if isinstance(method, EmbeddedRungeKutta):
-        run: _Run = _AdaptiveRun(system, method, q0, v0, duration, dt, controller, options)
+        run: _Run = _AdaptiveRun(system, method, q0, v0, duration, dt, controller, options, sink)
     else:
-        run = _FixedStepRun(system, method, q0, v0, duration, dt, controller, options)
+        run = _FixedStepRun(system, method, q0, v0, duration, dt, controller, options, sink)
     return run.execute()
+
+
+class _Sink:
+    """Where samples go besides memory: nowhere, one file at the end, or chunk files merged at the end."""
+
+    def __init__(self, out: str | os.PathLike[str] | None, chunk: Any):
+        self.out = Path(out) if out is not None else None
+        if chunk is not None:
+            if self.out is None:
+                raise InvalidArgumentError("chunk needs out: the chunks are streamed to out.npz.parts/ and merged")
+            if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
+                raise InvalidArgumentError(f"chunk must be a positive whole number of samples, got {chunk!r}")
+            parts = self.out.with_name(self.out.name + PARTS_SUFFIX)
+            if parts.exists():
+                raise InvalidArgumentError(f"{parts} already exists (a previous chunked run's parts): move it first")
+        self.chunk = int(chunk) if chunk is not None else None
+        self.written = 0  # chunk files written so far
 
 
 def _check_options(method: Integrator, options: dict[str, Any]) -> None:
@@ -175,8 +210,15 @@ class _Run:
         controller: Controller | None,
         options: dict[str, Any],
         capacity: int,
+        sink: _Sink,
     ):
         self.system, self.method = system, method
+        self.sink = sink
+        if sink.chunk is not None:
+            capacity = sink.chunk
+        self.chunk_violations: list[LimitViolations] = []
+        self.initial_energy = (0.0, 0.0)  # (T, V) at t = 0
+        self.last_recorded = -math.inf  # time of the latest sample, written to disk or not
         self.duration, self.dt = duration, dt
         self.controller = controller
         self.options = options
@@ -193,21 +235,46 @@ class _Run:
         self.energy_scale = 0.0
 
     def execute(self) -> Trajectory:
-        start = time.perf_counter()
+        self.start = time.perf_counter()
         try:
             with np.errstate(over="ignore", invalid="ignore"):  # divergence is detected and reported, not warned
                 status = self._loop()
         except KeyboardInterrupt:
             self._record_current()
-            traj = self._trajectory("interrupted", time.perf_counter() - start)
+            traj = self._finish("interrupted")
             raise SimulationInterrupted(
                 f"interrupted at t = {self.t:.6g} s (step {self.k}); {len(traj)} samples kept", trajectory=traj
             ) from None
-        wall = time.perf_counter() - start
         if status is not None:
             reason, message = status
-            raise SimulationError(message, status=reason, trajectory=self._trajectory(reason, wall))
-        return self._trajectory("completed", wall)
+            raise SimulationError(message, status=reason, trajectory=self._finish(reason))
+        return self._finish("completed")
+
+    def _finish(self, status: str) -> Trajectory:
+        """The whole run's trajectory, also written to `out` when asked (merging the chunks of a chunked run)."""
+        out = self.sink.out
+        if self.sink.chunk is None:
+            traj = self._trajectory(status, time.perf_counter() - self.start)
+            if out is not None:
+                traj.save(out)
+            return traj
+        assert out is not None
+        if self.samples.n or not self.sink.written:
+            self._flush()
+        traj = self._trajectory(status, time.perf_counter() - self.start)  # for its stats only
+        merge_parts(
+            out, status=status, stats=traj.stats, limit_violations=combine_limit_violations(self.chunk_violations)
+        )
+        return Trajectory.load(out, mmap=True)
+
+    def _flush(self) -> None:
+        """Write the samples in memory as the next chunk file and empty the buffer."""
+        assert self.sink.out is not None
+        traj = self._trajectory("running", time.perf_counter() - self.start)
+        self.chunk_violations.append(traj.limit_violations)
+        traj.save(chunk_path(self.sink.out, self.sink.written))
+        self.sink.written += 1
+        self.samples.n = 0
 
     def _loop(self) -> tuple[str, str] | None:
         """Step to the end; returns (status, message) on an early stop, None on completion."""
@@ -238,13 +305,18 @@ class _Run:
                 f"diverged at t = {t:.6g} s (step {self.k}): the energy became non-finite, fastest in "
                 f"'{self.system.dof_names[fastest]}' ({v[fastest]:.3g}); {self._cure()}"
             )
-        samples.append(t, q, v, self.tau, T, V, flows)
-        if samples.n == 1:
+        if t == 0.0:
+            self.initial_energy = (T, V)
             self.energy_scale = T + abs(V) + self.system.energy_scale
+        samples.append(t, q, v, self.tau, T, V, flows)
+        self.last_recorded = t
+        if samples.n == self.sink.chunk:
+            self._flush()
+        if t == 0.0:
             return None
         work = flows[self.is_work].sum()
         dissipated = flows[~self.is_work].sum()
-        error = T + V - samples.KIN[0] - samples.POT[0] - work + dissipated
+        error = T + V - sum(self.initial_energy) - work + dissipated
         # Dissipation is left out of the scale: a diverging damped mode inflates it without bound, while a real
         # run can only dissipate what it had or was given (the scale and the work).
         bound = BLOWUP_FACTOR * (self.energy_scale + abs(work))
@@ -262,8 +334,7 @@ class _Run:
 
     def _record_current(self) -> None:
         """Keep the latest state as a last sample if it is not one already (early stops lose nothing)."""
-        samples = self.samples
-        if samples.n and samples.T[samples.n - 1] == self.t:
+        if self.last_recorded == self.t:
             return
         self._record(self.t, self.q, self.v, self.flows)
 
@@ -300,7 +371,7 @@ class _Run:
         work = flows[:, self.is_work].sum(axis=1)
         dissipated = flows[:, ~self.is_work].sum(axis=1)
         total = kinetic + potential
-        error = total - total[0] - work + dissipated if n else total
+        error = total - sum(self.initial_energy) - work + dissipated
         return Trajectory(
             t=t,
             q=Q,
@@ -360,13 +431,14 @@ class _FixedStepRun(_Run):
         dt: float,
         controller: Controller | None,
         options: dict[str, Any],
+        sink: _Sink,
     ):
         self.output_every = _steps_per(options.get("output_dt"), dt, "output_dt")
         self.control_every = _steps_per(options.get("control_dt"), dt, "control_dt")
         # Never count a last sliver of round-off as a step: 1.0 / 0.1 is 10 steps, not 11.
         self.n_steps = max(1, math.ceil(duration / dt - 1e-9))
         capacity = (self.n_steps - 1) // self.output_every + 2
-        super().__init__(system, method, q0, v0, duration, dt, controller, options, capacity)
+        super().__init__(system, method, q0, v0, duration, dt, controller, options, capacity, sink)
 
     def _loop(self) -> tuple[str, str] | None:
         system, step, dt, n_steps = self.system, self.method.step, self.dt, self.n_steps
@@ -421,6 +493,7 @@ class _AdaptiveRun(_Run):
         dt: float,
         controller: Controller | None,
         options: dict[str, Any],
+        sink: _Sink,
     ):
         self.rtol = _positive(options["rtol"], "rtol", "units")
         self.atol = _positive(options["atol"], "atol", "units")
@@ -430,7 +503,7 @@ class _AdaptiveRun(_Run):
             _positive(options["control_dt"], "control_dt") if options.get("control_dt") is not None else None
         )
         capacity = math.ceil(duration / self.output_dt) + 2 if self.output_dt else 1024
-        super().__init__(system, method, q0, v0, duration, dt, controller, options, capacity)
+        super().__init__(system, method, q0, v0, duration, dt, controller, options, capacity, sink)
 
     def _loop(self) -> tuple[str, str] | None:
         system, method, duration = self.system, self.method, self.duration

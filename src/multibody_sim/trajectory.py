@@ -163,19 +163,28 @@ class Trajectory:
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> Trajectory:
-        """Read a file written by save(); never unpickles anything.
+    def load(cls, path: str | os.PathLike[str], *, mmap: bool = False) -> Trajectory:
+        """Read a file written by save() (or a chunked run's FILE.npz.parts/ folder); never unpickles anything.
+
+        Args:
+            path: FILE.npz, or the FILE.npz.parts/ folder a chunked run left (loaded when FILE.npz is missing).
+            mmap: map the arrays from the file instead of reading them (bounded memory for huge runs).
 
         Raises:
             TrajectoryFileError: the file is missing, truncated, corrupted or not a trajectory.
         """
         path = Path(path)
+        parts = path if path.is_dir() else path.with_name(path.name + PARTS_SUFFIX)
+        if path.is_dir() or (not path.exists() and parts.is_dir()):
+            return cls._from_parts(parts)
         try:
             with path.open("rb") as f:
                 if f.read(4) != b"PK\x03\x04":  # zip's signature: anything else is not an .npz at all
                     raise TrajectoryFileError(f"{path}: not a trajectory file (not an .npz archive)")
-            with np.load(path, allow_pickle=False) as npz:
-                contents = {name: npz[name] for name in npz.files}
+            contents = _map_npz(path) if mmap else None
+            if contents is None:
+                with np.load(path, allow_pickle=False) as npz:
+                    contents = {name: npz[name] for name in npz.files}
         except TrajectoryFileError:
             raise
         except FileNotFoundError:
@@ -226,6 +235,113 @@ class Trajectory:
             status=str(header.get("status", "unknown")),
             metadata=dict(header.get("metadata", {})),
         )
+
+    @classmethod
+    def _from_parts(cls, parts: Path) -> Trajectory:
+        """Concatenate a chunked run's parts in memory (a run stopped before merging them)."""
+        chunks = sorted(parts.glob(CHUNK_GLOB))
+        if not chunks:
+            raise TrajectoryFileError(f"{parts}: no trajectory chunks in this folder")
+        pieces = [cls.load(chunk) for chunk in chunks]
+        last = pieces[-1]
+        return cls(
+            **{name: np.concatenate([getattr(p, name) for p in pieces]) for name in _ARRAYS},
+            ledger={
+                name: LedgerEntry(entry.kind, np.concatenate([p.ledger[name].energy for p in pieces]))
+                for name, entry in last.ledger.items()
+            },
+            limit_violations=combine_limit_violations([p.limit_violations for p in pieces]),
+            stats=last.stats,
+            status=last.status if last.status != "running" else "incomplete",
+            metadata=last.metadata,
+        )
+
+
+PARTS_SUFFIX = ".parts"
+CHUNK_GLOB = "chunk_*.npz"
+
+
+def chunk_path(out: Path, index: int) -> Path:
+    """The file of chunk `index` of a chunked run writing `out`: out.parts/chunk_000000.npz, ..."""
+    return out.with_name(out.name + PARTS_SUFFIX) / f"chunk_{index:06d}.npz"
+
+
+def merge_parts(out: Path, *, status: str, stats: dict[str, Any], limit_violations: LimitViolations) -> Path:
+    """Stream a chunked run's parts into one .npz at `out` (atomically), then remove the parts folder.
+
+    Each array is written chunk after chunk straight into the archive, so memory stays bounded by one chunk.
+    """
+    parts = out.with_name(out.name + PARTS_SUFFIX)
+    chunks = sorted(parts.glob(CHUNK_GLOB))
+    with np.load(chunks[-1], allow_pickle=False) as last:
+        names = [name for name in last.files if name != "header"]
+        header = json.loads(str(last["header"][()]))
+    header.update(status=status, stats=stats, limit_violations=limit_violations.__dict__)
+    shapes: dict[str, list[tuple[int, ...]]] = {name: [] for name in names}
+    for chunk in chunks:
+        with np.load(chunk, allow_pickle=False) as npz:
+            for name in names:
+                shapes[name].append(npz[name].shape)
+
+    def write(f: Any) -> None:
+        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
+            for name in names:
+                shape = (sum(s[0] for s in shapes[name]), *shapes[name][0][1:])
+                with archive.open(name + ".npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array_header_2_0(
+                        member, {"descr": np.dtype(float).str, "fortran_order": False, "shape": shape}
+                    )
+                    for chunk in chunks:
+                        with np.load(chunk, allow_pickle=False) as npz:
+                            member.write(np.ascontiguousarray(npz[name], dtype=float).tobytes())
+            with archive.open("header.npy", "w") as member:
+                np.lib.format.write_array(member, np.array(json.dumps(header, default=_json_default)))
+
+    write_atomically(out, write)
+    for chunk in chunks:
+        chunk.unlink()
+    parts.rmdir()
+    return out
+
+
+def combine_limit_violations(parts: list[LimitViolations]) -> LimitViolations:
+    """The limit violations of consecutive pieces of one run, as one report."""
+    worst = max(parts, key=lambda p: p.worst_excess, default=LimitViolations())
+    return LimitViolations(
+        count=sum(p.count for p in parts),
+        samples=sum(p.samples for p in parts),
+        worst_joint=worst.worst_joint,
+        worst_excess=worst.worst_excess,
+        worst_time=worst.worst_time,
+    )
+
+
+def _map_npz(path: Path) -> dict[str, np.ndarray] | None:
+    """Memory-map every member of an uncompressed .npz (None when a member is compressed or not plain data)."""
+    contents: dict[str, np.ndarray] = {}
+    with zipfile.ZipFile(path) as archive, path.open("rb") as f:
+        for info in archive.infolist():
+            if info.compress_type != zipfile.ZIP_STORED or not info.filename.endswith(".npy"):
+                return None
+            f.seek(info.header_offset)
+            local = f.read(30)  # the local file header: its name and extra-field lengths locate the data
+            name_length = int.from_bytes(local[26:28], "little")
+            extra_length = int.from_bytes(local[28:30], "little")
+            f.seek(info.header_offset + 30 + name_length + extra_length)
+            version = np.lib.format.read_magic(f)
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+            else:
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+            name = info.filename[: -len(".npy")]
+            if dtype.hasobject:
+                return None
+            if dtype.kind == "U":  # the JSON header: small, read it whole
+                contents[name] = np.frombuffer(f.read(dtype.itemsize * int(np.prod(shape))), dtype=dtype).reshape(shape)
+            else:
+                order = "F" if fortran else "C"
+                contents[name] = np.memmap(path, dtype=dtype, mode="r", offset=f.tell(), shape=shape, order=order)
+    return contents
 
 
 def write_atomically(path: Path, write: Any) -> None:
