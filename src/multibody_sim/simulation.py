@@ -230,6 +230,10 @@ class _Run:
         self.tau = np.zeros(system.nv)
         self.flows = np.zeros(len(self.elements))
         self.controller_calls = 0
+        limited = np.isfinite(system.effort_limit)
+        self.effort = system.effort_limit if limited.any() else None
+        self.saturated_calls = 0
+        self.saturated_dofs = np.zeros(system.nv, dtype=int)
         self.evaluations = 0
         self.rejected = 0
         self.energy_scale = 0.0
@@ -293,6 +297,12 @@ class _Run:
                 tau = system.check_tau(tau)
             except InvalidArgumentError as exc:
                 raise InvalidArgumentError(f"controller output at t = {t:.6g} s: {exc}") from None
+        if self.effort is not None:  # actuators saturate at the URDF's effort limits: clip, count, report
+            over = np.abs(tau) > self.effort
+            if over.any():
+                tau = np.clip(tau, -self.effort, self.effort)
+                self.saturated_calls += 1
+                self.saturated_dofs += over
         return tau
 
     def _record(self, t: float, q: np.ndarray, v: np.ndarray, flows: np.ndarray) -> tuple[str, str] | None:
@@ -390,6 +400,8 @@ class _Run:
                 "rejected_steps": self.rejected,
                 "evaluations": self.evaluations,
                 "controller_calls": self.controller_calls,
+                "saturated_controls": self.saturated_calls,
+                "saturated_dofs": {system.dof_names[i]: int(n) for i, n in enumerate(self.saturated_dofs) if n},
                 "wall_time": wall_time,
             },
             status=status,

@@ -139,6 +139,13 @@ class Trajectory:
                 f"ledger [J]: work {self.work[-1]:.6g}, dissipated {self.dissipated[-1]:.6g}; "
                 f"max |energy_error| {self.max_abs_energy_error:.3e}",
             ]
+        if s.get("saturated_controls"):
+            dofs = s.get("saturated_dofs", {})
+            worst = max(dofs, key=dofs.get) if dofs else "?"
+            lines.append(
+                f"torque saturated at the effort limits in {s['saturated_controls']} of {s.get('controller_calls', 0)} "
+                f"controller calls (most often '{worst}')"
+            )
         lines.append(self.limit_violations.describe())
         return "\n".join(lines)
 
