@@ -323,7 +323,9 @@ def _observed_order(case_name: str, integrator: ms.Integrator) -> tuple[float, l
 
 
 @pytest.mark.parametrize("case_name", sorted(CASES))
-@pytest.mark.parametrize("name", sorted(ms.INTEGRATORS))
+# dop853 (order 8) reaches round-off on these ladders before its asymptotic range: tests/test_adaptive.py checks
+# its order on a coarse ladder of its own.
+@pytest.mark.parametrize("name", sorted(n for n, m in ms.INTEGRATORS.items() if m.order <= 5))
 def test_observed_order_matches_declared_order(name: str, case_name: str) -> None:
     """Every registered method converges at its declared order on an arm and on floating bases.
 

@@ -14,7 +14,6 @@ import numpy as np
 
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
 from .integrators import INTEGRATORS, Integrator, StepFailure, get_integrator
-from .integrators.explicit_rk import EmbeddedRungeKutta
 from .robot import Robot
 from .step_control import PIController
 from .trajectory import (
@@ -97,7 +96,7 @@ def simulate(
         )
     method.check_system(system)
     sink = _Sink(out, chunk)
-    if isinstance(method, EmbeddedRungeKutta):
+    if method.adaptive:
         run: _Run = _AdaptiveRun(system, method, q0, v0, duration, dt, controller, options, sink)
     else:
         run = _FixedStepRun(system, method, q0, v0, duration, dt, controller, options, sink)
@@ -493,12 +492,12 @@ class _FixedStepRun(_Run):
 class _AdaptiveRun(_Run):
     """Steps chosen by a PI controller on an embedded error estimate; samples by dense output."""
 
-    method: EmbeddedRungeKutta
+    method: Any  # an adaptive method: attempt(), dense_output(), embedded_order, fsal
 
     def __init__(
         self,
         system: Robot,
-        method: EmbeddedRungeKutta,
+        method: Any,
         q0: np.ndarray,
         v0: np.ndarray,
         duration: float,
@@ -521,7 +520,7 @@ class _AdaptiveRun(_Run):
         system, method, duration = self.system, self.method, self.duration
         rtol, atol, output_dt, control_dt = self.rtol, self.atol, self.output_dt, self.control_dt
         controller = PIController(method.embedded_order, max_step=self.max_step, min_step=MIN_STEP_FRACTION * duration)
-        fsal = method.tableau.fsal
+        fsal = method.fsal
         q, v, flows, t = self.q, self.v, self.flows, 0.0
         tau = self._control(t, q, v) if self.controller is not None else self.tau
         self.tau = tau
@@ -570,6 +569,7 @@ class _AdaptiveRun(_Run):
                     if problem:
                         return problem
                     next_output += 1
+                self.evaluations += attempt.extra_evaluations
             q, v, t = attempt.q, attempt.v, t_next
             flows = flows + attempt.flows
             self.q, self.v, self.t, self.k, self.flows = q, v, t, self.k + 1, flows

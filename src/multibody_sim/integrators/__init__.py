@@ -6,7 +6,7 @@ import difflib
 
 from ..exceptions import InvalidArgumentError, UnknownIntegratorError
 from .base import Integrator, StepFailure, System
-from .explicit_rk import EmbeddedRungeKutta, ExplicitRungeKutta
+from .explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
 from .implicit import ImplicitEuler, ImplicitMidpoint
 from .partitioned import SemiImplicitEuler
 from .tableau import BOGACKI_SHAMPINE_32, DORMAND_PRINCE_54, EULER, MIDPOINT, RK4, ButcherTableau, EmbeddedTableau
@@ -21,6 +21,7 @@ INTEGRATORS: dict[str, Integrator] = {
         ExplicitRungeKutta("rk4", RK4, "classical Runge–Kutta"),
         EmbeddedRungeKutta("bs32", BOGACKI_SHAMPINE_32, "Bogacki–Shampine 3(2), adaptive, cubic Hermite dense output"),
         EmbeddedRungeKutta("dp54", DORMAND_PRINCE_54, "Dormand–Prince 5(4), adaptive, 4th-order dense output"),
+        DormandPrince853(),
         ImplicitEuler(),
         ImplicitMidpoint(),
         VariationalIntegrator(),
