@@ -63,7 +63,8 @@ def simulate(
         dt: integration step [s], > 0; fixed-step methods shorten the last step so that t[-1] == duration;
             adaptive methods take it as their first trial step.
         integrator: a registry name (`multibody-sim integrators` lists them) or an Integrator.
-        controller: ``controller(t, q, v) -> tau`` (shape (nv,)), zero-order held; None applies no torque.
+        controller: ``controller(t, q, v) -> tau`` (shape (nv,)), zero-order held; None applies no torque. An
+            object with a ``reset()`` method is reset before the run starts.
         out: write the trajectory to this .npz when the run ends, however it ends (completed, failed or
             interrupted), atomically.
         chunk: with `out`, stream the samples to disk every `chunk` samples (numbered files in out.npz.parts/,
@@ -96,6 +97,8 @@ def simulate(
         )
     method.check_system(system)
     sink = _Sink(out, chunk)
+    if controller is not None and callable(getattr(controller, "reset", None)):
+        controller.reset()  # a stateful controller starts every run afresh
     if method.adaptive:
         run: _Run = _AdaptiveRun(system, method, q0, v0, duration, dt, controller, options, sink)
     else:

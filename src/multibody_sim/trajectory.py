@@ -6,6 +6,7 @@ import json
 import os
 import tempfile
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -13,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from .exceptions import TrajectoryFileError
+from .safety import check_npz
 
 FORMAT = "multibody-sim trajectory"
 FORMAT_VERSION = 1
@@ -117,8 +119,12 @@ class Trajectory:
 
     @property
     def max_abs_energy_error(self) -> float:
-        """max |energy_error| over the samples [J]."""
-        return float(np.max(np.abs(self.energy_error))) if len(self.t) else 0.0
+        """max |energy_error| over the samples [J] (a chunked run's merge records it, so its mapped arrays are
+        not read back)."""
+        recorded = self.stats.get("max_abs_energy_error")
+        if recorded is not None:
+            return float(recorded)
+        return _max_abs(self.energy_error)
 
     def summary(self) -> str:
         """A few lines for people: steps, cost, energies, ledger and limit violations."""
@@ -188,6 +194,7 @@ class Trajectory:
             with path.open("rb") as f:
                 if f.read(4) != b"PK\x03\x04":  # zip's signature: anything else is not an .npz at all
                     raise TrajectoryFileError(f"{path}: not a trajectory file (not an .npz archive)")
+            check_npz(path)  # before numpy allocates what a hostile header claims: safety.py
             contents = _map_npz(path) if mmap else None
             if contents is None:
                 with np.load(path, allow_pickle=False) as npz:
@@ -196,7 +203,7 @@ class Trajectory:
             raise
         except FileNotFoundError:
             raise TrajectoryFileError(f"{path}: no such trajectory file") from None
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError, zlib.error) as exc:  # zlib: bad deflate
             raise TrajectoryFileError(f"{path}: not a readable trajectory file ({_first_line(exc)})") from None
         return cls._from_arrays(contents, path)
 
@@ -290,6 +297,8 @@ def merge_parts(out: Path, *, status: str, stats: dict[str, Any], limit_violatio
             for name in names:
                 shapes[name].append(npz[name].shape)
 
+    largest = [0.0]  # max |energy_error|, found while streaming, recorded in the stats
+
     def write(f: Any) -> None:
         with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
             for name in names:
@@ -301,6 +310,9 @@ def merge_parts(out: Path, *, status: str, stats: dict[str, Any], limit_violatio
                     for chunk in chunks:
                         with np.load(chunk, allow_pickle=False) as npz:
                             member.write(np.ascontiguousarray(npz[name], dtype=float).tobytes())
+                            if name == "energy_error":
+                                largest[0] = max(largest[0], _max_abs(npz[name]))
+            header["stats"] = {**header["stats"], "max_abs_energy_error": largest[0]}
             with archive.open("header.npy", "w") as member:
                 np.lib.format.write_array(member, np.array(json.dumps(header, default=_json_default)))
 
@@ -321,6 +333,11 @@ def combine_limit_violations(parts: list[LimitViolations]) -> LimitViolations:
         worst_excess=worst.worst_excess,
         worst_time=worst.worst_time,
     )
+
+
+def _max_abs(values: np.ndarray, block: int = 1 << 20) -> float:
+    """max |values| in blocks, so a memory-mapped array never needs a whole temporary copy."""
+    return max((float(np.max(np.abs(values[i : i + block]))) for i in range(0, len(values), block)), default=0.0)
 
 
 def _map_npz(path: Path) -> dict[str, np.ndarray] | None:
