@@ -29,7 +29,18 @@ JOINT_SIZES = {
 }
 FREE_FLYER = (7, 6)
 # Arms and pendulums are bolted down; legged robots, humanoids and the free box are not.
-NATURALLY_FIXED = {"pendulum", "double_pendulum", "double_pendulum_continuous", "ur3", "ur5", "ur10", "panda", "z1"}
+NATURALLY_FIXED = {
+    "pendulum",
+    "double_pendulum",
+    "double_pendulum_continuous",
+    "ur3",
+    "ur5",
+    "ur10",
+    "panda",
+    "z1",
+    "stiff_arm",
+    "point_robot",
+}
 NATURALLY_FLOATING = {"free_body", "solo12", "go2", "anymal", "anymal_c", "talos", "g1"}
 CATALOG_NAMES = sorted(ms.CATALOG)
 

@@ -22,6 +22,7 @@ from conftest import joint, link, urdf
 
 import multibody_sim as ms
 from multibody_sim.catalog import CATALOG, catalog_urdf
+from multibody_sim import cli
 from multibody_sim.cli import main
 
 PREFIX = "multibody-sim: error: "
@@ -500,11 +501,11 @@ BAD_INPUT: dict[str, Callable[[Path], tuple[list[str], str]]] = {
     "missing robot argument": lambda tmp: (["run"], "the following arguments are required: ROBOT_OR_URDF"),
     "unknown subcommand": lambda tmp: (
         ["rnu", "ur5"],
-        "unknown command 'rnu' (did you mean run? choose from: run, models, inspect, integrators)",
+        f"unknown command 'rnu' (did you mean run? choose from: {', '.join(cli.COMMANDS)})",
     ),
     "no subcommand": lambda tmp: (
         [],
-        "no command given (choose from: run, models, inspect, integrators; see multibody-sim --help)",
+        f"no command given (choose from: {', '.join(cli.COMMANDS)}; see multibody-sim --help)",
     ),
     "out is a directory": lambda tmp: (
         ["run", "pendulum", "--out", str(tmp)],

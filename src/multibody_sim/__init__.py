@@ -1,8 +1,33 @@
 """multibody-sim: simulate URDF robots on Pinocchio with swappable integrators and an energy ledger."""
 
+from . import analysis
+from .bench import (
+    BenchInterrupted,
+    Choice,
+    Measurement,
+    WorkPrecision,
+    choose_integrator,
+    plot_work_precision,
+    recommend,
+    trajectory_error,
+    work_precision,
+)
 from .catalog import CATALOG, catalog_table, load_robot
+from .controllers import (
+    CONTROLLERS,
+    PD,
+    ComputedTorque,
+    GravityCompensation,
+    LocalMinimum,
+    PDGravity,
+    PotentialField,
+    TrackingLog,
+    make_controller,
+)
+from .derivatives import StepJacobians, linearize
 from .exceptions import (
     InvalidArgumentError,
+    MissingDependencyError,
     ModelError,
     MultibodySimError,
     RobotNotFoundError,
@@ -14,32 +39,67 @@ from .exceptions import (
 )
 from .integrators import INTEGRATORS, ButcherTableau, ExplicitRungeKutta, Integrator, get_integrator
 from .robot import Robot
+from .rollout import BatchTrajectory, rollout
 from .simulation import simulate
+from .stability import LadderRung, StabilityLimit, Stiffness, largest_stable_dt, linearization, stiffness_ratio
+from .stepper import Stepper, StepperState
 from .trajectory import LedgerEntry, LimitViolations, Trajectory
 
 __version__ = "0.1.0"
 
 __all__ = [
     "CATALOG",
+    "CONTROLLERS",
     "INTEGRATORS",
+    "PD",
+    "BatchTrajectory",
+    "BenchInterrupted",
     "ButcherTableau",
+    "Choice",
+    "ComputedTorque",
     "ExplicitRungeKutta",
+    "GravityCompensation",
     "Integrator",
     "InvalidArgumentError",
+    "MissingDependencyError",
+    "LadderRung",
     "LedgerEntry",
     "LimitViolations",
+    "LocalMinimum",
+    "Measurement",
     "ModelError",
     "MultibodySimError",
+    "PDGravity",
+    "PotentialField",
     "Robot",
     "RobotNotFoundError",
     "SimulationError",
     "SimulationInterrupted",
+    "StabilityLimit",
+    "StepJacobians",
+    "Stepper",
+    "StepperState",
+    "Stiffness",
+    "TrackingLog",
     "Trajectory",
     "TrajectoryFileError",
     "UnknownIntegratorError",
     "UnknownNameError",
+    "WorkPrecision",
+    "analysis",
     "catalog_table",
+    "choose_integrator",
     "get_integrator",
+    "largest_stable_dt",
+    "linearization",
+    "linearize",
     "load_robot",
+    "make_controller",
+    "plot_work_precision",
+    "recommend",
+    "rollout",
     "simulate",
+    "stiffness_ratio",
+    "trajectory_error",
+    "work_precision",
 ]

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import difflib
 import hashlib
 import importlib.metadata
 import importlib.resources
 import os
+import stat
 import sys
+import tempfile
+import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,11 +21,22 @@ import numpy as np
 import pinocchio as pin
 from lxml import etree
 
-from .exceptions import ModelError, RobotNotFoundError
+from .exceptions import InvalidArgumentError, ModelError, RobotNotFoundError
 from .robot import Robot
+from .safety import printable
 
 SUPPORTED_JOINT_TYPES = ("continuous", "fixed", "floating", "planar", "prismatic", "revolute")
 MAX_URDF_BYTES = 32 * 1024 * 1024  # the largest catalog URDF is ~200 kB; anything this big is not a robot
+# Refused before parsing: 30 MB of tiny elements costs libxml2 ~4 s and ~600 MB, and yourdfpy more. The largest
+# catalog URDF (talos) has ~2000 elements; 100k parse in ~0.1 s.
+MAX_XML_ELEMENTS = 100_000
+# The largest catalog robot has 78 links (anymal_c). Pinocchio's URDF parser recurses along chains and
+# overflows an 8 MiB stack near 4000 links (a crash, not an error), and a 8000-link star takes ~20 s to build.
+MAX_LINKS = 1000
+MAX_JOINTS = 1000
+# Pinocchio's Data (created with every Robot) takes ~64 nv^3 bytes: 136 MB and 0.3 s at 128 dof, 1.7 GB at 300,
+# out of memory near 1000. The largest example-robot-data model has 107 (tiago_dual on a free-flyer).
+MAX_DOFS = 128
 _ERD = "example-robot-data"
 
 
@@ -56,6 +72,18 @@ CATALOG: dict[str, CatalogEntry] = {
     for e in [
         _shipped("pendulum", "pendulum/pendulum.urdf", False, "simple pendulum: 1 kg bob on a light 1 m rod"),
         _shipped("free_body", "free_body/free_body.urdf", True, "free rigid box with distinct principal inertias"),
+        _shipped(
+            "stiff_arm",
+            "stiff_arm/stiff_arm.urdf",
+            False,
+            "stiff two-link arm: a 10 g tip on a heavily damped elbow (stiffness ratio ~1e8 at rest)",
+        ),
+        _shipped(
+            "point_robot",
+            "point_robot/point_robot.urdf",
+            False,
+            "planar point robot: a 1 kg puck on prismatic x, y joints in the horizontal plane (no gravity load)",
+        ),
         _erd(
             "double_pendulum",
             "double_pendulum_description/urdf/double_pendulum.urdf",
@@ -122,8 +150,14 @@ def load_robot(
     floating_base: bool | None = None,
     damping: bool = True,
     package_dirs: list[str | os.PathLike[str]] | None = None,
+    allowed_roots: list[str | os.PathLike[str]] | None = None,
 ) -> Robot:
     """Load a robot by catalog name or URDF path into Pinocchio.
+
+    URDF files are untrusted input: no DTD or entity is expanded, nothing is fetched, files over
+    MAX_URDF_BYTES, with more than MAX_XML_ELEMENTS elements, MAX_LINKS links, MAX_JOINTS joints or MAX_DOFS
+    degrees of freedom are refused before they cost time or memory, and mesh paths must resolve (symlinks
+    followed) inside the allowed folders: the URDF's folder, package_dirs and allowed_roots.
 
     Args:
         source: a catalog name (`multibody-sim models` lists them) or a path to a URDF file.
@@ -132,35 +166,71 @@ def load_robot(
         damping: apply the URDF's joint viscous damping (tau = -D v); False ignores it.
         package_dirs: folders that `package://NAME/...` URIs resolve against; mesh paths must stay inside them
             or the URDF's folder. Catalog robots add their own.
+        allowed_roots: further folders mesh paths may resolve into (e.g. a `../meshes` folder beside the
+            URDF's), without being package roots; the CLI's `--allow-root`.
 
     Raises:
+        InvalidArgumentError: an argument has the wrong type, or a folder given does not exist.
         RobotNotFoundError: source is neither a catalog name nor an existing file.
-        ModelError: the URDF is malformed or describes something that cannot be simulated.
+        ModelError: the URDF is malformed, too large, reaches outside the allowed folders or describes
+            something that cannot be simulated.
     """
-    arguments = {
+    if not isinstance(source, (str, os.PathLike)):
+        raise InvalidArgumentError(f"source must be a catalog name or a URDF path, got {type(source).__name__}")
+    for flag, value, allowed in (("floating_base", floating_base, "True, False or None"), ("damping", damping, "")):
+        if not (isinstance(value, (bool, np.bool_)) or (value is None and allowed)):
+            raise InvalidArgumentError(f"{flag} must be {allowed or 'True or False'}, got {value!r}")
+    dirs = _folders("package_dirs", package_dirs)
+    extra_roots = _folders("allowed_roots", allowed_roots)
+    arguments: dict[str, Any] = {
         "source": os.fspath(source),
-        "floating_base": floating_base,
-        "damping": damping,
+        "floating_base": None if floating_base is None else bool(floating_base),
+        "damping": bool(damping),
         "package_dirs": [os.fspath(p) for p in package_dirs or []],
     }
+    if allowed_roots:  # only when given: metadata written before the option existed stays comparable
+        arguments["allowed_roots"] = [os.fspath(p) for p in allowed_roots]
     name = os.fspath(source)
-    dirs = [Path(p).resolve() for p in package_dirs or []]
     if name in CATALOG:
         entry = CATALOG[name]
         path, extra_dirs = catalog_urdf(entry)
         dirs += extra_dirs
-        floating = entry.floating_base if floating_base is None else floating_base
+        floating = entry.floating_base if floating_base is None else bool(floating_base)
     else:
         path = Path(name).expanduser()
         if not path.is_file():
             raise _not_found(name, path)
         floating = bool(floating_base)
         name = path.stem
-    path = path.resolve()
+    try:
+        return _load_urdf(path.resolve(), name, floating, bool(damping), dirs, extra_roots, arguments)
+    except ModelError as exc:
+        # Messages quote names and paths from the file: never let them carry line breaks, terminal escapes
+        # or megabytes to the user's terminal.
+        shown = printable(str(exc))
+        if shown == str(exc):
+            raise
+        raise ModelError(shown) from None
+
+
+def _load_urdf(
+    path: Path,
+    name: str,
+    floating: bool,
+    damping: bool,
+    dirs: list[Path],
+    extra_roots: list[Path],
+    arguments: dict[str, Any],
+) -> Robot:
     xml = read_urdf(path)
     description = parse_urdf(xml, path)
-    check_urdf(description, path, package_dirs=[path.parent, *dirs])
+    check_urdf(description, path, package_dirs=[path.parent, *dirs], allowed_roots=extra_roots)
     model = _build_model(xml, path, floating)
+    if model.nv > MAX_DOFS:  # before Robot() creates Pinocchio's Data, whose size grows as nv^3
+        raise ModelError(
+            f"{path}: the robot has {model.nv} degrees of freedom, more than the {MAX_DOFS} this simulator accepts"
+        )
+    _check_model_numbers(model, path)
     _check_body_inertias(model, path)
     robot = Robot(
         model,
@@ -171,6 +241,23 @@ def load_robot(
     )
     _check_mass_matrix(robot, path)
     return robot
+
+
+def _folders(argument: str, folders: Any) -> list[Path]:
+    """The resolved folders of a package_dirs / allowed_roots argument, or InvalidArgumentError."""
+    if folders is None:
+        return []
+    # A single path would otherwise be iterated letter by letter.
+    if isinstance(folders, (str, bytes, os.PathLike)) or not isinstance(folders, (list, tuple)):
+        raise InvalidArgumentError(f"{argument} must be a list of folders, got {type(folders).__name__}")
+    resolved = []
+    for folder in folders:
+        if not isinstance(folder, (str, os.PathLike)):
+            raise InvalidArgumentError(f"{argument} entries must be folder paths, got {type(folder).__name__}")
+        if not Path(folder).expanduser().is_dir():
+            raise InvalidArgumentError(f"{argument}: '{os.fspath(folder)}' is not a folder")
+        resolved.append(Path(folder).expanduser().resolve())
+    return resolved
 
 
 def _not_found(name: str, path: Path) -> Exception:
@@ -186,54 +273,110 @@ def _not_found(name: str, path: Path) -> Exception:
 
 
 def read_urdf(path: Path) -> bytes:
-    """The URDF's bytes, refusing directories and absurdly large files."""
+    """The URDF's bytes, refusing what is not a regular file and files over MAX_URDF_BYTES.
+
+    Never blocks on a FIFO or reads more than MAX_URDF_BYTES + 1 bytes, whatever the size the file claims.
+    """
     try:
-        size = path.stat().st_size
-        if size > MAX_URDF_BYTES:
-            raise ModelError(f"{path}: file is {size} bytes, larger than the {MAX_URDF_BYTES}-byte limit for a URDF")
-        return path.read_bytes()
+        # O_NONBLOCK: opening a FIFO for reading would otherwise wait for a writer forever.
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(fd, "rb") as f:
+            info = os.fstat(f.fileno())
+            if not stat.S_ISREG(info.st_mode):
+                raise ModelError(f"{path}: not a regular file")
+            if info.st_size > MAX_URDF_BYTES:
+                raise ModelError(
+                    f"{path}: file is {info.st_size} bytes, larger than the {MAX_URDF_BYTES}-byte limit for a URDF"
+                )
+            xml = f.read(MAX_URDF_BYTES + 1)  # a file still growing (or in /proc) may exceed its stat size
     except OSError as exc:
         raise ModelError(f"{path}: cannot read URDF ({exc.strerror})") from None
+    if len(xml) > MAX_URDF_BYTES:
+        raise ModelError(f"{path}: file is larger than the {MAX_URDF_BYTES}-byte limit for a URDF")
+    return xml
+
+
+def count_start_tags(xml: bytes) -> int:
+    """Number of element start tags in XML bytes (an upper bound: tags inside comments and CDATA count too).
+
+    Counted without parsing, so that a file of millions of tiny elements is refused before libxml2 builds them.
+    """
+    opening = xml.count(b"<")
+    if opening <= MAX_XML_ELEMENTS:  # the common case: one pass is enough to know it is small
+        return opening
+    return opening - xml.count(b"</") - xml.count(b"<!") - xml.count(b"<?")
 
 
 def parse_urdf(xml: bytes, path: Path) -> Any:
-    """Parse URDF bytes safely (no DTD, no entities, no network) into yourdfpy's description."""
-    if b"<!DOCTYPE" in xml[:65536].upper():  # before any parsing: entities never get a chance to expand
+    """Parse URDF bytes safely (no DTD, no entities, no network, bounded size) into yourdfpy's description."""
+    # Before any parsing, anywhere in the file: entities never get a chance to expand (a DOCTYPE may follow a
+    # long comment, so the whole file is searched; the prefix also catches lower-case spellings).
+    if b"<!DOCTYPE" in xml or b"<!DOCTYPE" in xml[:65536].upper():
         raise ModelError(f"{path}: DOCTYPE declarations are not allowed in a URDF (entities could expand)")
+    tags = count_start_tags(xml)
+    if tags > MAX_XML_ELEMENTS:
+        raise ModelError(
+            f"{path}: the file has {tags} XML elements, more than the {MAX_XML_ELEMENTS} a URDF may have "
+            "(the largest catalog robot has about 2000)"
+        )
     parser = etree.XMLParser(
         resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False, remove_comments=True, remove_pis=True
     )
     try:
         root = etree.fromstring(xml, parser=parser)
     except etree.XMLSyntaxError as exc:
-        raise ModelError(f"{path}: malformed XML ({exc.msg})") from None
+        reason = str(exc.msg).replace("\n", "")  # libxml2 ends some messages with a newline: keep one line
+        raise ModelError(f"{path}: malformed XML ({reason})") from None
     if root.getroottree().docinfo.doctype:
         raise ModelError(f"{path}: DOCTYPE declarations are not allowed in a URDF (entities could expand)")
     if root.tag != "robot":
         raise ModelError(f"{path}: not a URDF: the root element is <{root.tag}>, expected <robot>")
     if "name" not in root.attrib:
         raise ModelError(f"{path}: the <robot> element has no 'name' attribute")
+    for kind, limit in (("link", MAX_LINKS), ("joint", MAX_JOINTS)):
+        count = len(root.findall(kind))
+        if count > limit:
+            raise ModelError(
+                f"{path}: the robot has {count} {kind}s, more than the {limit} this simulator accepts "
+                "(the largest catalog robot has 78)"
+            )
     import yourdfpy  # lazily: it imports trimesh, a second of start-up that `--help` should not pay
 
     try:
-        return yourdfpy.URDF(
-            robot=yourdfpy.URDF._parse_robot(xml_element=root),
-            build_scene_graph=False,
-            load_meshes=False,
-            load_collision_meshes=False,
-        )
-    except (ValueError, TypeError, KeyError, AttributeError) as exc:
+        # NaN or infinite origins make trimesh warn while composing matrices; check_urdf reports them.
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return yourdfpy.URDF(
+                robot=yourdfpy.URDF._parse_robot(xml_element=root),
+                build_scene_graph=False,
+                load_meshes=False,
+                load_collision_meshes=False,
+            )
+    except (ValueError, TypeError, KeyError, AttributeError, IndexError) as exc:
         raise ModelError(f"{path}: invalid URDF ({exc})") from None
 
 
-def check_urdf(description: Any, path: Path, *, package_dirs: list[Path]) -> None:
-    """Refuse what Pinocchio would mis-read: unsupported joints, broken trees, bad inertias, escaping URIs."""
+def check_urdf(
+    description: Any, path: Path, *, package_dirs: list[Path], allowed_roots: list[Path] | None = None
+) -> None:
+    """Refuse what Pinocchio would mis-read: unsupported joints, broken trees, bad numbers, escaping URIs.
+
+    Args:
+        description: yourdfpy's URDF, from parse_urdf.
+        path: the URDF file (named in messages).
+        package_dirs: the URDF's folder and the folders package:// URIs resolve against.
+        allowed_roots: further folders mesh paths may resolve into.
+    """
     robot = description.robot
     links = {link.name for link in robot.links}
     if not robot.links:
         raise ModelError(f"{path}: the robot has no <link>")
     if len(links) != len(robot.links):
         raise ModelError(f"{path}: duplicate link names")
+    joint_names = [joint.name for joint in robot.joints]
+    if len(set(joint_names)) != len(joint_names):
+        repeated = sorted({str(n) for n in joint_names if joint_names.count(n) > 1})
+        raise ModelError(f"{path}: duplicate joint names ({', '.join(repeated)})")
     children: dict[str, str] = {}
     for joint in robot.joints:
         if joint.type not in SUPPORTED_JOINT_TYPES:
@@ -256,17 +399,98 @@ def check_urdf(description: Any, path: Path, *, package_dirs: list[Path]) -> Non
             and not (np.all(np.isfinite(joint.axis)) and np.linalg.norm(joint.axis) > 1e-9)
         ):
             raise ModelError(f"{path}: joint '{joint.name}' has a zero or non-finite axis")
+        _check_joint_numbers(joint, path)
     roots = links - set(children)
     if not roots:
         raise ModelError(f"{path}: the joints form a cycle (every link has a parent joint)")
     if len(roots) != 1:
         raise ModelError(f"{path}: the links must form one tree, found {len(roots)} roots ({', '.join(sorted(roots))})")
+    unreachable = links - _descendants(next(iter(roots)), robot.joints)
+    if unreachable:  # one root, yet a loop elsewhere: those links each have a parent but never reach the root
+        raise ModelError(
+            f"{path}: the joints form a cycle (links {', '.join(sorted(unreachable))} are not connected to the root)"
+        )
     for link in robot.links:
         _check_inertial(link, path)
-        for element in [*link.visuals, *link.collisions]:
-            mesh = getattr(element.geometry, "mesh", None) if element.geometry is not None else None
-            if mesh is not None and mesh.filename:
-                resolve_mesh_uri(mesh.filename, path, package_dirs)
+        for kind, elements in (("visual", link.visuals), ("collision", link.collisions)):
+            for element in elements:
+                _check_geometry(element, kind, link.name, path)
+                mesh = getattr(element.geometry, "mesh", None) if element.geometry is not None else None
+                if mesh is not None and mesh.filename:
+                    resolve_mesh_uri(mesh.filename, path, package_dirs, allowed_roots=allowed_roots)
+    # Textures are files a viewer would read, like meshes: the same folders bound them.
+    materials = [*robot.materials, *(v.material for link in robot.links for v in link.visuals)]
+    for material in materials:
+        texture = getattr(material, "texture", None) if material is not None else None
+        if texture is not None and texture.filename:
+            resolve_mesh_uri(texture.filename, path, package_dirs, allowed_roots=allowed_roots, kind="texture")
+
+
+def _descendants(root: str, joints: list[Any]) -> set[str]:
+    """The links reachable from root through the joints (root included), without recursion."""
+    below: dict[str, list[str]] = {}
+    for joint in joints:
+        below.setdefault(joint.parent, []).append(joint.child)
+    seen, stack = {root}, [root]
+    while stack:
+        for child in below.get(stack.pop(), []):
+            if child not in seen:
+                seen.add(child)
+                stack.append(child)
+    return seen
+
+
+def _check_joint_numbers(joint: Any, path: Path) -> None:
+    """Origins, limits and dynamics that Pinocchio would take as they are (NaN, inverted, negative)."""
+    where = f"{path}: joint '{joint.name}'"
+    if joint.origin is not None and not np.all(np.isfinite(joint.origin)):
+        raise ModelError(f"{where} has a non-finite origin")
+    limit = joint.limit
+    if limit is not None:
+        for attribute in ("lower", "upper", "effort", "velocity"):
+            value = getattr(limit, attribute)
+            if value is not None and not np.isfinite(value):
+                raise ModelError(f"{where} has {attribute} limit {value}; it must be finite")
+        for attribute in ("effort", "velocity"):
+            value = getattr(limit, attribute)
+            if value is not None and value < 0:
+                raise ModelError(f"{where} has {attribute} limit {value}; it must be >= 0 (0 means none)")
+        if limit.lower is not None and limit.upper is not None and limit.lower > limit.upper:
+            raise ModelError(f"{where} has lower limit {limit.lower} above its upper limit {limit.upper}")
+    if joint.dynamics is not None:
+        for attribute in ("damping", "friction"):
+            text = getattr(joint.dynamics, attribute)  # yourdfpy keeps these as the file's strings
+            if text is None:
+                continue
+            try:
+                value = float(text)
+            except (TypeError, ValueError):
+                raise ModelError(f"{where} has {attribute} '{text}', which is not a number") from None
+            if not np.isfinite(value) or value < 0:  # negative damping or friction would feed energy in
+                raise ModelError(f"{where} has {attribute} {value}; it must be finite and >= 0")
+
+
+def _check_geometry(element: Any, kind: str, link: str, path: Path) -> None:
+    """Visual and collision shapes: finite origins, sizes and mesh scales (the viewer builds them)."""
+    sizes: list[Any] = []
+    scale = None
+    geometry = element.geometry
+    if geometry is not None:
+        if geometry.box is not None:
+            sizes.append(geometry.box.size)
+        if geometry.cylinder is not None:
+            sizes += [geometry.cylinder.radius, geometry.cylinder.length]
+        if geometry.sphere is not None:
+            sizes.append(geometry.sphere.radius)
+        if geometry.mesh is not None:
+            scale = geometry.mesh.scale  # may be negative: talos mirrors its right arm with scale="1 -1 1"
+    if element.origin is not None and not np.all(np.isfinite(element.origin)):
+        raise ModelError(f"{path}: link '{link}' has a {kind} with a non-finite origin")
+    numbers = np.concatenate([np.ravel(np.asarray(size, dtype=float)) for size in sizes] + [np.zeros(0)])
+    if not (np.all(np.isfinite(numbers)) and np.all(numbers >= 0)):
+        raise ModelError(f"{path}: link '{link}' has a {kind} with a non-finite or negative size")
+    if scale is not None and not np.all(np.isfinite(np.asarray(scale, dtype=float))):
+        raise ModelError(f"{path}: link '{link}' has a {kind} mesh with a non-finite scale")
 
 
 def _check_inertial(link: Any, path: Path) -> None:
@@ -276,6 +500,8 @@ def _check_inertial(link: Any, path: Path) -> None:
     mass = inertial.mass if inertial.mass is not None else 0.0
     if not np.isfinite(mass) or mass < 0:
         raise ModelError(f"{path}: link '{link.name}' has mass {mass}; it must be finite and >= 0")
+    if inertial.origin is not None and not np.all(np.isfinite(inertial.origin)):
+        raise ModelError(f"{path}: link '{link.name}' has a non-finite inertial origin")
     if inertial.inertia is not None:
         inertia = np.asarray(inertial.inertia, dtype=float)
         if not np.all(np.isfinite(inertia)):
@@ -298,44 +524,128 @@ def _check_body_inertias(model: pin.Model, path: Path) -> None:
             )
 
 
-def resolve_mesh_uri(uri: str, urdf_path: Path, package_dirs: list[Path]) -> Path | None:
-    """The file a mesh URI names, which must lie inside the URDF's folder or a package directory.
+def resolve_mesh_uri(
+    uri: str,
+    urdf_path: Path,
+    package_dirs: list[Path],
+    *,
+    allowed_roots: list[Path] | None = None,
+    kind: str = "mesh",
+) -> Path | None:
+    """The file a mesh URI names, which must lie inside the URDF's folder, a package directory or an allowed root.
 
-    Returns None when no candidate file exists (meshes only matter for viewing).
+    The check is lexical first (a `..` escape is refused without touching the file system), then on the real
+    path (a symlink leading out is refused); no file is opened.
+
+    Args:
+        uri: the mesh filename as the URDF writes it: `package://NAME/...`, `file://...` or a path (relative
+            to the URDF's folder).
+        urdf_path: the URDF file.
+        package_dirs: the URDF's folder and the folders package:// URIs resolve against.
+        allowed_roots: further folders the mesh may resolve into.
+        kind: what the URI names, for messages ("mesh" or "texture").
+
+    Returns:
+        The mesh file, or None when no candidate file exists (meshes only matter for viewing).
 
     Raises:
-        ModelError: the URI resolves outside every allowed root.
+        ModelError: the URI resolves outside every allowed folder, or has a scheme other than package://.
     """
-    roots = [p.resolve() for p in package_dirs]
+    package_roots = [Path(os.path.realpath(p)) for p in package_dirs]
+    roots = package_roots + [Path(os.path.realpath(p)) for p in allowed_roots or []]
     if uri.startswith("package://"):
         package, _, rest = uri[len("package://") :].partition("/")
-        candidates = [root / package / rest for root in roots] + [root / rest for root in roots if root.name == package]
+        candidates = [root / package / rest for root in package_roots]
+        candidates += [root / rest for root in package_roots if root.name == package]
     elif uri.startswith("file://"):
         candidates = [Path(uri[len("file://") :])]
     elif "://" in uri:
-        raise ModelError(f"{urdf_path}: mesh URI '{uri}' has an unsupported scheme (use package:// or a file path)")
+        raise ModelError(f"{urdf_path}: {kind} URI '{uri}' has an unsupported scheme (use package:// or a file path)")
     else:
         candidates = [urdf_path.parent / uri]
     found = None
     for candidate in candidates:
-        resolved = candidate.resolve()
-        if not any(resolved.is_relative_to(root) for root in roots):
+        lexical = Path(os.path.normpath(candidate))
+        resolved = lexical if not _inside(lexical, roots) else Path(os.path.realpath(lexical))
+        if not _inside(resolved, roots):
             raise ModelError(
-                f"{urdf_path}: mesh '{uri}' resolves outside the allowed folders "
+                f"{urdf_path}: {kind} '{uri}' resolves outside the allowed folders "
                 f"({', '.join(str(r) for r in roots)}); add its folder to package_dirs"
             )
-        if found is None and resolved.is_file():
+        if found is None and os.path.isfile(resolved):
             found = resolved
     return found
 
 
+def _inside(path: Path, roots: list[Path]) -> bool:
+    return any(path.is_relative_to(root) for root in roots)
+
+
+@contextlib.contextmanager
+def _captured_stderr() -> Iterator[list[str]]:
+    """Capture what C++ code writes to file descriptor 2 (urdfdom logs its parse errors there).
+
+    Yields a list that holds the captured text once the block ends. The CLI promises one line on stderr for
+    bad input; urdfdom's several lines would break that, and its first error is the useful part of the message.
+    """
+    captured: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no usable fd 2 (embedded interpreters): do not capture
+        yield captured
+        return
+    try:
+        with tempfile.TemporaryFile() as sink:
+            os.dup2(sink.fileno(), 2)
+            try:
+                yield captured
+            finally:
+                os.dup2(saved, 2)
+                sink.seek(0)
+                captured.append(sink.read(1 << 20).decode("utf-8", "replace"))
+    finally:
+        os.close(saved)
+
+
 def _build_model(xml: bytes, path: Path, floating: bool) -> pin.Model:
     try:
-        if floating:
-            return pin.buildModelFromXML(xml.decode("utf-8"), pin.JointModelFreeFlyer())
-        return pin.buildModelFromXML(xml.decode("utf-8"))
-    except (RuntimeError, ValueError, UnicodeDecodeError) as exc:
-        raise ModelError(f"{path}: Pinocchio cannot build the model ({str(exc).strip().splitlines()[0]})") from None
+        text = xml.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ModelError(f"{path}: Pinocchio cannot build the model ({exc})") from None
+    error: BaseException | None = None
+    with _captured_stderr() as logged:
+        try:
+            model = pin.buildModelFromXML(text, pin.JointModelFreeFlyer()) if floating else pin.buildModelFromXML(text)
+        except (RuntimeError, ValueError, TypeError, OverflowError) as exc:
+            error = exc
+    log = "".join(logged)
+    if error is None:
+        if log:  # warnings of a model that did build: pass them on unchanged
+            sys.stderr.write(log)
+        return model
+    # urdfdom's first "Error:" line says what is wrong; Pinocchio's own message only that something is.
+    reasons = [line.removeprefix("Error:").strip() for line in log.splitlines() if line.startswith("Error:")]
+    lines = str(error).strip().splitlines()
+    reason = reasons[0] if reasons else (lines[0] if lines else type(error).__name__)
+    raise ModelError(f"{path}: Pinocchio cannot build the model ({reason})") from None
+
+
+def _check_model_numbers(model: pin.Model, path: Path) -> None:
+    """Whatever the URDF said, the model Pinocchio built must hold finite numbers (urdfdom reads some values
+    yourdfpy does not, and vice versa)."""
+    for i in range(model.njoints):
+        inertia, placement = model.inertias[i], model.jointPlacements[i]
+        numbers = [inertia.mass, *inertia.lever, *inertia.inertia.ravel(), *placement.homogeneous.ravel()]
+        if not np.all(np.isfinite(numbers)):
+            raise ModelError(f"{path}: the model Pinocchio built for joint '{model.names[i]}' has non-finite values")
+    for name in ("damping", "friction"):
+        if not np.all(np.isfinite(np.asarray(getattr(model, name), dtype=float))):
+            raise ModelError(f"{path}: the model Pinocchio built has non-finite {name} values")
+    for name in ("effortLimit", "velocityLimit", "lowerPositionLimit", "upperPositionLimit"):
+        # ±inf means "no limit" (Pinocchio writes it for planar joints); NaN means nothing
+        if np.any(np.isnan(np.asarray(getattr(model, name), dtype=float))):
+            raise ModelError(f"{path}: the model Pinocchio built has NaN {name} values")
 
 
 def _check_mass_matrix(robot: Robot, path: Path) -> None:
@@ -343,7 +653,10 @@ def _check_mass_matrix(robot: Robot, path: Path) -> None:
     if robot.nv == 0:
         raise ModelError(f"{path}: the robot has no movable joint (a fixed base with only fixed joints)")
     for q in (robot.neutral(), robot.random_configuration(np.random.default_rng(0))):
-        M = robot.mass_matrix(q)
+        with np.errstate(all="ignore"):
+            M = robot.mass_matrix(q)
+        if not np.all(np.isfinite(M)):  # finite inputs can still overflow (masses and lengths near 1e300)
+            raise ModelError(f"{path}: the mass matrix is not finite (masses, inertias or distances are too large)")
         try:
             np.linalg.cholesky(M)
         except np.linalg.LinAlgError:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import difflib
 import importlib.metadata
 import io
@@ -11,7 +12,9 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
+import time
+import warnings
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import FrameType
 from typing import Any, NoReturn
@@ -19,7 +22,7 @@ from typing import Any, NoReturn
 import multibody_sim as ms
 
 PROG = "multibody-sim"
-COMMANDS = ("run", "models", "inspect", "integrators")
+COMMANDS = ("run", "models", "inspect", "integrators", "bench", "play", "plot")
 
 # Exit codes (CONTRACTS.md).
 EXIT_OK = 0
@@ -71,7 +74,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _error(str(exc))
     except SystemExit as exc:  # --help and --version exit through argparse
         return exc.code if isinstance(exc.code, int) else EXIT_OK
-    bad_input = (ms.InvalidArgumentError, ms.UnknownNameError, ms.ModelError, ms.TrajectoryFileError, _UsageError)
+    bad_input = (
+        ms.InvalidArgumentError,
+        ms.UnknownNameError,
+        ms.ModelError,
+        ms.TrajectoryFileError,
+        ms.MissingDependencyError,
+        _UsageError,
+    )
     try:
         return int(args.handler(args))
     except bad_input as exc:
@@ -135,24 +145,33 @@ def _build_parser() -> _Parser:
         default=[],
         help="folder that package://NAME/... URIs resolve against (repeat the option for several)",
     )
+    robot_options.add_argument(
+        "--allow-root",
+        metavar="DIR",
+        action="append",
+        default=[],
+        help="a further folder mesh paths may resolve into, besides the URDF's folder and the package "
+        "folders (repeat the option for several)",
+    )
 
     run = commands.add_parser(
         "run",
         parents=[robot_options],
         help="simulate a robot and print a summary",
-        description="Simulate ROBOT_OR_URDF from (q0, v0) with no applied torque and print the run's summary.",
+        description="Simulate ROBOT_OR_URDF from (q0, v0) with no applied torque (or a built-in controller's) "
+        "and print the run's summary.",
     )
     run.add_argument(
         "--integrator",
         metavar="NAME",
-        default="rk4",
+        default=None,
         help=f"integration method (default: rk4; `{PROG} integrators` lists them)",
     )
     run.add_argument(
         "--dt",
         metavar="S",
         type=float,
-        default=1e-3,
+        default=None,
         help="integration step [s]; an adaptive integrator's first trial step (default: 0.001)",
     )
     run.add_argument("--duration", metavar="S", type=float, default=1.0, help="simulated time [s] (default: 1)")
@@ -192,6 +211,18 @@ def _build_parser() -> _Parser:
         "--control-dt", metavar="S", type=float, help="controller period [s], a multiple of dt (default: every step)"
     )
     run.add_argument(
+        "--controller",
+        metavar="NAME",
+        help=f"apply a built-in controller: {', '.join(ms.CONTROLLERS)} (default: no torque)",
+    )
+    run.add_argument(
+        "--param",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        help="a --controller parameter; vectors are comma-separated (q_ref=0,-1,1,0,0,0); repeat for each",
+    )
+    run.add_argument(
         "--out",
         metavar="FILE.npz",
         help="write the trajectory here (also the partial one if the run fails or is interrupted)",
@@ -203,6 +234,26 @@ def _build_parser() -> _Parser:
         help="stream samples to FILE.npz.parts/ every N samples and merge them into --out at the end or on an "
         "early stop: memory stays bounded on long runs",
     )
+    run.add_argument(
+        "--tolerance",
+        metavar="TOL",
+        type=float,
+        help="choose the cheapest integrator and step whose error max |(q ⊖ q_ref, v − v_ref)|∞ stays within TOL "
+        "over the first min(duration, 1 s), from a pilot study cached per robot and initial state (not with "
+        "--integrator, --dt, --rtol, --atol or --max-step)",
+    )
+    view = run.add_argument_group("watching the run (needs the viz extra: pip install 'multibody-sim[viz]')")
+    view.add_argument(
+        "--view",
+        action="store_true",
+        help="after the run, play it in a meshcat page served on 127.0.0.1 (the URL is printed; the playback "
+        "starts when a browser opens it)",
+    )
+    view.add_argument(
+        "--view-speed", metavar="X", type=float, default=1.0, help="playback speed, 1 = real time (default: 1)"
+    )
+    view.add_argument("--view-plot", action="store_true", help="show the energy plot beside the view")
+    _add_server_options(view, prefix="--view-")
     run.set_defaults(handler=_cmd_run)
 
     models = commands.add_parser(
@@ -226,7 +277,82 @@ def _build_parser() -> _Parser:
         description="List the integration methods with their order and properties.",
     )
     integrators.set_defaults(handler=_cmd_integrators)
+
+    bench = commands.add_parser(
+        "bench",
+        parents=[robot_options],
+        help="measure error against cost for every integrator and recommend one",
+        description="Run each integrator over a ladder of steps (fixed-step) or tolerances (adaptive) from (q0, v0) "
+        "with no applied torque; measure the error against a dp54 reference (checked by refining it), the energy "
+        "error and the cost; print observed against theoretical orders and the cheapest integrator for a few "
+        "accuracies; write DIR/work_precision.csv, .json and .png.",
+    )
+    bench.add_argument(
+        "--integrators",
+        metavar="A,B,...",
+        help="comma-separated integrators to measure (default: every one that accepts the robot)",
+    )
+    bench.add_argument(
+        "--duration", metavar="S", type=float, default=1.0, help="simulated time of every run [s] (default: 1)"
+    )
+    bench.add_argument(
+        "--q0",
+        metavar="V",
+        type=float,
+        nargs="+",
+        help="initial configuration, nq numbers (default: the neutral configuration)",
+    )
+    bench.add_argument("--v0", metavar="V", type=float, nargs="+", help="initial velocity, nv numbers (default: zeros)")
+    bench.add_argument(
+        "--out", metavar="DIR", default=".", help="folder for work_precision.{csv,json,png} (default: the current one)"
+    )
+    bench.set_defaults(handler=_cmd_bench)
+    _add_view_commands(commands)
     return parser
+
+
+def _add_view_commands(commands: Any) -> None:
+    play = commands.add_parser(
+        "play",
+        help="replay a saved trajectory in meshcat, live or as one HTML file",
+        description="Replay TRAJ.npz on the robot it was recorded on (loaded again from the trajectory's "
+        "metadata; refused if its URDF changed since) as a meshcat animation with a time slider: served on "
+        "127.0.0.1 until Ctrl-C, or written with --html as one self-contained file that opens from disk, "
+        "offline. Needs the viz extra (pip install 'multibody-sim[viz]').",
+    )
+    play.add_argument("trajectory", metavar="TRAJ.npz", help="a trajectory written by `run --out`")
+    play.add_argument("--html", metavar="OUT.html", help="write one self-contained HTML file instead of serving")
+    play.add_argument(
+        "--fps", metavar="N", type=float, default=30.0, help="frames per second of the animation (default: 30)"
+    )
+    play.add_argument(
+        "--speed", metavar="X", type=float, default=1.0, help="initial playback speed, 1 = real time (default: 1)"
+    )
+    play.add_argument("--plot", action="store_true", help="show the energy and joint-position plot beside the view")
+    _add_server_options(play, prefix="--")
+    play.set_defaults(handler=_cmd_play)
+
+    plot = commands.add_parser(
+        "plot",
+        help="plot a saved trajectory's energies and joint positions",
+        description="Plot kinetic, potential and total energy, work, dissipated and energy_error against time, "
+        "and the joint positions, into a PNG. Needs matplotlib (pip install 'multibody-sim[viz]').",
+    )
+    plot.add_argument("trajectory", metavar="TRAJ.npz", help="a trajectory written by `run --out`")
+    plot.add_argument("--out", metavar="PLOT.png", help="the PNG to write (default: TRAJ.png beside the trajectory)")
+    plot.set_defaults(handler=_cmd_plot)
+
+
+def _add_server_options(group: Any, prefix: str) -> None:
+    group.add_argument(
+        f"{prefix}host",
+        metavar="ADDR",
+        default="127.0.0.1",
+        help="address the viewer listens on (default: 127.0.0.1, this machine only; another address warns)",
+    )
+    group.add_argument(
+        f"{prefix}port", metavar="N", type=int, help="port of the viewer (default: 7000 or the next free one)"
+    )
 
 
 def _version() -> str:
@@ -239,25 +365,40 @@ def _version() -> str:
 # ---- commands ----------------------------------------------------------------------------------------
 def _load(args: argparse.Namespace) -> Any:
     return ms.load_robot(
-        args.robot, floating_base=args.floating_base, damping=not args.no_damping, package_dirs=args.package_dir or None
+        args.robot,
+        floating_base=args.floating_base,
+        damping=not args.no_damping,
+        package_dirs=args.package_dir or None,
+        allowed_roots=args.allow_root or None,
     )
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
     out = _check_out(args.out) if args.out else None
     robot = _load(args)
-    method = ms.get_integrator(args.integrator)
+    method = ms.get_integrator(args.integrator or "rk4")
     # Checked before the header so that a wrong vector is the only thing printed.
     q0 = robot.neutral() if args.q0 is None else robot.check_q(args.q0, "q0")
     v0 = [0.0] * robot.nv if args.v0 is None else robot.check_v(args.v0, "v0")
     names = ("rtol", "atol", "max_step", "output_dt", "control_dt")
     options = {name: getattr(args, name) for name in names if getattr(args, name) is not None}
+    controller = _controller(args, robot)
+    if controller is not None:
+        options["controller"] = controller
+    if args.tolerance is not None:  # a pilot study chooses the integrator and its step
+        choice = _choose_for_tolerance(args, robot, q0, v0)
+        if isinstance(choice, int):  # interrupted during the pilot
+            return choice
+        method, args.dt = ms.get_integrator(choice.measurement.integrator), choice.measurement.dt
+        options.update({k: v for k, v in choice.measurement.simulate_options().items() if k in ("rtol", "atol")})
+    args.dt = 1e-3 if args.dt is None else args.dt  # the --dt default
     tolerances = ""
     if method.adaptive:
         options.setdefault("rtol", ADAPTIVE_RTOL)
         options.setdefault("atol", ADAPTIVE_ATOL)
         tolerances = f", rtol {options['rtol']:g}, atol {options['atol']:g}"
     base = "floating" if robot.floating_base else "fixed"
+    viewer = _open_viewer(robot, args.view_host, args.view_port, args.view_speed, q0) if args.view else None
     with _SigtermAsInterrupt() as signals:
         try:
             # Printed (and flushed) with the handlers in place, just before stepping: a watcher may signal
@@ -265,11 +406,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
             _say(
                 f"run: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
                 f"dt {args.dt:g} s{tolerances}, duration {args.duration:g} s"
+                + (f", controller {args.controller}" if controller is not None else "")
             )
             if args.chunk is not None:  # streamed to disk by the loop itself, merged into --out at the end
                 if out is None:
                     raise _UsageError("--chunk needs --out FILE.npz (the chunks are merged into it)")
                 options.update(out=out, chunk=args.chunk)
+            if viewer is not None:  # wait for a page, then show the run while it computes, paced to --view-speed
+                args._live = _await_browser(viewer, args)
+                options.update(on_sample=args._live)
             trajectory = ms.simulate(robot, q0, v0, duration=args.duration, dt=args.dt, integrator=method, **options)
         except ms.SimulationError as exc:
             failure: BaseException | None = exc
@@ -281,12 +426,20 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if failure is None:
         if out is not None and not streamed:
             _save(trajectory, out)
-        _say(trajectory.summary() + (f"\nwrote {out}" if out is not None else ""))
+        said = getattr(controller, "summary", lambda: "")()  # what the controller saw (tracking error, minima)
+        _say(trajectory.summary() + (f"\n{said}" if said else "") + (f"\nwrote {out}" if out is not None else ""))
+        if viewer is not None:
+            _watch(viewer, trajectory, args)
         return EXIT_OK
     partial = getattr(failure, "trajectory", None)
     kept = _save_partial(partial, out, already_written=streamed)
     if partial is not None and len(partial):
         _say(partial.summary())
+    if viewer is not None:  # a failed run's samples are worth watching; an interrupted one's user wants out
+        if isinstance(failure, ms.SimulationError) and partial is not None and len(partial):
+            _watch(viewer, partial, args)
+        else:
+            viewer.close()
     if isinstance(failure, ms.SimulationError):
         return _error(f"{failure}; {kept}", EXIT_SIMULATION_FAILED)
     # The stepping loop cannot tell which signal raised the KeyboardInterrupt; our handler can.
@@ -294,6 +447,106 @@ def _cmd_run(args: argparse.Namespace) -> int:
     where = str(failure) or "interrupted before the first step"
     print(f"{PROG}: {name}: {where}; {kept}", file=sys.stderr)
     return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
+
+
+def _controller(args: argparse.Namespace, robot: Any) -> Any:
+    """The --controller with its --param values, or None (bad names and values are bad input)."""
+    if args.controller is None:
+        if args.param:
+            raise _UsageError(f"--param needs --controller NAME (valid: {', '.join(sorted(ms.CONTROLLERS))})")
+        return None
+    return ms.make_controller(args.controller, robot, args.param)
+
+
+def _choose_for_tolerance(args: argparse.Namespace, robot: Any, q0: Any, v0: Any) -> ms.Choice | int:
+    """`run --tolerance`: the pilot study's choice (said before the run), or the exit code if interrupted."""
+    chosen_flags = {"--integrator": args.integrator, "--dt": args.dt, "--rtol": args.rtol, "--atol": args.atol}
+    given = [flag for flag, value in {**chosen_flags, "--max-step": args.max_step}.items() if value is not None]
+    if given:
+        raise _UsageError(
+            f"--tolerance chooses the integrator and its step or tolerances: drop {', '.join(given)} "
+            "(or drop --tolerance and choose them yourself)"
+        )
+    if getattr(args, "controller", None) is not None:  # the pilot measures the unforced motion only
+        raise _UsageError(
+            "--tolerance chooses from a pilot study of the motion with no torque: it cannot choose for --controller "
+            "(drop one of them)"
+        )
+    started: list[bool] = []
+
+    def progress(line: str) -> None:  # one line when a pilot study starts; its measurements stay quiet
+        if not started:
+            started.append(True)
+            horizon = min(args.duration, ms.bench.PILOT_HORIZON)
+            _say(f"pilot study: every integrator over the first {horizon:g} s (cached for the next run) ...")
+
+    with _SigtermAsInterrupt() as signals:
+        try:
+            choice = ms.choose_integrator(
+                robot, q0, v0, tolerance=args.tolerance, duration=args.duration, progress=progress
+            )
+        except KeyboardInterrupt:
+            name = signals.received or "SIGINT"
+            print(f"{PROG}: {name}: interrupted during the pilot study; nothing was simulated", file=sys.stderr)
+            return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
+    if choice.note:
+        _say(f"note: {choice.note}")
+    _say(choice.describe())
+    return choice
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    out = _check_out_dir(args.out)
+    robot = _load(args)
+    names = None
+    if args.integrators is not None:
+        names = [name.strip() for name in args.integrators.split(",") if name.strip()]
+        if not names:
+            raise _UsageError("--integrators: name at least one integrator (e.g. --integrators rk4,dp54)")
+        for name in names:
+            ms.get_integrator(name)  # an unknown name is bad input before any work
+    q0 = robot.neutral() if args.q0 is None else robot.check_q(args.q0, "q0")
+    v0 = [0.0] * robot.nv if args.v0 is None else robot.check_v(args.v0, "v0")
+    base = "floating" if robot.floating_base else "fixed"
+    started: list[bool] = []
+
+    def progress(line: str) -> None:  # the header waits for the study's checks: bad input prints nothing else
+        if not started:
+            started.append(True)
+            _say(f"bench: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), duration {args.duration:g} s")
+        _say(line)
+
+    failure: ms.BenchInterrupted | None = None
+    with _SigtermAsInterrupt() as signals:
+        try:
+            result = ms.work_precision(robot, q0, v0, duration=args.duration, integrators=names, progress=progress)
+        except ms.BenchInterrupted as exc:
+            result, failure = exc.result, exc
+    try:
+        written = result.write(out)
+    except OSError as exc:
+        raise _UsageError(f"--out {out}: cannot write the tables ({exc.strerror or exc})") from None
+    png = written["png"]
+    files = [str(written["csv"]), str(written["json"])] + ([str(png)] if isinstance(png, Path) else [])
+    _say("\n" + result.summary() + f"\nwrote {', '.join(files)}" + ("" if isinstance(png, Path) else f" ({png})"))
+    if failure is None:
+        return EXIT_OK
+    name = signals.received or "SIGINT"
+    print(f"{PROG}: {name}: {failure}; partial results written to {out}", file=sys.stderr)
+    return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
+
+
+def _check_out_dir(name: str) -> Path:
+    """bench --out: a folder (created if missing) we can write in, checked before the study."""
+    path = Path(name).expanduser()
+    if path.exists() and not path.is_dir():
+        raise _UsageError(f"--out {name}: is a file, expected a folder for work_precision.csv, .json and .png")
+    folder = path.absolute()
+    while not folder.exists():
+        folder = folder.parent
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise _UsageError(f"--out {name}: cannot create files in {folder} (not a writable folder)")
+    return path
 
 
 def _cmd_models(args: argparse.Namespace) -> int:
@@ -385,6 +638,151 @@ def _cmd_integrators(args: argparse.Namespace) -> int:
     if notes:
         print("\nnotes:\n" + "\n".join(notes))
     return EXIT_OK
+
+
+def _cmd_play(args: argparse.Namespace) -> int:
+    viz = _viz()
+    html = _check_output(args.html, "--html", "view.html") if args.html else None
+    for option, value in (("--fps", args.fps), ("--speed", args.speed)):
+        if not (math.isfinite(value) and value > 0):
+            raise _UsageError(f"{option} must be a positive number, got {value:g}")
+    trajectory = ms.Trajectory.load(args.trajectory)
+    try:
+        robot = viz.robot_from_trajectory(trajectory)
+        if html is not None:
+            started = time.perf_counter()
+            try:
+                with _viewer_warnings(viz):
+                    viz.export_html(trajectory, html, robot=robot, fps=args.fps, speed=args.speed, plot=args.plot)
+            except OSError as exc:
+                raise _UsageError(f"--html {html}: cannot write the page ({exc.strerror or exc})") from None
+            size = html.stat().st_size / 1e6
+            _say(f"wrote {html} ({size:.1f} MB in {time.perf_counter() - started:.1f} s): opens from disk, offline")
+            return EXIT_OK
+        viewer = _open_viewer(robot, args.host, args.port, args.speed)
+        try:
+            viewer.animate(trajectory, fps=args.fps, speed=args.speed)
+            if args.plot:
+                viewer.show_plot(trajectory)
+            _say(f"play: {robot.name}, {len(trajectory)} samples, t = {trajectory.t[0]:g}..{trajectory.t[-1]:g} s")
+            _say(f"view: open {viewer.url} in a browser (time slider under Open Controls > Animations); Ctrl-C to quit")
+            _wait_for_interrupt()
+        finally:
+            viewer.close()
+    except viz.MissingDependencyError as exc:
+        raise _UsageError(str(exc)) from None
+    return EXIT_OK
+
+
+def _cmd_plot(args: argparse.Namespace) -> int:
+    viz = _viz()
+    out = _check_output(args.out or str(Path(args.trajectory).with_suffix(".png")), "--out", "plot.png")
+    trajectory = ms.Trajectory.load(args.trajectory)
+    try:
+        viz.plot_trajectory(trajectory, out)
+    except viz.MissingDependencyError as exc:
+        raise _UsageError(str(exc)) from None
+    except OSError as exc:
+        raise _UsageError(f"--out {out}: cannot write the plot ({exc.strerror or exc})") from None
+    _say(f"wrote {out}")
+    return EXIT_OK
+
+
+# ---- viewing -----------------------------------------------------------------------------------------
+def _viz() -> Any:
+    """multibody_sim.viz, imported only by the commands that view or plot (it is not needed to simulate)."""
+    import multibody_sim.viz as viz
+
+    return viz
+
+
+def _open_viewer(robot: Any, host: str, port: int | None, speed: float, q0: Any = None) -> Any:
+    """Start the meshcat viewer before the work (bad options and missing packages fail first), showing q0."""
+    viz = _viz()
+    if not (math.isfinite(speed) and speed > 0):
+        raise _UsageError(f"the playback speed must be a positive number, got {speed:g}")
+    try:
+        with _viewer_warnings(viz):
+            viewer = viz.Viewer(robot, host=host, port=port, announce=False)
+        if q0 is not None:  # a page opened while the run computes shows where it starts
+            viewer.display(q0)
+    except viz.MissingDependencyError as exc:
+        raise _UsageError(str(exc)) from None
+    except OSError as exc:
+        raise _UsageError(f"the viewer cannot listen: {exc}") from None
+    _say(f"view: {viewer.url}")
+    return viewer
+
+
+@contextlib.contextmanager
+def _viewer_warnings(viz: Any) -> Iterator[None]:
+    """The viewer's warnings (exposed server, missing meshes) as one line each on stderr."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", viz.ViewerWarning)
+        try:
+            yield
+        finally:
+            for warning in caught:
+                if issubclass(warning.category, viz.ViewerWarning):
+                    print(f"{PROG}: warning: {warning.message}", file=sys.stderr)
+                else:  # someone else's: shown as Python would have
+                    warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
+
+
+def _await_browser(viewer: Any, args: argparse.Namespace) -> Any:
+    """`run --view`: wait until a page is open, then return the live callback that streams the run to it."""
+    _say(f"view: open {viewer.url} in a browser to watch the run; Ctrl-C to quit")
+    while not viewer.wait_for_browser(timeout=0.5):
+        pass
+    return viewer.live(speed=args.view_speed)
+
+
+def _watch(viewer: Any, trajectory: Any, args: argparse.Namespace) -> None:
+    """`run --view`, after the run (streamed live as it computed): leave its animation in the page."""
+    try:
+        if args.view_plot:
+            viewer.show_plot(trajectory)
+        live = getattr(args, "_live", None)
+        if live is not None:
+            live.finish(trajectory)
+        duration = float(trajectory.t[-1] - trajectory.t[0])
+        viewer.animate(trajectory, play=False, seek=duration, speed=args.view_speed, frame=False)
+        if _interactive():  # someone at a terminal may still want the page; a script wants the exit
+            _say("view: played; the page keeps the recording (time slider under Open Controls); Ctrl-C to quit")
+            _wait_for_interrupt()
+    except KeyboardInterrupt:
+        pass  # the run is complete and saved: closing the viewer is the normal way out
+    finally:
+        viewer.close()
+
+
+def _interactive() -> bool:
+    try:
+        return bool(sys.stdin is not None and sys.stdin.isatty())
+    except (AttributeError, OSError, ValueError):  # closed or replaced stdin
+        return False
+
+
+def _wait_for_interrupt() -> None:
+    """Serve until Ctrl-C (returns normally then: it is how one closes a viewer)."""
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+
+
+def _check_output(name: str, option: str, example: str) -> Path:
+    """An output file must be writable before the work that produces it."""
+    path = Path(name).expanduser()
+    if path.is_dir():
+        raise _UsageError(f"{option} {name}: is a directory, expected a file name such as {example}")
+    folder = path.absolute().parent
+    while not folder.exists():
+        folder = folder.parent
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise _UsageError(f"{option} {name}: cannot create a file in {folder} (not a writable folder)")
+    return path
 
 
 # ---- helpers -----------------------------------------------------------------------------------------

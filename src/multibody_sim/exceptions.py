@@ -35,6 +35,10 @@ class ModelError(MultibodySimError, ValueError):
     """A URDF (or model) file is missing, malformed or describes something we cannot simulate."""
 
 
+class MissingDependencyError(MultibodySimError, ImportError):
+    """An optional package (viewing, plotting) is not installed; the message says how to get it."""
+
+
 class TrajectoryFileError(MultibodySimError, ValueError):
     """A trajectory file is missing, truncated, corrupted or not one of ours."""
 

@@ -7,6 +7,7 @@ import importlib.metadata
 import math
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -51,6 +52,7 @@ def simulate(
     controller: Controller | None = None,
     out: str | os.PathLike[str] | None = None,
     chunk: int | None = None,
+    on_sample: Callable[[float, np.ndarray, np.ndarray], None] | None = None,
     **options: Any,
 ) -> Trajectory:
     """Integrate M(q) v' + C(q, v) v + g(q) = tau - D v from (q0, v0) for `duration` seconds.
@@ -70,6 +72,8 @@ def simulate(
         chunk: with `out`, stream the samples to disk every `chunk` samples (numbered files in out.npz.parts/,
             merged into `out` at the end or on an early stop), so memory stays bounded; the returned
             trajectory's arrays are then memory-mapped from `out`.
+        on_sample: called as ``on_sample(t, q, v)`` at every sample as it is computed (a live viewer, a progress
+            display); it must not modify q or v.
         **options: ``output_dt``: sampling period [s] (a multiple of dt for fixed-step methods; adaptive methods
             sample it by dense output); default: every step. ``control_dt``: controller period [s] (a multiple
             of dt for fixed-step methods; adaptive methods shorten steps to land on it); default: every step.
@@ -97,6 +101,9 @@ def simulate(
         )
     method.check_system(system)
     sink = _Sink(out, chunk)
+    if on_sample is not None and not callable(on_sample):
+        raise InvalidArgumentError(f"on_sample must be callable as on_sample(t, q, v), got {type(on_sample).__name__}")
+    sink.on_sample = on_sample
     if controller is not None and callable(getattr(controller, "reset", None)):
         controller.reset()  # a stateful controller starts every run afresh
     if method.adaptive:
@@ -121,6 +128,7 @@ class _Sink:
                 raise InvalidArgumentError(f"{parts} already exists (a previous chunked run's parts): move it first")
         self.chunk = int(chunk) if chunk is not None else None
         self.written = 0  # chunk files written so far
+        self.on_sample: Callable[[float, np.ndarray, np.ndarray], None] | None = None
 
 
 def _check_options(method: Integrator, options: dict[str, Any]) -> None:
@@ -218,6 +226,9 @@ class _Run:
         self.sink = sink
         if sink.chunk is not None:
             capacity = sink.chunk
+        else:
+            _check_memory(capacity, system)
+            capacity = min(capacity, 1 << 20)  # the buffer grows past this; a feasible run need not reserve it all
         self.chunk_violations: list[LimitViolations] = []
         self.initial_energy = (0.0, 0.0)  # (T, V) at t = 0
         self.last_recorded = -math.inf  # time of the latest sample, written to disk or not
@@ -322,6 +333,8 @@ class _Run:
             self.energy_scale = T + abs(V) + self.system.energy_scale
         samples.append(t, q, v, self.tau, T, V, flows)
         self.last_recorded = t
+        if self.sink.on_sample is not None:
+            self.sink.on_sample(t, q, v)
         if samples.n == self.sink.chunk:
             self._flush()
         if t == 0.0:
@@ -601,6 +614,22 @@ class _AdaptiveRun(_Run):
             f"try an implicit integrator ({', '.join(implicit)}) or looser tolerances"
             if implicit
             else "try looser tolerances"
+        )
+
+
+def _check_memory(n_samples: int, system: Robot) -> None:
+    """Refuse a run whose samples cannot fit in memory, before allocating them (a MemoryError helps no one)."""
+    per_sample = 8 * (12 + system.nq + 3 * system.nv + 2 * len(system.ledger_elements))  # buffer and result
+    needed = n_samples * per_sample
+    try:
+        available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # not on Linux: assume a generous machine
+        available = 1 << 40
+    if needed > available:
+        raise InvalidArgumentError(
+            f"this run would keep {n_samples:.3g} samples ({needed / 2**30:.3g} GiB) in memory, more than the "
+            f"{available / 2**30:.3g} GiB available: sample less often (output_dt) or stream to disk (out= and "
+            "chunk=; --chunk in the CLI)"
         )
 
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import numpy as np
 import pinocchio as pin
-from scipy.linalg.lapack import dgesv
 
 _ARG_V = pin.ArgumentPosition.ARG1
 
@@ -34,6 +33,10 @@ class ConfigurationSpace:
         self.nq = model.nq
         self.nv = model.nv
         self.curved_blocks = _curved_blocks(model)
+        if self.curved_blocks:  # imported here: scipy.linalg costs a fraction of a second to import
+            from scipy.linalg.lapack import dgesv
+
+            self._solve = dgesv
         self.neutral = pin.neutral(model)
 
     @property
@@ -61,7 +64,7 @@ class ConfigurationSpace:
         xi_dot = v.copy()
         for start, stop in self.curved_blocks:
             # LAPACK directly: numpy's solve wrapper costs more than the 6x6 solve itself, on the hot path.
-            _, _, solution, info = dgesv(J[start:stop, start:stop], v[start:stop])
+            _, _, solution, info = self._solve(J[start:stop, start:stop], v[start:stop])
             # The chart is singular only where a stage rotated by 2π within one step: the step is far too long or
             # the state has diverged. NaN lets the loop report it as divergence.
             xi_dot[start:stop] = solution if info == 0 else np.nan

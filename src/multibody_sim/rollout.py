@@ -1,0 +1,1210 @@
+"""Batched rollouts: many initial states, controllers or torque sequences at once, on one machine or on Ray.
+
+The fixed-step explicit methods (every Runge–Kutta tableau, semi-implicit Euler) advance the whole batch
+together: one ``pin.abaInParallel`` call per stage over a ``pin.ModelPool``, stage arithmetic vectorised over
+the batch, configuration updates vectorised where the manifold is a vector space. Every per-element operation
+is the one ``simulate()`` performs (the same BLAS kernel for the stage sums and the ledger's dot products, the
+same Pinocchio calls), so a batch gives ``simulate()``'s samples bit for bit. Adaptive and implicit methods
+run element by element through ``simulate()``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
+from .integrators import Integrator, get_integrator
+from .integrators.explicit_rk import EmbeddedRungeKutta, ExplicitRungeKutta
+from .integrators.partitioned import SemiImplicitEuler
+from .robot import Robot
+from .simulation import (
+    BLOWUP_FACTOR,
+    _check_options,
+    _limit_violations,
+    _positive,
+    _stable_implicit_for,
+    _steps_per,
+    _versions,
+    simulate,
+)
+from .trajectory import LedgerEntry, LimitViolations, Trajectory
+
+_ARRAYS = (
+    "t",
+    "q",
+    "v",
+    "tau",
+    "kinetic_energy",
+    "potential_energy",
+    "total_energy",
+    "work",
+    "dissipated",
+    "energy_error",
+)
+_COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls")
+_BACKENDS = ("local", "ray")
+# numpy >= 2 has vecdot, which calls the same BLAS dot as `x @ y` on 1-D arrays (so the ledger's powers match
+# simulate()'s bit for bit); the stacked matmul does the same on older numpy.
+_vecdot = getattr(np, "vecdot", None)
+
+
+def _rowdot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Row-wise dot products, each computed exactly as ``x[i] @ y[i]``."""
+    if _vecdot is not None:
+        return _vecdot(x, y)
+    return np.matmul(x[:, None, :], y[:, :, None])[:, 0, 0]
+
+
+@dataclass
+class BatchTrajectory:
+    """Samples of a batch of simulations: Trajectory's fields with a leading batch axis.
+
+    Elements may stop early (``status[b] != "completed"``) or, with adaptive methods, take different numbers of
+    samples, so element b's real samples are the first ``n_samples[b]``; the rows after them repeat its last
+    sample (time included), so every array is finite and each element's curves stay plottable. ``mask`` marks
+    the real samples and ``element(b)`` gives element b as the Trajectory ``simulate()`` would have returned.
+    An element with no sample at all (its initial energy overflowed) holds its initial state with zero energies.
+
+    Attributes:
+        t: sample times [s], shape (B, N).
+        q: configurations, shape (B, N, nq).
+        v: velocities, shape (B, N, nv).
+        tau: torque applied from each sample to the next [N·m, N], shape (B, N, nv).
+        kinetic_energy, potential_energy, total_energy, work, dissipated, energy_error: [J], shape (B, N);
+            as in Trajectory.
+        n_samples: number of real samples of each element, shape (B,).
+        status: "completed" or why each element stopped ("diverged", ...), shape (B,).
+        messages: why each element stopped, as simulate()'s SimulationError would say ("" when completed).
+        ledger: per-element breakdown of work and dissipated, each LedgerEntry's energy of shape (B, N).
+        limit_violations: position-limit violations of each element, length B.
+        stats: per-element counts as arrays of shape (B,): steps, rejected_steps, evaluations,
+            controller_calls, saturated_controls; saturated_dofs, shape (B, nv); and wall_time [s] of the
+            whole batch (a float).
+        metadata: package versions, robot, integrator, options, controller, backend.
+    """
+
+    t: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    tau: np.ndarray
+    kinetic_energy: np.ndarray
+    potential_energy: np.ndarray
+    total_energy: np.ndarray
+    work: np.ndarray
+    dissipated: np.ndarray
+    energy_error: np.ndarray
+    n_samples: np.ndarray
+    status: np.ndarray
+    messages: list[str]
+    ledger: dict[str, LedgerEntry] = field(default_factory=dict)
+    limit_violations: list[LimitViolations] = field(default_factory=list)
+    stats: dict[str, Any] = field(default_factory=dict)
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.n_samples)
+
+    def __repr__(self) -> str:
+        names, counts = np.unique(self.status, return_counts=True)
+        statuses = ", ".join(f"{n} {s}" for s, n in zip(names.tolist(), counts.tolist(), strict=True))
+        return f"<BatchTrajectory {len(self)} elements, up to {self.t.shape[1]} samples each: {statuses}>"
+
+    @property
+    def mask(self) -> np.ndarray:
+        """True at the real samples, shape (B, N)."""
+        return np.arange(self.t.shape[1]) < self.n_samples[:, None]
+
+    @property
+    def completed(self) -> np.ndarray:
+        """Which elements reached the duration, shape (B,)."""
+        return self.status == "completed"
+
+    def element(self, b: int) -> Trajectory:
+        """Element b as a Trajectory (its real samples only); ``stats["wall_time"]`` is its share of the batch's."""
+        if not -len(self) <= b < len(self):
+            raise IndexError(f"element {b} out of range for a batch of {len(self)}")
+        n = int(self.n_samples[b])
+        arrays = {name: getattr(self, name)[b, :n].copy() for name in _ARRAYS}
+        dof_names = self.metadata.get("robot", {}).get("dof_names", [])
+        saturated = self.stats["saturated_dofs"][b]
+        stats: dict[str, Any] = {name: int(self.stats[name][b]) for name in _COUNTS}
+        stats["saturated_dofs"] = {dof_names[i]: int(c) for i, c in enumerate(saturated) if c}
+        stats["wall_time"] = self.stats["wall_time"] / len(self)
+        return Trajectory(
+            **arrays,
+            ledger={name: LedgerEntry(e.kind, e.energy[b, :n].copy()) for name, e in self.ledger.items()},
+            limit_violations=self.limit_violations[b],
+            stats=stats,
+            status=str(self.status[b]),
+            metadata={**self.metadata, "element": b % len(self)},
+        )
+
+    def summary(self) -> str:
+        """A few lines for people: statuses, cost, and the worst elements."""
+        names, counts = np.unique(self.status, return_counts=True)
+        wall = self.stats.get("wall_time", math.nan)
+        steps = int(np.sum(self.stats["steps"]))
+        lines = [
+            f"{len(self)} elements: " + ", ".join(f"{n} {s}" for s, n in zip(names, counts, strict=True)),
+            f"steps: {steps} in total  wall time: {wall:.3f} s  ({wall / max(steps, 1) * 1e6:.2f} µs per element-step)",
+        ]
+        last = np.take_along_axis(np.abs(self.energy_error), np.maximum(self.n_samples - 1, 0)[:, None], 1)[:, 0]
+        lines.append(f"largest final |energy_error|: {float(np.max(last)) if len(last) else 0.0:.3e} J")
+        stopped = np.flatnonzero(~self.completed)
+        for b in stopped[:3]:
+            lines.append(f"element {b}: {self.messages[b]}")
+        if len(stopped) > 3:
+            lines.append(f"... and {len(stopped) - 3} more stopped early")
+        violating = sum(1 for lv in self.limit_violations if lv.count)
+        if violating:
+            lines.append(f"{violating} elements violated position limits")
+        return "\n".join(lines)
+
+
+# ---- the public entry point --------------------------------------------------------------------------------
+def rollout(
+    system: Robot,
+    q0s: Any,
+    v0s: Any,
+    *,
+    duration: float,
+    dt: float,
+    integrator: str | Integrator = "rk4",
+    controller: Any = None,
+    taus: Any = None,
+    progress: bool | None = None,
+    backend: str = "local",
+    num_threads: int = 1,
+    chunk_size: int | None = None,
+    **options: Any,
+) -> BatchTrajectory:
+    """Simulate a batch of initial states (with controllers or open-loop torques) for `duration` seconds.
+
+    Each element gets exactly the samples ``simulate(system, q0s[b], v0s[b], ...)`` would return (bit for bit
+    on the local backend); an element that stops early keeps its samples and its status, and never stops the
+    others.
+
+    Args:
+        system: the robot (or scene).
+        q0s: initial configurations, shape (B, nq).
+        v0s: initial velocities, shape (B, nv).
+        duration: simulated time [s], > 0.
+        dt: integration step [s], > 0 (adaptive methods: the first trial step).
+        integrator: a registry name or an Integrator. The fixed-step explicit methods run batched; the others
+            run element by element through simulate().
+        controller: one of: a per-state callable ``(t, q, v) -> tau`` used by every element (an object with a
+            ``reset()`` method holds state: each element gets its own deep copy, reset before the run); a
+            sequence of B such callables, one per element (parameter sweeps); or a batched controller, an
+            object with ``batched = True`` called as ``(t, Q (n, nq), V (n, nv)) -> (n, nv)`` on the elements
+            still running (its rows must not depend on one another: adaptive and implicit methods call it one
+            row at a time, and Ray on chunks of the batch). Controllers with ``reset()`` are reset before the
+            run, as simulate() does. None applies no torque.
+        taus: open-loop torques, shape (B, n_control, nv), exclusive with `controller`: ``taus[b, j]`` is held
+            from the j-th control instant (every ``control_dt``, default every step) to the next; n_control is
+            the number of control instants in the run (adaptive methods need ``control_dt``). Torques beyond
+            the URDF's effort limits are clipped and counted, as controller outputs are.
+        progress: a tqdm progress bar: None shows one on a terminal for runs longer than a second, True always,
+            False never.
+        backend: "local" (this process) or "ray" (chunks of the batch as Ray tasks on the cluster that
+            ``ray.init`` connected to; ``pip install 'multibody-sim[ray]'``).
+        num_threads: threads of Pinocchio's abaInParallel on the local backend (each Ray task uses 1).
+        chunk_size: elements per Ray task (default: the batch split into two chunks per CPU of the cluster).
+        **options: simulate()'s options: ``output_dt``, ``control_dt``; adaptive methods also ``rtol``,
+            ``atol``, ``max_step``.
+
+    Returns:
+        The batch's samples, statuses and stats.
+
+    Raises:
+        InvalidArgumentError: a bad argument or option, or a controller output that is not a torque.
+        SimulationInterrupted: Ctrl-C; ``.trajectory`` holds the BatchTrajectory so far (interrupted elements
+            have status "interrupted"; on Ray it is None: the unfinished chunks are cancelled).
+    """
+    method = get_integrator(integrator)
+    _check_options(method, options)
+    Q0, V0 = _check_batch(system, q0s, v0s)
+    B = len(Q0)
+    duration = _positive(duration, "duration")
+    dt = _positive(dt, "dt")
+    if backend not in _BACKENDS:
+        raise InvalidArgumentError(f"backend must be one of {', '.join(_BACKENDS)}, got {backend!r}")
+    if isinstance(num_threads, bool) or not isinstance(num_threads, (int, np.integer)) or num_threads < 1:
+        raise InvalidArgumentError(f"num_threads must be a positive whole number, got {num_threads!r}")
+    if chunk_size is not None and (
+        isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1
+    ):
+        raise InvalidArgumentError(f"chunk_size must be a positive whole number of elements, got {chunk_size!r}")
+    if progress is not None and not isinstance(progress, bool):
+        raise InvalidArgumentError(f"progress must be True, False or None, got {progress!r}")
+    method.check_system(system)
+    control = _Control.build(system, method, controller, taus, B, duration, dt, options)
+    if backend == "ray":
+        return _ray_rollout(system, Q0, V0, duration, dt, method, control, progress, chunk_size, options)
+    bar = _ProgressBar(progress, B)
+    start = time.perf_counter()
+    try:
+        if _batchable(system, method):
+            runner = _BatchedRun(system, method, Q0, V0, duration, dt, control, options, num_threads, bar)
+            return runner.execute(start)
+        return _element_by_element(system, method, Q0, V0, duration, dt, control, options, bar, start)
+    finally:
+        bar.close()
+
+
+def _check_batch(system: Robot, q0s: Any, v0s: Any) -> tuple[np.ndarray, np.ndarray]:
+    Q0 = _as_batch(q0s, system.nq, "q0s")
+    V0 = _as_batch(v0s, system.nv, "v0s")
+    if len(Q0) != len(V0):
+        raise InvalidArgumentError(f"q0s and v0s must hold as many states, got {len(Q0)} and {len(V0)}")
+    if not len(Q0):
+        raise InvalidArgumentError("q0s must hold at least one state, got an empty batch")
+    if any(joint.nq != joint.nv for joint in system.model.joints[1:]):  # vector spaces need no unit norms
+        for b in range(len(Q0)):
+            system.check_q(Q0[b], f"q0s[{b}]")  # unit quaternions and (cos, sin) pairs
+    return Q0, V0
+
+
+def _as_batch(value: Any, size: int, name: str) -> np.ndarray:
+    got = f"dtype {value.dtype}" if isinstance(value, np.ndarray) else type(value).__name__
+    try:
+        raw = np.asarray(value)
+    except ValueError:  # ragged nesting
+        raw = None
+    if raw is None or raw.dtype.kind not in "biuf":  # refuse strings, objects and complex rather than coerce
+        raise InvalidArgumentError(f"{name} must be an array of real numbers of shape (B, {size}), got {got}")
+    arr = np.array(raw, dtype=float)
+    if arr.ndim != 2 or arr.shape[1] != size:
+        raise InvalidArgumentError(f"{name} must have shape (B, {size}), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        rows = np.flatnonzero(~np.isfinite(arr).all(axis=1)).tolist()
+        raise InvalidArgumentError(f"{name} must be finite, got non-finite entries in rows {rows}")
+    return arr
+
+
+def _batchable(system: Any, method: Integrator) -> bool:
+    """Whether the batched path reproduces simulate() here: a plain Robot and a fixed-step explicit method."""
+    if type(system) is not Robot:  # a scene (or a subclass) may have other dynamics or ledger elements
+        return False
+    if isinstance(method, EmbeddedRungeKutta) or method.adaptive or method.implicit:
+        return False
+    if type(method) is SemiImplicitEuler:
+        return True
+    return isinstance(method, ExplicitRungeKutta) and type(method).step is ExplicitRungeKutta.step
+
+
+# ---- controllers, open-loop torques and saturation ------------------------------------------------------------
+class _Control:
+    """Where each element's torque comes from, checked and saturated as simulate() does."""
+
+    def __init__(
+        self,
+        effort: np.ndarray | None,
+        kind: str,
+        per_element: list[Any] | None = None,
+        batched: Any = None,
+        taus: np.ndarray | None = None,
+        period: float | None = None,
+        label: str | None = None,
+    ):
+        self.effort = effort  # |tau| bounds where the URDF gives any, else None (no clipping)
+        self.kind = kind  # "none", "per_element", "batched", "taus"
+        self.per_element = per_element
+        self.batched = batched
+        self.taus = taus
+        self.period = period  # the control period [s] of taus (element-by-element methods)
+        self.label = label
+
+    @classmethod
+    def build(
+        cls,
+        system: Robot,
+        method: Integrator,
+        controller: Any,
+        taus: Any,
+        B: int,
+        duration: float,
+        dt: float,
+        options: dict[str, Any],
+    ) -> _Control:
+        if controller is not None and taus is not None:
+            raise InvalidArgumentError("controller and taus are exclusive: pass one of them")
+        effort = system.effort_limit if np.isfinite(system.effort_limit).any() else None
+        if taus is not None:
+            n_control, period = _control_instants(method, duration, dt, options)
+            return cls(effort, "taus", taus=_check_taus(system, taus, B, n_control), period=period, label="taus")
+        if controller is None:
+            return cls(effort, "none")
+        if getattr(controller, "batched", False) is True:
+            if not callable(controller):
+                raise InvalidArgumentError(
+                    f"a batched controller must be callable as controller(t, Q, V), got {type(controller).__name__}"
+                )
+            if callable(getattr(controller, "reset", None)):
+                controller.reset()  # as simulate() does: a run starts afresh
+            return cls(effort, "batched", batched=controller, label=_name(controller))
+        if callable(controller):
+            if callable(getattr(controller, "reset", None)):
+                # Internal state must not leak between elements: one copy each (the robot and its model are shared;
+                # the copies are discarded at the end: pass a sequence of controllers to keep each element's).
+                shared = {id(system): system, id(system.model): system.model}
+                per_element = [copy.deepcopy(controller, dict(shared)) for _ in range(B)]
+                for c in per_element:
+                    c.reset()
+            else:
+                per_element = [controller] * B
+            return cls(effort, "per_element", per_element=per_element, label=_name(controller))
+        if isinstance(controller, Sequence) and not isinstance(controller, (str, bytes)):
+            if len(controller) != B:
+                raise InvalidArgumentError(
+                    f"controller as a sequence must hold one controller per element ({B}), got {len(controller)}"
+                )
+            for b, c in enumerate(controller):
+                if not callable(c):
+                    raise InvalidArgumentError(
+                        f"controller[{b}] must be callable as controller(t, q, v), got {type(c).__name__}"
+                    )
+            for c in {id(c): c for c in controller}.values():
+                if callable(getattr(c, "reset", None)):
+                    c.reset()  # as simulate() does: every run starts afresh
+            return cls(effort, "per_element", per_element=list(controller), label=_name(controller[0]) + ", ...")
+        raise InvalidArgumentError(
+            "controller must be callable as controller(t, q, v), a sequence of such callables, or a batched "
+            f"controller (batched = True), got {type(controller).__name__}"
+        )
+
+    def subset(self, rows: np.ndarray) -> _Control:
+        """The same control for the elements `rows` only (Ray chunks)."""
+        per_element = [self.per_element[b] for b in rows] if self.per_element is not None else None
+        taus = self.taus[rows] if self.taus is not None else None
+        return _Control(self.effort, self.kind, per_element, self.batched, taus, self.period, self.label)
+
+    def element_controller(self, b: int) -> Any:
+        """Element b's controller as simulate() takes it (a callable or None)."""
+        if self.kind == "per_element":
+            assert self.per_element is not None
+            return self.per_element[b]
+        if self.kind == "batched":
+            return _OneRow(self.batched)
+        if self.kind == "taus":
+            assert self.taus is not None and self.period is not None
+            return _OpenLoop(self.taus[b], self.period)
+        return None
+
+    def saturate(self, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(clipped torques, which entries were over the limits), rows of shape (n, nv)."""
+        if self.effort is None:
+            return tau, np.zeros(tau.shape, dtype=bool)
+        over = np.abs(tau) > self.effort
+        if over.any():
+            tau = np.clip(tau, -self.effort, self.effort)
+        return tau, over
+
+
+def _name(controller: Any) -> str:
+    return str(getattr(controller, "__qualname__", type(controller).__qualname__))
+
+
+def _control_instants(method: Integrator, duration: float, dt: float, options: dict[str, Any]) -> tuple[int, float]:
+    """(number of control instants, control period [s]) of a run, for open-loop torque sequences."""
+    if method.adaptive:
+        if options.get("control_dt") is None:
+            raise InvalidArgumentError(
+                f"taus with the adaptive integrator '{method.name}' need control_dt (the period of the torque sequence)"
+            )
+        period = _positive(options["control_dt"], "control_dt")
+        return max(1, math.ceil(duration / period - 1e-9)), period
+    every = _steps_per(options.get("control_dt"), dt, "control_dt")
+    n_steps = _n_steps(duration, dt)
+    return -(-n_steps // every), every * dt
+
+
+def _n_steps(duration: float, dt: float) -> int:
+    # As simulate(): never count a last sliver of round-off as a step (1.0 / 0.1 is 10 steps, not 11).
+    return max(1, math.ceil(duration / dt - 1e-9))
+
+
+def _check_taus(system: Robot, taus: Any, B: int, n_control: int) -> np.ndarray:
+    got = f"dtype {taus.dtype}" if isinstance(taus, np.ndarray) else type(taus).__name__
+    try:
+        raw = np.asarray(taus)
+    except ValueError:
+        raw = None
+    if raw is None or raw.dtype.kind not in "biuf":
+        raise InvalidArgumentError(f"taus must be an array of real numbers, got {got}")
+    arr = np.array(raw, dtype=float)
+    if arr.shape != (B, n_control, system.nv):
+        raise InvalidArgumentError(
+            f"taus must have shape ({B}, {n_control}, {system.nv}) (elements, control instants, nv), got {arr.shape}"
+        )
+    if not np.all(np.isfinite(arr)):
+        raise InvalidArgumentError("taus must be finite")
+    if system.floating_base and np.any(arr[:, :, :6]):
+        raise InvalidArgumentError("taus[:, :, 0:6] act on the unactuated floating base and must be zero")
+    return arr
+
+
+class _OpenLoop:
+    """One element's torque sequence as a controller: the row of the control instant t falls on."""
+
+    def __init__(self, taus: np.ndarray, period: float):
+        self.taus, self.period = taus, period
+        self.__qualname__ = "taus"
+
+    def __call__(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        j = min(round(t / self.period), len(self.taus) - 1)
+        return self.taus[j].copy()
+
+
+class _OneRow:
+    """A batched controller called on one state (for the element-by-element methods)."""
+
+    def __init__(self, batched: Any):
+        self.batched = batched
+        self.__qualname__ = _name(batched)
+
+    def __call__(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        out = self.batched(t, q[None, :], v[None, :])
+        shape = np.shape(out)
+        if shape != (1, len(v)):
+            raise InvalidArgumentError(
+                f"batched controller output at t = {t:.6g} s must have shape (1, {len(v)}), got {shape}"
+            )
+        return np.asarray(out)[0]
+
+
+# ---- progress ----------------------------------------------------------------------------------------------------
+class _ProgressBar:
+    """A tqdm bar over the batch's element-steps (or elements), or nothing."""
+
+    def __init__(self, progress: bool | None, total: int, unit: str = "element"):
+        self.bar = None
+        if progress is False:
+            return
+        from tqdm.auto import tqdm
+
+        # None: only on a terminal, and only once the run has lasted a second (short batches stay silent).
+        self.bar = tqdm(
+            total=total,
+            unit=unit,
+            desc="rollout",
+            disable=None if progress is None else False,
+            delay=1.0 if progress is None else 0.0,
+            leave=progress is True,
+            file=sys.stderr,
+            dynamic_ncols=True,
+        )
+
+    def reset(self, total: int, unit: str) -> None:
+        if self.bar is not None:
+            self.bar.unit = unit
+            self.bar.reset(total=total)
+
+    def update(self, n: int) -> None:
+        if self.bar is not None and n:
+            self.bar.update(n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+# ---- the batched fixed-step path -------------------------------------------------------------------------------
+class _BatchedRun:
+    """simulate()'s fixed-step loop over a batch: the same arithmetic per element, vectorised over elements.
+
+    Running elements are the rows of the working arrays (Q, V, TAU, FLOWS); ``rows`` maps them to batch indices.
+    An element that stops leaves the working arrays, and the others go on.
+    """
+
+    def __init__(
+        self,
+        system: Robot,
+        method: Integrator,
+        Q0: np.ndarray,
+        V0: np.ndarray,
+        duration: float,
+        dt: float,
+        control: _Control,
+        options: dict[str, Any],
+        num_threads: int,
+        bar: _ProgressBar,
+    ):
+        self.system, self.method, self.control, self.options = system, method, control, options
+        self.model, self.data = system.model, system.data
+        self.duration, self.dt = duration, dt
+        self.output_every = _steps_per(options.get("output_dt"), dt, "output_dt")
+        self.control_every = _steps_per(options.get("control_dt"), dt, "control_dt")
+        self.n_steps = _n_steps(duration, dt)
+        self.num_threads = int(num_threads)
+        self.pool = pin.ModelPool(system.model, self.num_threads)
+        self.bar = bar
+        B, nq, nv = len(Q0), system.nq, system.nv
+        self.B, self.nq, self.nv = B, nq, nv
+        self.elements = system.ledger_elements
+        n_ledger = len(self.elements)
+        self.is_work = np.array([kind == "work" for _, kind in self.elements])
+        self.damping = system.damping if np.any(system.damping) else None
+        self.vector_space = _is_vector_space(system)
+        self._K: np.ndarray | None = None  # the stage matrix of every element, (n, stages, 2 nv + n_ledger)
+        self.flat = system.space.is_flat
+        # Samples: every output step, plus the final one (and an early stop's last state, which fits: see below).
+        N = (self.n_steps - 1) // self.output_every + 2
+        self.out_t = np.zeros((B, N))
+        self.out_q = np.empty((B, N, nq))
+        self.out_v = np.empty((B, N, nv))
+        self.out_tau = np.empty((B, N, nv))
+        self.out_kin = np.zeros((B, N))
+        self.out_pot = np.zeros((B, N))
+        self.out_flows = np.zeros((B, N, n_ledger))
+        self.n_samples = np.zeros(B, dtype=int)
+        self.status = np.full(B, "running", dtype=object)
+        self.messages = [""] * B
+        self.steps = np.zeros(B, dtype=int)
+        self.evaluations = np.zeros(B, dtype=int)
+        self.controller_calls = np.zeros(B, dtype=int)
+        self.saturated_calls = np.zeros(B, dtype=int)
+        self.saturated_dofs = np.zeros((B, nv), dtype=int)
+        self.initial_energy = np.zeros((B, 2))  # (T, V) at t = 0
+        self.energy_scale = np.zeros(B)
+        # The running elements' latest accepted state.
+        self.rows = np.arange(B)
+        self.Q, self.V = Q0.copy(), V0.copy()
+        self.TAU = np.zeros((B, nv))
+        self.FLOWS = np.zeros((B, n_ledger))
+        self.t, self.k = 0.0, 0
+        self.last_recorded = -math.inf
+        self.initial_q, self.initial_v = Q0, V0  # for elements with no sample at all
+
+    # ---- the loop --------------------------------------------------------------------------------------------
+    def execute(self, start: float) -> BatchTrajectory:
+        self.bar.reset(self.n_steps * self.B, "element-step")
+        try:
+            with np.errstate(over="ignore", invalid="ignore"):  # divergence is detected and reported, not warned
+                self._loop()
+        except KeyboardInterrupt:
+            if len(self.rows):
+                self._record_current(np.arange(len(self.rows)))
+                self._stop(np.arange(len(self.rows)), "interrupted")
+            batch = self._batch(time.perf_counter() - start)
+            stopped = int(np.sum(batch.status == "interrupted"))
+            raise SimulationInterrupted(
+                f"interrupted at t = {self.t:.6g} s (step {self.k}); {stopped} of {self.B} elements were running",
+                trajectory=batch,  # type: ignore[arg-type]
+            ) from None
+        return self._batch(time.perf_counter() - start)
+
+    def _loop(self) -> None:
+        dt, n_steps, control = self.dt, self.n_steps, self.control
+        control_every, output_every = self.control_every, self.output_every
+        tick = max(1, n_steps // 200)  # progress updates: cheap enough at ~200 per run
+        for k in range(n_steps):
+            t = k * dt
+            if control.kind != "none" and k % control_every == 0:
+                self._control(t, k // control_every)
+            if k % output_every == 0:
+                self._record(t, problems=True)
+                if not len(self.rows):
+                    return
+            h = dt if k < n_steps - 1 else self.duration - t
+            Q, V = self.Q, self.V
+            Q_next, V_next, step_flows = self._step(Q, V, self.TAU, h)
+            # NaN or inf anywhere makes the whole sum non-finite (so can a huge but finite state: the exact check
+            # below tells them apart). One contiguous reduction per array is far cheaper than per-row ones.
+            if not math.isfinite(Q_next.sum() + V_next.sum()):
+                bad = np.flatnonzero(~(np.isfinite(Q_next).all(axis=1) & np.isfinite(V_next).all(axis=1)))
+                if len(bad):
+                    self._diverged_nonfinite(bad, t + h, Q_next, V_next)
+                    keep = np.ones(len(Q_next), dtype=bool)
+                    keep[bad] = False
+                    Q_next, V_next, step_flows = Q_next[keep], V_next[keep], step_flows[keep]
+                    if not len(self.rows):
+                        return
+            self.Q, self.V = Q_next, V_next
+            self.FLOWS = self.FLOWS + step_flows
+            self.t, self.k = t + h, k + 1
+            if (k + 1) % tick == 0:
+                self.bar.update(tick * len(self.rows))
+        self.t = self.duration
+        self._record(self.duration, problems=True)
+        self._stop(np.arange(len(self.rows)), "completed")
+        self.rows = self.rows[:0]
+
+    def _step(
+        self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, h: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if type(self.method) is SemiImplicitEuler:
+            # As SemiImplicitEuler.step: v first, then q with the new v; the ledger at the new state.
+            A = self._accelerations(Q, V, TAU)
+            V_next = V + h * A
+            Q_next = self._integrate(Q, h * V_next)
+            return Q_next, V_next, h * self._ledger_power(V_next, TAU)
+        method = self.method
+        assert isinstance(method, ExplicitRungeKutta)
+        a, b = method._a, method._b
+        nv = self.nv
+        K = self._K
+        if K is None or len(K) != len(Q):  # one buffer for the run (reallocated when elements stop)
+            K = self._K = np.empty((len(Q), len(a), 2 * nv + len(self.elements)))
+        for i in range(len(a)):
+            if i == 0:  # at the step's start: xi = 0, where the chart Jacobian is the identity
+                Q_stage, V_stage = Q, V
+                K[:, 0, :nv] = V
+            else:
+                # The same per-element BLAS call as ExplicitRungeKutta._stages' `a[i, :i] @ K[:i]`.
+                Y = np.matmul(a[i, :i], K[:, :i, :]) * h
+                V_stage = V + Y[:, nv : 2 * nv]
+                Q_stage = self._integrate(Q, Y[:, :nv])
+                if self.flat:
+                    K[:, i, :nv] = V_stage
+                else:
+                    chart_velocity = self.system.space.chart_velocity
+                    XI = Y[:, :nv]
+                    for j in range(len(Q)):
+                        K[j, i, :nv] = chart_velocity(Q[j], XI[j], V_stage[j])
+            self._accelerations(Q_stage, V_stage, TAU, out=K[:, i, nv : 2 * nv])
+            self._ledger_power(V_stage, TAU, out=K[:, i, 2 * nv :])
+        increment = np.matmul(b, K) * h
+        Q_next = self._integrate(Q, increment[:, :nv])
+        return Q_next, V + increment[:, nv : 2 * nv], increment[:, 2 * nv :]
+
+    def _accelerations(
+        self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, out: np.ndarray | None = None
+    ) -> np.ndarray:
+        """ABA (WORLD convention, as Robot.unchecked_forward_dynamics) of every row, with damping; written into
+        `out` (n, nv) when given, which may be a strided view."""
+        if self.damping is not None:
+            TAU = TAU - self.damping * V
+        A = np.empty((len(Q), self.nv)) if out is None else out
+        # Column-major (n, B) views of row-major (B, n) arrays: Pinocchio reads and writes them in place.
+        pin.abaInParallel(self.num_threads, self.pool, Q.T, V.T, TAU.T, A.T)
+        return A
+
+    def _ledger_power(self, V: np.ndarray, TAU: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Robot.ledger_power of every row: torque power, then damping power; written into `out` if given."""
+        P = np.empty((len(V), len(self.elements))) if out is None else out
+        P[:, 0] = _rowdot(TAU, V)
+        if self.damping is not None:
+            P[:, 1] = _rowdot(V, self.damping * V)
+        return P
+
+    def _integrate(self, Q: np.ndarray, DV: np.ndarray) -> np.ndarray:
+        if self.vector_space:  # pin.integrate is q + dv, exactly, on every joint
+            return Q + DV
+        model = self.model
+        out = np.empty_like(Q)
+        for j in range(len(Q)):
+            out[j] = pin.integrate(model, Q[j], DV[j])
+        return out
+
+    # ---- control -------------------------------------------------------------------------------------------
+    def _control(self, t: float, instant: int) -> None:
+        control, rows, n, nv = self.control, self.rows, len(self.rows), self.nv
+        system = self.system
+        if control.kind == "taus":
+            assert control.taus is not None
+            tau = control.taus[rows, instant]
+        elif control.kind == "batched":
+            Q, V = self.Q.copy(), self.V.copy()
+            Q.setflags(write=False)  # the controller sees the state; it must not edit it
+            V.setflags(write=False)
+            out = control.batched(t, Q, V)
+            shape = np.shape(out)
+            if shape != (n, nv):
+                raise InvalidArgumentError(
+                    f"batched controller output at t = {t:.6g} s must have shape ({n}, {nv}), got {shape}"
+                )
+            tau = np.array(out, dtype=float)
+            suspect = ~np.isfinite(tau).all(axis=1) | (system.floating_base and tau[:, :6].any(axis=1))
+            for i in np.flatnonzero(suspect).tolist():
+                try:  # the full check, with the precise reason
+                    system.check_tau(tau[i])
+                except InvalidArgumentError as exc:
+                    raise InvalidArgumentError(
+                        f"batched controller output at t = {t:.6g} s, element {rows[i]}: {exc}"
+                    ) from None
+        else:
+            assert control.per_element is not None
+            tau = np.empty((n, nv))
+            for j, row in enumerate(rows.tolist()):
+                q, v = self.Q[j].copy(), self.V[j].copy()
+                q.setflags(write=False)
+                v.setflags(write=False)
+                out = control.per_element[row](t, q, v)
+                fast = type(out) is np.ndarray and out.dtype == np.float64 and out.shape == (nv,)
+                if not fast or not math.isfinite(out @ out) or (system.floating_base and out[:6].any()):
+                    try:  # the full check, with the precise reason (as simulate's)
+                        out = system.check_tau(out)
+                    except InvalidArgumentError as exc:
+                        raise InvalidArgumentError(f"controller output at t = {t:.6g} s: {exc}") from None
+                tau[j] = out
+        self.controller_calls[rows] += 1
+        tau, over = control.saturate(tau)
+        if control.effort is not None:
+            hit = over.any(axis=1)
+            self.saturated_calls[rows] += hit
+            self.saturated_dofs[rows] += over
+        self.TAU = np.array(tau, dtype=float)
+
+    # ---- recording and early stops ------------------------------------------------------------------------
+    def _energies(self, Q: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(T, V) of every row as Robot.unchecked_energies computes them (one kinematics pass each)."""
+        model, data = self.model, self.data
+        kinetic, potential = pin.computeKineticEnergy, pin.computePotentialEnergy
+        kin, pot = np.empty(len(Q)), np.empty(len(Q))
+        for j in range(len(Q)):
+            # computeKineticEnergy(model, data, q, v) is forwardKinematics then the data-only call: the same
+            # arithmetic in two Python calls instead of three.
+            kin[j] = kinetic(model, data, Q[j], V[j])
+            pot[j] = potential(model, data)
+        return kin, pot
+
+    def _record(self, t: float, *, problems: bool, which: np.ndarray | None = None) -> None:
+        """Store a sample of the running rows `which` (default all) with the torque in force from t on; rows
+        whose energy is non-finite or has blown up stop as "diverged" (when `problems`)."""
+        which = np.arange(len(self.rows)) if which is None else which
+        rows = self.rows[which]
+        Q, V, flows = self.Q[which], self.V[which], self.FLOWS[which]
+        kin, pot = self._energies(Q, V)
+        finite = np.isfinite(kin + pot)
+        if not finite.all():  # a huge state whose energy overflows: keep only finite samples
+            bad = np.flatnonzero(~finite)
+            if problems:
+                for j in bad:
+                    fastest = int(np.argmax(np.abs(V[j])))
+                    self.messages[rows[j]] = (
+                        f"diverged at t = {t:.6g} s (step {self.k}): the energy became non-finite, fastest in "
+                        f"'{self.system.dof_names[fastest]}' ({V[j, fastest]:.3g}); {self._cure()}"
+                    )
+                self._stop(which[bad], "diverged")
+            keep = finite
+            which, rows, Q, V, flows = which[keep], rows[keep], Q[keep], V[keep], flows[keep]
+            kin, pot = kin[keep], pot[keep]
+        if t == 0.0:
+            self.initial_energy[rows, 0], self.initial_energy[rows, 1] = kin, pot
+            self.energy_scale[rows] = kin + np.abs(pot) + self.system.energy_scale
+        col = self.n_samples[rows]
+        self.out_t[rows, col] = t
+        self.out_q[rows, col] = Q
+        self.out_v[rows, col] = V
+        self.out_tau[rows, col] = self.TAU[which]
+        self.out_kin[rows, col], self.out_pot[rows, col] = kin, pot
+        self.out_flows[rows, col] = flows
+        self.n_samples[rows] += 1
+        self.last_recorded = t
+        if t == 0.0 or not problems:
+            self._compact()
+            return
+        work = flows[:, self.is_work].sum(axis=1)
+        dissipated = flows[:, ~self.is_work].sum(axis=1)
+        error = kin + pot - self.initial_energy[rows].sum(axis=1) - work + dissipated
+        # Dissipation is left out of the scale (see simulate): a run can only dissipate what it had or was given.
+        bound = BLOWUP_FACTOR * (self.energy_scale[rows] + np.abs(work))
+        blown = (np.abs(error) > bound) | (dissipated > bound)
+        for j in np.flatnonzero(blown):
+            fastest = int(np.argmax(np.abs(V[j])))
+            what = (
+                f"the energy error {error[j]:.3g} J"
+                if abs(error[j]) > bound[j]
+                else f"the dissipated energy {dissipated[j]:.3g} J"
+            )
+            self.messages[rows[j]] = (
+                f"diverged at t = {t:.6g} s (step {self.k}): {what} exceeds {BLOWUP_FACTOR:g} times the run's "
+                f"energy scale ({bound[j] / BLOWUP_FACTOR:.3g} J), fastest in '{self.system.dof_names[fastest]}' "
+                f"({V[j, fastest]:.3g}); {self._cure()}"
+            )
+        if blown.any():
+            self._stop(which[blown], "diverged")
+        self._compact()
+
+    def _record_current(self, which: np.ndarray) -> None:
+        """Keep the latest state of rows `which` as a last sample if it is not one already."""
+        if self.last_recorded == self.t:
+            return
+        self._record(self.t, problems=False, which=which)
+
+    def _diverged_nonfinite(self, bad: np.ndarray, t_next: float, Q_next: np.ndarray, V_next: np.ndarray) -> None:
+        for j in bad:
+            bad_v = ~np.isfinite(V_next[j])
+            if bad_v.any():
+                dof = int(np.argmax(bad_v))
+            else:
+                finite_q = np.where(np.isfinite(Q_next[j]), Q_next[j], 0.0)
+                dof = int(np.argmax(~np.isfinite(self.system.space.difference(self.Q[j], finite_q))))
+            self.messages[self.rows[j]] = (
+                f"diverged at t = {t_next:.6g} s (step {self.k + 1}): the state became non-finite in "
+                f"'{self.system.dof_names[dof]}'; {self._cure()}"
+            )
+        self._record_current(bad)
+        self._stop(bad, "diverged", attempted=self.k + 1)  # the failed step's evaluations count too
+        self._compact()
+
+    def _stop(self, which: np.ndarray, status: str, attempted: int | None = None) -> None:
+        """Mark running rows `which` as stopped after self.k steps and `attempted` (default self.k) evaluated
+        ones (they leave the working arrays at the next _compact)."""
+        rows = self.rows[which]
+        self.status[rows] = status
+        self.steps[rows] = self.k
+        self.evaluations[rows] = self.method.evaluations_per_step * (self.k if attempted is None else attempted)
+
+    def _compact(self) -> None:
+        keep = self.status[self.rows] == "running"
+        if keep.all():
+            return
+        self.rows = self.rows[keep]
+        self.Q, self.V, self.TAU, self.FLOWS = self.Q[keep], self.V[keep], self.TAU[keep], self.FLOWS[keep]
+
+    def _cure(self) -> str:
+        implicit = _stable_implicit_for(self.system)
+        also = f", or an implicit integrator ({', '.join(implicit)})" if implicit else ""
+        return f"try a smaller dt (now {self.dt:g} s){also}"
+
+    # ---- the result ------------------------------------------------------------------------------------------
+    def _batch(self, wall_time: float) -> BatchTrajectory:
+        n = self.n_samples
+        kin, pot, flows = self.out_kin, self.out_pot, self.out_flows
+        work = flows[:, :, self.is_work].sum(axis=2)
+        dissipated = flows[:, :, ~self.is_work].sum(axis=2)
+        total = kin + pot
+        error = total - self.initial_energy.sum(axis=1)[:, None] - work + dissipated
+        arrays = {
+            "t": self.out_t,
+            "q": self.out_q,
+            "v": self.out_v,
+            "tau": self.out_tau,
+            "kinetic_energy": kin,
+            "potential_energy": pot,
+            "total_energy": total,
+            "work": work,
+            "dissipated": dissipated,
+            "energy_error": error,
+        }
+        ledger = {name: LedgerEntry(kind, flows[:, :, j]) for j, (name, kind) in enumerate(self.elements)}
+        _pad(arrays, ledger, n, self.initial_q, self.initial_v)
+        violations = _batch_limit_violations(self.system, self.out_t, self.out_q, n)
+        return BatchTrajectory(
+            **arrays,
+            n_samples=n.copy(),
+            status=np.array([str(s) for s in self.status]),
+            messages=list(self.messages),
+            ledger=ledger,
+            limit_violations=violations,
+            stats={
+                "steps": self.steps.copy(),
+                "rejected_steps": np.zeros(self.B, dtype=int),
+                "evaluations": self.evaluations.copy(),
+                "controller_calls": self.controller_calls.copy(),
+                "saturated_controls": self.saturated_calls.copy(),
+                "saturated_dofs": self.saturated_dofs.copy(),
+                "wall_time": wall_time,
+            },
+            metadata=_metadata(self.system, self.method, self.dt, self.duration, self.options, self.control, "local"),
+        )
+
+
+def _batch_limit_violations(system: Robot, T: np.ndarray, Q: np.ndarray, n: np.ndarray) -> list[LimitViolations]:
+    """simulate()'s limit report of each element; one vectorised pass finds the elements that need one."""
+    B, N, nq = Q.shape
+    excess = system.limit_excess(Q.reshape(B * N, nq)).reshape(B, N, nq)
+    outside = (excess > 0).any(axis=2) & (np.arange(N) < n[:, None])
+    return [
+        _limit_violations(system, T[b, : n[b]], Q[b, : n[b]]) if outside[b].any() else LimitViolations()
+        for b in range(B)
+    ]
+
+
+def _is_vector_space(system: Robot) -> bool:
+    """Whether pin.integrate is exactly q + dv for this model (revolute and prismatic joints only, say)."""
+    model = system.model
+    if model.nq != model.nv or any(j.nq != j.nv for j in model.joints[1:]):
+        return False
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        q = rng.uniform(-3.0, 3.0, model.nq)
+        dv = rng.normal(size=model.nv) * 10.0 ** rng.uniform(-8, 1, model.nv)
+        if not np.array_equal(pin.integrate(model, q, dv), q + dv):
+            return False
+    return True
+
+
+def _pad(
+    arrays: dict[str, np.ndarray], ledger: dict[str, LedgerEntry], n: np.ndarray, Q0: np.ndarray, V0: np.ndarray
+) -> None:
+    """Rows past each element's last sample repeat it (in place); an element with none holds its initial state."""
+    width = arrays["t"].shape[1]
+    for b in np.flatnonzero(n < width):
+        last = n[b] - 1
+        if last < 0:  # no sample at all: its initial state, zero energies and torque
+            for arr in arrays.values():
+                arr[b] = 0.0
+            arrays["q"][b], arrays["v"][b] = Q0[b], V0[b]
+            for entry in ledger.values():
+                entry.energy[b] = 0.0
+            continue
+        for arr in arrays.values():
+            arr[b, last + 1 :] = arr[b, last]
+        for entry in ledger.values():
+            entry.energy[b, last + 1 :] = entry.energy[b, last]
+
+
+def _metadata(
+    system: Robot,
+    method: Integrator,
+    dt: float,
+    duration: float,
+    options: dict[str, Any],
+    control: _Control,
+    backend: str,
+) -> dict[str, Any]:
+    return {
+        "versions": dict(_versions()),
+        "robot": {
+            "name": system.name,
+            "nq": system.nq,
+            "nv": system.nv,
+            "floating_base": system.floating_base,
+            "damping": bool(system.source.get("load_robot", {}).get("damping", True)),
+            "joint_names": system.joint_names,
+            "dof_names": system.dof_names,
+            **system.source,
+        },
+        "integrator": method.name,
+        "options": {"dt": dt, "duration": duration, **options},
+        "controller": control.label,
+        "backend": backend,
+    }
+
+
+# ---- element by element (adaptive and implicit methods, scenes) ------------------------------------------------
+def _element_by_element(
+    system: Robot,
+    method: Integrator,
+    Q0: np.ndarray,
+    V0: np.ndarray,
+    duration: float,
+    dt: float,
+    control: _Control,
+    options: dict[str, Any],
+    bar: _ProgressBar,
+    start: float,
+) -> BatchTrajectory:
+    trajectories: list[Trajectory] = []
+    messages: list[str] = []
+    bar.reset(len(Q0), "element")
+    for b in range(len(Q0)):
+        controller = control.element_controller(b)
+        try:
+            traj = simulate(
+                system, Q0[b], V0[b], duration=duration, dt=dt, integrator=method, controller=controller, **options
+            )
+            message = ""
+        except SimulationError as exc:
+            assert exc.trajectory is not None
+            traj, message = exc.trajectory, str(exc)
+        except SimulationInterrupted as exc:
+            assert exc.trajectory is not None
+            trajectories.append(exc.trajectory)
+            messages.append(str(exc))
+            for rest in range(b + 1, len(Q0)):  # not run: their initial state, as their one sample
+                trajectories.append(_initial_only(system, Q0[rest], V0[rest]))
+                messages.append("interrupted before it started")
+            batch = _stack(trajectories, messages, Q0, V0, time.perf_counter() - start)
+            batch.metadata = _metadata(system, method, dt, duration, options, control, "local")
+            raise SimulationInterrupted(
+                f"interrupted in element {b} of {len(Q0)}; {str(exc)}",
+                trajectory=batch,  # type: ignore[arg-type]
+            ) from None
+        trajectories.append(traj)
+        messages.append(message)
+        bar.update(1)
+    batch = _stack(trajectories, messages, Q0, V0, time.perf_counter() - start)
+    batch.metadata = _metadata(system, method, dt, duration, options, control, "local")
+    return batch
+
+
+def _initial_only(system: Robot, q0: np.ndarray, v0: np.ndarray) -> Trajectory:
+    T, V = system.unchecked_energies(q0, v0)
+    zero = np.zeros(1)
+    return Trajectory(
+        t=zero.copy(),
+        q=q0[None, :].copy(),
+        v=v0[None, :].copy(),
+        tau=np.zeros((1, system.nv)),
+        kinetic_energy=np.array([T]),
+        potential_energy=np.array([V]),
+        total_energy=np.array([T + V]),
+        work=zero.copy(),
+        dissipated=zero.copy(),
+        energy_error=zero.copy(),
+        ledger={name: LedgerEntry(kind, zero.copy()) for name, kind in system.ledger_elements},
+        stats={"steps": 0, "rejected_steps": 0, "evaluations": 0, "controller_calls": 0, "saturated_controls": 0},
+        status="interrupted",
+    )
+
+
+def _stack(
+    trajectories: list[Trajectory], messages: list[str], Q0: np.ndarray, V0: np.ndarray, wall_time: float
+) -> BatchTrajectory:
+    """One BatchTrajectory from per-element Trajectories (padded as BatchTrajectory documents)."""
+    B = len(trajectories)
+    n = np.array([len(tr) for tr in trajectories], dtype=int)
+    N = max(1, int(n.max()))
+    first = trajectories[0]
+    arrays: dict[str, Any] = {}
+    for name in _ARRAYS:
+        shape = getattr(first, name).shape[1:]
+        arr = np.zeros((B, N, *shape))
+        for b, tr in enumerate(trajectories):
+            arr[b, : n[b]] = getattr(tr, name)
+        arrays[name] = arr
+    ledger = {}
+    for name, entry in first.ledger.items():
+        energy = np.zeros((B, N))
+        for b, tr in enumerate(trajectories):
+            energy[b, : n[b]] = tr.ledger[name].energy
+        ledger[name] = LedgerEntry(entry.kind, energy)
+    _pad(arrays, ledger, n, Q0, V0)
+    nv = first.v.shape[1]
+    dof_index = {name: i for i, name in enumerate(first.metadata.get("robot", {}).get("dof_names", []))}
+    saturated = np.zeros((B, nv), dtype=int)
+    for b, tr in enumerate(trajectories):
+        for name, count in tr.stats.get("saturated_dofs", {}).items():
+            saturated[b, dof_index[name]] = count
+    stats: dict[str, Any] = {
+        name: np.array([int(tr.stats.get(name, 0)) for tr in trajectories], dtype=int) for name in _COUNTS
+    }
+    stats["saturated_dofs"] = saturated
+    stats["wall_time"] = wall_time
+    return BatchTrajectory(
+        **arrays,
+        n_samples=n,
+        status=np.array([tr.status for tr in trajectories]),
+        messages=messages,
+        ledger=ledger,
+        limit_violations=[tr.limit_violations for tr in trajectories],
+        stats=stats,
+    )
+
+
+def _concatenate(batches: list[BatchTrajectory], wall_time: float | None = None) -> BatchTrajectory:
+    """One BatchTrajectory from several along the batch axis (e.g. Ray chunks), padding to the longest."""
+    N = max(bt.t.shape[1] for bt in batches)
+
+    def widen(arr: np.ndarray) -> np.ndarray:
+        if arr.shape[1] == N:
+            return arr
+        # Repeat each element's last row (its last sample, or its padding) out to N.
+        extra = np.repeat(arr[:, -1:], N - arr.shape[1], axis=1)
+        return np.concatenate([arr, extra], axis=1)
+
+    arrays = {name: np.concatenate([widen(getattr(bt, name)) for bt in batches]) for name in _ARRAYS}
+    ledger = {
+        name: LedgerEntry(entry.kind, np.concatenate([widen(bt.ledger[name].energy) for bt in batches]))
+        for name, entry in batches[0].ledger.items()
+    }
+    stats: dict[str, Any] = {name: np.concatenate([bt.stats[name] for bt in batches]) for name in _COUNTS}
+    stats["saturated_dofs"] = np.concatenate([bt.stats["saturated_dofs"] for bt in batches])
+    stats["wall_time"] = wall_time if wall_time is not None else sum(bt.stats["wall_time"] for bt in batches)
+    return BatchTrajectory(
+        **arrays,
+        n_samples=np.concatenate([bt.n_samples for bt in batches]),
+        status=np.concatenate([bt.status for bt in batches]),
+        messages=[m for bt in batches for m in bt.messages],
+        ledger=ledger,
+        limit_violations=[lv for bt in batches for lv in bt.limit_violations],
+        stats=stats,
+        metadata=dict(batches[0].metadata),
+    )
+
+
+# ---- Ray -----------------------------------------------------------------------------------------------------------
+def _run_chunk(
+    system: Robot,
+    Q0: np.ndarray,
+    V0: np.ndarray,
+    duration: float,
+    dt: float,
+    method: Integrator,
+    control: _Control,
+    options: dict[str, Any],
+) -> BatchTrajectory:
+    """One Ray task: a local rollout of a chunk of the batch, with one thread."""
+    bar = _ProgressBar(False, len(Q0))
+    start = time.perf_counter()
+    if _batchable(system, method):
+        return _BatchedRun(system, method, Q0, V0, duration, dt, control, options, 1, bar).execute(start)
+    return _element_by_element(system, method, Q0, V0, duration, dt, control, options, bar, start)
+
+
+_REMOTE: dict[str, Any] = {}
+
+
+def _ray_rollout(
+    system: Robot,
+    Q0: np.ndarray,
+    V0: np.ndarray,
+    duration: float,
+    dt: float,
+    method: Integrator,
+    control: _Control,
+    progress: bool | None,
+    chunk_size: int | None,
+    options: dict[str, Any],
+) -> BatchTrajectory:
+    try:
+        import ray
+    except ImportError:
+        raise InvalidArgumentError(
+            "backend='ray' needs Ray: pip install 'multibody-sim[ray]' (then ray.init() to start or join a cluster)"
+        ) from None
+    start = time.perf_counter()
+    if not ray.is_initialized():  # what Ray would do on the first task anyway: a local instance
+        ray.init()
+    B = len(Q0)
+    if chunk_size is None:
+        cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        chunk_size = max(1, -(-B // (2 * cpus)))
+    bounds = [(lo, min(lo + chunk_size, B)) for lo in range(0, B, chunk_size)]
+    remote = _REMOTE.get("chunk")
+    if remote is None:
+        remote = _REMOTE["chunk"] = ray.remote(num_cpus=1)(_run_chunk)
+    system_ref = ray.put(system)  # shipped once, shared by every task
+    pending = {
+        remote.remote(
+            system_ref, Q0[lo:hi], V0[lo:hi], duration, dt, method, control.subset(np.arange(lo, hi)), options
+        ): i
+        for i, (lo, hi) in enumerate(bounds)
+    }
+    results: list[BatchTrajectory | None] = [None] * len(bounds)
+    bar = _ProgressBar(progress, B)
+    try:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            for ref in done:
+                i = pending.pop(ref)
+                results[i] = ray.get(ref)
+                bar.update(bounds[i][1] - bounds[i][0])
+    except KeyboardInterrupt:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        done_chunks = sum(r is not None for r in results)
+        raise SimulationInterrupted(
+            f"interrupted with {done_chunks} of {len(bounds)} chunks done; the others were cancelled"
+        ) from None
+    finally:
+        bar.close()
+    batch = _concatenate([r for r in results if r is not None], wall_time=time.perf_counter() - start)
+    batch.metadata["backend"] = "ray"
+    batch.metadata["chunks"] = len(bounds)
+    return batch
+
+
+__all__ = ["BatchTrajectory", "rollout"]

@@ -1,0 +1,237 @@
+"""Limits on untrusted files: what a trajectory archive may make us allocate or decompress before we read it.
+
+An .npz is a zip of .npy members. numpy allocates each array from the shape its header claims and zipfile
+inflates whatever the archive holds, so a 10 MB file can ask for gigabytes: a member whose header claims a huge
+shape, a highly compressed member (a zip bomb), a bzip2 or LZMA member (which inflate far more per byte read),
+or millions of tiny members. `check_npz` refuses all of these from the archive's directory and the members'
+headers alone, reading at most a few kilobytes of each member; `read_npz` is np.load behind that check, with
+every failure turned into a TrajectoryFileError. `printable` makes messages that quote a file's contents (names,
+paths) safe to print: one line, no terminal escapes, bounded length.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import struct
+import zipfile
+import zlib
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+
+from .exceptions import TrajectoryFileError
+
+MAX_NPZ_MEMBERS = 4096  # a trajectory has ~11 arrays plus one per ledger element
+# A file may expand to MAX_EXPANSION times its size, or MIN_BUDGET_BYTES whatever its size. Trajectory.save
+# stores members uncompressed (expansion 1); deflate reaches ~1000x on constant arrays (the bombs). A deflated
+# trajectory of a pendulum at rest expands ~33x; a many-joint robot at rest could pass 100x, and then loads
+# only up to MIN_BUDGET_BYTES (save such files uncompressed).
+MAX_EXPANSION = 100
+MIN_BUDGET_BYTES = 256 * 1024 * 1024
+MAX_HEADER_BYTES = 10_000  # np.load's own default limit on an .npy header
+_READABLE_COMPRESSION = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
+_END_OF_DIRECTORY = b"PK\x05\x06"
+_END_RECORD_SIZE = 22  # the fixed part of zip's end-of-central-directory record; a comment (<= 64 KiB) may follow
+
+
+# C0 and C1 controls (line breaks, ESC and CSI start terminal escapes), DEL, zero-width and bidi overrides.
+_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u200b-\u200f\u2028-\u202e\u2066-\u2069]")
+MAX_MESSAGE_CHARS = 2000
+
+
+def printable(message: str) -> str:
+    """A message safe to print: control and bidi characters escaped (\\x0a, \\u202e), and at most
+    MAX_MESSAGE_CHARS characters: the first 1500 and the last 400 kept (a name from a file may be megabytes).
+    """
+    message = _UNPRINTABLE.sub(lambda m: _escape(m.group()), message)
+    if len(message) > MAX_MESSAGE_CHARS:
+        omitted = len(message) - 1900
+        message = f"{message[:1500]} [... {omitted} characters omitted ...] {message[-400:]}"
+    return message
+
+
+def _escape(char: str) -> str:
+    code = ord(char)
+    return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}"
+
+
+def npz_budget(file_size: int) -> int:
+    """The most bytes the arrays of an .npz of file_size bytes may take once read."""
+    return max(MIN_BUDGET_BYTES, MAX_EXPANSION * file_size)
+
+
+def check_npz(path: str | os.PathLike[str], *, max_bytes: int | None = None) -> None:
+    """Refuse an .npz archive that would make np.load allocate or inflate far more than its size.
+
+    Checks, in order, without reading any member's data: the number of members (from the end-of-directory
+    record, before zipfile parses the directory), each member's compression method and encryption, that each
+    .npy member's declared size equals what its header describes (shape x itemsize), and that the sizes add up
+    to at most max_bytes.
+
+    Args:
+        path: the .npz file.
+        max_bytes: the largest total size of the arrays once read [bytes]; default npz_budget(file size).
+
+    Raises:
+        TrajectoryFileError: the archive breaks one of the limits, or is not a readable zip archive.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        budget = npz_budget(size) if max_bytes is None else max_bytes
+        with path.open("rb") as f:
+            members = _member_count(f, size)
+            if members is not None and members > MAX_NPZ_MEMBERS:
+                raise TrajectoryFileError(
+                    f"{path}: not a trajectory file ({members} archive members, more than {MAX_NPZ_MEMBERS})"
+                )
+            with zipfile.ZipFile(f) as archive:
+                _check_members(archive, path, budget, size)
+    except TrajectoryFileError as exc:  # member names come from the file: print them safely
+        shown = printable(str(exc))
+        if shown == str(exc):
+            raise
+        raise TrajectoryFileError(shown) from None
+    except FileNotFoundError:
+        raise TrajectoryFileError(f"{path}: no such trajectory file") from None
+    # NotImplementedError: zipfile's word for a directory entry needing a newer zip version (fuzzing found it).
+    except (
+        OSError,
+        ValueError,
+        EOFError,
+        KeyError,
+        zipfile.BadZipFile,
+        zlib.error,
+        struct.error,
+        NotImplementedError,
+    ) as exc:
+        raise TrajectoryFileError(f"{path}: not a readable trajectory file ({_first_line(exc)})") from None
+
+
+def read_npz(path: str | os.PathLike[str], *, max_bytes: int | None = None) -> dict[str, np.ndarray]:
+    """Every array of an .npz, read without pickle after check_npz.
+
+    Args:
+        path: the .npz file.
+        max_bytes: as for check_npz.
+
+    Returns:
+        {member name without .npy: array}.
+
+    Raises:
+        TrajectoryFileError: check_npz refused the file, or it is truncated or corrupted (a bad CRC, a broken
+            deflate stream, an object array that would need pickle).
+    """
+    path = Path(path)
+    check_npz(path, max_bytes=max_bytes)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {name: npz[name] for name in npz.files}
+    except FileNotFoundError:
+        raise TrajectoryFileError(f"{path}: no such trajectory file") from None
+    # zlib.error: a corrupted deflate stream; NotImplementedError / RuntimeError: a compression method or an
+    # encryption zipfile cannot read (check_npz refuses both first, kept for safety).
+    except (
+        OSError,
+        ValueError,
+        EOFError,
+        KeyError,
+        zipfile.BadZipFile,
+        zlib.error,
+        struct.error,
+        NotImplementedError,
+        RuntimeError,
+    ) as exc:
+        raise TrajectoryFileError(f"{path}: not a readable trajectory file ({_first_line(exc)})") from None
+
+
+def _member_count(f: BinaryIO, size: int) -> int | None:
+    """The member count in zip's end-of-central-directory record, or None if there is no such record.
+
+    Read from the last 64 KiB + 22 bytes, so that an archive claiming millions of members is refused before
+    zipfile builds one object per member. A count of 0xFFFF means "65535 or more" (zip64).
+    """
+    tail = min(size, _END_RECORD_SIZE + 0xFFFF)
+    f.seek(size - tail)
+    data = f.read(tail)
+    at = data.rfind(_END_OF_DIRECTORY)
+    if at < 0 or len(data) - at < _END_RECORD_SIZE:
+        return None  # zipfile will say the file is not a zip file
+    return int(struct.unpack("<H", data[at + 10 : at + 12])[0])
+
+
+def _check_members(archive: zipfile.ZipFile, path: Path, budget: int, size: int) -> None:
+    members = archive.infolist()
+    if len(members) > MAX_NPZ_MEMBERS:
+        raise TrajectoryFileError(
+            f"{path}: not a trajectory file ({len(members)} archive members, more than {MAX_NPZ_MEMBERS})"
+        )
+    total = 0
+    for info in members:
+        name = info.filename
+        if info.flag_bits & 0x1:
+            raise TrajectoryFileError(f"{path}: not a trajectory file (member '{name}' is encrypted)")
+        if info.compress_type not in _READABLE_COMPRESSION:
+            raise TrajectoryFileError(
+                f"{path}: not a trajectory file (member '{name}' uses zip compression method {info.compress_type}; "
+                "only stored and deflated members are read)"
+            )
+        total += info.file_size
+        if total > budget:
+            raise TrajectoryFileError(_too_big(path, total, budget, size))
+        if name.endswith(".npy"):
+            _check_npy_header(archive, info, path)
+
+
+def _check_npy_header(archive: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path) -> None:
+    """The member's declared size must be exactly its header plus shape x itemsize bytes.
+
+    np.load allocates the array from the header's shape before reading any data: a header that claims more
+    than the member holds would make it allocate without bound.
+    """
+    with archive.open(info) as member:
+        try:
+            version = np.lib.format.read_magic(member)
+            if version == (1, 0):
+                shape, _, dtype = np.lib.format.read_array_header_1_0(member, max_header_size=MAX_HEADER_BYTES)
+            elif version == (2, 0):
+                shape, _, dtype = np.lib.format.read_array_header_2_0(member, max_header_size=MAX_HEADER_BYTES)
+            else:
+                raise TrajectoryFileError(
+                    f"{path}: not a readable trajectory file (member '{info.filename}' is .npy format version "
+                    f"{version[0]}.{version[1]}; trajectories use 1.0 or 2.0)"
+                )
+        except (TrajectoryFileError, OSError, EOFError, zlib.error, zipfile.BadZipFile):
+            raise  # a damaged archive, not a damaged header: check_npz words it
+        # numpy parses the header's Python literal with tokenize and ast: a damaged one raises ValueError,
+        # SyntaxError or tokenize.TokenError (atheris found the last), none of them ours.
+        except Exception as exc:
+            raise TrajectoryFileError(
+                f"{path}: not a readable trajectory file (member '{info.filename}' has a malformed .npy header: "
+                f"{_first_line(exc)})"
+            ) from None
+        header_bytes = member.tell()  # ZipExtFile counts the uncompressed bytes read so far
+    if dtype.hasobject:
+        return  # a pickled object array: np.load(allow_pickle=False) refuses it with its own words
+    data_bytes = dtype.itemsize * math.prod(shape)  # Python integers: a claimed shape cannot overflow
+    if header_bytes + data_bytes != info.file_size:
+        raise TrajectoryFileError(
+            f"{path}: not a readable trajectory file (member '{info.filename}' holds {info.file_size} bytes but "
+            f"its header describes {header_bytes + data_bytes}: shape {tuple(shape)}, dtype {dtype})"
+        )
+
+
+def _too_big(path: Path, total: int, budget: int, size: int) -> str:
+    return (
+        f"{path}: refused: its arrays would take more than {budget} bytes once read "
+        f"(at least {total}, from a {size}-byte file; the limit is {MAX_EXPANSION} times the file's size or "
+        f"{MIN_BUDGET_BYTES} bytes, whichever is larger)"
+    )
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__

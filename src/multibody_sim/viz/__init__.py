@@ -1,0 +1,30 @@
+"""Watching and sharing motions: a live meshcat viewer, self-contained HTML exports and energy plots.
+
+Imported on demand (`import multibody_sim.viz`), never by `multibody_sim` itself: the simulator does not need
+meshcat, trimesh or matplotlib, which come with the `viz` extra (`pip install 'multibody-sim[viz]'`).
+"""
+
+from ._deps import MissingDependencyError, ViewerWarning
+from .export import export_html
+from .frames import frame_times, resample, robot_from_trajectory
+from .plot import plot_command, plot_png, plot_trajectory
+from .scene import MissingVisualsWarning, RobotScene
+from .server import ExposedServerWarning, MeshcatServer
+from .viewer import Viewer
+
+__all__ = [
+    "ExposedServerWarning",
+    "MeshcatServer",
+    "MissingDependencyError",
+    "MissingVisualsWarning",
+    "RobotScene",
+    "Viewer",
+    "ViewerWarning",
+    "export_html",
+    "frame_times",
+    "plot_command",
+    "plot_png",
+    "plot_trajectory",
+    "resample",
+    "robot_from_trajectory",
+]

@@ -1,0 +1,67 @@
+"""One self-contained HTML file of a recorded motion: viewer, meshes, animation (and the plot), no server needed."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from ..robot import Robot
+from ..trajectory import Trajectory, write_atomically
+from ._deps import check_viewer_dependencies, meshcat_viewer_js
+from .frames import DEFAULT_FPS, resample, robot_from_trajectory
+from .page import standalone_page
+from .scene import RobotScene, pack
+
+
+def export_html(
+    trajectory: Trajectory,
+    path: str | os.PathLike[str],
+    *,
+    robot: Robot | None = None,
+    fps: float = DEFAULT_FPS,
+    speed: float = 1.0,
+    loop: bool = True,
+    plot: bool = False,
+    title: str | None = None,
+) -> Path:
+    """Write a trajectory as one HTML file that plays it in meshcat's viewer, offline, from disk.
+
+    The file holds meshcat's viewer JavaScript (from the meshcat package), the robot's visual meshes and the
+    motion as a meshcat animation (time slider, play/pause, speed), resampled to `fps` on the configuration
+    manifold; nothing is fetched from a network. Commands are applied in a fixed order and
+    `window.multibodySim.loaded` turns true when all are.
+
+    Args:
+        trajectory: the motion to show.
+        path: the .html file to write (atomically).
+        robot: the robot it was recorded on; None loads it from the trajectory's metadata (checking that the
+            URDF's SHA-256 still matches).
+        fps: keyframes per second.
+        speed: initial playback speed (1 = real time).
+        loop: repeat the animation.
+        plot: show the energy and joint-position plot beside the view.
+        title: the page title (default: the robot's name and the integrator).
+
+    Returns:
+        The path written.
+    """
+    check_viewer_dependencies()
+    robot = robot_from_trajectory(trajectory) if robot is None else robot
+    times, Q = resample(robot, trajectory, fps)
+    scene = RobotScene(robot)
+    commands: list[dict[str, Any]] = scene.setup_commands()
+    commands.append(scene.camera_command(Q))
+    commands += scene.pose_commands(Q[0])
+    commands.append(scene.animation_command(times, Q, play=True, loop=loop, speed=speed))
+    if plot:
+        from .plot import plot_command
+
+        commands.append(plot_command(trajectory, robot=robot))
+    commands.append({"type": "multibody_sim_ready", "path": ""})
+    integrator = trajectory.metadata.get("integrator")
+    title = title or f"{robot.name}" + (f" ({integrator})" if integrator else "") + " - multibody-sim"
+    page = standalone_page(title, meshcat_viewer_js().read_text(encoding="utf-8"), [pack(c) for c in commands])
+    target = Path(path)
+    write_atomically(target, lambda f: f.write(page.encode("utf-8")))
+    return target

@@ -1,0 +1,113 @@
+"""From a saved trajectory to display frames: the robot it was recorded on, and resampling to a display rate."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from ..catalog import CATALOG, load_robot
+from ..exceptions import InvalidArgumentError, ModelError, TrajectoryFileError
+from ..robot import Robot
+from ..trajectory import Trajectory
+
+DEFAULT_FPS = 30.0
+
+
+def robot_from_trajectory(trajectory: Trajectory) -> Robot:
+    """Load the robot a trajectory was recorded on, from its metadata (load_robot arguments, URDF SHA-256).
+
+    Raises:
+        TrajectoryFileError: the trajectory does not record how its robot was loaded.
+        ModelError: the URDF cannot be found, or its SHA-256 differs from the recorded one (the file changed).
+    """
+    info = trajectory.metadata.get("robot")
+    arguments = info.get("load_robot") if isinstance(info, dict) else None
+    if not isinstance(info, dict) or not isinstance(arguments, dict) or not arguments.get("source"):
+        raise TrajectoryFileError("the trajectory does not record how its robot was loaded (metadata 'robot')")
+    source = str(arguments["source"])
+    urdf_path = info.get("urdf_path")
+    # A catalog name loads the catalog's URDF; a file loads the recorded absolute path, so that replaying does
+    # not depend on the folder the command runs in.
+    if source not in CATALOG and urdf_path:
+        source = str(urdf_path)
+    options: dict[str, Any] = {"package_dirs": arguments.get("package_dirs") or None}
+    if arguments.get("allowed_roots"):  # recorded only when given
+        options["allowed_roots"] = arguments["allowed_roots"]
+    try:
+        robot = load_robot(
+            source,
+            floating_base=arguments.get("floating_base"),
+            damping=bool(arguments.get("damping", True)),
+            **options,
+        )
+    except ModelError as exc:
+        raise ModelError(f"cannot load the trajectory's robot: {exc}") from None
+    recorded = info.get("urdf_sha256")
+    actual = robot.source.get("urdf_sha256")
+    if recorded and actual != recorded:
+        raise ModelError(
+            f"{robot.source.get('urdf_path')}: the URDF changed since the trajectory was recorded "
+            f"(SHA-256 {str(actual)[:12]}... instead of {str(recorded)[:12]}...); "
+            "the motion would be shown on a different robot"
+        )
+    if trajectory.q.ndim != 2 or trajectory.q.shape[1] != robot.nq:
+        raise TrajectoryFileError(
+            f"the trajectory's configurations have shape {trajectory.q.shape}, but {robot.name} has nq = {robot.nq}"
+        )
+    return robot
+
+
+def frame_times(t_start: float, t_end: float, fps: float) -> np.ndarray:
+    """Display times from t_start to t_end at `fps` frames per second, the end included."""
+    count = int(math.floor((t_end - t_start) * fps + 1e-9))
+    times = t_start + np.arange(count + 1) / fps
+    if t_end - times[-1] > 1e-9 / fps:
+        times = np.append(times, t_end)
+    return times
+
+
+def resample(robot: Robot, trajectory: Trajectory | Any, fps: float = DEFAULT_FPS) -> tuple[np.ndarray, np.ndarray]:
+    """Frames of a trajectory at a display rate, interpolated on the configuration manifold.
+
+    Between two samples, q moves along Pinocchio's geodesic (`pin.interpolate`): a free-flyer's quaternion
+    stays a unit quaternion (spherical interpolation) and a continuous joint's (cos, sin) stays on the circle,
+    where interpolating the numbers in q would not.
+
+    Args:
+        robot: the robot the trajectory was recorded on.
+        trajectory: anything with `t` (shape (n,), non-decreasing) and `q` (shape (n, nq)).
+        fps: frames per second of the result (> 0).
+
+    Returns:
+        (times, Q): times [s] of shape (m,) from t[0] to t[-1] every 1/fps (the end included) and the
+        configurations at those times, shape (m, nq).
+    """
+    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
+        raise InvalidArgumentError(f"fps must be a positive number, got {fps!r}")
+    t = np.asarray(trajectory.t, dtype=float)
+    Q = np.asarray(trajectory.q, dtype=float)
+    if t.ndim != 1 or len(t) == 0 or Q.shape != (len(t), robot.nq):
+        raise InvalidArgumentError(
+            f"trajectory must have t of shape (n,) and q of shape (n, {robot.nq}), got {t.shape} and {Q.shape}"
+        )
+    if np.any(np.diff(t) < 0):
+        raise InvalidArgumentError("trajectory times must be non-decreasing")
+    times = frame_times(float(t[0]), float(t[-1]), float(fps))
+    if len(t) == 1:
+        return times[:1], Q[:1].copy()
+    segment = np.clip(np.searchsorted(t, times, side="right") - 1, 0, len(t) - 2)
+    frames = np.empty((len(times), robot.nq))
+    model = robot.model
+    for k, (time, i) in enumerate(zip(times, segment, strict=True)):
+        span = t[i + 1] - t[i]
+        alpha = 0.0 if span <= 0 else min(max((time - t[i]) / span, 0.0), 1.0)
+        if alpha == 0.0:
+            frames[k] = Q[i]
+        elif alpha == 1.0:
+            frames[k] = Q[i + 1]
+        else:
+            frames[k] = pin.interpolate(model, Q[i], Q[i + 1], alpha)
+    return times, frames

@@ -1,0 +1,355 @@
+"""A robot as a meshcat scene: visual meshes per body, poses, recorded animations and the camera, as commands.
+
+Commands are the dictionaries meshcat's viewer decodes (set_object, set_transform, set_animation, ...), plus a few
+of our own ("multibody_sim_*") that our page handles: the camera target, the plot beside the view, frame markers.
+The simulation never builds geometry; this module builds Pinocchio's visual GeometryModel for viewing only.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import uuid
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from ..catalog import CATALOG, catalog_urdf
+from ..exceptions import InvalidArgumentError, ModelError
+from ..robot import Robot
+from ._deps import ViewerWarning, require
+from .meshes import MeshPart, geometry_parts, skeleton_parts
+
+ROOT = "/meshcat/robot"
+_SKELETON_COLOR = (0.85, 0.55, 0.2, 1.0)
+# three.js typed-array extension codes of msgpack-lite, as meshcat's viewer registers them.
+_EXT = {np.dtype(np.int8): (0x11, "Int8Array"), np.dtype(np.int16): (0x13, "Int16Array")}
+_EXT[np.dtype(np.uint16)] = (0x14, "Uint16Array")
+_EXT.update({np.dtype(np.uint32): (0x16, "Uint32Array"), np.dtype(np.float32): (0x17, "Float32Array")})
+# Camera: a three-quarter view from the front right, slightly above; meshcat's default field of view is 75 deg.
+_CAMERA_AZIMUTH = np.radians(40.0)
+_CAMERA_ELEVATION = np.radians(22.0)
+_CAMERA_DISTANCE = 1.7  # in bounding-sphere radii: the sphere overestimates the robot, which still fits
+_CAMERA_SAMPLES = 60  # frames sampled to frame the whole motion
+_REACH_FACTOR = 1.5
+
+
+class MissingVisualsWarning(ViewerWarning):
+    """The robot is drawn without (some of) its URDF's visual meshes."""
+
+
+@dataclass(frozen=True)
+class _Visual:
+    path: str  # meshcat path of the geometry node
+    joint: int  # Pinocchio joint whose frame carries it
+    placement: np.ndarray  # 4x4, in the joint frame
+    parts: list[MeshPart]
+
+
+class RobotScene:
+    """The meshcat scene of one robot: meshes grouped under one node per moving body.
+
+    Only body nodes move (one set_transform per body per frame); geometry nodes keep their fixed placement.
+
+    Attributes:
+        robot: the robot shown.
+        joints: Pinocchio joint ids that carry geometry (0, the world, for geometry welded to it).
+        body_paths: meshcat path of each entry of `joints`.
+        notes: what could not be drawn as the URDF says (also issued as MissingVisualsWarning).
+    """
+
+    def __init__(self, robot: Robot):
+        self.robot = robot
+        self.model = robot.model
+        self._data = self.model.createData()
+        self.notes: list[str] = []
+        visuals = self._visuals()
+        if not any(v.parts for v in visuals):
+            if not self.notes:
+                self.notes.append(f"{robot.name}: the URDF has no visual geometry; drawing a skeleton of its joints")
+            visuals = self._skeleton()
+        for note in self.notes:
+            warnings.warn(note, MissingVisualsWarning, stacklevel=2)
+        self.visuals = [v for v in visuals if v.parts]
+        self.joints = sorted({v.joint for v in self.visuals})
+        self.body_paths = [f"{ROOT}/{_node_name(self.model.names[j])}" for j in self.joints]
+        self._path_of = dict(zip(self.joints, self.body_paths, strict=True))
+
+    # ---- geometry -------------------------------------------------------------------------------------
+    def _visuals(self) -> list[_Visual]:
+        source = self.robot.source
+        urdf_path = source.get("urdf_path")
+        if not urdf_path:
+            self.notes.append(f"{self.robot.name}: no URDF recorded for this robot; drawing a skeleton of its joints")
+            return []
+        path = Path(urdf_path)
+        try:
+            xml = path.read_bytes()
+        except OSError as exc:
+            raise ModelError(f"{path}: cannot read the URDF for its visual meshes ({exc.strerror})") from None
+        expected = source.get("urdf_sha256")
+        if expected and hashlib.sha256(xml).hexdigest() != expected:
+            raise ModelError(f"{path}: the URDF changed after the robot was loaded (SHA-256 differs); reload it")
+        roots = allowed_roots(self.robot)
+        try:
+            geometry_model = pin.buildGeomFromUrdfString(
+                self.model,
+                xml.decode("utf-8"),
+                pin.GeometryType.VISUAL,
+                package_dirs=[str(r) for r in roots],
+                **_cheap_mesh_loader(),
+            )
+        except (RuntimeError, ValueError) as exc:  # e.g. a mesh file that is not there
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            self.notes.append(f"{path}: Pinocchio cannot build the visual model ({first}); drawing a skeleton")
+            return []
+        visuals = []
+        for index, obj in enumerate(geometry_model.geometryObjects):
+            joint = int(obj.parentJoint)
+            name = f"{_node_name(self.model.names[joint])}/{index:03d}_{_node_name(obj.name)}"
+            parts = geometry_parts(obj, roots)
+            visuals.append(_Visual(f"{ROOT}/{name}", joint, np.asarray(obj.placement.homogeneous), parts))
+        return visuals
+
+    def _skeleton(self) -> list[_Visual]:
+        model = self.model
+        pin.forwardKinematics(model, self._data, pin.neutral(model))
+        reach = [np.linalg.norm(self._data.oMi[j].translation) for j in range(model.njoints)]
+        size = max(0.02, 0.04 * max(reach + [0.1]))
+        visuals = []
+        for joint in range(1, model.njoints):
+            children = [
+                model.jointPlacements[c].translation for c in range(1, model.njoints) if model.parents[c] == joint
+            ]
+            inertia = model.inertias[joint]
+            com = np.asarray(inertia.lever) if inertia.mass > 0 else None
+            parts = skeleton_parts(children, com, size, _SKELETON_COLOR)
+            name = f"{_node_name(model.names[joint])}/skeleton"
+            visuals.append(_Visual(f"{ROOT}/{name}", joint, np.eye(4), parts))
+        return visuals
+
+    # ---- kinematics -----------------------------------------------------------------------------------
+    def placements(self, q: np.ndarray) -> list[np.ndarray]:
+        """World placement (4x4) of each body in `joints` at configuration q."""
+        pin.forwardKinematics(self.model, self._data, np.asarray(q, dtype=float))
+        return [np.asarray(self._data.oMi[j].homogeneous) for j in self.joints]
+
+    # ---- commands -------------------------------------------------------------------------------------
+    def setup_commands(self) -> list[dict[str, Any]]:
+        """Clear the robot's node, then create every mesh under its body node, in a fixed order."""
+        umsgpack = require("umsgpack", "the meshcat viewer")
+        commands: list[dict[str, Any]] = [{"type": "delete", "path": ROOT}]
+        for visual in self.visuals:
+            commands.append(transform_command(visual.path, visual.placement))
+            for k, part in enumerate(visual.parts):
+                commands.append(_mesh_command(umsgpack, f"{visual.path}/{k}", part))
+        return commands
+
+    def pose_commands(self, q: np.ndarray) -> list[dict[str, Any]]:
+        """One set_transform per body, placing the robot at configuration q."""
+        return [transform_command(p, m) for p, m in zip(self.body_paths, self.placements(q), strict=True)]
+
+    def animation_command(
+        self,
+        times: np.ndarray,
+        Q: np.ndarray,
+        *,
+        play: bool = True,
+        loop: bool = True,
+        speed: float = 1.0,
+        seek: float | None = None,
+    ) -> dict[str, Any]:
+        """A meshcat animation (time slider, play/pause) of the bodies through the frames (times, Q).
+
+        Args:
+            times: frame times [s], shape (n,), increasing; the animation starts at times[0].
+            Q: configurations at those times, shape (n, nq).
+            play: start playing when loaded.
+            loop: repeat (else stop at the end).
+            speed: playback speed (1 = real time).
+            seek: show this animation time [s] when loaded (with play=False).
+        """
+        rotation = require("scipy.spatial.transform", "the meshcat viewer").Rotation
+        poses = np.array([self.placements(q) for q in Q])  # (n, bodies, 4, 4)
+        keys = (np.asarray(times, dtype=float) - float(times[0])).tolist()  # clip fps is 1: keys in seconds
+        animations = []
+        for b, path in enumerate(self.body_paths):
+            if self.joints[b] == 0:
+                continue  # the world does not move
+            positions = poses[:, b, :3, 3]
+            quaternions = rotation.from_matrix(poses[:, b, :3, :3]).as_quat()  # x y z w, three.js's order
+            # Consecutive keys on the same hemisphere: the interpolation then takes the short way round.
+            signs = np.sign(np.einsum("ij,ij->i", quaternions[1:], quaternions[:-1]))
+            signs[signs == 0] = 1.0
+            quaternions[1:] *= np.cumprod(signs)[:, None]
+            tracks = [
+                {"name": ".position", "type": "vector3", "keys": _keys(keys, positions)},
+                {"name": ".quaternion", "type": "quaternion", "keys": _keys(keys, quaternions)},
+            ]
+            animations.append({"path": path, "clip": {"fps": 1, "name": "default", "tracks": tracks}})
+        options: dict[str, Any] = {"play": bool(play), "repetitions": 1_000_000_000 if loop else 1}
+        options["multibody_sim_speed"] = float(speed)
+        options["multibody_sim_start"] = float(times[0])  # animation time 0 is this trajectory time [s]
+        if seek is not None:
+            options["multibody_sim_seek"] = float(seek)
+        return {"type": "set_animation", "path": "", "animations": animations, "options": options}
+
+    def camera_command(self, Q: np.ndarray) -> dict[str, Any]:
+        """Aim the camera at the box swept by the robot over the configurations Q (shape (n, nq))."""
+        Q = np.atleast_2d(np.asarray(Q, dtype=float))
+        picks = np.unique(np.linspace(0, len(Q) - 1, min(len(Q), _CAMERA_SAMPLES)).round().astype(int))
+        corners_by_joint: dict[int, list[np.ndarray]] = {j: [] for j in self.joints}
+        for visual in self.visuals:
+            for part in visual.parts:
+                lo, hi = part.bounds()
+                box = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+                corners_by_joint[visual.joint].append(box @ visual.placement.T)
+        local = [np.vstack(corners_by_joint[j]) for j in self.joints]
+        moving = [b for b, j in enumerate(self.joints) if j > 0]
+        root = moving[0] if moving else 0
+        # A body that drifts far from the rest (a finger sliding off along an unlimited prismatic joint) would
+        # shrink the robot to a dot: keep bodies within REACH_FACTOR times the first frame's reach of the root.
+        reach: float | None = None
+        points = []
+        for i in picks:
+            poses = self.placements(Q[i])
+            world = [(corners @ pose.T)[:, :3] for corners, pose in zip(local, poses, strict=True)]
+            spread = [float(np.linalg.norm(w - poses[root][:3, 3], axis=1).max()) for w in world]
+            if reach is None:
+                reach = max(max(spread), 0.05)
+            points += [w for b, w in enumerate(world) if self.joints[b] == 0 or spread[b] <= _REACH_FACTOR * reach]
+        cloud = np.vstack(points)
+        lo, hi = cloud.min(axis=0), cloud.max(axis=0)
+        target = (lo + hi) / 2
+        radius = max(float(np.linalg.norm(hi - lo)) / 2, 0.05)
+        direction = np.array(
+            [
+                np.cos(_CAMERA_ELEVATION) * np.cos(_CAMERA_AZIMUTH),
+                np.cos(_CAMERA_ELEVATION) * np.sin(_CAMERA_AZIMUTH),
+                np.sin(_CAMERA_ELEVATION),
+            ]
+        )
+        distance = _CAMERA_DISTANCE * radius
+        return {
+            "type": "multibody_sim_camera",
+            "target": target.tolist(),
+            "position": (target + distance * direction).tolist(),
+            "near": distance / 100,
+            "far": 20 * distance + radius,
+        }
+
+
+def _cheap_mesh_loader() -> dict[str, Any]:
+    """Pinocchio loads every mesh into a collision structure we never use: the cheapest one (AABB) halves the
+    time it takes."""
+    try:
+        import coal
+
+        return {"mesh_loader": coal.MeshLoader(coal.NODE_TYPE.BV_AABB)}
+    except (ImportError, AttributeError):
+        return {}
+
+
+def allowed_roots(robot: Robot) -> list[Path]:
+    """Folders the robot's meshes may come from: the URDF's folder, its package directories and allowed roots,
+    the catalog's package directory."""
+    source = robot.source
+    arguments = source.get("load_robot", {})
+    roots = [Path(source["urdf_path"]).parent] if source.get("urdf_path") else []
+    roots += [Path(p) for p in arguments.get("package_dirs", []) or []]
+    roots += [Path(p) for p in arguments.get("allowed_roots", []) or []]
+    name = arguments.get("source")
+    if name in CATALOG:
+        roots += catalog_urdf(CATALOG[name])[1]
+    return [r.resolve() for r in roots]
+
+
+def pack(command: dict[str, Any]) -> bytes:
+    """A command as the msgpack bytes meshcat's viewer decodes. Numbers go as 32-bit floats: what three.js
+    keeps of them anyway (animation tracks are Float32Arrays), at half the size."""
+    umsgpack = require("umsgpack", "the meshcat viewer")
+    return bytes(umsgpack.packb(command, force_float_precision="single"))
+
+
+def transform_command(path: str, matrix: np.ndarray) -> dict[str, Any]:
+    """meshcat's set_transform: a 4x4 homogeneous matrix, column-major."""
+    return {"type": "set_transform", "path": path, "matrix": np.asarray(matrix, dtype=float).T.reshape(-1).tolist()}
+
+
+def frame_marker(index: int, time: float | None) -> dict[str, Any]:
+    """Our marker sent after each displayed frame: the page records it (tests wait for it)."""
+    return {"type": "multibody_sim_frame", "path": "", "index": int(index), "time": time}
+
+
+def check_configurations(robot: Robot, Q: np.ndarray, name: str) -> np.ndarray:
+    """Q as a float array of shape (n, nq), or InvalidArgumentError naming `name`."""
+    Q = np.asarray(Q, dtype=float)
+    if Q.ndim != 2 or Q.shape[1] != robot.nq:
+        raise InvalidArgumentError(f"{name} must have shape (n, {robot.nq}) for {robot.name}, got {Q.shape}")
+    if not np.all(np.isfinite(Q)):
+        raise InvalidArgumentError(f"{name} must be finite")
+    return Q
+
+
+def _keys(times: list[float], values: np.ndarray) -> list[dict[str, Any]]:
+    return [{"time": t, "value": v} for t, v in zip(times, values.tolist(), strict=True)]
+
+
+def _mesh_command(umsgpack: Any, path: str, part: MeshPart) -> dict[str, Any]:
+    ids = [str(uuid.uuid5(uuid.NAMESPACE_URL, f"multibody-sim:{path}:{kind}")) for kind in ("g", "m", "o")]
+    index_type = np.uint16 if len(part.vertices) < 2**16 else np.uint32
+    normals = np.clip(np.round(part.normals * 127.0), -127, 127).astype(np.int8)
+    # Positions as 16-bit integers over the part's box, scaled back by the object's matrix: half the bytes of
+    # float32, at a resolution of 1/65535 of the part's size (5 um on a 30 cm link). The scale is uniform, so
+    # normals need no correction.
+    vertices = part.vertices.astype(float)
+    center = (vertices.min(axis=0) + vertices.max(axis=0)) / 2 if len(vertices) else np.zeros(3)
+    scale = max(float(np.abs(vertices - center).max()) if len(vertices) else 0.0, 1e-9) / 32767.0
+    quantized = np.clip(np.round((vertices - center) / scale), -32767, 32767).astype(np.int16)
+    matrix = [scale, 0.0, 0.0, 0.0, 0.0, scale, 0.0, 0.0, 0.0, 0.0, scale, 0.0, *center.tolist(), 1.0]
+    geometry = {
+        "uuid": ids[0],
+        "type": "BufferGeometry",
+        "data": {
+            "attributes": {
+                "position": _typed(umsgpack, quantized, 3),
+                "normal": _typed(umsgpack, normals, 3, normalized=True),
+            },
+            "index": _typed(umsgpack, part.faces.astype(index_type), 1),
+        },
+    }
+    r, g, b, a = part.color
+    material = {
+        "uuid": ids[1],
+        "type": "MeshPhongMaterial",
+        "color": (round(r * 255) << 16) | (round(g * 255) << 8) | round(b * 255),
+        "side": 2,  # both faces: some meshes wind triangles inconsistently
+        "transparent": a < 1.0,
+        "opacity": a,
+        "shininess": 30,
+    }
+    obj = {"uuid": ids[2], "type": "Mesh", "geometry": ids[0], "material": ids[1], "matrix": matrix}
+    return {
+        "type": "set_object",
+        "path": path,
+        "object": {
+            "metadata": {"version": 4.5, "type": "Object"},
+            "geometries": [geometry],
+            "materials": [material],
+            "object": obj,
+        },
+    }
+
+
+def _typed(umsgpack: Any, array: np.ndarray, item_size: int, normalized: bool = False) -> dict[str, Any]:
+    code, name = _EXT[array.dtype]
+    data = umsgpack.Ext(code, np.ascontiguousarray(array).tobytes())
+    return {"itemSize": item_size, "type": name, "array": data, "normalized": normalized}
+
+
+def _node_name(name: str) -> str:
+    """A meshcat path element: no slashes, never empty."""
+    return name.replace("/", "_") or "_"

@@ -1,0 +1,206 @@
+"""The live viewer: a robot in a local meshcat page, moved by configurations, streamed trajectories or animations."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from ..exceptions import InvalidArgumentError
+from ..robot import Robot
+from ..trajectory import Trajectory
+from ._deps import check_viewer_dependencies
+from .frames import DEFAULT_FPS, resample
+from .scene import RobotScene, frame_marker
+from .server import DEFAULT_HOST, MeshcatServer
+
+
+class Viewer:
+    """Show a robot with its URDF's visual meshes in a meshcat page served from this machine.
+
+    >>> viewer = Viewer(robot)                 # prints the page's URL (http://127.0.0.1:7000/)
+    >>> viewer.display(robot.neutral())        # one configuration
+    >>> viewer.play(trajectory, speed=0.5)     # stream a trajectory in (half) real time
+    >>> viewer.animate(trajectory)             # or hand it to the page: time slider, play/pause
+
+    Args:
+        robot: the robot to show.
+        host: address the server binds; 127.0.0.1 (the default) keeps it on this machine. Another address
+            warns: other machines could open the page.
+        port: TCP port; None takes 7000 or the next free one; 0 lets the system choose.
+        announce: print the page's URL.
+
+    Attributes:
+        url: the page to open in a browser.
+        server: the MeshcatServer.
+        scene: the RobotScene (meshes, kinematics, commands).
+    """
+
+    def __init__(self, robot: Robot, *, host: str = DEFAULT_HOST, port: int | None = None, announce: bool = True):
+        check_viewer_dependencies()
+        self.robot = robot
+        self.scene = RobotScene(robot)
+        self.server = MeshcatServer(host, port, title=f"{robot.name} - multibody-sim")
+        self.url = self.server.url
+        self._frame = 0
+        self._animated = False
+        for command in self.scene.setup_commands():
+            self.server.send(command)
+        q0 = robot.neutral()
+        self.server.send(self.scene.camera_command(q0[None, :]))
+        self._show(q0, None)
+        self.server.send({"type": "multibody_sim_ready", "path": ""})
+        if announce:
+            print(f"meshcat viewer: {self.url}", flush=True)
+
+    def __repr__(self) -> str:
+        return f"<Viewer {self.robot.name} at {self.url}>"
+
+    # ---- showing ----------------------------------------------------------------------------------------
+    def display(self, q: Any) -> None:
+        """Show the robot at configuration q (shape (nq,))."""
+        self._stop_animation()
+        self._show(self.robot.check_q(q, "q"), None)
+
+    def play(self, trajectory: Trajectory, *, speed: float = 1.0, fps: float = DEFAULT_FPS, frame: bool = True) -> int:
+        """Stream a trajectory to the page at `speed` times real time; blocks until the end.
+
+        Frames are resampled to `fps` on the configuration manifold; a frame that is already late when the
+        next one is due is skipped, so the playback keeps to the clock on a slow machine.
+
+        Args:
+            trajectory: a trajectory of this robot.
+            speed: playback speed (1 = real time, 0.5 = half speed).
+            fps: frames per second sent to the page.
+            frame: first aim the camera at the space the motion sweeps.
+
+        Returns:
+            The number of frames shown.
+        """
+        speed = _positive(speed, "speed")
+        times, Q = resample(self.robot, trajectory, fps)
+        self._stop_animation()
+        if frame:
+            self.server.send(self.scene.camera_command(Q))
+        start = time.perf_counter()
+        shown = 0
+        for k, (t, q) in enumerate(zip(times, Q, strict=True)):
+            due = start + (t - times[0]) / speed
+            now = time.perf_counter()
+            if k + 1 < len(times) and now >= start + (times[k + 1] - times[0]) / speed:
+                continue  # already late for the next frame: skip this one
+            if due > now:
+                time.sleep(due - now)
+            self._show(q, float(t))
+            shown += 1
+        return shown
+
+    def live(self, *, speed: float = 1.0, fps: float = DEFAULT_FPS) -> LiveView:
+        """A callback for ``simulate(..., on_sample=viewer.live())`` that shows the run while it is computed.
+
+        It keeps the run to `speed` times real time (it waits when the simulation is ahead of the clock; a
+        simulation slower than that is shown as fast as it computes) and sends at most `fps` frames per second.
+        Call its ``finish(trajectory)`` after the run to show the last sample.
+        """
+        self._stop_animation()
+        return LiveView(self, _positive(speed, "speed"), 1.0 / _positive(fps, "fps"))
+
+    def animate(
+        self,
+        trajectory: Trajectory,
+        *,
+        fps: float = DEFAULT_FPS,
+        speed: float = 1.0,
+        play: bool = True,
+        loop: bool = True,
+        seek: float | None = None,
+        frame: bool = True,
+    ) -> None:
+        """Hand a trajectory to the page as a meshcat animation, with its time slider and play/pause controls.
+
+        Args:
+            trajectory: a trajectory of this robot.
+            fps: keyframes per second (resampled on the configuration manifold).
+            speed: initial playback speed.
+            play: start playing at once.
+            loop: repeat the animation.
+            seek: with play=False, show this animation time [s].
+            frame: first aim the camera at the space the motion sweeps.
+        """
+        speed = _positive(speed, "speed")
+        times, Q = resample(self.robot, trajectory, fps)
+        if frame:
+            self.server.send(self.scene.camera_command(Q))
+        self.server.send(self.scene.animation_command(times, Q, play=play, loop=loop, speed=speed, seek=seek))
+        self._animated = True
+
+    def show_plot(self, plot: Trajectory | bytes) -> None:
+        """Show a picture beside the view: PNG bytes, or a trajectory's energies and joints, with a cursor at
+        the time the robot shows."""
+        if isinstance(plot, Trajectory):
+            from .plot import plot_command
+
+            self.server.send(plot_command(plot, robot=self.robot))
+        else:
+            self.server.send({"type": "multibody_sim_plot", "path": "", "png": bytes(plot)})
+
+    # ---- server -------------------------------------------------------------------------------------------
+    def wait_for_browser(self, timeout: float | None = None) -> bool:
+        """Block until a page has connected and drawn the scene (True), or `timeout` seconds passed (False)."""
+        return self.server.wait_for_client(timeout)
+
+    def close(self) -> None:
+        """Stop the server."""
+        self.server.close()
+
+    def __enter__(self) -> Viewer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _show(self, q: np.ndarray, t: float | None) -> None:
+        for command in self.scene.pose_commands(q):
+            self.server.send(command)
+        self.server.send(frame_marker(self._frame, t))
+        self._frame += 1
+
+    def _stop_animation(self) -> None:
+        """An animation playing in the page would fight the poses we send: remove it first."""
+        if self._animated:
+            self.server.send({"type": "set_animation", "path": "", "animations": [], "options": {"play": False}})
+            self._animated = False
+
+
+def _positive(value: float, name: str) -> float:
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        raise InvalidArgumentError(f"{name} must be a positive number, got {value!r}")
+    return float(value)
+
+
+class LiveView:
+    """The on_sample callback of a live view (see Viewer.live)."""
+
+    def __init__(self, viewer: Viewer, speed: float, period: float):
+        self.viewer, self.speed, self.period = viewer, speed, period
+        self.start: float | None = None
+        self.shown = -math.inf  # time of the latest frame sent
+
+    def __call__(self, t: float, q: np.ndarray, v: np.ndarray) -> None:
+        now = time.perf_counter()
+        if self.start is None:
+            self.start = now - t / self.speed
+        due = self.start + t / self.speed
+        if due > now:  # ahead of the clock: wait, so the run plays at `speed`
+            time.sleep(due - now)
+        if t - self.shown >= self.period * self.speed:
+            self.viewer._show(np.asarray(q), t)
+            self.shown = t
+
+    def finish(self, trajectory: Trajectory) -> None:
+        """Show the run's last sample if the frame rate skipped it."""
+        if len(trajectory) and trajectory.t[-1] > self.shown:
+            self.viewer._show(np.asarray(trajectory.q[-1]), float(trajectory.t[-1]))
+            self.shown = float(trajectory.t[-1])

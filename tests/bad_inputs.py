@@ -1,0 +1,1034 @@
+"""The catalogue of bad inputs: what a user (or a stranger's file) may hand us, and the one error each gets.
+
+Data, not tests: tests/test_security.py checks every entry (the exact message; exit code 2 and one line on
+stderr for the command line) and scripts/bad_inputs_table.py renders the same entries as docs/bad_inputs.md.
+Each entry builds its input in a fresh folder and returns a Trigger: the API call that must raise, the command
+line that must exit 2, and the values its message template is filled with.
+"""
+
+from __future__ import annotations
+
+import functools
+import io
+import os
+import pickle
+import struct
+import xml.etree.ElementTree as ET
+import zipfile
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from conftest import joint, link, urdf
+from lxml import etree
+
+import multibody_sim as ms
+
+# Documented limits (docs/bad_inputs.md, catalog.py, safety.py), written out rather than imported: a change of
+# limit must show up here and in the table users read.
+MAX_URDF_BYTES = 32 * 1024 * 1024
+MAX_XML_ELEMENTS = 100_000
+MAX_LINKS = 1000
+MAX_DOFS = 128
+MAX_NPZ_MEMBERS = 4096
+MIN_BUDGET_BYTES = 256 * 1024 * 1024
+MAX_EXPANSION = 100
+
+# A unique marker in a file outside every allowed folder: it must never appear in any message or output.
+MARKER = "MBS-SECRET-7f3c9a1e-do-not-leak"
+SECRET_NAME = "secret/passwords.txt"
+
+BASE = '<link name="base"/>'
+ONE_JOINT = BASE + link("bob") + joint("j1", "base", "bob")
+
+
+@dataclass(frozen=True)
+class Trigger:
+    """How to produce one bad input's error.
+
+    Attributes:
+        call: the Python API call that must raise the entry's error (None for command-line-only entries).
+        argv: the command line (after `multibody-sim`) that must exit 2 with the message (None for API-only).
+        fields: values for the message template's {placeholders}.
+    """
+
+    call: Callable[[], object] | None = None
+    argv: list[str] | None = None
+    fields: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class BadInput:
+    """One catalogue entry.
+
+    Attributes:
+        id: short name (the pytest id).
+        kind: "URDF file", "trajectory file", "command line" or "Python API".
+        what: what the user did, in words.
+        message: the exact message, with {placeholders} (paths differ from run to run).
+        advice: what to do about it.
+        build: makes the input in a fresh folder and says how to trigger the error.
+        error: the exception class the API raises.
+    """
+
+    id: str
+    kind: str
+    what: str
+    message: str
+    advice: str
+    build: Callable[[Path], Trigger]
+    error: type[Exception] = ms.ModelError
+
+
+# What the table shows for the placeholders (the tests fill in real paths).
+DISPLAY = {
+    "urdf": "/home/me/robot/robot.urdf",
+    "dir": "/home/me/robot",
+    "secret": "/home/me/secret/passwords.txt",
+    "npz": "/home/me/run.npz",
+    "folder": "/home/me/meshes",
+    "libxml2": "Excessive depth in document: 256, use XML_PARSE_HUGE option, line 1, column 3011",
+    "zlib": "Error -3 while decompressing data: invalid block type",
+    "file_size": "1092",
+    "total": "536871040",
+    "member_size": "152",
+    "integrators": "bs32, dop853, dp54, euler, ...",
+    "adaptive": "bs32, dop853, dp54",
+    "numpy": "('EOF in multi-line statement', (2, 0))",
+}
+
+
+def render(template: str, fields: dict[str, str]) -> str:
+    """The message with its placeholders filled in."""
+    return template.format(**fields)
+
+
+# ---- building files ------------------------------------------------------------------------------------
+def secret_file(tmp: Path) -> Path:
+    """A file outside the robot's folder holding MARKER."""
+    secret = tmp / SECRET_NAME
+    secret.parent.mkdir(parents=True, exist_ok=True)
+    secret.write_text(f"{MARKER}\nroot:x:0:0:root:/root:/bin/bash\n")
+    return secret
+
+
+def urdf_trigger(tmp: Path, text: str | bytes, *, fields: dict[str, str] | None = None) -> Trigger:
+    """Write robot/robot.urdf (beside a secret/ folder) and load it through the API and `inspect`."""
+    folder = tmp / "robot"
+    folder.mkdir(exist_ok=True)
+    path = folder / "robot.urdf"
+    path.write_bytes(text.encode() if isinstance(text, str) else text)
+    secret = secret_file(tmp)
+    values = {"urdf": str(path.resolve()), "dir": str(folder.resolve()), "secret": str(secret.resolve())}
+    values.update(fields or {})
+    return Trigger(call=lambda: ms.load_robot(path), argv=["inspect", str(path)], fields=values)
+
+
+def with_mesh(uri: str) -> str:
+    """A one-joint robot whose moving link shows the mesh at uri."""
+    bob = link("bob").replace("</link>", f'<visual><geometry><mesh filename="{uri}"/></geometry></visual></link>')
+    return urdf(BASE, bob, joint("j1", "base", "bob"))
+
+
+def lol_doctype(levels: int) -> str:
+    """The billion-laughs DTD: each entity is ten of the previous one (10**levels 'lol's at the top)."""
+    entities = ['<!ENTITY lol0 "lol">']
+    entities += [f'<!ENTITY lol{i} "{f"&lol{i - 1};" * 10}">' for i in range(1, levels + 1)]
+    return f'<?xml version="1.0"?><!DOCTYPE robot [{"".join(entities)}]>'
+
+
+def element_count(text: str) -> int:
+    """Elements of an XML text, counted by the standard library's parser (not the code under test)."""
+    return sum(1 for _ in ET.fromstring(text).iter())
+
+
+def libxml2_error(data: bytes) -> str:
+    """libxml2's own account of why it refuses data (the message the loader passes on)."""
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False)
+    try:
+        etree.fromstring(data, parser=parser)
+    except etree.XMLSyntaxError as exc:
+        return str(exc.msg).replace("\n", "")  # passed on as one line
+    raise AssertionError("libxml2 accepted the data")
+
+
+def star(n_links: int, kind: str = "revolute") -> str:
+    """A base with n_links - 1 links hanging from it, each on its own joint."""
+    parts = [BASE]
+    for i in range(1, n_links):
+        parts += [link(f"l{i}"), joint(f"j{i}", "base", f"l{i}", kind=kind)]
+    return urdf(*parts)
+
+
+def many_elements(tmp: Path) -> Trigger:
+    extra = MAX_XML_ELEMENTS
+    text = urdf(ONE_JOINT).replace("</robot>", "<foo/>" * extra + "</robot>")
+    return urdf_trigger(tmp, text, fields={"count": str(element_count(urdf(ONE_JOINT)) + extra)})
+
+
+def deep_nesting(tmp: Path, levels: int) -> Trigger:
+    text = urdf(ONE_JOINT).replace("</robot>", "<a>" * levels + "</a>" * levels + "</robot>")
+    count = element_count(urdf(ONE_JOINT)) + levels
+    if count > MAX_XML_ELEMENTS:  # refused by the element count before libxml2 sees the nesting
+        return urdf_trigger(tmp, text, fields={"count": str(count)})
+    return urdf_trigger(tmp, text, fields={"libxml2": libxml2_error(text.encode())})
+
+
+def long_name(tmp: Path) -> Trigger:
+    """A NaN mass on a link named with 10**6 letters: the message is cut to its first 1500 and last 400
+    characters around a note of how much was left out (the documented rule)."""
+    name = "A" * 10**6
+    trigger = urdf_trigger(tmp, urdf(BASE, link(name, mass="nan"), joint("j1", "base", name)))
+    full = f"{trigger.fields['urdf']}: link '{name}' has mass nan; it must be finite and >= 0"
+    fields = {"head": full[:1500], "tail": full[-400:], "omitted": str(len(full) - 1900)}
+    return Trigger(trigger.call, trigger.argv, {**trigger.fields, **fields})
+
+
+def too_large(tmp: Path) -> Trigger:
+    trigger = urdf_trigger(tmp, urdf(ONE_JOINT))
+    path = Path(trigger.fields["urdf"])
+    with path.open("r+b") as f:  # sparse: the size check must refuse it without reading 32 MiB
+        f.truncate(MAX_URDF_BYTES + 1)
+    return trigger
+
+
+def mesh_outside(tmp: Path, uri_of: Callable[[Path], str]) -> Trigger:
+    secret = secret_file(tmp)
+    uri = uri_of(secret)
+    trigger = urdf_trigger(tmp, with_mesh(uri))
+    return Trigger(trigger.call, trigger.argv, {**trigger.fields, "uri": uri})
+
+
+def mesh_symlink(tmp: Path) -> Trigger:
+    trigger = urdf_trigger(tmp, with_mesh("meshes/bob.stl"))
+    meshes = Path(trigger.fields["dir"]) / "meshes"
+    meshes.mkdir()
+    os.symlink(trigger.fields["secret"], meshes / "bob.stl")
+    return trigger
+
+
+# ---- building trajectory files -------------------------------------------------------------------------
+def npz_trigger(path: Path, fields: dict[str, str] | None = None) -> Trigger:
+    return Trigger(call=lambda: ms.Trajectory.load(path), fields={"npz": str(path), **(fields or {})})
+
+
+def npy_header(shape: tuple[int, ...], descr: str = "<f8") -> bytes:
+    buffer = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buffer, {"descr": descr, "fortran_order": False, "shape": shape})
+    return buffer.getvalue()
+
+
+def claimed_shape(tmp: Path) -> Trigger:
+    """An .npz whose q.npy header claims 10**12 x 3 doubles (24 TB) while holding three."""
+    path = tmp / "claims.npz"
+    member = npy_header((10**12, 3)) + np.zeros(3).tobytes()
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("q.npy", member)
+    return npz_trigger(
+        path, {"member_size": str(len(member)), "described": str(len(npy_header((10**12, 3))) + 24 * 10**12)}
+    )
+
+
+def malformed_header(tmp: Path) -> Trigger:
+    """An .npz whose t.npy header is an unclosed Python literal (numpy's tokenizer fails on it)."""
+    text = "{'descr': '<f8', 'fortran_order': False, 'shape': (3, "
+    text += " " * (63 - len(text)) + "\n"  # padded to 64 bytes with the 10-byte prefix, as numpy writes
+    member = b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text)) + text.encode() + np.zeros(3).tobytes()
+    path = tmp / "run.npz"
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("t.npy", member)
+    try:  # numpy's own account, read straight from the bytes
+        np.lib.format.read_array_header_1_0(io.BytesIO(member[8:]))
+    except Exception as exc:  # noqa: BLE001 (whatever numpy raises is what the message quotes)
+        return npz_trigger(path, {"numpy": str(exc).splitlines()[0]})
+    raise AssertionError("numpy should refuse the header")
+
+
+def write_zip(path: Path, members: list[tuple[str, bytes, int, int]]) -> None:
+    """A zip of deflated members given as (name, deflate stream, CRC-32, uncompressed size), written by hand.
+
+    The standard library would have to inflate (or hold) the data to write it; a bomb is built from its stream.
+    """
+    local, central = io.BytesIO(), io.BytesIO()
+    for name, stream, crc, size in members:
+        offset = local.tell()
+        encoded = name.encode()
+        # Local file header: signature, version 2.0, no flags, deflate, a fixed DOS time and date.
+        sizes = (crc, len(stream), size, len(encoded))
+        local.write(struct.pack("<4s5H3L2H", b"PK\x03\x04", 20, 0, 8, 0, 0x21, *sizes, 0) + encoded + stream)
+        # Central directory entry: made by and needs 2.0; then as the local header; no comment, disk 0, offset.
+        central.write(struct.pack("<4s6H3L5H2L", b"PK\x01\x02", 20, 20, 0, 8, 0, 0x21, *sizes, 0, 0, 0, 0, 0, offset))
+        central.write(encoded)
+    directory = central.getvalue()
+    end = struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, len(members), len(members), len(directory), local.tell(), 0)
+    path.write_bytes(local.getvalue() + directory + end)
+
+
+BOMB_BYTES = 2 * MIN_BUDGET_BYTES  # twice what a small file may expand to: 512 MiB of zeros
+
+
+@functools.cache
+def deflate_bomb_member() -> tuple[bytes, int, int]:
+    """(deflate stream, CRC-32, size) of a q.npy holding BOMB_BYTES of zeros: ~0.5 MB for 512 MiB.
+
+    Built by repeating one compressed block: after a full flush, deflate restarts from an empty window, so the
+    same input gives the same bytes (checked below).
+    """
+    header = npy_header((BOMB_BYTES // 8,))
+    block_input = bytes(1 << 20)
+    compressor = zlib.compressobj(9, zlib.DEFLATED, -15)
+    start = compressor.compress(header) + compressor.flush(zlib.Z_FULL_FLUSH)
+    block = compressor.compress(block_input) + compressor.flush(zlib.Z_FULL_FLUSH)
+    again = compressor.compress(block_input) + compressor.flush(zlib.Z_FULL_FLUSH)
+    assert block == again, "deflate blocks after a full flush should repeat"
+    blocks = BOMB_BYTES // len(block_input)
+    stream = start + block * blocks + compressor.flush(zlib.Z_FINISH)
+    crc = zlib.crc32(header)
+    for _ in range(blocks):
+        crc = zlib.crc32(block_input, crc)
+    return stream, crc, len(header) + BOMB_BYTES
+
+
+def deflate_bomb(tmp: Path) -> Trigger:
+    path = tmp / "bomb.npz"
+    stream, crc, size = deflate_bomb_member()
+    write_zip(path, [("q.npy", stream, crc, size)])
+    return npz_trigger(path, {"file_size": str(path.stat().st_size), "total": str(size)})
+
+
+def plain_npz(path: Path, compression: int = zipfile.ZIP_STORED) -> Path:
+    """A small valid .npz (two arrays) written with the given zip compression."""
+    with zipfile.ZipFile(path, "w", compression=compression) as archive:
+        for name, array in (("t", np.linspace(0.0, 1.0, 11)), ("q", np.zeros((11, 2)))):
+            buffer = io.BytesIO()
+            np.save(buffer, array)
+            archive.writestr(f"{name}.npy", buffer.getvalue())
+    return path
+
+
+def escape_named_member(path: Path) -> Path:
+    """A bzip2 member whose name holds ESC [31m (a terminal colour change)."""
+    buffer = io.BytesIO()
+    np.save(buffer, np.zeros(3))
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_BZIP2) as archive:
+        archive.writestr("q\x1b[31m.npy", buffer.getvalue())
+    return path
+
+
+def patched(path: Path, edit: Callable[[bytearray], None]) -> Path:
+    data = bytearray(path.read_bytes())
+    edit(data)
+    path.write_bytes(bytes(data))
+    return path
+
+
+def set_member_count(data: bytearray) -> None:
+    """Claim 65535 members in the end-of-central-directory record (the last 22 bytes: no comment)."""
+    data[-22 + 8 : -22 + 12] = struct.pack("<2H", 0xFFFF, 0xFFFF)
+
+
+def set_encrypted(data: bytearray) -> None:
+    """Set the 'encrypted' flag of the first member in the central directory (zipfile reads it from there)."""
+    at = data.index(b"PK\x01\x02")
+    data[at + 8] |= 0x1
+
+
+def set_version_needed(data: bytearray) -> None:
+    """Claim that the first member needs zip version 11.7 to extract (central directory, offset 6)."""
+    at = data.index(b"PK\x01\x02")
+    data[at + 6 : at + 8] = struct.pack("<H", 117)
+
+
+def corrupt_deflate(tmp: Path) -> Trigger:
+    """A deflated .npz whose q.npy stream has its block bytes overwritten: zlib's error is computed here too."""
+    path = plain_npz(tmp / "corrupt.npz", zipfile.ZIP_DEFLATED)
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo("q.npy")
+    data = bytearray(path.read_bytes())
+    start = info.header_offset + 30 + len(info.filename) + len(info.extra)
+    data[start : start + 8] = b"\xff" * 8  # 0b11 block type: reserved, never valid
+    path.write_bytes(bytes(data))
+    try:
+        zlib.decompressobj(-15).decompress(bytes(data[start : start + info.compress_size]))
+    except zlib.error as exc:
+        return npz_trigger(path, {"zlib": str(exc)})
+    raise AssertionError("the corruption should break the deflate stream")
+
+
+def truncated(tmp: Path) -> Trigger:
+    path = plain_npz(tmp / "run.npz")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    return npz_trigger(path)
+
+
+def pickle_file(tmp: Path) -> Trigger:
+    path = tmp / "run.npz"
+    path.write_bytes(pickle.dumps({"t": [0.0, 1.0]}))
+    return npz_trigger(path)
+
+
+def object_array(tmp: Path) -> Trigger:
+    path = tmp / "run.npz"
+    objects = np.empty(1, dtype=object)
+    objects[0] = {"anything": "pickled"}
+    np.savez(path, t=np.zeros(2), q=objects)
+    return npz_trigger(path)
+
+
+def foreign_npz(tmp: Path) -> Trigger:
+    path = tmp / "other.npz"
+    np.savez(path, t=np.linspace(0, 1, 5), q=np.zeros((5, 2)))
+    return npz_trigger(path)
+
+
+# ---- command line and API ------------------------------------------------------------------------------
+def cli(*argv: str, **fields: str) -> Callable[[Path], Trigger]:
+    return lambda tmp: Trigger(argv=list(argv), fields=dict(fields))
+
+
+def missing_folder(option: str, argument: str) -> Callable[[Path], Trigger]:
+    def build(tmp: Path) -> Trigger:
+        folder = tmp / "meshes"  # never created
+        call = lambda: ms.load_robot("pendulum", **{argument: [folder]})  # noqa: E731
+        return Trigger(call=call, argv=["inspect", "pendulum", option, str(folder)], fields={"folder": str(folder)})
+
+    return build
+
+
+def api(call: Callable[[], object], **fields: str) -> Callable[[Path], Trigger]:
+    return lambda tmp: Trigger(call=call, fields=dict(fields))
+
+
+def pendulum() -> ms.Robot:
+    return ms.load_robot("pendulum")
+
+
+def adaptive_names() -> str:
+    return ", ".join(sorted(name for name, method in ms.INTEGRATORS.items() if method.adaptive))
+
+
+def integrator_names() -> str:
+    return ", ".join(sorted(ms.INTEGRATORS))
+
+
+DOCTYPE = "{urdf}: DOCTYPE declarations are not allowed in a URDF (entities could expand)"
+OUTSIDE = "{urdf}: mesh '{uri}' resolves outside the allowed folders ({dir}); add its folder to package_dirs"
+ALLOW_ROOT = "Move the mesh under the URDF's folder, or allow its folder: `--allow-root DIR` (`allowed_roots=[DIR]`)."
+FIX_NUMBERS = "Fix the number in the URDF (usually an export or unit error)."
+
+CATALOGUE: list[BadInput] = [
+    # ---- hostile XML -----------------------------------------------------------------------------------
+    BadInput(
+        "billion-laughs",
+        "URDF file",
+        "a URDF with an entity-expansion bomb (billion laughs: 10⁹ 'lol's, ~3 GB if expanded)",
+        DOCTYPE,
+        "Remove the DOCTYPE: a URDF needs no DTD or entities (run xacro first if the file uses macros).",
+        lambda tmp: urdf_trigger(tmp, lol_doctype(9) + f'<robot name="&lol9;">{ONE_JOINT}</robot>'),
+    ),
+    BadInput(
+        "xxe-local-file",
+        "URDF file",
+        "a URDF whose external entity (XXE) names a local file",
+        DOCTYPE,
+        "Remove the DOCTYPE; nothing outside the robot's folders is ever read.",
+        lambda tmp: urdf_trigger(
+            tmp,
+            f'<?xml version="1.0"?><!DOCTYPE robot [<!ENTITY x SYSTEM "file://{(tmp / SECRET_NAME).resolve()}">]>'
+            f'<robot name="r">{ONE_JOINT}<material name="&x;"/></robot>',
+        ),
+    ),
+    BadInput(
+        "xxe-url",
+        "URDF file",
+        "a URDF whose external DTD is a URL",
+        DOCTYPE,
+        "Remove the DOCTYPE; loading never touches the network.",
+        lambda tmp: urdf_trigger(
+            tmp,
+            '<?xml version="1.0"?><!DOCTYPE robot SYSTEM "http://127.0.0.1:9/robot.dtd">'
+            f'<robot name="r">{ONE_JOINT}</robot>',
+        ),
+    ),
+    BadInput(
+        "doctype-after-long-comment",
+        "URDF file",
+        "a DOCTYPE hidden after a 100 kB comment",
+        DOCTYPE,
+        "Remove the DOCTYPE.",
+        lambda tmp: urdf_trigger(
+            tmp,
+            '<?xml version="1.0"?><!--'
+            + "x" * 100_000
+            + "-->"
+            + lol_doctype(3)
+            + f'<robot name="&lol3;">{ONE_JOINT}</robot>',
+        ),
+    ),
+    BadInput(
+        "file-too-large",
+        "URDF file",
+        "a URDF file larger than 32 MiB",
+        "{urdf}: file is 33554433 bytes, larger than the 33554432-byte limit for a URDF",
+        "This is not a robot description (the largest catalog URDF is ~200 kB); check the file.",
+        too_large,
+    ),
+    BadInput(
+        "too-many-elements",
+        "URDF file",
+        "a URDF with more than 100 000 XML elements",
+        "{urdf}: the file has {count} XML elements, more than the 100000 a URDF may have "
+        "(the largest catalog robot has about 2000)",
+        "Check the file; a real robot has a few thousand elements at most.",
+        many_elements,
+        # placeholders shown in the table
+    ),
+    BadInput(
+        "nested-100k-deep",
+        "URDF file",
+        "100 000 nested elements",
+        "{urdf}: the file has {count} XML elements, more than the 100000 a URDF may have "
+        "(the largest catalog robot has about 2000)",
+        "Check the file.",
+        lambda tmp: deep_nesting(tmp, MAX_XML_ELEMENTS),
+    ),
+    BadInput(
+        "nested-300-deep",
+        "URDF file",
+        "elements nested 300 deep",
+        "{urdf}: malformed XML ({libxml2})",
+        "Check the file; URDF elements nest 4 to 6 deep.",
+        lambda tmp: deep_nesting(tmp, 300),
+    ),
+    BadInput(
+        "not-xml",
+        "URDF file",
+        "a binary file given as a URDF",
+        "{urdf}: malformed XML ({libxml2})",
+        "Pass the URDF itself (run xacro on .xacro files first).",
+        lambda tmp: urdf_trigger(
+            tmp, bytes(range(1, 256)) * 4, fields={"libxml2": libxml2_error(bytes(range(1, 256)) * 4)}
+        ),
+    ),
+    BadInput(
+        "root-not-robot",
+        "URDF file",
+        "an SDF (or any XML whose root is not `<robot>`)",
+        "{urdf}: not a URDF: the root element is <sdf>, expected <robot>",
+        "Convert the model to URDF.",
+        lambda tmp: urdf_trigger(tmp, '<sdf version="1.6"><model name="m"/></sdf>'),
+    ),
+    # ---- size of the model -----------------------------------------------------------------------------
+    BadInput(
+        "too-many-links",
+        "URDF file",
+        "a robot with 1001 links",
+        "{urdf}: the robot has 1001 links, more than the 1000 this simulator accepts "
+        "(the largest catalog robot has 78)",
+        "Split or simplify the model (Pinocchio's URDF parser crashes on chains of ~4000 links).",
+        lambda tmp: urdf_trigger(tmp, star(MAX_LINKS + 1)),
+    ),
+    BadInput(
+        "50k-links",
+        "URDF file",
+        "a robot with 50 000 links",
+        "{urdf}: the robot has 50001 links, more than the 1000 this simulator accepts "
+        "(the largest catalog robot has 78)",
+        "Split or simplify the model.",
+        # Two links of ONE_JOINT and 49 999 bare ones: 50 013 elements, under the element limit.
+        lambda tmp: urdf_trigger(tmp, urdf(ONE_JOINT, *(f'<link name="x{i}"/>' for i in range(49_999)))),
+    ),
+    BadInput(
+        "too-many-dofs",
+        "URDF file",
+        "a robot with 22 floating joints (132 degrees of freedom)",
+        "{urdf}: the robot has 132 degrees of freedom, more than the 128 this simulator accepts",
+        "Weld the joints you do not need (Pinocchio's workspace grows as the cube of the number of dof).",
+        lambda tmp: urdf_trigger(tmp, star(23, kind="floating")),
+    ),
+    # ---- mesh paths ------------------------------------------------------------------------------------
+    BadInput(
+        "mesh-package-dotdot",
+        "URDF file",
+        "a mesh URI climbing out of its package (`package://x/../../…`)",
+        OUTSIDE,
+        ALLOW_ROOT,
+        lambda tmp: mesh_outside(tmp, lambda secret: "package://x/../../" + SECRET_NAME),
+    ),
+    BadInput(
+        "mesh-absolute-path",
+        "URDF file",
+        "an absolute mesh path outside the allowed folders",
+        OUTSIDE,
+        ALLOW_ROOT,
+        lambda tmp: mesh_outside(tmp, lambda secret: str(secret.resolve())),
+    ),
+    BadInput(
+        "mesh-file-uri",
+        "URDF file",
+        "a `file://` mesh URI outside the allowed folders",
+        OUTSIDE,
+        ALLOW_ROOT,
+        lambda tmp: mesh_outside(tmp, lambda secret: f"file://{secret.resolve()}"),
+    ),
+    BadInput(
+        "mesh-symlink-out",
+        "URDF file",
+        "a mesh inside the robot's folder that is a symlink to a file outside",
+        "{urdf}: mesh 'meshes/bob.stl' resolves outside the allowed folders ({dir}); add its folder to package_dirs",
+        "Copy the mesh instead of linking it, or allow the link's target folder with `--allow-root`.",
+        mesh_symlink,
+    ),
+    BadInput(
+        "texture-outside",
+        "URDF file",
+        "a material texture outside the allowed folders (viewers would read it)",
+        "{urdf}: texture '{secret}' resolves outside the allowed folders ({dir}); add its folder to package_dirs",
+        ALLOW_ROOT.replace("the mesh", "the texture"),
+        lambda tmp: urdf_trigger(
+            tmp,
+            urdf(ONE_JOINT, f'<material name="m"><texture filename="{secret_file(tmp).resolve()}"/></material>'),
+        ),
+    ),
+    BadInput(
+        "mesh-url",
+        "URDF file",
+        "a mesh URI with a network scheme",
+        "{urdf}: mesh URI 'http://example.com/bob.stl' has an unsupported scheme (use package:// or a file path)",
+        "Download the mesh and refer to it by package:// or a relative path.",
+        lambda tmp: urdf_trigger(tmp, with_mesh("http://example.com/bob.stl")),
+    ),
+    # ---- numbers ---------------------------------------------------------------------------------------
+    BadInput(
+        "mass-nan",
+        "URDF file",
+        "a NaN mass",
+        "{urdf}: link 'bob' has mass nan; it must be finite and >= 0",
+        FIX_NUMBERS,
+        lambda tmp: urdf_trigger(tmp, urdf(BASE, link("bob", mass="nan"), joint("j1", "base", "bob"))),
+    ),
+    BadInput(
+        "mass-negative",
+        "URDF file",
+        "a negative mass",
+        "{urdf}: link 'bob' has mass -1.0; it must be finite and >= 0",
+        FIX_NUMBERS,
+        lambda tmp: urdf_trigger(tmp, urdf(BASE, link("bob", mass=-1.0), joint("j1", "base", "bob"))),
+    ),
+    BadInput(
+        "inertia-negative-eigenvalue",
+        "URDF file",
+        "an inertia with a negative eigenvalue (ixx = 0.01, ixy = 0.02)",
+        "{urdf}: link 'bob' has an inertia with a negative eigenvalue (-0.01)",
+        "Recompute the inertia (an inertia matrix is positive semi-definite).",
+        lambda tmp: urdf_trigger(
+            tmp, urdf(BASE, link("bob"), joint("j1", "base", "bob")).replace('ixy="0"', 'ixy="0.02"')
+        ),
+    ),
+    BadInput(
+        "inertia-triangle",
+        "URDF file",
+        "principal inertias 0.01, 0.01, 0.05 (no body has them: 0.01 + 0.01 < 0.05)",
+        "{urdf}: the body moved by joint 'j1' has principal inertias 0.01, 0.01, 0.05 that violate the "
+        "triangle inequality",
+        "Recompute the inertia (each principal moment is at most the sum of the other two).",
+        lambda tmp: urdf_trigger(tmp, urdf(BASE, link("bob", inertia="0.01 0.01 0.05"), joint("j1", "base", "bob"))),
+    ),
+    BadInput(
+        "massless-moving-subtree",
+        "URDF file",
+        "a moving link with no mass and no inertia at the end of a chain (singular mass matrix)",
+        "{urdf}: the mass matrix is singular: the subtree moved by 'j2' has no mass or inertia",
+        "Give the link a mass and inertia, or make its joint fixed (massless links fixed to a parent are fine).",
+        lambda tmp: urdf_trigger(
+            tmp,
+            urdf(
+                BASE,
+                link("arm"),
+                joint("j1", "base", "arm"),
+                '<link name="tip"/>',
+                joint("j2", "arm", "tip", xyz="0 0 -1"),
+            ),
+        ),
+    ),
+    BadInput(
+        "mass-matrix-overflow",
+        "URDF file",
+        "a centre of mass 10²⁰⁰ m away (finite, but M(q) overflows)",
+        "{urdf}: the model Pinocchio built for joint 'j1' has non-finite values",
+        FIX_NUMBERS,
+        lambda tmp: urdf_trigger(tmp, urdf(BASE, link("bob", com="0 0 -1e200"), joint("j1", "base", "bob"))),
+    ),
+    BadInput(
+        "origin-nan",
+        "URDF file",
+        "a NaN in a joint origin",
+        "{urdf}: joint 'j1' has a non-finite origin",
+        FIX_NUMBERS,
+        lambda tmp: urdf_trigger(tmp, urdf(BASE, link("bob"), joint("j1", "base", "bob", xyz="nan 0 0"))),
+    ),
+    BadInput(
+        "limits-inverted",
+        "URDF file",
+        "a lower position limit above the upper one",
+        "{urdf}: joint 'j1' has lower limit 2.0 above its upper limit 1.0",
+        "Swap the limits (or set both to 0 for no limit).",
+        lambda tmp: urdf_trigger(
+            tmp,
+            urdf(BASE, link("bob"), joint("j1", "base", "bob", limits='lower="2" upper="1" effort="1" velocity="1"')),
+        ),
+    ),
+    BadInput(
+        "damping-negative",
+        "URDF file",
+        "negative joint damping (it would feed energy in)",
+        "{urdf}: joint 'j1' has damping -0.5; it must be finite and >= 0",
+        FIX_NUMBERS,
+        lambda tmp: urdf_trigger(tmp, urdf(BASE, link("bob"), joint("j1", "base", "bob", damping=-0.5))),
+    ),
+    # ---- structure -------------------------------------------------------------------------------------
+    BadInput(
+        "duplicate-joints",
+        "URDF file",
+        "two joints with the same name",
+        "{urdf}: duplicate joint names (j1)",
+        "Rename one of them.",
+        lambda tmp: urdf_trigger(
+            tmp, urdf(BASE, link("arm"), link("tip"), joint("j1", "base", "arm"), joint("j1", "arm", "tip"))
+        ),
+    ),
+    BadInput(
+        "detached-cycle",
+        "URDF file",
+        "two links that are each other's parent, apart from the tree",
+        "{urdf}: the joints form a cycle (links a, b are not connected to the root)",
+        "URDF describes trees: remove one of the joints (closed chains need constraints, not joints).",
+        lambda tmp: urdf_trigger(
+            tmp, urdf(ONE_JOINT, link("a"), link("b"), joint("ab", "a", "b"), joint("ba", "b", "a"))
+        ),
+    ),
+    BadInput(
+        "unsupported-joint",
+        "URDF file",
+        "a joint type URDF does not define (ball)",
+        "{urdf}: joint 'j1' has unsupported type 'ball' (supported: continuous, fixed, floating, planar, "
+        "prismatic, revolute)",
+        "Use one of the supported types (a ball joint is three revolute joints).",
+        lambda tmp: urdf_trigger(tmp, urdf(BASE, link("bob"), joint("j1", "base", "bob", kind="ball"))),
+    ),
+    BadInput(
+        "urdfdom-duplicate-material",
+        "URDF file",
+        "two materials with the same name (refused by Pinocchio's URDF parser, whose log is not printed)",
+        "{urdf}: Pinocchio cannot build the model (material 'm' is not unique.)",
+        "Rename or remove the duplicate material.",
+        lambda tmp: urdf_trigger(tmp, urdf(ONE_JOINT, *['<material name="m"><color rgba="1 0 0 1"/></material>'] * 2)),
+    ),
+    # ---- what messages quote from the file -------------------------------------------------------------
+    BadInput(
+        "name-with-line-break",
+        "URDF file",
+        "a joint name holding a line break (`&#10;`) in a file with an error",
+        "{urdf}: joint 'j\\x0a1' has a non-finite origin",
+        "Messages escape control characters: the error stays on one line.",
+        lambda tmp: urdf_trigger(tmp, urdf(BASE, link("bob"), joint("j&#10;1", "base", "bob", xyz="nan 0 0"))),
+    ),
+    BadInput(
+        "name-with-terminal-escape",
+        "URDF file",
+        "a link name holding a terminal control sequence (CSI, U+009B, legal in XML)",
+        "{urdf}: link 'bob\\x9b2J' has mass nan; it must be finite and >= 0",
+        "Messages escape control characters: nothing in a file can drive your terminal.",
+        lambda tmp: urdf_trigger(tmp, urdf(BASE, link("bob&#x9b;2J", mass="nan"), joint("j1", "base", "bob&#x9b;2J"))),
+    ),
+    BadInput(
+        "megabyte-name",
+        "URDF file",
+        "a link name one million characters long in a file with an error",
+        "{head} [... {omitted} characters omitted ...] {tail}",
+        "Messages are cut to 2000 characters (the start and the end kept).",
+        lambda tmp: long_name(tmp),
+    ),
+    # ---- trajectory files ------------------------------------------------------------------------------
+    BadInput(
+        "npz-claimed-shape",
+        "trajectory file",
+        "a trajectory whose array header claims 10¹² × 3 doubles (24 TB) but holds three",
+        "{npz}: not a readable trajectory file (member 'q.npy' holds {member_size} bytes but its header "
+        "describes {described}: shape (1000000000000, 3), dtype float64)",
+        "The file is corrupted or forged: regenerate it.",
+        claimed_shape,
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-deflate-bomb",
+        "trajectory file",
+        "a zip bomb: 512 MiB of zeros deflated to half a megabyte",
+        "{npz}: refused: its arrays would take more than 268435456 bytes once read (at least {total}, from a "
+        "{file_size}-byte file; the limit is 100 times the file's size or 268435456 bytes, whichever is larger)",
+        "Do not load files from strangers that expand this much; files we write are never compressed.",
+        deflate_bomb,
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-bzip2",
+        "trajectory file",
+        "an .npz whose members are bzip2-compressed (bzip2 inflates far more per byte than deflate)",
+        "{npz}: not a trajectory file (member 't.npy' uses zip compression method 12; only stored and deflated "
+        "members are read)",
+        "Re-save with numpy (np.savez or np.savez_compressed).",
+        lambda tmp: npz_trigger(plain_npz(tmp / "run.npz", zipfile.ZIP_BZIP2)),
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-member-name-escape",
+        "trajectory file",
+        "an archive member named with a terminal escape sequence (ESC [31m)",
+        "{npz}: not a trajectory file (member 'q\\x1b[31m.npy' uses zip compression method 12; only stored and "
+        "deflated members are read)",
+        "Messages escape control characters: nothing in a file can drive your terminal.",
+        lambda tmp: npz_trigger(escape_named_member(tmp / "run.npz")),
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-encrypted",
+        "trajectory file",
+        "an .npz with an encrypted member",
+        "{npz}: not a trajectory file (member 't.npy' is encrypted)",
+        "Decrypt it first.",
+        lambda tmp: npz_trigger(patched(plain_npz(tmp / "run.npz"), set_encrypted)),
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-too-many-members",
+        "trajectory file",
+        "an archive claiming 65 535 members",
+        "{npz}: not a trajectory file (65535 archive members, more than 4096)",
+        "The file is not a trajectory.",
+        lambda tmp: npz_trigger(patched(plain_npz(tmp / "run.npz"), set_member_count)),
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-malformed-header",
+        "trajectory file",
+        "an array header that is not a valid Python literal (found by fuzzing)",
+        "{npz}: not a readable trajectory file (member 't.npy' has a malformed .npy header: {numpy})",
+        "The file is damaged or forged: regenerate it.",
+        malformed_header,
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-future-zip-version",
+        "trajectory file",
+        "an archive whose directory says a member needs zip version 11.7 (found by fuzzing)",
+        "{npz}: not a readable trajectory file (zip file version 11.7)",
+        "The file is damaged or not a trajectory.",
+        lambda tmp: npz_trigger(patched(plain_npz(tmp / "run.npz"), set_version_needed)),
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-corrupt-deflate",
+        "trajectory file",
+        "a compressed trajectory with corrupted bytes",
+        "{npz}: not a readable trajectory file ({zlib})",
+        "The file is damaged: copy it again.",
+        corrupt_deflate,
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-truncated",
+        "trajectory file",
+        "a trajectory file cut in half (an interrupted copy)",
+        "{npz}: not a readable trajectory file (File is not a zip file)",
+        "Copy it again; runs write their files atomically, so a file we wrote is whole or absent.",
+        truncated,
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-is-pickle",
+        "trajectory file",
+        "a pickle renamed to .npz",
+        "{npz}: not a trajectory file (not an .npz archive)",
+        "Never unpickle files from strangers; trajectories are plain arrays.",
+        pickle_file,
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-object-array",
+        "trajectory file",
+        "an .npz holding a pickled object array",
+        "{npz}: not a readable trajectory file (Object arrays cannot be loaded when allow_pickle=False)",
+        "Trajectories hold numbers only; the file was not written by multibody-sim.",
+        object_array,
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-not-ours",
+        "trajectory file",
+        "an .npz written by something else",
+        "{npz}: not a multibody-sim trajectory (no valid header)",
+        "Load it with numpy directly.",
+        foreign_npz,
+        ms.TrajectoryFileError,
+    ),
+    # ---- command line ----------------------------------------------------------------------------------
+    BadInput(
+        "allow-root-missing",
+        "command line",
+        "`--allow-root` naming a folder that does not exist",
+        "allowed_roots: '{folder}' is not a folder",
+        "Check the path.",
+        missing_folder("--allow-root", "allowed_roots"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "package-dir-missing",
+        "command line",
+        "`--package-dir` naming a folder that does not exist",
+        "package_dirs: '{folder}' is not a folder",
+        "Check the path.",
+        missing_folder("--package-dir", "package_dirs"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "dt-nan",
+        "command line",
+        "`run pendulum --dt nan`",
+        "dt must be a positive number of seconds, got nan",
+        "Give a positive step in seconds.",
+        cli("run", "pendulum", "--dt", "nan"),
+    ),
+    BadInput(
+        "duration-inf",
+        "command line",
+        "`run pendulum --duration inf`",
+        "duration must be a positive number of seconds, got inf",
+        "Give a finite duration; Ctrl-C stops a long run and keeps its samples.",
+        cli("run", "pendulum", "--duration", "inf"),
+    ),
+    BadInput(
+        "q0-nan",
+        "command line",
+        "`run pendulum --q0 nan`",
+        "q0 must be finite, got non-finite entries at indices [0]",
+        "Give nq finite numbers.",
+        cli("run", "pendulum", "--q0", "nan"),
+    ),
+    BadInput(
+        "unknown-integrator",
+        "command line",
+        "`run pendulum --integrator magic`",
+        "unknown integrator 'magic' (valid: {integrators})",
+        "Pick one of the listed names (`multibody-sim integrators` describes them).",
+        lambda tmp: Trigger(
+            argv=["run", "pendulum", "--integrator", "magic"], fields={"integrators": integrator_names()}
+        ),
+    ),
+    # ---- Python API ------------------------------------------------------------------------------------
+    BadInput(
+        "source-not-a-path",
+        "Python API",
+        "`load_robot(42)`",
+        "source must be a catalog name or a URDF path, got int",
+        "Pass a catalog name or a path.",
+        api(lambda: ms.load_robot(42)),  # type: ignore[arg-type]
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "floating-base-not-bool",
+        "Python API",
+        "`load_robot('pendulum', floating_base='yes')`",
+        "floating_base must be True, False or None, got 'yes'",
+        "Pass True, False or None (the catalog's natural base).",
+        api(lambda: ms.load_robot("pendulum", floating_base="yes")),  # type: ignore[arg-type]
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "package-dirs-a-string",
+        "Python API",
+        "`load_robot(path, package_dirs='/opt/share')` (one string, not a list)",
+        "package_dirs must be a list of folders, got str",
+        "Pass a list: `package_dirs=['/opt/share']`.",
+        api(lambda: ms.load_robot("pendulum", package_dirs="/opt/share")),  # type: ignore[arg-type]
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "q0-wrong-shape",
+        "Python API",
+        "`simulate(pendulum, [0, 0], [0], ...)` (two numbers for a one-joint robot)",
+        "q0 must have shape (1,), got (2,)",
+        "Give nq numbers (`robot.nq`).",
+        api(lambda: ms.simulate(pendulum(), [0.0, 0.0], [0.0], duration=1.0, dt=1e-3)),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "dt-zero",
+        "Python API",
+        "`simulate(..., dt=0)`",
+        "dt must be a positive number of seconds, got 0",
+        "Give a positive step.",
+        api(lambda: ms.simulate(pendulum(), [0.0], [0.0], duration=1.0, dt=0)),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "option-not-for-this-integrator",
+        "Python API",
+        "`simulate(..., integrator='rk4', rtol=1e-6)`",
+        "option 'rtol' does not apply to the fixed-step integrator 'rk4' (it applies to the adaptive "
+        "integrators: {adaptive})",
+        "Drop the option, or choose an adaptive integrator.",
+        lambda tmp: Trigger(
+            call=lambda: ms.simulate(pendulum(), [0.0], [0.0], duration=1.0, dt=1e-3, rtol=1e-6),
+            fields={"adaptive": adaptive_names()},
+        ),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "quaternion-not-unit",
+        "Python API",
+        "a floating base's quaternion that is not of unit norm",
+        "q0 is not a valid configuration: its quaternion / (cos, sin) entries must have unit norm",
+        "Normalize the quaternion (x y z w, scalar last).",
+        api(lambda: ms.simulate(ms.load_robot("free_body"), [0, 0, 0, 0, 0, 0, 2.0], [0.0] * 6, duration=1.0, dt=1e-3)),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "torque-on-floating-base",
+        "Python API",
+        "a non-zero torque on a floating base's six unactuated coordinates",
+        "tau[0:6] acts on the unactuated floating base and must be zero, got [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]",
+        "Forces on the base come from scene elements, not from tau.",
+        api(
+            lambda: ms.load_robot("free_body").forward_dynamics(
+                [0, 0, 0, 0, 0, 0, 1.0], [0.0] * 6, [1.0, 0, 0, 0, 0, 0]
+            )
+        ),
+        ms.InvalidArgumentError,
+    ),
+]
+
+BY_ID = {entry.id: entry for entry in CATALOGUE}
+assert len(BY_ID) == len(CATALOGUE), "catalogue ids must be unique"
+
+
+def display_fields(entry: BadInput) -> dict[str, Any]:
+    """Placeholder values for the table: DISPLAY, plus the fixed counts some entries report."""
+    fields: dict[str, Any] = dict(DISPLAY)
+    fields["uri"] = {
+        "mesh-package-dotdot": "package://x/../../secret/passwords.txt",
+        "mesh-absolute-path": "/home/me/secret/passwords.txt",
+        "mesh-file-uri": "file:///home/me/secret/passwords.txt",
+    }.get(entry.id, "")
+    fields["count"] = {"too-many-elements": "100013", "nested-100k-deep": "100013"}.get(entry.id, "")
+    fields["described"] = "24000000000128"
+    if entry.id == "megabyte-name":
+        fields["head"] = "/home/me/robot/robot.urdf: link 'AAAA…AAAA"
+        fields["tail"] = "AAAA…AAAA' has mass nan; it must be finite and >= 0"
+        fields["omitted"] = "998175"
+    if entry.id == "not-xml":
+        fields["libxml2"] = "Start tag expected, '<' not found, line 1, column 1"
+    return fields

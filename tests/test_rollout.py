@@ -1,0 +1,393 @@
+"""Batched rollouts against looped simulate(): the same samples, statuses and messages; Ray; progress bars."""
+
+from __future__ import annotations
+
+import os
+import re
+from typing import Any
+
+import numpy as np
+import pytest
+from conftest import joint, link, urdf
+
+import multibody_sim as ms
+
+FIXED_STEP_EXPLICIT = sorted(name for name, m in ms.INTEGRATORS.items() if not m.adaptive and not m.implicit)
+ARRAYS = (
+    "t",
+    "q",
+    "v",
+    "tau",
+    "kinetic_energy",
+    "potential_energy",
+    "total_energy",
+    "work",
+    "dissipated",
+    "energy_error",
+)
+COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls", "saturated_dofs")
+
+
+def looped(system: ms.Robot, Q0: np.ndarray, V0: np.ndarray, controllers: list[Any] | None = None, **kw: Any):
+    """(trajectory, message) per element from simulate(), the early stops' partial trajectories included."""
+    out = []
+    for b in range(len(Q0)):
+        controller = controllers[b] if controllers is not None else None
+        try:
+            out.append((ms.simulate(system, Q0[b], V0[b], controller=controller, **kw), ""))
+        except ms.SimulationError as exc:
+            out.append((exc.trajectory, str(exc)))
+    return out
+
+
+def assert_same(batch: ms.BatchTrajectory, reference: list[tuple[ms.Trajectory, str]]) -> None:
+    """Every element bit for bit as simulate() returned it: arrays, ledger, status, message, counts, limits."""
+    assert len(batch) == len(reference)
+    for b, (traj, message) in enumerate(reference):
+        element = batch.element(b)
+        assert element.status == traj.status, b
+        assert batch.messages[b] == message, b
+        assert batch.n_samples[b] == len(traj)
+        for name in ARRAYS:
+            np.testing.assert_array_equal(getattr(element, name), getattr(traj, name), err_msg=f"{name}[{b}]")
+        assert element.ledger.keys() == traj.ledger.keys()
+        for name, entry in traj.ledger.items():
+            np.testing.assert_array_equal(element.ledger[name].energy, entry.energy, err_msg=f"ledger {name}[{b}]")
+        for name in COUNTS:
+            assert element.stats[name] == traj.stats[name], (name, b)
+        assert element.limit_violations == traj.limit_violations, b
+    # The padding: every array finite, each element's rows past its samples repeat its last one.
+    for name in ARRAYS:
+        assert np.all(np.isfinite(getattr(batch, name))), name
+    for b in np.flatnonzero((batch.n_samples < batch.t.shape[1]) & (batch.n_samples > 0)):
+        n = batch.n_samples[b]
+        assert np.all(batch.q[b, n:] == batch.q[b, n - 1]) and np.all(batch.t[b, n:] == batch.t[b, n - 1])
+    assert np.array_equal(batch.mask.sum(axis=1), batch.n_samples)
+
+
+def random_states(system: ms.Robot, B: int, seed: int, v_scale: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    Q0 = np.array([system.random_configuration(rng) for _ in range(B)])
+    return Q0, rng.normal(scale=v_scale, size=(B, system.nv))
+
+
+@pytest.fixture
+def wheel_arm(write_urdf) -> ms.Robot:
+    """A continuous joint (q = (cos, sin): integrate is a rotation, not q + dv) on a damped revolute one."""
+    wheel = joint("j_wheel", "base", "wheel", kind="continuous", damping=0.1)
+    wheel = wheel.replace("<dynamics", '<limit effort="5" velocity="10"/><dynamics')
+    text = urdf(
+        link("base"),
+        link("wheel", mass=1.0, com="0 0 -0.3"),
+        link("arm", mass=0.5, com="0 0 -0.4"),
+        wheel,
+        joint("j_arm", "wheel", "arm", xyz="0 0 -0.6", damping=0.05),
+    )
+    return ms.load_robot(write_urdf(text))
+
+
+# ---- the batched path reproduces simulate() bit for bit ----------------------------------------------------------
+@pytest.mark.parametrize("integrator", FIXED_STEP_EXPLICIT)
+@pytest.mark.parametrize("case", ["double_pendulum", "ur5_pd", "solo12", "wheel_arm"])
+def test_batch_equals_looped_simulate_bit_for_bit(robot, request, integrator: str, case: str) -> None:
+    # Every configuration update the batched path can take: vectorised q + dv (double pendulum, ur5), Pinocchio's
+    # integrate per element with the chart map (solo12's free-flyer) and without it (the continuous joint); the
+    # damping ledger (double pendulum, wheel arm); saturation at effort limits (ur5's PD asks for too much);
+    # a control period and an output period that differ, and a last step shortened to land on the duration.
+    controllers = None
+    if case == "double_pendulum":
+        system = robot("double_pendulum")  # damped (URDF 0.05), no limits
+    elif case == "ur5_pd":
+        system = robot("ur5")
+        gains = [3000.0, 200.0, 1.0, 3000.0]  # the stiffest saturate at first; a parameter sweep per element
+        controllers = [lambda t, q, v, k=k: k * (0.4 - q) - 0.05 * k * v for k in gains]
+    elif case == "solo12":
+        system = robot("solo12")
+    else:
+        system = request.getfixturevalue("wheel_arm")
+    Q0, V0 = random_states(system, 4, seed=1, v_scale=0.1 if system.floating_base else 0.5)
+    options = dict(duration=0.0305, dt=1e-3, integrator=integrator, output_dt=3e-3, control_dt=2e-3)
+    batch = ms.rollout(system, Q0, V0, controller=controllers, **options)
+    reference = looped(system, Q0, V0, controllers, **options)
+    assert_same(batch, reference)
+    assert np.all(batch.status == "completed")
+    assert batch.t.shape == (4, 12) and batch.t[0, -1] == 0.0305  # 0, 3, ..., 30 ms and the end
+    if case == "ur5_pd":
+        assert batch.stats["saturated_controls"][0] > 0 and batch.stats["saturated_controls"][2] == 0
+
+
+def test_batched_controller_equals_per_state_controller_and_taus_equal_an_indexing_controller(robot) -> None:
+    ur5 = robot("ur5")
+    Q0, V0 = random_states(ur5, 3, seed=2)
+    options = dict(duration=0.02, dt=1e-3, control_dt=2e-3)
+
+    def pd(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return 300.0 * (0.2 - q) - 10.0 * v - t
+
+    class BatchedPD:
+        batched = True
+
+        def __call__(self, t: float, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
+            assert not Q.flags.writeable and Q.shape == (3, ur5.nq)  # sees the state, cannot edit it
+            return 300.0 * (0.2 - Q) - 10.0 * V - t
+
+    reference = looped(ur5, Q0, V0, [pd] * 3, **options)
+    assert_same(ms.rollout(ur5, Q0, V0, controller=pd, **options), reference)
+    assert_same(ms.rollout(ur5, Q0, V0, controller=BatchedPD(), **options), reference)
+
+    taus = np.random.default_rng(3).normal(scale=200.0, size=(3, 10, ur5.nv))  # 10 control instants in 20 ms
+    indexing = [lambda t, q, v, b=b: taus[b, round(t / 2e-3)] for b in range(3)]
+    batch = ms.rollout(ur5, Q0, V0, taus=taus, **options)
+    assert_same(batch, looped(ur5, Q0, V0, indexing, **options))
+    assert np.all(batch.stats["controller_calls"] == 10)
+    # Open-loop torques saturate like controller outputs: some of these exceed ur5's limits.
+    assert np.all(np.abs(batch.tau) <= ur5.effort_limit) and batch.stats["saturated_controls"].sum() > 0
+
+
+def test_stateful_controller_gets_a_fresh_copy_per_element(robot) -> None:
+    dp = robot("double_pendulum")
+
+    class PI:
+        """A PI controller: its integral is state that must not leak from one element into another."""
+
+        def __init__(self) -> None:
+            self.integral = np.zeros(2)
+
+        def reset(self) -> None:
+            self.integral = np.zeros(2)
+
+        def __call__(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+            error = np.array([np.pi, 0.0]) - q
+            self.integral = self.integral + 1e-3 * error
+            return 5.0 * error + 20.0 * self.integral - 0.5 * v
+
+    Q0, V0 = random_states(dp, 3, seed=4)
+    options = dict(duration=0.02, dt=1e-3)
+    shared = PI()
+    batch = ms.rollout(dp, Q0, V0, controller=shared, **options)
+    assert_same(batch, looped(dp, Q0, V0, [PI() for _ in range(3)], **options))  # a new controller each
+    assert np.all(shared.integral == 0.0)  # the caller's object was copied, not used
+
+
+def test_permutation_threads_and_batch_size_do_not_change_an_element(robot) -> None:
+    # Elements are independent: the same arithmetic whatever their neighbours, order or thread count.
+    panda = robot("panda")
+    Q0, V0 = random_states(panda, 5, seed=5)
+    options = dict(duration=0.01, dt=1e-3)
+    whole = ms.rollout(panda, Q0, V0, **options)
+    order = np.array([3, 0, 4, 1, 2])
+    permuted = ms.rollout(panda, Q0[order], V0[order], num_threads=2, **options)
+    alone = ms.rollout(panda, Q0[2:3], V0[2:3], **options)
+    for name in ARRAYS:
+        np.testing.assert_array_equal(getattr(permuted, name), getattr(whole, name)[order])
+        np.testing.assert_array_equal(getattr(alone, name)[0], getattr(whole, name)[2])
+
+
+# ---- early stops: one element's fate does not spoil the others ----------------------------------------------------
+def test_diverging_elements_stop_with_simulates_status_and_message_and_the_rest_complete(robot) -> None:
+    dp = robot("double_pendulum")
+    Q0 = np.array([[3.0, 0.0], [0.1, 0.2], [3.0, 0.1], [1.0, 1.0]])
+    # Element 1 spins so fast that explicit Euler's energy error explodes; element 3's kinetic energy
+    # overflows at t = 0 already (no sample at all), as simulate() reports it.
+    V0 = np.array([[0.0, 0.0], [1e3, -1e3], [0.0, 0.0], [1e200, 0.0]])
+    for integrator, output_dt in [("euler", 0.1), ("rk4", 0.1), ("rk4", 0.02)]:
+        options = dict(duration=1.0, dt=0.02, integrator=integrator, output_dt=output_dt)
+        batch = ms.rollout(dp, Q0, V0, **options)
+        assert_same(batch, looped(dp, Q0, V0, **options))
+        assert batch.status.tolist() == ["completed", "diverged", "completed", "diverged"]
+        assert batch.n_samples[3] == 0 and np.all(batch.q[3] == Q0[3]) and np.all(batch.kinetic_energy[3] == 0)
+        assert "the energy became non-finite" in batch.messages[3]
+        assert batch.completed.tolist() == [True, False, True, False]
+
+
+def test_adaptive_and_implicit_methods_run_element_by_element_through_simulate(robot) -> None:
+    dp = robot("double_pendulum")
+    Q0, V0 = random_states(dp, 3, seed=6)
+    taus = np.random.default_rng(7).normal(size=(3, 5, 2))
+    for options in (
+        dict(integrator="dp54", rtol=1e-6, atol=1e-8, control_dt=0.01, output_dt=0.01),
+        dict(integrator="implicit_euler", control_dt=0.01),
+    ):
+        batch = ms.rollout(dp, Q0, V0, duration=0.05, dt=5e-3, taus=taus, **options)
+        period = options["control_dt"]
+        indexing = [lambda t, q, v, b=b, period=period: taus[b, round(t / period)] for b in range(3)]
+        assert_same(batch, looped(dp, Q0, V0, indexing, duration=0.05, dt=5e-3, **options))
+
+
+def test_ctrl_c_keeps_every_element_so_far(robot) -> None:
+    ur5 = robot("ur5")
+    Q0, V0 = random_states(ur5, 3, seed=8)
+
+    def interrupting(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        if t >= 0.0095:
+            raise KeyboardInterrupt
+        return np.zeros(6)
+
+    with pytest.raises(ms.SimulationInterrupted) as caught:
+        ms.rollout(ur5, Q0, V0, duration=0.05, dt=1e-3, output_dt=4e-3, controller=interrupting)
+    batch = caught.value.trajectory
+    assert isinstance(batch, ms.BatchTrajectory) and np.all(batch.status == "interrupted")
+    for b in range(3):
+        with pytest.raises(ms.SimulationInterrupted) as single:
+            ms.simulate(ur5, Q0[b], V0[b], duration=0.05, dt=1e-3, output_dt=4e-3, controller=interrupting)
+        traj = single.value.trajectory
+        for name in ARRAYS:  # samples at 0, 4, 8 ms and the state at 10 ms when Ctrl-C came
+            np.testing.assert_array_equal(getattr(batch.element(b), name), getattr(traj, name))
+
+
+# ---- physics, independently of simulate() --------------------------------------------------------------------------
+def test_small_swings_of_a_batch_follow_the_linearised_pendulum(robot) -> None:
+    # Small swings about the hanging equilibrium obey M x'' + K x = 0 with M from CRBA and K the gravity
+    # Jacobian (central differences): the batch must follow the normal modes, up to the nonlinearity, which
+    # shrinks with the square of the amplitude. The URDF's centres of mass are slightly off axis, so the
+    # equilibrium is found by Newton on g(q) = 0 near [pi, 0] first.
+    dp = robot("double_pendulum", damping=False)
+    eps = 1e-6
+
+    def stiffness(q: np.ndarray) -> np.ndarray:
+        return np.column_stack([(dp.gravity(q + eps * e) - dp.gravity(q - eps * e)) / (2 * eps) for e in np.eye(2)])
+
+    rest = np.array([np.pi, 0.0])
+    for _ in range(5):
+        rest = rest - np.linalg.solve(stiffness(rest), dp.gravity(rest))
+    assert np.max(np.abs(dp.gravity(rest))) < 1e-12
+    w2, modes = np.linalg.eig(np.linalg.solve(dp.mass_matrix(rest), stiffness(rest)))
+    rng = np.random.default_rng(9)
+    directions = rng.normal(size=(4, 2))
+    X0 = np.concatenate([1e-3 * directions, 1e-4 * directions])  # the same swings at two amplitudes
+    batch = ms.rollout(dp, rest + X0, np.zeros((8, 2)), duration=1.0, dt=1e-3, output_dt=0.01)
+    c = np.linalg.solve(modes, X0.T)  # modal amplitudes, (2, B)
+    linear = np.einsum("im,mb,tm->bti", modes, c, np.cos(np.outer(batch.t[0], np.sqrt(w2))))
+    error = np.abs(batch.q - rest - linear).max(axis=(1, 2))
+    big, small = error[:4].max() / 1e-3, error[4:].max() / 1e-4  # relative to the amplitude
+    # Relative error ~ amplitude (quadratic terms): 1e-4 of it at 1e-4 leaves a 10x margin; RK4's own error,
+    # ~(w dt)^4 w t ~ 1e-6, is below both. Ten times the amplitude, ten times the relative error.
+    assert small < 1e-5
+    assert 30 < big / small < 300
+    assert np.all(np.abs(batch.energy_error) < 1e-12 * np.abs(batch.total_energy).max())
+
+
+# ---- boundaries ----------------------------------------------------------------------------------------------------
+def test_bad_arguments_are_refused_with_messages_that_name_them(robot) -> None:
+    dp, solo = robot("double_pendulum"), robot("solo12")
+    Q0, V0 = np.zeros((2, 2)), np.zeros((2, 2))
+    run = dict(duration=0.01, dt=1e-3)
+
+    def refused(message: str, system: ms.Robot = dp, q: Any = Q0, v: Any = V0, **kw: Any) -> None:
+        with pytest.raises(ms.InvalidArgumentError, match=re.escape(message) + "$"):
+            ms.rollout(system, q, v, **{**run, **kw})
+
+    refused("q0s must have shape (B, 2), got (2,)", q=np.zeros(2))
+    refused("v0s must have shape (B, 2), got (2, 3)", v=np.zeros((2, 3)))
+    refused("q0s and v0s must hold as many states, got 2 and 3", v=np.zeros((3, 2)))
+    refused("q0s must hold at least one state, got an empty batch", q=np.zeros((0, 2)), v=np.zeros((0, 2)))
+    refused("v0s must be finite, got non-finite entries in rows [1]", v=[[0, 0], [0, np.nan]])
+    bad_quaternion = np.array([solo.neutral(), solo.neutral()])
+    bad_quaternion[1, 3:7] = [1.0, 1.0, 0.0, 0.0]
+    refused(
+        "q0s[1] is not a valid configuration: its quaternion / (cos, sin) entries must have unit norm",
+        system=solo,
+        q=bad_quaternion,
+        v=np.zeros((2, solo.nv)),
+    )
+    refused("controller and taus are exclusive: pass one of them", controller=lambda t, q, v: q, taus=np.zeros(1))
+    refused("taus must have shape (2, 10, 2) (elements, control instants, nv), got (2, 9, 2)", taus=np.zeros((2, 9, 2)))
+    refused(
+        "taus must have shape (2, 5, 2) (elements, control instants, nv), got (2, 10, 2)",
+        taus=np.zeros((2, 10, 2)),
+        control_dt=2e-3,
+    )
+    refused(
+        "taus with the adaptive integrator 'dp54' need control_dt (the period of the torque sequence)",
+        taus=np.zeros((2, 10, 2)),
+        integrator="dp54",
+        rtol=1e-6,
+        atol=1e-8,
+    )
+    taus = np.zeros((2, 10, solo.nv))
+    taus[0, 0, 2] = 1.0
+    refused(
+        "taus[:, :, 0:6] act on the unactuated floating base and must be zero",
+        system=solo,
+        q=[solo.neutral()] * 2,
+        v=np.zeros((2, solo.nv)),
+        taus=taus,
+    )
+    refused("controller as a sequence must hold one controller per element (2), got 1", controller=[lambda t, q, v: q])
+    refused("backend must be one of local, ray, got 'dask'", backend="dask")
+    refused("num_threads must be a positive whole number, got 0", num_threads=0)
+    refused("chunk_size must be a positive whole number of elements, got 2.5", chunk_size=2.5)
+    adaptive = ", ".join(sorted(name for name, m in ms.INTEGRATORS.items() if m.adaptive))
+    refused(
+        f"option 'rtol' does not apply to the fixed-step integrator 'rk4' (it applies to the adaptive integrators: "
+        f"{adaptive})",
+        rtol=1e-6,
+    )
+
+    class Wrong:
+        batched = True
+
+        def __call__(self, t: float, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
+            return np.zeros(2)
+
+    refused("batched controller output at t = 0 s must have shape (2, 2), got (2,)", controller=Wrong())
+
+    class Diverging:
+        batched = True
+
+        def __call__(self, t: float, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
+            return np.array([[0.0, 0.0], [np.nan, 0.0]])
+
+    refused(
+        "batched controller output at t = 0 s, element 1: tau must be finite, got non-finite entries at indices [0]",
+        controller=Diverging(),
+    )
+    refused("controller output at t = 0 s: tau must have shape (2,), got (3,)", controller=lambda t, q, v: np.zeros(3))
+
+
+# ---- progress bars -------------------------------------------------------------------------------------------------
+def test_progress_bar_only_when_asked_or_on_a_terminal(robot, capsys) -> None:
+    dp = robot("double_pendulum")
+    Q0, V0 = random_states(dp, 2, seed=10)
+    ms.rollout(dp, Q0, V0, duration=0.05, dt=1e-3)  # captured output is not a terminal: silent
+    assert capsys.readouterr().err == ""
+    ms.rollout(dp, Q0, V0, duration=0.05, dt=1e-3, progress=True)
+    err = capsys.readouterr().err
+    assert "rollout" in err and "100/100" in err  # 2 elements × 50 steps, all done
+    ms.rollout(dp, Q0, V0, duration=0.05, dt=1e-3, progress=False)
+    assert capsys.readouterr().err == ""
+
+
+# ---- Ray -----------------------------------------------------------------------------------------------------------
+def test_ray_backend_splits_the_batch_into_chunks_and_gives_the_local_result(monkeypatch) -> None:
+    # Ray replaces a node address of 127.0.0.1 by the machine's reachable one unless it runs without cluster
+    # support: the test instance then binds every server to the loopback interface only.
+    monkeypatch.setenv("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+    try:
+        import ray
+        import ray._private.ray_constants
+    except ImportError:
+        if os.environ.get("CI") == "true":
+            raise  # CI installs the test extra, which has Ray: its absence is a failure there
+        pytest.skip("Ray is not installed (pip install 'multibody-sim[ray]'); CI runs this test")
+    ur5 = ms.load_robot("ur5")  # loaded here: what the tasks receive is this object, pickled
+    Q0, V0 = random_states(ur5, 7, seed=11)
+    V0[4] = [0.0, 3e3, 0.0, -3e3, 0.0, 0.0]  # diverges: one chunk holds a failure, the others must not care
+    options = dict(duration=0.02, dt=2e-3, output_dt=4e-3)
+    gain = 50.0
+    controller = lambda t, q, v: gain * (0.1 - q) - v  # noqa: E731  (a closure: shipped by value)
+    local = ms.rollout(ur5, Q0, V0, controller=controller, **options)
+    monkeypatch.setattr(ray._private.ray_constants, "ENABLE_RAY_CLUSTER", False)  # if Ray was imported before
+    ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1", log_to_driver=False)
+    try:
+        assert ray.util.get_node_ip_address() == "127.0.0.1"
+        distributed = ms.rollout(ur5, Q0, V0, controller=controller, backend="ray", chunk_size=3, **options)
+    finally:
+        ray.shutdown()
+    assert distributed.metadata["backend"] == "ray" and distributed.metadata["chunks"] == 3
+    assert distributed.status.tolist() == local.status.tolist() and "diverged" in local.status.tolist()
+    assert distributed.messages == local.messages
+    for name in ARRAYS:
+        np.testing.assert_array_equal(getattr(distributed, name), getattr(local, name))
+    for name in COUNTS:
+        np.testing.assert_array_equal(distributed.stats[name], local.stats[name])

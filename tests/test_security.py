@@ -1,0 +1,578 @@
+"""Nothing hostile let in: every catalogued bad input gets its one exact error; hostile files are refused
+quickly, with bounded memory, and without opening anything outside the allowed folders.
+
+The catalogue (tests/bad_inputs.py) is also the source of docs/bad_inputs.md. Time and memory are measured in
+a child process (peak RSS reset before each input through /proc/self/clear_refs); what the loader opens is
+watched twice over in that child: Python's audit hook sees every open() from Python, and inotify, in the
+kernel, sees every open or read of the secret files by any code (libxml2, urdfdom, numpy's C code).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import re
+import subprocess
+import sys
+import threading
+import time
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from bad_inputs import (
+    BY_ID,
+    CATALOGUE,
+    MARKER,
+    MAX_EXPANSION,
+    MIN_BUDGET_BYTES,
+    SECRET_NAME,
+    BadInput,
+    render,
+    secret_file,
+    star,
+    urdf_trigger,
+    with_mesh,
+)
+from conftest import joint, link, urdf
+
+import multibody_sim as ms
+from multibody_sim.catalog import read_urdf
+from multibody_sim.cli import main
+from multibody_sim.safety import check_npz, read_npz
+
+ROOT = Path(__file__).resolve().parent.parent
+PREFIX = "multibody-sim: error: "
+MiB = 1024 * 1024
+
+
+def exact(message: str) -> str:
+    """A regex matching exactly `message` (pytest.raises searches, so anchor both ends)."""
+    return f"^{re.escape(message)}$"
+
+
+# ---- the catalogue -----------------------------------------------------------------------------------
+def test_the_catalogue_covers_files_command_line_and_api():
+    kinds = [entry.kind for entry in CATALOGUE]
+    assert len(CATALOGUE) >= 30
+    assert {"URDF file", "trajectory file", "command line", "Python API"} <= set(kinds)
+    assert all(kinds.count(kind) >= 4 for kind in set(kinds))
+
+
+@pytest.mark.parametrize("entry", CATALOGUE, ids=[entry.id for entry in CATALOGUE])
+def test_a_bad_input_gets_its_one_exact_error(entry: BadInput, tmp_path: Path, capfd: pytest.CaptureFixture[str]):
+    """The API raises the entry's error with the exact message; the command line prints that message as its
+    only line on stderr (file descriptor 2, so C++ logging would show) and exits 2."""
+    trigger = entry.build(tmp_path)
+    message = render(entry.message, trigger.fields)
+    seen = [message]
+    if trigger.call is not None:
+        with pytest.raises(entry.error, match=exact(message)) as info:
+            trigger.call()
+        assert isinstance(info.value, ms.MultibodySimError)
+    if trigger.argv is not None:
+        capfd.readouterr()
+        code = main(trigger.argv)
+        out, err = capfd.readouterr()
+        assert (code, err) == (2, f"{PREFIX}{message}\n")
+        seen += [out, err]
+    assert not any(MARKER in text for text in seen)
+
+
+def _table_script() -> Any:
+    spec = importlib.util.spec_from_file_location("bad_inputs_table", ROOT / "scripts" / "bad_inputs_table.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_docs_table_is_generated_from_the_catalogue():
+    table = _table_script().table()
+    assert (ROOT / "docs" / "bad_inputs.md").read_text() == table, "run scripts/bad_inputs_table.py"
+    rows = [line for line in table.splitlines() if re.match(r"^\| \d+ \|", line)]
+    assert len(rows) == len(CATALOGUE)
+
+
+# ---- time, memory and what is opened, measured in a child process --------------------------------------
+WORKER = r"""
+import contextlib, ctypes, io, json, os, re, struct, sys, time
+import numpy as np
+import multibody_sim as ms
+from multibody_sim.catalog import read_urdf
+from multibody_sim.cli import main
+from multibody_sim.safety import check_npz, read_npz
+
+spec = json.load(sys.stdin)
+
+def status(field):
+    return int(re.search(field + r":\s+(\d+) kB", open("/proc/self/status").read()).group(1)) * 1024
+
+def reset_peak():
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")  # resets VmHWM, the peak resident set size, to the current one
+        return True
+    except OSError:
+        return False
+
+# Warm up: lazy imports (yourdfpy, trimesh) and first-call costs must not count against an input.
+ms.load_robot(spec["warmup_urdf"])
+ms.Trajectory.load(spec["warmup_npz"])
+
+libc = ctypes.CDLL(None, use_errno=True)
+notify = libc.inotify_init1(os.O_NONBLOCK)
+IN_ACCESS, IN_OPEN = 0x1, 0x20
+for watched in spec["watch"]:
+    libc.inotify_add_watch(notify, os.fsencode(watched), IN_ACCESS | IN_OPEN)
+
+def kernel_events():
+    events = []
+    while True:
+        try:
+            data = os.read(notify, 65536)
+        except BlockingIOError:
+            return events
+        at = 0
+        while at < len(data):
+            wd, mask, cookie, length = struct.unpack_from("iIII", data, at)
+            events.append([mask, data[at + 16 : at + 16 + length].rstrip(b"\0").decode()])
+            at += 16 + length
+
+secrets = [os.path.realpath(s) for s in spec["secrets"]]
+python_opens = []
+
+def audit(event, args):
+    if event == "open" and args and isinstance(args[0], (str, bytes)):
+        where = os.path.realpath(os.fsdecode(args[0]))
+        if any(where == s or where.startswith(os.path.dirname(s) + os.sep) for s in secrets):
+            python_opens.append(where)
+
+sys.addaudithook(audit)
+results = []
+for item in spec["items"]:
+    peak_resettable = reset_peak()
+    before = status("VmRSS")
+    stdout, stderr = io.StringIO(), io.StringIO()
+    start = time.perf_counter()
+    try:
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            if item["how"] == "load_robot":
+                ms.load_robot(item["path"], **item.get("kwargs", {}))
+                outcome, message = "loaded", ""
+            elif item["how"] == "load_trajectory":
+                ms.Trajectory.load(item["path"])
+                outcome, message = "loaded", ""
+            else:
+                outcome, message = "exit %d" % main(item["argv"]), ""
+    except ms.MultibodySimError as exc:
+        outcome, message = type(exc).__name__, str(exc)
+    except BaseException as exc:
+        outcome, message = "RAW " + type(exc).__name__, str(exc)[:300]
+    seconds = time.perf_counter() - start
+    results.append({
+        "id": item["id"], "how": item["how"], "seconds": seconds,
+        "peak_growth": status("VmHWM") - before if peak_resettable else None,
+        "outcome": outcome, "message": message, "stdout": stdout.getvalue(), "stderr": stderr.getvalue(),
+        "kernel_events": kernel_events(), "python_opens": list(python_opens),
+    })
+    python_opens.clear()
+
+# Control: the watches do see a read of the secrets when one happens.
+for s in secrets:
+    with open(s) as f:
+        f.read()
+control = {"kernel_events": kernel_events(), "python_opens": list(python_opens)}
+json.dump({"results": results, "control": control}, sys.stdout)
+"""
+
+# Hostile URDFs not in the catalogue (they load, or are refused for another reason), aimed at the secret too.
+EXTRA_VECTORS = {
+    "xinclude": lambda secret: urdf(
+        link("base"), link("bob"), joint("j1", "base", "bob"), f'<xi:include href="{secret}" parse="text"/>'
+    ).replace('<robot name="test_robot">', '<robot name="r" xmlns:xi="http://www.w3.org/2001/XInclude">'),
+    "stylesheet-pi": lambda secret: urdf(link("base"), link("bob"), joint("j1", "base", "bob")).replace(
+        "<robot ", f'<?xml-stylesheet type="text/xsl" href="file://{secret}"?><robot ', 1
+    ),
+    "mesh-inside-then-outside": lambda secret: with_mesh("meshes/bob.stl").replace(
+        "</link>", f'<collision><geometry><mesh filename="{secret}"/></geometry></collision></link>', 1
+    ),
+}
+
+
+@pytest.fixture(scope="module")
+def measured(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """Every hostile file of the catalogue (and the extra vectors), loaded in one child process.
+
+    Returns {"results": {id: measurement}, "control": what the watches saw when the child read the secrets}.
+    """
+    root = tmp_path_factory.mktemp("hostile")
+    items, secrets = [], []
+    for entry in CATALOGUE:
+        if entry.kind not in ("URDF file", "trajectory file"):
+            continue
+        folder = root / entry.id
+        folder.mkdir()
+        trigger = entry.build(folder)
+        if entry.kind == "URDF file":
+            path = trigger.fields["urdf"]
+            items.append({"id": entry.id, "how": "load_robot", "path": path})
+            items.append({"id": entry.id, "how": "cli", "argv": ["inspect", path]})
+            secrets.append(trigger.fields["secret"])
+        else:
+            items.append({"id": entry.id, "how": "load_trajectory", "path": trigger.fields["npz"]})
+    for name, make in EXTRA_VECTORS.items():
+        folder = root / name
+        folder.mkdir()
+        secret = secret_file(folder).resolve()
+        trigger = urdf_trigger(folder, make(secret))
+        items.append({"id": name, "how": "load_robot", "path": trigger.fields["urdf"]})
+        secrets.append(str(secret))
+    # package:// escaping a package folder that was given
+    folder = root / "package-escape"
+    (folder / "share" / "pkg").mkdir(parents=True)
+    trigger = urdf_trigger(folder, with_mesh("package://pkg/../../" + SECRET_NAME))
+    kwargs = {"package_dirs": [str(folder / "share")]}
+    items.append({"id": "package-escape", "how": "load_robot", "path": trigger.fields["urdf"], "kwargs": kwargs})
+    secrets.append(trigger.fields["secret"])
+
+    warmup = root / "warmup"
+    warmup.mkdir()
+    warmup_urdf = warmup / "ok.urdf"
+    warmup_urdf.write_text(urdf(link("base"), link("bob"), joint("j1", "base", "bob")))
+    warmup_npz = ms.simulate(ms.load_robot(warmup_urdf), [0.1], [0.0], duration=0.01, dt=1e-3).save(warmup / "ok.npz")
+    watch = secrets + [str(Path(s).parent) for s in secrets]
+    spec = {
+        "items": items,
+        "secrets": secrets,
+        "watch": watch,
+        "warmup_urdf": str(warmup_urdf),
+        "warmup_npz": str(warmup_npz),
+    }
+    child = subprocess.run(
+        [sys.executable, "-c", WORKER], input=json.dumps(spec), capture_output=True, text=True, timeout=600
+    )
+    assert child.returncode == 0, child.stderr[-3000:]
+    assert child.stderr == "", child.stderr[-3000:]  # nothing reached the real stderr (C++ logs included)
+    report = json.loads(child.stdout)
+    results: dict[str, list[dict[str, Any]]] = {}
+    for result in report["results"]:
+        results.setdefault(result["id"], []).append(result)
+    paths = {item["id"]: Path(item["path"]) for item in items if "path" in item}
+    return {"results": results, "control": report["control"], "paths": paths}
+
+
+HOSTILE_FILES = [entry.id for entry in CATALOGUE if entry.kind in ("URDF file", "trajectory file")]
+
+
+@pytest.mark.parametrize("entry_id", HOSTILE_FILES)
+def test_a_hostile_file_is_refused_within_two_seconds(measured: dict[str, Any], entry_id: str):
+    entry = BY_ID[entry_id]
+    for result in measured["results"][entry_id]:
+        assert result["outcome"] in (entry.error.__name__, "exit 2"), result
+        assert result["seconds"] < 2.0, result
+
+
+@pytest.mark.parametrize("entry_id", HOSTILE_FILES)
+def test_a_hostile_file_costs_bounded_memory(measured: dict[str, Any], entry_id: str):
+    """Peak RSS growth while refusing: the file's bytes held once, plus libxml2's tree of at most 100 000
+    elements (~200 B each, 20 MB) and small temporaries: file size + 32 MiB. Trajectory files are refused
+    from their directory and headers, no array allocated: file size + 8 MiB."""
+    if any(r["peak_growth"] is None for r in measured["results"][entry_id]):
+        pytest.skip("/proc/self/clear_refs is not writable here: the peak RSS cannot be reset per input")
+    entry = BY_ID[entry_id]
+    slack = 32 * MiB if entry.kind == "URDF file" else 8 * MiB
+    # The sparse 32 MiB file is never read: its stat size is refused first.
+    size = 0 if entry_id == "file-too-large" else measured["paths"][entry_id].stat().st_size
+    for result in measured["results"][entry_id]:
+        assert result["peak_growth"] <= size + slack, result
+
+
+def test_the_zip_bomb_would_need_gigabytes_but_costs_megabytes(measured: dict[str, Any]):
+    """The bomb is real: its archive declares 512 MiB (read with zipfile, not our code) from half a megabyte;
+    np.load would allocate all of it. Refusing it costs less than 1/64 of that."""
+    results = measured["results"]["npz-deflate-bomb"]
+    path = measured["paths"]["npz-deflate-bomb"]
+    with zipfile.ZipFile(path) as archive:
+        declared = sum(info.file_size for info in archive.infolist())
+    size = path.stat().st_size
+    assert declared >= 512 * MiB and declared > 500 * size
+    if results[0]["peak_growth"] is not None:
+        assert results[0]["peak_growth"] < declared / 64
+
+
+def test_nothing_outside_the_allowed_folders_is_opened(measured: dict[str, Any]):
+    """Neither Python (audit hook) nor any C code (inotify) opened or read a secret while loading every hostile
+    file, through the API and the command line; the same watches do see it when the child reads them."""
+    for entry_id, results in measured["results"].items():
+        for result in results:
+            assert result["kernel_events"] == [], (entry_id, result)
+            assert result["python_opens"] == [], (entry_id, result)
+            assert MARKER not in result["message"] + result["stdout"] + result["stderr"], (entry_id, result)
+    control = measured["control"]
+    assert control["kernel_events"] and control["python_opens"], "the watches must see a real read"
+
+
+@pytest.mark.parametrize("name", sorted(EXTRA_VECTORS) + ["package-escape"])
+def test_extra_vectors_are_inert_or_refused(measured: dict[str, Any], name: str):
+    """XInclude and stylesheet processing instructions are ignored (the robot loads, nothing is fetched);
+    a mesh path out of the folder, or out of a package folder, is refused."""
+    (result,) = measured["results"][name]
+    if name in ("xinclude", "stylesheet-pi"):
+        assert result["outcome"] == "loaded", result
+    else:
+        assert result["outcome"] == "ModelError" and "resolves outside the allowed folders" in result["message"]
+
+
+# ---- allowed folders ---------------------------------------------------------------------------------
+def split_layout(tmp_path: Path) -> tuple[Path, Path]:
+    """The common layout robot/urdf/robot.urdf with its mesh in robot/meshes/ (reached by `../meshes/`)."""
+    (tmp_path / "robot" / "urdf").mkdir(parents=True)
+    meshes = tmp_path / "robot" / "meshes"
+    meshes.mkdir()
+    (meshes / "bob.stl").write_text("solid bob\nendsolid bob\n")
+    path = tmp_path / "robot" / "urdf" / "robot.urdf"
+    path.write_text(with_mesh("../meshes/bob.stl"))
+    return path, meshes
+
+
+def test_allowed_roots_admit_a_mesh_folder_beside_the_urdfs(tmp_path: Path, capfd: pytest.CaptureFixture[str]):
+    path, meshes = split_layout(tmp_path)
+    refused = (
+        f"{path.resolve()}: mesh '../meshes/bob.stl' resolves outside the allowed folders "
+        f"({path.parent.resolve()}); add its folder to package_dirs"
+    )
+    with pytest.raises(ms.ModelError, match=exact(refused)):
+        ms.load_robot(path)
+    robot = ms.load_robot(path, allowed_roots=[meshes])
+    assert robot.nv == 1
+    # Recorded, so that the run's metadata can reload the robot exactly.
+    assert robot.source["load_robot"]["allowed_roots"] == [str(meshes)]
+    assert ms.load_robot(**robot.source["load_robot"]).nv == 1
+    # The command line: refused without the option, accepted with it (repeatable).
+    capfd.readouterr()
+    assert main(["inspect", str(path)]) == 2
+    assert capfd.readouterr().err == f"{PREFIX}{refused}\n"
+    assert main(["inspect", str(path), "--allow-root", str(tmp_path / "robot"), "--allow-root", str(meshes)]) == 0
+
+
+def test_an_allowed_root_is_not_a_package_root_and_does_not_open_other_folders(tmp_path: Path):
+    path, meshes = split_layout(tmp_path)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "x.stl").write_text("solid x\nendsolid x\n")
+    path.write_text(with_mesh(str(other / "x.stl")))
+    with pytest.raises(ms.ModelError) as info:
+        ms.load_robot(path, allowed_roots=[meshes])
+    assert str(info.value) == (
+        f"{path.resolve()}: mesh '{other / 'x.stl'}' resolves outside the allowed folders "
+        f"({path.parent.resolve()}, {meshes.resolve()}); add its folder to package_dirs"
+    )
+    # package://meshes/... resolves against package folders only: the allowed root does not make it one.
+    path.write_text(with_mesh("package://meshes/bob.stl"))
+    robot = ms.load_robot(path, allowed_roots=[tmp_path / "robot"])
+    assert robot.nv == 1  # loads: the URI names robot/urdf/meshes/bob.stl, absent, which only matters for viewing
+
+
+def test_metadata_of_a_robot_loaded_without_allowed_roots_is_unchanged(robot):
+    assert robot("pendulum").source["load_robot"] == {
+        "source": "pendulum",
+        "floating_base": None,
+        "damping": True,
+        "package_dirs": [],
+    }
+
+
+# ---- limits are limits, not lower ----------------------------------------------------------------------
+def chain(n_links: int) -> str:
+    """n_links links in one chain (n_links - 1 revolute joints), each bob 1 m below the previous one."""
+    parts = [link("l0", com="0 0 0")]
+    for i in range(1, n_links):
+        parts += [link(f"l{i}"), joint(f"j{i}", f"l{i - 1}", f"l{i}", xyz="0 0 -1")]
+    return urdf(*parts)
+
+
+def test_the_largest_legal_models_load_quickly(write_urdf):
+    """At the limits: 1000 links in one chain (Pinocchio's recursive parser handles the depth; it crashes near
+    4000), 124 of its joints movable; and 128 movable joints in a star. Each loads inside the two-second budget."""
+    parts = [link("l0", com="0 0 0")]
+    for i in range(1, 1000):
+        kind = "revolute" if i % 8 == 0 else "fixed"
+        parts += [link(f"l{i}"), joint(f"j{i}", f"l{i - 1}", f"l{i}", kind=kind, xyz="0 0 -1")]
+    start = time.perf_counter()
+    deep = ms.load_robot(write_urdf(urdf(*parts), name="deep.urdf"))
+    assert time.perf_counter() - start < 2.0
+    assert deep.nv == 999 // 8
+    # Below the last movable joint (j992) hang links 992..999, welded, their centres 0.5, 1.5, ... 7.5 m down:
+    # M's last diagonal entry is their inertias about the axis, sum of (0.01 + 1 kg * d^2) (parallel axes).
+    assert deep.mass_matrix(deep.neutral())[-1, -1] == pytest.approx(sum(0.01 + (j + 0.5) ** 2 for j in range(8)))
+    start = time.perf_counter()
+    wide = ms.load_robot(write_urdf(star(129), name="wide.urdf"))
+    assert time.perf_counter() - start < 2.0
+    assert wide.nv == 128
+
+
+def test_a_fifo_given_as_a_urdf_does_not_block(tmp_path: Path):
+    """Opening a FIFO for reading waits for a writer: the loader never opens one."""
+    fifo = tmp_path / "robot.urdf"
+    os.mkfifo(fifo)
+    outcome: list[BaseException] = []
+
+    def load() -> None:
+        try:
+            ms.load_robot(fifo)
+        except BaseException as exc:  # noqa: BLE001 (handed to the main thread)
+            outcome.append(exc)
+
+    worker = threading.Thread(target=load, daemon=True)
+    worker.start()
+    worker.join(timeout=10)
+    assert not worker.is_alive(), "load_robot blocked on a FIFO"
+    assert isinstance(outcome[0], ms.ModelError) and str(outcome[0]) == f"{fifo}: URDF file not found"
+    with pytest.raises(ms.ModelError, match=exact(f"{fifo}: not a regular file")):
+        read_urdf(fifo)
+
+
+def test_pinocchios_log_of_a_model_that_builds_is_passed_on(write_urdf, capfd: pytest.CaptureFixture[str]):
+    """Capturing urdfdom's stderr keeps it out of error messages, but what it says about a model that does
+    build (here a material without a colour) still reaches stderr."""
+    path = write_urdf(urdf(link("base"), link("bob"), joint("j1", "base", "bob"), '<material name="m"/>'))
+    capfd.readouterr()
+    assert ms.load_robot(path).nv == 1
+    assert "Material [m] color has no rgba" in capfd.readouterr().err
+
+
+# ---- trajectory archives -------------------------------------------------------------------------------
+def test_mapped_loading_refuses_the_same_archives(tmp_path: Path):
+    for entry_id in ("npz-claimed-shape", "npz-deflate-bomb"):
+        entry = BY_ID[entry_id]
+        folder = tmp_path / entry_id
+        folder.mkdir()
+        trigger = entry.build(folder)
+        with pytest.raises(ms.TrajectoryFileError, match=exact(render(entry.message, trigger.fields))):
+            ms.Trajectory.load(trigger.fields["npz"], mmap=True)
+
+
+def deflated_copy(source: Path, target: Path) -> Path:
+    """The same archive with every member deflated (what np.savez_compressed would have written)."""
+    with zipfile.ZipFile(source) as archive, zipfile.ZipFile(target, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as out:
+        for info in archive.infolist():
+            out.writestr(info.filename, archive.read(info))
+    return target
+
+
+def test_a_compressed_trajectory_of_a_robot_at_rest_is_well_within_the_expansion_limit(tmp_path: Path):
+    """A very compressible real trajectory: a pendulum resting at the bottom (every column constant but time).
+    Deflated it expands ~33x, inside the 100x limit (the time column compresses least); and being under
+    256 MiB once read, it would load whatever its ratio."""
+    pendulum = ms.load_robot("pendulum")
+    run = ms.simulate(pendulum, [0.0], [0.0], duration=20.0, dt=1e-3)
+    stored = run.save(tmp_path / "rest.npz")
+    deflated = deflated_copy(stored, tmp_path / "rest-deflated.npz")
+    with zipfile.ZipFile(deflated) as archive:
+        expanded = sum(info.file_size for info in archive.infolist())
+    ratio = expanded / deflated.stat().st_size
+    assert 1.5 < ratio < MAX_EXPANSION
+    assert expanded < MIN_BUDGET_BYTES
+    loaded = ms.Trajectory.load(deflated)
+    np.testing.assert_array_equal(loaded.t, run.t)
+
+
+def test_read_npz_reads_what_numpy_reads_and_honours_a_smaller_budget(tmp_path: Path):
+    path = tmp_path / "a.npz"
+    arrays = {"t": np.linspace(0.0, 1.0, 101), "q": np.arange(303.0).reshape(101, 3)}
+    np.savez(path, **arrays)
+    contents = read_npz(path)
+    assert contents.keys() == arrays.keys()
+    for name, array in arrays.items():
+        np.testing.assert_array_equal(contents[name], array)
+    with zipfile.ZipFile(path) as archive:
+        first = archive.infolist()[0]
+    limit = first.file_size - 1  # the very first member already exceeds it
+    with pytest.raises(ms.TrajectoryFileError) as info:
+        check_npz(path, max_bytes=limit)
+    assert str(info.value).startswith(f"{path}: refused: its arrays would take more than {limit} bytes once read")
+
+
+# ---- known gap in a file this helper does not own -------------------------------------------------------
+def test_an_absurd_run_length_is_an_error_not_a_memory_error():
+    """duration / dt = 1e15 samples cannot be preallocated: the caller should get an InvalidArgumentError
+    (CLI: exit 2), not numpy's MemoryError (CLI: a traceback)."""
+    pendulum = ms.load_robot("pendulum")
+    try:
+        ms.simulate(pendulum, [0.1], [0.0], duration=1e9, dt=1e-6)
+    except ms.MultibodySimError:
+        return
+    except MemoryError:
+        pytest.xfail("simulation.py preallocates duration/dt samples (_Samples) before checking they fit: see report")
+    pytest.fail("a 1e15-sample run did not stop")
+
+
+# ---- slow: what the guards prevent ---------------------------------------------------------------------
+# Each runs the unguarded library call on a hostile input in a child process, to show the limit is needed.
+UNGUARDED = r"""
+import json, re, sys, time
+def peak():
+    return int(re.search(r"VmHWM:\s+(\d+) kB", open("/proc/self/status").read()).group(1)) * 1024
+kind, path = sys.argv[1], sys.argv[2]
+import numpy as np
+from lxml import etree
+import pinocchio as pin
+before, start = peak(), time.perf_counter()
+if kind == "np.load":
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+elif kind == "lxml":
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False)
+    etree.fromstring(open(path, "rb").read(), parser)
+else:
+    pin.buildModelFromUrdf(path)
+print(json.dumps({"seconds": time.perf_counter() - start, "peak_growth": peak() - before}))
+"""
+
+
+def unguarded(kind: str, path: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-c", UNGUARDED, kind, str(path)], capture_output=True, text=True, timeout=600
+    )
+
+
+@pytest.mark.slow
+def test_slow_unguarded_numpy_allocates_the_whole_bomb(tmp_path: Path):
+    """np.load on the catalogue's bomb takes its whole declared size in memory; Trajectory.load refuses it."""
+    trigger = BY_ID["npz-deflate-bomb"].build(tmp_path)
+    result = unguarded("np.load", Path(trigger.fields["npz"]))
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert json.loads(result.stdout)["peak_growth"] >= 512 * MiB
+
+
+@pytest.mark.slow
+def test_slow_unguarded_libxml2_spends_seconds_and_hundreds_of_megabytes(tmp_path: Path):
+    """30 MB of tiny elements (under the 32 MiB file limit): libxml2 alone needs far more than the element
+    limit lets it have; load_robot refuses the file before parsing."""
+    path = tmp_path / "robot.urdf"
+    path.write_text(
+        urdf(link("base"), link("bob"), joint("j1", "base", "bob")).replace("</robot>", "<a/>" * 7_000_000 + "</robot>")
+    )
+    result = unguarded("lxml", path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert json.loads(result.stdout)["peak_growth"] > 300 * MiB
+    with pytest.raises(ms.ModelError, match="XML elements, more than the 100000"):
+        ms.load_robot(path)
+
+
+@pytest.mark.slow
+def test_slow_unguarded_pinocchio_crashes_on_a_deep_chain(tmp_path: Path):
+    """Pinocchio's URDF parser recurses along the chain: 5000 links overflow the stack (a crash, no error)."""
+    path = tmp_path / "chain.urdf"
+    parts = [link("l0", com="0 0 0")]
+    for i in range(1, 5000):
+        parts += [link(f"l{i}"), joint(f"j{i}", f"l{i - 1}", f"l{i}", xyz="0 0 -1")]
+    path.write_text(urdf(*parts))
+    result = unguarded("pinocchio", path)
+    assert result.returncode < 0, result  # killed by a signal (SIGSEGV)
+    with pytest.raises(ms.ModelError, match="the robot has 5000 links, more than the 1000"):
+        ms.load_robot(path)
