@@ -41,10 +41,14 @@ def main() -> None:
     common = ["run", "pendulum", "--q0", "1.0", "--integrator", "semi_implicit_euler", "--dt", str(dt)]
     cases = [
         ("baseline: 1e4 steps, every step sampled, in memory", [*common, "--duration", "10"]),
-        (f"{args.steps:.0e} steps, every step sampled, --chunk 100000",
-         [*common, "--duration", str(duration), "--chunk", "100000", "--out", str(folder / "chunked.npz")]),
-        (f"{args.steps:.0e} steps, --output-dt 1 (1 sample per 1000 steps), in memory",
-         [*common, "--duration", str(duration), "--output-dt", "1", "--out", str(folder / "decimated.npz")]),
+        (
+            f"{args.steps:.0e} steps, every step sampled, --chunk 100000",
+            [*common, "--duration", str(duration), "--chunk", "100000", "--out", str(folder / "chunked.npz")],
+        ),
+        (
+            f"{args.steps:.0e} steps, --output-dt 1 (1 sample per 1000 steps), in memory",
+            [*common, "--duration", str(duration), "--output-dt", "1", "--out", str(folder / "decimated.npz")],
+        ),
     ]
     rows = []
     for label, cli_args in cases:

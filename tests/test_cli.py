@@ -21,8 +21,8 @@ import pytest
 from conftest import joint, link, urdf
 
 import multibody_sim as ms
-from multibody_sim.catalog import CATALOG, catalog_urdf
 from multibody_sim import cli
+from multibody_sim.catalog import CATALOG, catalog_urdf
 from multibody_sim.cli import main
 
 PREFIX = "multibody-sim: error: "

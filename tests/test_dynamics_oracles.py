@@ -75,9 +75,7 @@ class LagrangeOracle:
 
 
 def _vector(components: list[float], frame: me.ReferenceFrame) -> me.Vector:
-    return sum(
-        (sp.Float(c) * e for c, e in zip(components, (frame.x, frame.y, frame.z), strict=True)), me.Vector(0)
-    )
+    return sum((sp.Float(c) * e for c, e in zip(components, (frame.x, frame.y, frame.z), strict=True)), me.Vector(0))
 
 
 def _urdf_rpy_frame(name: str, parent: me.ReferenceFrame, rpy: list[float]) -> me.ReferenceFrame:
@@ -106,9 +104,7 @@ def lagrange_oracle(root: etree._Element, *, rotational_inertia: bool = True) ->
         joint_point = point.locatenew(f"P{k}", _vector(_floats(placement, "xyz", "0 0 0"), frame))
         joint_frame = _urdf_rpy_frame(f"J{k}", frame, _floats(placement, "rpy", "0 0 0"))
         link_frame = me.ReferenceFrame(f"L{k}")
-        link_frame.orient_axis(
-            joint_frame, _vector(_floats(joint.find("axis"), "xyz", "1 0 0"), joint_frame), angle
-        )
+        link_frame.orient_axis(joint_frame, _vector(_floats(joint.find("axis"), "xyz", "1 0 0"), joint_frame), angle)
 
         inertial = links[joint.find("child").get("link")].find("inertial")
         mass = float(inertial.find("mass").get("value"))
@@ -117,9 +113,7 @@ def lagrange_oracle(root: etree._Element, *, rotational_inertia: bool = True) ->
         com.set_vel(world, com.pos_from(origin).dt(world))
         inertial_frame = _urdf_rpy_frame(f"I{k}", link_frame, _floats(com_placement, "rpy", "0 0 0"))
         element = inertial.find("inertia")
-        ixx, iyy, izz, ixy, iyz, ixz = (
-            float(element.get(a)) for a in ("ixx", "iyy", "izz", "ixy", "iyz", "ixz")
-        )
+        ixx, iyy, izz, ixy, iyz, ixz = (float(element.get(a)) for a in ("ixx", "iyy", "izz", "ixy", "iyz", "ixz"))
         scale = 1.0 if rotational_inertia else 0.0
         # sympy's inertia() takes the tensor's entries, as URDF does (products of inertia with their sign).
         dyadic = scale * me.inertia(inertial_frame, ixx, iyy, izz, ixy, iyz, ixz)
@@ -182,18 +176,14 @@ def test_gravity_points_down_world_z(robot: Callable[..., ms.Robot]) -> None:
         np.testing.assert_array_equal(gravity.angular, [0.0, 0.0, 0.0])
 
 
-def test_double_pendulum_terms_match_sympy_lagrangian(
-    robot: Callable[..., ms.Robot], oracle: LagrangeOracle
-) -> None:
+def test_double_pendulum_terms_match_sympy_lagrangian(robot: Callable[..., ms.Robot], oracle: LagrangeOracle) -> None:
     pendulum = robot("double_pendulum", damping=False)
     for q, v, _ in _double_pendulum_states(6, seed=1):
         M = oracle.mass_matrix(q)
         _assert_close(pendulum.mass_matrix(q), M, f"M at q={q}")
         _assert_close(pendulum.gravity(q), oracle.gravity(q), f"g at q={q}")
         _assert_close(pendulum.coriolis_matrix(q, v) @ v, oracle.coriolis(q, v), f"C v at q={q}, v={v}")
-        _assert_close(
-            pendulum.nonlinear_effects(q, v), oracle.coriolis(q, v) + oracle.gravity(q), f"C v + g at q={q}"
-        )
+        _assert_close(pendulum.nonlinear_effects(q, v), oracle.coriolis(q, v) + oracle.gravity(q), f"C v + g at q={q}")
         assert pendulum.kinetic_energy(q, v) == pytest.approx(oracle.kinetic_energy(q, v), rel=ORACLE_RTOL)
         # Both measure height from world z = 0 where the base link is welded: no constant offset expected.
         assert pendulum.potential_energy(q) == pytest.approx(oracle.potential_energy(q), rel=ORACLE_RTOL)
@@ -205,17 +195,13 @@ def test_double_pendulum_gravity_is_not_trivially_small(oracle: LagrangeOracle) 
         assert np.max(np.abs(oracle.gravity(q))) > 1e-3  # N·m; the links weigh ~0.3 kg at ~0.1 m
 
 
-def test_double_pendulum_upright_at_zero_hanging_at_pi(
-    robot: Callable[..., ms.Robot], oracle: LagrangeOracle
-) -> None:
+def test_double_pendulum_upright_at_zero_hanging_at_pi(robot: Callable[..., ms.Robot], oracle: LagrangeOracle) -> None:
     """q = 0 is upright (the potential maximum), [π, 0] hangs (the minimum): the catalog's documented pose."""
     pendulum = robot("double_pendulum")
     upright, hanging = np.zeros(2), np.array([np.pi, 0.0])
     drop = oracle.potential_energy(upright) - oracle.potential_energy(hanging)
     assert drop > 0.1  # J: ~0.6 kg falling ~0.2 m on average
-    assert pendulum.potential_energy(upright) - pendulum.potential_energy(hanging) == pytest.approx(
-        drop, rel=1e-12
-    )
+    assert pendulum.potential_energy(upright) - pendulum.potential_energy(hanging) == pytest.approx(drop, rel=1e-12)
 
 
 def test_rotational_inertia_is_visible_to_the_comparison(
@@ -336,22 +322,16 @@ def test_mass_matrix_rate_minus_twice_coriolis_is_skew(
 
 # ---- energies ----------------------------------------------------------------------------------------------
 @pytest.mark.parametrize(("name", "floating_base"), DYNAMICS_ROBOTS)
-def test_kinetic_energy_is_half_v_m_v(
-    robot: Callable[..., ms.Robot], name: str, floating_base: bool | None
-) -> None:
+def test_kinetic_energy_is_half_v_m_v(robot: Callable[..., ms.Robot], name: str, floating_base: bool | None) -> None:
     r = robot(name, floating_base=floating_base)
     rng = np.random.default_rng(13)
     for _ in range(3):
         q, v, _ = _random_state(r, rng)
         assert r.kinetic_energy(q, v) == pytest.approx(0.5 * v @ r.mass_matrix(q) @ v, rel=1e-13)
-        assert r.total_energy(q, v) == pytest.approx(
-            r.kinetic_energy(q, v) + r.potential_energy(q), rel=1e-15
-        )
+        assert r.total_energy(q, v) == pytest.approx(r.kinetic_energy(q, v) + r.potential_energy(q), rel=1e-15)
 
 
-def _potential_gradient(
-    r: ms.Robot, q: np.ndarray, step: Callable[[np.ndarray, np.ndarray], np.ndarray]
-) -> np.ndarray:
+def _potential_gradient(r: ms.Robot, q: np.ndarray, step: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
     """Central differences of V along step(q, ±h eᵢ) for each velocity direction i."""
     h = 1e-5  # V ~ 10…1000 J: round-off ~1e-16 V/h ≈ 1e-11 V, truncation ~h² ≈ 1e-10 relative
     V = r.potential_energy
@@ -416,9 +396,7 @@ def _pendulum_from_urdf(path: Path) -> PhysicalPendulum:
     mass = float(inertial.find("mass").get("value"))
     com = np.array(_floats(inertial.find("origin"), "xyz", "0 0 0"))
     t = {a: float(inertial.find("inertia").get(a)) for a in ("ixx", "iyy", "izz", "ixy", "iyz", "ixz")}
-    tensor = np.array(
-        [[t["ixx"], t["ixy"], t["ixz"]], [t["ixy"], t["iyy"], t["iyz"]], [t["ixz"], t["iyz"], t["izz"]]]
-    )
+    tensor = np.array([[t["ixx"], t["ixy"], t["ixz"]], [t["ixy"], t["iyy"], t["iyz"]], [t["ixz"], t["iyz"], t["izz"]]])
     arm = float(np.linalg.norm(com - (com @ axis) * axis))
     return PhysicalPendulum(mass=mass, arm=arm, pivot_inertia=float(axis @ tensor @ axis) + mass * arm**2)
 

@@ -21,6 +21,7 @@ import re
 import sys
 import tempfile
 import traceback
+import warnings
 import zipfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -224,16 +225,22 @@ def load_case(tally: Tally, path: Path, data: bytes, dirs: list[str], stderr: Ca
     path.write_bytes(data)
     stderr()
     try:
-        robot = ms.load_robot(path, package_dirs=dirs or None)
+        with warnings.catch_warnings(record=True) as caught:  # a warning is a line on the CLI's stderr
+            warnings.simplefilter("always")
+            robot = ms.load_robot(path, package_dirs=dirs or None)
     except Exception as exc:  # anything but our own errors is the finding
         problem = check_refusal(exc, path)
         tally.count(type(exc).__name__)
         if problem is None and (log := stderr()):
             problem = f"refusal with output on stderr: {log!r:.300}"
+        if problem is None and caught:
+            problem = f"refusal with a warning: {caught[0].message!s:.300}"
         if problem is not None:
             tally.fail(f"{problem}\n  input: {data[:400]!r}\n  {''.join(traceback.format_exception(exc))[-1500:]}")
         return
     tally.count("loaded")
+    if caught:
+        tally.fail(f"loaded with a warning: {caught[0].message!s:.300} ({caught[0].filename}:{caught[0].lineno})")
     stderr()  # what urdfdom says about a model that does build is passed on; not a failure
     M = robot.mass_matrix(robot.neutral())
     if not (np.all(np.isfinite(M)) and np.all(np.linalg.eigvalsh(M) > 0)):
@@ -258,10 +265,13 @@ def run_fuzzer(
 
 
 def header_field_types_bug(failure: str) -> bool:
-    """trajectory.py's _from_arrays takes the header's stats, ledger_kinds and metadata for dicts without
-    checking (reported to the lead; a raw TypeError, AttributeError or ValueError comes out)."""
+    """Two reported bugs of trajectory.py's _from_arrays: it takes the header's stats, ledger_kinds and
+    metadata for dicts without checking (a raw TypeError, AttributeError or ValueError comes out), and it
+    quotes ledger names from the header unescaped (a message with a line break)."""
     last_frames = failure[failure.rfind("trajectory.py") :]
-    return failure.startswith("raw ") and "_from_arrays" in last_frames and "trajectory.py" in failure
+    raw_from_header = failure.startswith("raw ") and "_from_arrays" in last_frames and "trajectory.py" in failure
+    unescaped_name = failure.startswith("multi-line message: ") and ": ledger entry '" in failure
+    return raw_from_header or unescaped_name
 
 
 def test_fuzz_urdf_mutations(tmp_path_factory: pytest.TempPathFactory):

@@ -203,7 +203,10 @@ def load_robot(
         floating = bool(floating_base)
         name = path.stem
     try:
-        return _load_urdf(path.resolve(), name, floating, bool(damping), dirs, extra_roots, arguments)
+        # The checks test finiteness themselves: numpy's overflow warnings on a hostile file's 1e308s would only
+        # add lines to stderr.
+        with np.errstate(all="ignore"):
+            return _load_urdf(path.resolve(), name, floating, bool(damping), dirs, extra_roots, arguments)
     except ModelError as exc:
         # Messages quote names and paths from the file: never let them carry line breaks, terminal escapes
         # or megabytes to the user's terminal.

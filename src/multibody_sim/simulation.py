@@ -104,8 +104,9 @@ def simulate(
     if on_sample is not None and not callable(on_sample):
         raise InvalidArgumentError(f"on_sample must be callable as on_sample(t, q, v), got {type(on_sample).__name__}")
     sink.on_sample = on_sample
-    if controller is not None and callable(getattr(controller, "reset", None)):
-        controller.reset()  # a stateful controller starts every run afresh
+    reset = getattr(controller, "reset", None)
+    if callable(reset):
+        reset()  # a stateful controller starts every run afresh
     if method.adaptive:
         run: _Run = _AdaptiveRun(system, method, q0, v0, duration, dt, controller, options, sink)
     else:

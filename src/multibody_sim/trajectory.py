@@ -9,7 +9,7 @@ import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -363,7 +363,7 @@ def _map_npz(path: Path) -> dict[str, np.ndarray] | None:
             if dtype.kind == "U":  # the JSON header: small, read it whole
                 contents[name] = np.frombuffer(f.read(dtype.itemsize * int(np.prod(shape))), dtype=dtype).reshape(shape)
             else:
-                order = "F" if fortran else "C"
+                order: Literal["F", "C"] = "F" if fortran else "C"
                 contents[name] = np.memmap(path, dtype=dtype, mode="r", offset=f.tell(), shape=shape, order=order)
     return contents
 
