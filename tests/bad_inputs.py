@@ -721,6 +721,18 @@ CATALOGUE: list[BadInput] = [
         lambda tmp: urdf_trigger(tmp, urdf(BASE, link("bob"), joint("j1", "base", "bob", kind="ball"))),
     ),
     BadInput(
+        "urdfdom-skips-inertial",
+        "URDF file",
+        "an inertial origin with one number instead of three (Pinocchio's parser would drop the link's mass)",
+        "{urdf}: Pinocchio's URDF parser skipped part of the file (Parser found 1 elements but 3 expected while "
+        "parsing vector [0.0])",
+        "Fix the element the message quotes; a model missing part of its file would simulate other dynamics.",
+        lambda tmp: urdf_trigger(
+            tmp,
+            urdf(BASE, link("bob", com="0.0"), joint("j1", "base", "bob"), link("tip"), joint("j2", "bob", "tip")),
+        ),
+    ),
+    BadInput(
         "urdfdom-duplicate-material",
         "URDF file",
         "two materials with the same name (refused by Pinocchio's URDF parser, whose log is not printed)",

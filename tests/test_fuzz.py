@@ -13,6 +13,7 @@ appends one JSON line: its name, the cases it ran, and the failures it saw).
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import io
 import json
@@ -224,14 +225,15 @@ def load_case(tally: Tally, path: Path, data: bytes, dirs: list[str], stderr: Ca
     """Load one fuzzed URDF and record what happened; a raw exception or stray stderr is a failure."""
     path.write_bytes(data)
     stderr()
+    python_stderr = io.StringIO()  # logging's last-resort handler and print(file=sys.stderr) land here
     try:
-        with warnings.catch_warnings(record=True) as caught:  # a warning is a line on the CLI's stderr
-            warnings.simplefilter("always")
+        with warnings.catch_warnings(record=True) as caught, contextlib.redirect_stderr(python_stderr):
+            warnings.simplefilter("always")  # a warning is a line on the CLI's stderr
             robot = ms.load_robot(path, package_dirs=dirs or None)
     except Exception as exc:  # anything but our own errors is the finding
         problem = check_refusal(exc, path)
         tally.count(type(exc).__name__)
-        if problem is None and (log := stderr()):
+        if problem is None and (log := stderr() + python_stderr.getvalue()):
             problem = f"refusal with output on stderr: {log!r:.300}"
         if problem is None and caught:
             problem = f"refusal with a warning: {caught[0].message!s:.300}"

@@ -9,6 +9,7 @@ kernel, sees every open or read of the secret files by any code (libxml2, urdfdo
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import os
@@ -18,10 +19,12 @@ import sys
 import threading
 import time
 import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 import pytest
 from bad_inputs import (
     BY_ID,
@@ -40,7 +43,7 @@ from bad_inputs import (
 from conftest import joint, link, urdf
 
 import multibody_sim as ms
-from multibody_sim.catalog import read_urdf
+from multibody_sim.catalog import parse_urdf, read_urdf
 from multibody_sim.cli import main
 from multibody_sim.safety import check_npz, read_npz
 
@@ -436,13 +439,49 @@ def test_a_fifo_given_as_a_urdf_does_not_block(tmp_path: Path):
         read_urdf(fifo)
 
 
-def test_pinocchios_log_of_a_model_that_builds_is_passed_on(write_urdf, capfd: pytest.CaptureFixture[str]):
-    """Capturing urdfdom's stderr keeps it out of error messages, but what it says about a model that does
-    build (here a material without a colour) still reaches stderr."""
-    path = write_urdf(urdf(link("base"), link("bob"), joint("j1", "base", "bob"), '<material name="m"/>'))
-    capfd.readouterr()
-    assert ms.load_robot(path).nv == 1
-    assert "Material [m] color has no rgba" in capfd.readouterr().err
+def test_what_pinocchios_parser_skips_would_silently_change_the_model(write_urdf):
+    """Why the catalogue's urdfdom-skips-inertial entry is refused: an inertial origin with one number instead
+    of three makes Pinocchio's parser log an error and drop the whole <inertial>, so built directly the 1 kg
+    link has no mass, while yourdfpy (which the checks read) sees the 1 kg. Loaded as it is, the robot would
+    have passed every check and simulated different dynamics than its file describes."""
+    text = urdf(
+        '<link name="base"/>',
+        link("bob", com="0.0"),
+        joint("j1", "base", "bob"),
+        link("tip", mass=2.0),
+        joint("j2", "bob", "tip", xyz="0 0 -1"),
+    )
+    with _quiet_fd2():
+        model = pin.buildModelFromXML(text)
+    assert model.inertias[model.getJointId("j1")].mass == 0.0
+    assert model.inertias[model.getJointId("j2")].mass == 2.0
+    description = parse_urdf(text.encode(), Path("robot.urdf"))
+    assert {link.name: link.inertial.mass for link in description.robot.links if link.inertial} == {
+        "bob": 1.0,
+        "tip": 2.0,
+    }
+    with pytest.raises(
+        ms.ModelError,
+        match=exact(
+            f"{write_urdf(text).resolve()}: Pinocchio's URDF parser skipped part of the file (Parser found 1 "
+            "elements but 3 expected while parsing vector [0.0])"
+        ),
+    ):
+        ms.load_robot(write_urdf(text))
+
+
+@contextlib.contextmanager
+def _quiet_fd2() -> Iterator[None]:
+    """Send what C++ code writes to stderr to /dev/null for the block."""
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    try:
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 # ---- trajectory archives -------------------------------------------------------------------------------

@@ -37,7 +37,7 @@ import numpy as np
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
 from .integrators import INTEGRATORS, Integrator, get_integrator
 from .robot import Robot
-from .simulation import _versions, simulate
+from .simulation import _versions, positive_number, simulate
 from .trajectory import Trajectory, write_atomically
 
 FORMAT = "multibody-sim work-precision"
@@ -520,30 +520,30 @@ def work_precision(
     """
     q0 = system.check_q(q0, "q0")
     v0 = system.check_v(v0, "v0")
-    duration = _positive(duration, "duration")
+    duration = positive_number(duration, "duration")
     methods, refused = _methods(system, integrators)
-    grid = min(OUTPUT_DT, duration) if output_dt is None else _positive(output_dt, "output_dt")
+    grid = min(OUTPUT_DT, duration) if output_dt is None else positive_number(output_dt, "output_dt")
     if grid > duration * (1 + 1e-12):
         raise InvalidArgumentError(f"output_dt must not exceed the duration ({duration:g} s), got {grid:g} s")
     if steps is None:
         ladder = [dt for dt in STEP_LADDER if dt <= grid * (1 + 1e-12) and _divides(dt, grid)]
     else:
-        ladder = sorted({_positive(dt, "steps") for dt in steps}, reverse=True)
+        ladder = sorted({positive_number(dt, "steps") for dt in steps}, reverse=True)
         for dt in ladder:
             if not _divides(dt, grid):
                 raise InvalidArgumentError(
                     f"steps: {dt:g} s does not divide output_dt = {grid:g} s (the common sample grid)"
                 )
     tols = sorted(
-        {_positive(t, "tolerances", None) for t in (TOLERANCE_LADDER if tolerances is None else tolerances)},
+        {positive_number(t, "tolerances", None) for t in (TOLERANCE_LADDER if tolerances is None else tolerances)},
         reverse=True,
     )
-    reference_tolerance = _positive(reference_tolerance, "reference_tolerance", None)
-    refinement = _positive(refinement, "refinement", None)
+    reference_tolerance = positive_number(reference_tolerance, "reference_tolerance", None)
+    refinement = positive_number(refinement, "refinement", None)
     if refinement <= 1:
         raise InvalidArgumentError(f"refinement must be > 1 (the check is that many times tighter), got {refinement}")
-    min_error = _positive(min_error, "min_error", None)
-    max_run_time = _positive(max_run_time, "max_run_time")
+    min_error = positive_number(min_error, "min_error", None)
+    max_run_time = positive_number(max_run_time, "max_run_time")
     if not isinstance(repeats, (int, np.integer)) or isinstance(repeats, bool) or repeats < 1:
         raise InvalidArgumentError(f"repeats must be a positive integer, got {repeats!r}")
     if not isinstance(max_steps, (int, np.integer)) or isinstance(max_steps, bool) or max_steps < 1:
@@ -861,7 +861,7 @@ def recommend(result: WorkPrecision, tolerance: float, *, cost: str = "cpu_time"
     Raises:
         InvalidArgumentError: tolerance is not a positive number, or cost is unknown.
     """
-    tolerance = _positive(tolerance, "tolerance", None)
+    tolerance = positive_number(tolerance, "tolerance", None)
     if cost not in _COSTS:
         raise InvalidArgumentError(f"cost must be one of {', '.join(map(repr, _COSTS))}, got {cost!r}")
     meeting = [m for m in result.measurements if m.completed and m.error + result.reference_error <= tolerance]
@@ -939,10 +939,10 @@ def choose_integrator(
             gives the most accurate one measured).
         BenchInterrupted: Ctrl-C during the pilot.
     """
-    tolerance = _positive(tolerance, "tolerance", None)
+    tolerance = positive_number(tolerance, "tolerance", None)
     q0 = system.check_q(q0, "q0")
     v0 = system.check_v(v0, "v0")
-    horizon = min(_positive(duration, "duration"), PILOT_HORIZON)
+    horizon = min(positive_number(duration, "duration"), PILOT_HORIZON)
     names = None if integrators is None else [get_integrator(i).name for i in integrators]
     min_error = min(tolerance, PILOT_MIN_ERROR)
     key = _cache_key(system, q0, v0, horizon, names)
@@ -1081,15 +1081,6 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
 
 
 # ---- helpers ---------------------------------------------------------------------------------------------
-def _positive(value: Any, name: str, unit: str | None = "seconds") -> float:
-    # Numbers only, as simulate() takes them: float() would also take "0.5" and True.
-    is_number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-    if not is_number or not (math.isfinite(value) and value > 0):
-        what = f"a positive number of {unit}" if unit else "a positive number"
-        raise InvalidArgumentError(f"{name} must be {what}, got {value!r}")
-    return float(value)
-
-
 def _divides(dt: float, period: float) -> bool:
     k = round(period / dt)
     return k >= 1 and abs(k * dt - period) <= 1e-9 * period

@@ -623,12 +623,16 @@ def _build_model(xml: bytes, path: Path, floating: bool) -> pin.Model:
         except (RuntimeError, ValueError, TypeError, OverflowError) as exc:
             error = exc
     log = "".join(logged)
+    # urdfdom's first "Error:" line says what is wrong; Pinocchio's own message only that something is.
+    reasons = [line.removeprefix("Error:").strip() for line in log.splitlines() if line.startswith("Error:")]
+    if error is None and reasons:
+        # urdfdom skips what it cannot read and carries on: an <inertial> without <inertia> leaves its link
+        # massless, though the file says otherwise. No example-robot-data URDF that builds logs an error.
+        raise ModelError(f"{path}: Pinocchio's URDF parser skipped part of the file ({reasons[0]})")
     if error is None:
         if log:  # warnings of a model that did build: pass them on unchanged
             sys.stderr.write(log)
         return model
-    # urdfdom's first "Error:" line says what is wrong; Pinocchio's own message only that something is.
-    reasons = [line.removeprefix("Error:").strip() for line in log.splitlines() if line.startswith("Error:")]
     lines = str(error).strip().splitlines()
     reason = reasons[0] if reasons else (lines[0] if lines else type(error).__name__)
     raise ModelError(f"{path}: Pinocchio cannot build the model ({reason})") from None

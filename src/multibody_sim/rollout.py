@@ -30,11 +30,11 @@ from .simulation import (
     BLOWUP_FACTOR,
     _check_options,
     _limit_violations,
-    _positive,
-    _stable_implicit_for,
     _steps_per,
     _versions,
+    positive_number,
     simulate,
+    stable_implicit_integrators,
 )
 from .trajectory import LedgerEntry, LimitViolations, Trajectory
 
@@ -233,8 +233,8 @@ def rollout(
     _check_options(method, options)
     Q0, V0 = _check_batch(system, q0s, v0s)
     B = len(Q0)
-    duration = _positive(duration, "duration")
-    dt = _positive(dt, "dt")
+    duration = positive_number(duration, "duration")
+    dt = positive_number(dt, "dt")
     if backend not in _BACKENDS:
         raise InvalidArgumentError(f"backend must be one of {', '.join(_BACKENDS)}, got {backend!r}")
     if isinstance(num_threads, bool) or not isinstance(num_threads, (int, np.integer)) or num_threads < 1:
@@ -420,7 +420,7 @@ def _control_instants(method: Integrator, duration: float, dt: float, options: d
             raise InvalidArgumentError(
                 f"taus with the adaptive integrator '{method.name}' need control_dt (the period of the torque sequence)"
             )
-        period = _positive(options["control_dt"], "control_dt")
+        period = positive_number(options["control_dt"], "control_dt")
         return max(1, math.ceil(duration / period - 1e-9)), period
     every = _steps_per(options.get("control_dt"), dt, "control_dt")
     n_steps = _n_steps(duration, dt)
@@ -863,7 +863,7 @@ class _BatchedRun:
         self.Q, self.V, self.TAU, self.FLOWS = self.Q[keep], self.V[keep], self.TAU[keep], self.FLOWS[keep]
 
     def _cure(self) -> str:
-        implicit = _stable_implicit_for(self.system)
+        implicit = stable_implicit_integrators(self.system)
         also = f", or an implicit integrator ({', '.join(implicit)})" if implicit else ""
         return f"try a smaller dt (now {self.dt:g} s){also}"
 

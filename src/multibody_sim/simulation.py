@@ -93,8 +93,8 @@ def simulate(
     _check_options(method, options)
     q0 = system.check_q(q0, "q0")
     v0 = system.check_v(v0, "v0")
-    duration = _positive(duration, "duration")
-    dt = _positive(dt, "dt")
+    duration = positive_number(duration, "duration")
+    dt = positive_number(dt, "dt")
     if controller is not None and not callable(controller):
         raise InvalidArgumentError(
             f"controller must be callable as controller(t, q, v), got {type(controller).__name__}"
@@ -153,11 +153,13 @@ def _check_options(method: Integrator, options: dict[str, Any]) -> None:
             )
 
 
-def _positive(value: Any, name: str, unit: str = "seconds") -> float:
+def positive_number(value: Any, name: str, unit: str | None = "seconds") -> float:
+    """value as a float if it is a positive finite number (not a string or bool), else InvalidArgumentError."""
     # Numbers only: float() would also take "0.5" and True (1 s), which hide mistakes at the public boundary.
     is_number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
     if not is_number or not (math.isfinite(value) and value > 0):
-        raise InvalidArgumentError(f"{name} must be a positive number of {unit}, got {value!r}")
+        what = f"a positive number of {unit}" if unit else "a positive number"
+        raise InvalidArgumentError(f"{name} must be {what}, got {value!r}")
     return float(value)
 
 
@@ -165,7 +167,7 @@ def _steps_per(period: Any, dt: float, name: str) -> int:
     """How many steps of dt make `period` (None: 1), which must be a whole multiple of dt."""
     if period is None:
         return 1
-    period = _positive(period, name)
+    period = positive_number(period, name)
     k = round(period / dt)
     if k < 1 or abs(k * dt - period) > 1e-9 * period:
         raise InvalidArgumentError(f"{name} must be a whole multiple of dt = {dt:g} s, got {period:g} s")
@@ -384,7 +386,7 @@ class _Run:
         )
 
     def _cure(self) -> str:
-        implicit = _stable_implicit_for(self.system)
+        implicit = stable_implicit_integrators(self.system)
         also = f", or an implicit integrator ({', '.join(implicit)})" if implicit else ""
         return f"try a smaller dt (now {self.dt:g} s){also}"
 
@@ -523,12 +525,16 @@ class _AdaptiveRun(_Run):
         options: dict[str, Any],
         sink: _Sink,
     ):
-        self.rtol = _positive(options["rtol"], "rtol", "units")
-        self.atol = _positive(options["atol"], "atol", "units")
-        self.max_step = _positive(options["max_step"], "max_step") if options.get("max_step") is not None else math.inf
-        self.output_dt = _positive(options["output_dt"], "output_dt") if options.get("output_dt") is not None else None
+        self.rtol = positive_number(options["rtol"], "rtol", "units")
+        self.atol = positive_number(options["atol"], "atol", "units")
+        self.max_step = (
+            positive_number(options["max_step"], "max_step") if options.get("max_step") is not None else math.inf
+        )
+        self.output_dt = (
+            positive_number(options["output_dt"], "output_dt") if options.get("output_dt") is not None else None
+        )
         self.control_dt = (
-            _positive(options["control_dt"], "control_dt") if options.get("control_dt") is not None else None
+            positive_number(options["control_dt"], "control_dt") if options.get("control_dt") is not None else None
         )
         capacity = math.ceil(duration / self.output_dt) + 2 if self.output_dt else 1024
         super().__init__(system, method, q0, v0, duration, dt, controller, options, capacity, sink)
@@ -610,7 +616,7 @@ class _AdaptiveRun(_Run):
         return None
 
     def _stiff_cure(self) -> str:
-        implicit = _stable_implicit_for(self.system)
+        implicit = stable_implicit_integrators(self.system)
         return (
             f"try an implicit integrator ({', '.join(implicit)}) or looser tolerances"
             if implicit
@@ -634,7 +640,7 @@ def _check_memory(n_samples: int, system: Robot) -> None:
         )
 
 
-def _stable_implicit_for(system: Robot) -> list[str]:
+def stable_implicit_integrators(system: Robot) -> list[str]:
     """Names of the A-stable implicit integrators that accept this system (the cure for stiffness)."""
     names = []
     for name, method in sorted(INTEGRATORS.items()):

@@ -13,7 +13,7 @@ import pinocchio as pin
 from .exceptions import InvalidArgumentError, SimulationError
 from .integrators import Integrator, get_integrator
 from .robot import Robot
-from .simulation import simulate
+from .simulation import positive_number, simulate
 from .trajectory import Trajectory
 
 # A mode decays when Re λ < -DECAY_TOLERANCE · max|λ|. The undamped modes of an equilibrium come out of LAPACK
@@ -134,7 +134,7 @@ def stiffness_ratio(
     Raises:
         InvalidArgumentError: q, v or tau has the wrong shape or is not finite, or decay_tolerance is not positive.
     """
-    tolerance = _positive(decay_tolerance, "decay_tolerance")
+    tolerance = positive_number(decay_tolerance, "decay_tolerance", None)
     eigenvalues = np.linalg.eigvals(linearization(system, q, v, tau))
     eigenvalues = eigenvalues[np.lexsort((eigenvalues.imag, eigenvalues.real))]
     radius = float(np.max(np.abs(eigenvalues))) if len(eigenvalues) else 0.0
@@ -274,14 +274,14 @@ def largest_stable_dt(
             "(largest_stable_dt applies to fixed-step integrators)"
         )
     q0, v0 = system.check_q(q0, "q0"), system.check_v(v0, "v0")
-    horizon = _positive(horizon, "horizon")
-    dt_max = horizon / 10 if dt_max is None else _positive(dt_max, "dt_max")
+    horizon = positive_number(horizon, "horizon", None)
+    dt_max = horizon / 10 if dt_max is None else positive_number(dt_max, "dt_max", None)
     if dt_max > horizon:
         raise InvalidArgumentError(f"dt_max must be at most the horizon ({horizon:g} s), got {dt_max:g} s")
-    ratio = _positive(ratio, "ratio")
+    ratio = positive_number(ratio, "ratio", None)
     if ratio <= 1.0:
         raise InvalidArgumentError(f"ratio must be greater than 1, got {ratio:g}")
-    energy_fraction = _positive(energy_fraction, "energy_fraction")
+    energy_fraction = positive_number(energy_fraction, "energy_fraction", None)
     if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise InvalidArgumentError(f"max_steps must be a positive integer, got {max_steps!r}")
     scale = system.kinetic_energy(q0, v0) + system.energy_scale
@@ -289,7 +289,7 @@ def largest_stable_dt(
         bound = energy_fraction * scale
         bound_text = f"{bound:.3g} J ({energy_fraction:g} of the energy scale T(q0, v0) + m|g|·1 m = {scale:.3g} J)"
     else:
-        bound = _positive(energy_bound, "energy_bound")
+        bound = positive_number(energy_bound, "energy_bound", None)
         bound_text = f"{bound:.3g} J (given)"
     criterion = (
         f"stable: the run completes the {horizon:g} s horizon (no divergence, Newton failure or other early stop), "
@@ -363,11 +363,3 @@ def _run_rung(
     else:
         reason = ""
     return LadderRung(dt, not reason, status, error, reached, int(traj.stats.get("steps", 0)), wall, reason)
-
-
-def _positive(value: Any, name: str) -> float:
-    # Numbers only, as simulate() takes them: "0.5" or True would hide mistakes at the public boundary.
-    is_number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-    if not is_number or not (math.isfinite(value) and value > 0):
-        raise InvalidArgumentError(f"{name} must be a positive number, got {value!r}")
-    return float(value)

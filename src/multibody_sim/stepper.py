@@ -10,7 +10,7 @@ import numpy as np
 from .exceptions import InvalidArgumentError, SimulationError
 from .integrators import INTEGRATORS, Integrator, StepFailure, get_integrator
 from .robot import Robot
-from .simulation import BLOWUP_FACTOR, MIN_STEP_FRACTION, Controller
+from .simulation import BLOWUP_FACTOR, MIN_STEP_FRACTION, Controller, positive_number, stable_implicit_integrators
 from .step_control import PIController
 from .trajectory import LedgerEntry, Trajectory
 
@@ -93,14 +93,14 @@ class Stepper:
         _check_options(method, options)
         self.system = system
         self.integrator = method
-        self.dt = _positive(dt, "dt")
+        self.dt = positive_number(dt, "dt")
         self.options = dict(options)
         self._adaptive = method.adaptive
         if self._adaptive:
-            self._rtol = _positive(options["rtol"], "rtol", "units")
-            self._atol = _positive(options["atol"], "atol", "units")
+            self._rtol = positive_number(options["rtol"], "rtol", "units")
+            self._atol = positive_number(options["atol"], "atol", "units")
             max_step = options.get("max_step")
-            self._max_step = _positive(max_step, "max_step") if max_step is not None else math.inf
+            self._max_step = positive_number(max_step, "max_step") if max_step is not None else math.inf
             # simulate()'s contract for adaptive methods: attempt(), embedded_order and fsal.
             self._fsal = bool(getattr(method, "fsal", False))
         method.check_system(system)
@@ -498,12 +498,6 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
-def _positive(value: Any, name: str, unit: str = "seconds") -> float:
-    if not _is_number(value) or not (math.isfinite(value) and value > 0):
-        raise InvalidArgumentError(f"{name} must be a positive number of {unit}, got {value!r}")
-    return float(value)
-
-
 def _finite(value: Any, name: str) -> float:
     if not _is_number(value) or not math.isfinite(value):
         raise InvalidArgumentError(f"{name} must be a finite number of seconds, got {value!r}")
@@ -516,27 +510,14 @@ def _frozen(array: np.ndarray) -> np.ndarray:
     return array
 
 
-def _implicit_cures(system: Robot) -> list[str]:
-    """Names of the A-stable implicit integrators that accept this system (the cure for stiffness)."""
-    names = []
-    for name, method in sorted(INTEGRATORS.items()):
-        if method.implicit and method.a_stable:
-            try:
-                method.check_system(system)
-            except InvalidArgumentError:
-                continue
-            names.append(name)
-    return names
-
-
 def _cure(system: Robot, dt: float) -> str:
-    implicit = _implicit_cures(system)
+    implicit = stable_implicit_integrators(system)
     also = f", or an implicit integrator ({', '.join(implicit)})" if implicit else ""
     return f"try a smaller dt (now {dt:g} s){also}"
 
 
 def _stiff_cure(system: Robot) -> str:
-    implicit = _implicit_cures(system)
+    implicit = stable_implicit_integrators(system)
     return (
         f"try an implicit integrator ({', '.join(implicit)}) or looser tolerances"
         if implicit

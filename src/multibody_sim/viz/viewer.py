@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from ..exceptions import InvalidArgumentError
 from ..robot import Robot
+from ..simulation import positive_number
 from ..trajectory import Trajectory
 from ._deps import check_viewer_dependencies
 from .frames import DEFAULT_FPS, resample
@@ -79,7 +79,7 @@ class Viewer:
         Returns:
             The number of frames shown.
         """
-        speed = _positive(speed, "speed")
+        speed = positive_number(speed, "speed", None)
         times, Q = resample(self.robot, trajectory, fps)
         self._stop_animation()
         if frame:
@@ -105,7 +105,7 @@ class Viewer:
         Call its ``finish(trajectory)`` after the run to show the last sample.
         """
         self._stop_animation()
-        return LiveView(self, _positive(speed, "speed"), 1.0 / _positive(fps, "fps"))
+        return LiveView(self, positive_number(speed, "speed", None), 1.0 / positive_number(fps, "fps", None))
 
     def animate(
         self,
@@ -129,7 +129,7 @@ class Viewer:
             seek: with play=False, show this animation time [s].
             frame: first aim the camera at the space the motion sweeps.
         """
-        speed = _positive(speed, "speed")
+        speed = positive_number(speed, "speed", None)
         times, Q = resample(self.robot, trajectory, fps)
         if frame:
             self.server.send(self.scene.camera_command(Q))
@@ -172,12 +172,6 @@ class Viewer:
         if self._animated:
             self.server.send({"type": "set_animation", "path": "", "animations": [], "options": {"play": False}})
             self._animated = False
-
-
-def _positive(value: float, name: str) -> float:
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-        raise InvalidArgumentError(f"{name} must be a positive number, got {value!r}")
-    return float(value)
 
 
 class LiveView:
