@@ -528,8 +528,8 @@ def reading(benches: list[Bench], over_cores: dict[str, float] | None, over_ray:
             rollout(num_threads=2) {rollout_speedup:.2f}× (its stage arithmetic stays on one thread); MuJoCo's
             rollout on two threads {mj_speedup:.2f}×. On this shared 2-core machine other jobs hold the cores
             (see the load average above), so a second thread mostly waits for a core, and OpenMP's waiting
-            threads cost more than they give; hence the default num_threads=1. On an idle multi-core machine
-            the abaInParallel share of the step scales with the threads."""),
+            threads cost more than they give; hence the default num_threads=1. How far threads pay on an idle
+            multi-core machine is not measured here."""),
         ]
     if over_ray:
         text += [

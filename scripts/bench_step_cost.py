@@ -816,41 +816,7 @@ def interpretation(
             `_linalg.py`) do show."""),
         ]
     suggestions = []
-    charts = [
-        (
-            r,
-            r.parts["3 × chart_velocity"],
-            r.extras["np.linalg.solve, 6 × 6"],
-            r.extras["chart rates, closed form"],
-            rk4,
-        )
-        for r, rk4, *_ in rows
-        if "np.linalg.solve, 6 × 6" in r.extras
-    ]
-    if charts and median([solve / rk4 for _, _, solve, _, rk4 in charts]) > 0.05:
-        listed = ", ".join(
-            f"{r.name} {fmt(solve)} of {fmt(now)} µs ({solve / rk4:.0%} of the step)"
-            for r, now, solve, _, rk4 in charts
-        )
-        closed = ", ".join(f"{r.name} {fmt(alt)} µs" for r, _, _, alt, _ in charts)
-        caveat = ""
-        if accuracy:
-            (e_now, _), (e_alt, th_alt) = accuracy[IN_USE], accuracy[IN_USE_JLOG]
-            if e_alt > 10 * e_now:
-                caveat = f"""; but it is less accurate: on the stages of the rk4 runs it errs by up to
-                    {e_alt:.0e} (at θ = {th_alt:.0e}) against the series where today's map errs by {e_now:.0e},
-                    see the sanity checks"""
-            else:
-                caveat = f""", and on the stages of the rk4 runs it is about as accurate ({e_alt:.0e} against
-                    {e_now:.0e} for today's map, see the sanity checks)"""
-        suggestions.append(
-            f"""in `state.py`, the chart map's `np.linalg.solve` on the free-flyer block costs {listed},
-            most of it numpy's per-call Python wrapper around LAPACK (its helpers such as `_commonType` show in
-            the profile), not the 6 × 6 factorisation. Calling LAPACK's gesv directly
-            (`scipy.linalg.lapack.dgesv`; scipy is already a dependency) keeps the same numerics at a fraction
-            of the cost. Pinocchio's closed form `Jlog6(exp6(xi)) @ v` (the inverse of SE(3)'s right
-            Jacobian) would take {closed} per step for the whole map{caveat}"""
-        )
+    # (The chart map's solve was made a direct LAPACK call on this script's earlier advice: no suggestion left.)
     beyond = [(r.name, record - r.parts["1 × energies (record)"], rk4) for r, rk4, _, _, record in rows]
     if median([extra / rk4 for _, extra, rk4 in beyond]) > 0.05:
         listed = ", ".join(f"{n} {fmt(extra)} µs" for n, extra, _ in beyond)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import copy
 import math
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ from .integrators.partitioned import SemiImplicitEuler
 from .robot import Robot
 from .simulation import (
     BLOWUP_FACTOR,
+    ProgressBar,
     _check_options,
     _limit_violations,
     _steps_per,
@@ -249,7 +249,7 @@ def rollout(
     control = _Control.build(system, method, controller, taus, B, duration, dt, options)
     if backend == "ray":
         return _ray_rollout(system, Q0, V0, duration, dt, method, control, progress, chunk_size, options)
-    bar = _ProgressBar(progress, B)
+    bar = ProgressBar(progress, B, "element", "rollout")
     start = time.perf_counter()
     try:
         if _batchable(system, method):
@@ -481,42 +481,6 @@ class _OneRow:
         return np.asarray(out)[0]
 
 
-# ---- progress ----------------------------------------------------------------------------------------------------
-class _ProgressBar:
-    """A tqdm bar over the batch's element-steps (or elements), or nothing."""
-
-    def __init__(self, progress: bool | None, total: int, unit: str = "element"):
-        self.bar = None
-        if progress is False:
-            return
-        from tqdm.auto import tqdm
-
-        # None: only on a terminal, and only once the run has lasted a second (short batches stay silent).
-        self.bar = tqdm(
-            total=total,
-            unit=unit,
-            desc="rollout",
-            disable=None if progress is None else False,
-            delay=1.0 if progress is None else 0.0,
-            leave=progress is True,
-            file=sys.stderr,
-            dynamic_ncols=True,
-        )
-
-    def reset(self, total: int, unit: str) -> None:
-        if self.bar is not None:
-            self.bar.unit = unit
-            self.bar.reset(total=total)
-
-    def update(self, n: int) -> None:
-        if self.bar is not None and n:
-            self.bar.update(n)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
 # ---- the batched fixed-step path -------------------------------------------------------------------------------
 class _BatchedRun:
     """simulate()'s fixed-step loop over a batch: the same arithmetic per element, vectorised over elements.
@@ -536,7 +500,7 @@ class _BatchedRun:
         control: _Control,
         options: dict[str, Any],
         num_threads: int,
-        bar: _ProgressBar,
+        bar: ProgressBar,
     ):
         self.system, self.method, self.control, self.options = system, method, control, options
         self.model, self.data = system.model, system.data
@@ -993,7 +957,7 @@ def _element_by_element(
     dt: float,
     control: _Control,
     options: dict[str, Any],
-    bar: _ProgressBar,
+    bar: ProgressBar,
     start: float,
 ) -> BatchTrajectory:
     trajectories: list[Trajectory] = []
@@ -1137,7 +1101,7 @@ def _run_chunk(
     options: dict[str, Any],
 ) -> BatchTrajectory:
     """One Ray task: a local rollout of a chunk of the batch, with one thread."""
-    bar = _ProgressBar(False, len(Q0))
+    bar = ProgressBar(False, len(Q0), "element", "rollout")
     start = time.perf_counter()
     if _batchable(system, method):
         return _BatchedRun(system, method, Q0, V0, duration, dt, control, options, 1, bar).execute(start)
@@ -1184,7 +1148,7 @@ def _ray_rollout(
         for i, (lo, hi) in enumerate(bounds)
     }
     results: list[BatchTrajectory | None] = [None] * len(bounds)
-    bar = _ProgressBar(progress, B)
+    bar = ProgressBar(progress, B, "element", "rollout")
     try:
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)

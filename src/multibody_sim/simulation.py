@@ -6,6 +6,7 @@ import functools
 import importlib.metadata
 import math
 import os
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -53,6 +54,7 @@ def simulate(
     out: str | os.PathLike[str] | None = None,
     chunk: int | None = None,
     on_sample: Callable[[float, np.ndarray, np.ndarray], None] | None = None,
+    progress: bool | None = None,
     **options: Any,
 ) -> Trajectory:
     """Integrate M(q) v' + C(q, v) v + g(q) = tau - D v from (q0, v0) for `duration` seconds.
@@ -74,6 +76,8 @@ def simulate(
             trajectory's arrays are then memory-mapped from `out`.
         on_sample: called as ``on_sample(t, q, v)`` at every sample as it is computed (a live viewer, a progress
             display); it must not modify q or v.
+        progress: a progress bar over simulated time on stderr: None shows one on a terminal for runs longer than
+            a second, True always, False never.
         **options: ``output_dt``: sampling period [s] (a multiple of dt for fixed-step methods; adaptive methods
             sample it by dense output); default: every step. ``control_dt``: controller period [s] (a multiple
             of dt for fixed-step methods; adaptive methods shorten steps to land on it); default: every step.
@@ -104,14 +108,81 @@ def simulate(
     if on_sample is not None and not callable(on_sample):
         raise InvalidArgumentError(f"on_sample must be callable as on_sample(t, q, v), got {type(on_sample).__name__}")
     sink.on_sample = on_sample
+    bar = ProgressBar(progress, duration, "s", "simulate", seconds=True)
+    if bar.bar is not None and not bar.bar.disable:
+        done = [0.0]
+
+        def advance(t: float, q: np.ndarray, v: np.ndarray) -> None:
+            bar.update(t - done[0])
+            done[0] = t
+            if on_sample is not None:
+                on_sample(t, q, v)
+
+        sink.on_sample = advance
     reset = getattr(controller, "reset", None)
     if callable(reset):
         reset()  # a stateful controller starts every run afresh
+    try:
+        return _run(system, method, q0, v0, duration, dt, controller, options, sink)
+    finally:
+        bar.close()
+
+
+def _run(
+    system: Robot,
+    method: Integrator,
+    q0: np.ndarray,
+    v0: np.ndarray,
+    duration: float,
+    dt: float,
+    controller: Controller | None,
+    options: dict[str, Any],
+    sink: _Sink,
+) -> Trajectory:
     if method.adaptive:
         run: _Run = _AdaptiveRun(system, method, q0, v0, duration, dt, controller, options, sink)
     else:
         run = _FixedStepRun(system, method, q0, v0, duration, dt, controller, options, sink)
     return run.execute()
+
+
+class ProgressBar:
+    """A tqdm progress bar on stderr, or nothing: None shows one only on a terminal and only once the work has
+    lasted a second (short runs stay silent), True always, False never."""
+
+    def __init__(self, progress: bool | None, total: float, unit: str, desc: str, *, seconds: bool = False):
+        self.bar = None
+        if progress is False:
+            return
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(
+            total=total,
+            unit=unit,
+            desc=desc,
+            disable=None if progress is None else False,
+            delay=1.0 if progress is None else 0.0,
+            leave=progress is True,
+            file=sys.stderr,
+            dynamic_ncols=True,
+            # simulated time is a float: show it rounded, not as 1.8900000000000001/3.0
+            bar_format="{desc}: {percentage:3.0f}%|{bar}| t = {n:.4g}/{total:.4g} s [{elapsed}<{remaining}]"
+            if seconds
+            else None,
+        )
+
+    def reset(self, total: int, unit: str) -> None:
+        if self.bar is not None:
+            self.bar.unit = unit
+            self.bar.reset(total=total)
+
+    def update(self, n: float) -> None:
+        if self.bar is not None and n:
+            self.bar.update(n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 class _Sink:
