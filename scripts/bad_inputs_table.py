@@ -36,7 +36,7 @@ LIMITS = [
     (
         "XML elements in a URDF",
         "100 000",
-        "counted before parsing: 30 MB of tiny elements would cost libxml2 ~4 s and ~600 MB",
+        "counted before parsing: 28 MB of tiny elements cost libxml2 4–6 s and 600–900 MB",
     ),
     (
         "links, joints",

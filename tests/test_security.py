@@ -283,12 +283,13 @@ def test_a_hostile_file_is_refused_within_two_seconds(measured: dict[str, Any], 
 @pytest.mark.parametrize("entry_id", HOSTILE_FILES)
 def test_a_hostile_file_costs_bounded_memory(measured: dict[str, Any], entry_id: str):
     """Peak RSS growth while refusing: the file's bytes held once, plus libxml2's tree of at most 100 000
-    elements (~200 B each, 20 MB) and small temporaries: file size + 32 MiB. Trajectory files are refused
-    from their directory and headers, no array allocated: file size + 8 MiB."""
+    elements (~370 B each, measured on the 50 000-link file: at most ~37 MiB) and small temporaries: file size
+    + 64 MiB. Trajectory files are refused from their directory and headers, no array allocated: file size
+    + 8 MiB."""
     if any(r["peak_growth"] is None for r in measured["results"][entry_id]):
         pytest.skip("/proc/self/clear_refs is not writable here: the peak RSS cannot be reset per input")
     entry = BY_ID[entry_id]
-    slack = 32 * MiB if entry.kind == "URDF file" else 8 * MiB
+    slack = 64 * MiB if entry.kind == "URDF file" else 8 * MiB
     # The sparse 32 MiB file is never read: its stat size is refused first.
     size = 0 if entry_id == "file-too-large" else measured["paths"][entry_id].stat().st_size
     for result in measured["results"][entry_id]:
@@ -537,18 +538,16 @@ def test_read_npz_reads_what_numpy_reads_and_honours_a_smaller_budget(tmp_path: 
     assert str(info.value).startswith(f"{path}: refused: its arrays would take more than {limit} bytes once read")
 
 
-# ---- known gap in a file this helper does not own -------------------------------------------------------
-def test_an_absurd_run_length_is_an_error_not_a_memory_error():
-    """duration / dt = 1e15 samples cannot be preallocated: the caller should get an InvalidArgumentError
-    (CLI: exit 2), not numpy's MemoryError (CLI: a traceback)."""
+# ---- run length --------------------------------------------------------------------------------------
+def test_an_absurd_run_length_is_refused_before_anything_is_allocated():
+    """duration / dt = 1e15 samples (8 PB per column) cannot be kept: an InvalidArgumentError saying so, not
+    numpy's MemoryError (the available memory in the message depends on the machine)."""
     pendulum = ms.load_robot("pendulum")
-    try:
+    with pytest.raises(
+        ms.InvalidArgumentError,
+        match=r"^this run would keep 1e\+15 samples \([0-9.e+]+ GiB\) in memory, more than the [0-9.]+ GiB available",
+    ):
         ms.simulate(pendulum, [0.1], [0.0], duration=1e9, dt=1e-6)
-    except ms.MultibodySimError:
-        return
-    except MemoryError:
-        pytest.xfail("simulation.py preallocates duration/dt samples (_Samples) before checking they fit: see report")
-    pytest.fail("a 1e15-sample run did not stop")
 
 
 # ---- slow: what the guards prevent ---------------------------------------------------------------------

@@ -27,8 +27,8 @@ from .safety import printable
 
 SUPPORTED_JOINT_TYPES = ("continuous", "fixed", "floating", "planar", "prismatic", "revolute")
 MAX_URDF_BYTES = 32 * 1024 * 1024  # the largest catalog URDF is ~200 kB; anything this big is not a robot
-# Refused before parsing: 30 MB of tiny elements costs libxml2 ~4 s and ~600 MB, and yourdfpy more. The largest
-# catalog URDF (talos) has ~2000 elements; 100k parse in ~0.1 s.
+# Refused before parsing: 28 MB of tiny elements cost libxml2 4-6 s and 600-900 MB, and yourdfpy more. The
+# largest catalog URDF (talos) has ~2000 elements; 100k parse in ~0.1 s and ~37 MB.
 MAX_XML_ELEMENTS = 100_000
 # The largest catalog robot has 78 links (anymal_c). Pinocchio's URDF parser recurses along chains and
 # overflows an 8 MiB stack near 4000 links (a crash, not an error), and a 8000-link star takes ~20 s to build.
@@ -337,7 +337,7 @@ def parse_urdf(xml: bytes, path: Path) -> Any:
     if "name" not in root.attrib:
         raise ModelError(f"{path}: the <robot> element has no 'name' attribute")
     for kind, limit in (("link", MAX_LINKS), ("joint", MAX_JOINTS)):
-        count = len(root.findall(kind))
+        count = int(root.xpath(f"count({kind})"))  # counted in libxml2: no Python object per element
         if count > limit:
             raise ModelError(
                 f"{path}: the robot has {count} {kind}s, more than the {limit} this simulator accepts "

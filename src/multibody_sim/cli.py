@@ -20,6 +20,7 @@ from types import FrameType
 from typing import Any, NoReturn
 
 import multibody_sim as ms
+from multibody_sim.safety import printable
 
 PROG = "multibody-sim"
 COMMANDS = ("run", "models", "inspect", "integrators", "bench", "play", "plot")
@@ -788,7 +789,8 @@ def _check_output(name: str, option: str, example: str) -> Path:
 # ---- helpers -----------------------------------------------------------------------------------------
 def _error(message: str, code: int = EXIT_BAD_INPUT) -> int:
     """Print one line on stderr and return the exit code."""
-    print(f"{PROG}: error: {' '.join(message.splitlines())}", file=sys.stderr)
+    # Names in messages may come from untrusted files: escape control characters, keep it to one line.
+    print(f"{PROG}: error: {printable(' '.join(message.splitlines()))}", file=sys.stderr)
     return code
 
 

@@ -230,7 +230,12 @@ class Trajectory:
                 raise TrajectoryFileError(
                     f"{path}: array '{name}' has shape {arr.shape} and dtype {arr.dtype}, inconsistent with {n} samples"
                 )
+        for key in ("stats", "ledger_kinds", "limit_violations", "metadata"):
+            if not isinstance(header.get(key, {}), dict):
+                raise TrajectoryFileError(f"{path}: malformed {key} in the header (expected a JSON object)")
         kinds = header.get("ledger_kinds", {})
+        if not all(isinstance(name, str) and kind in ("work", "dissipated") for name, kind in kinds.items()):
+            raise TrajectoryFileError(f"{path}: malformed ledger_kinds in the header (expected work or dissipated)")
         ledger = {}
         for name, kind in kinds.items():
             key = _LEDGER_PREFIX + name
