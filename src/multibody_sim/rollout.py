@@ -36,20 +36,8 @@ from .simulation import (
     simulate,
     stable_implicit_integrators,
 )
-from .trajectory import LedgerEntry, LimitViolations, Trajectory
+from .trajectory import ARRAYS, LedgerEntry, LimitViolations, Trajectory
 
-_ARRAYS = (
-    "t",
-    "q",
-    "v",
-    "tau",
-    "kinetic_energy",
-    "potential_energy",
-    "total_energy",
-    "work",
-    "dissipated",
-    "energy_error",
-)
 _COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls")
 _BACKENDS = ("local", "ray")
 # numpy >= 2 has vecdot, which calls the same BLAS dot as `x @ y` on 1-D arrays (so the ledger's powers match
@@ -133,7 +121,7 @@ class BatchTrajectory:
         if not -len(self) <= b < len(self):
             raise IndexError(f"element {b} out of range for a batch of {len(self)}")
         n = int(self.n_samples[b])
-        arrays = {name: getattr(self, name)[b, :n].copy() for name in _ARRAYS}
+        arrays = {name: getattr(self, name)[b, :n].copy() for name in ARRAYS}
         dof_names = self.metadata.get("robot", {}).get("dof_names", [])
         saturated = self.stats["saturated_dofs"][b]
         stats: dict[str, Any] = {name: int(self.stats[name][b]) for name in _COUNTS}
@@ -1023,7 +1011,7 @@ def _stack(
     N = max(1, int(n.max()))
     first = trajectories[0]
     arrays: dict[str, Any] = {}
-    for name in _ARRAYS:
+    for name in ARRAYS:
         shape = getattr(first, name).shape[1:]
         arr = np.zeros((B, N, *shape))
         for b, tr in enumerate(trajectories):
@@ -1069,7 +1057,7 @@ def _concatenate(batches: list[BatchTrajectory], wall_time: float | None = None)
         extra = np.repeat(arr[:, -1:], N - arr.shape[1], axis=1)
         return np.concatenate([arr, extra], axis=1)
 
-    arrays = {name: np.concatenate([widen(getattr(bt, name)) for bt in batches]) for name in _ARRAYS}
+    arrays = {name: np.concatenate([widen(getattr(bt, name)) for bt in batches]) for name in ARRAYS}
     ledger = {
         name: LedgerEntry(entry.kind, np.concatenate([widen(bt.ledger[name].energy) for bt in batches]))
         for name, entry in batches[0].ledger.items()

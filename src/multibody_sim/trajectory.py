@@ -18,7 +18,8 @@ from .safety import check_npz
 
 FORMAT = "multibody-sim trajectory"
 FORMAT_VERSION = 1
-_ARRAYS = (
+# The per-sample arrays every Trajectory (and BatchTrajectory) holds, in the order of the contract.
+ARRAYS = (
     "t",
     "q",
     "v",
@@ -159,7 +160,7 @@ class Trajectory:
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write an .npz of plain arrays plus JSON metadata, atomically (temporary file, then rename)."""
         path = Path(path)
-        arrays = {name: np.asarray(getattr(self, name)) for name in _ARRAYS}
+        arrays = {name: np.asarray(getattr(self, name)) for name in ARRAYS}
         for name, entry in self.ledger.items():
             arrays[_LEDGER_PREFIX + name] = np.asarray(entry.energy)
         header = {
@@ -220,11 +221,11 @@ class Trajectory:
                 f"{path}: trajectory format version {header.get('format_version')!r} is not supported "
                 f"(this version reads {FORMAT_VERSION})"
             )
-        missing = [name for name in _ARRAYS if name not in contents]
+        missing = [name for name in ARRAYS if name not in contents]
         if missing:
             raise TrajectoryFileError(f"{path}: trajectory file lacks arrays: {', '.join(missing)}")
         n = contents["t"].shape[0] if contents["t"].ndim == 1 else -1
-        for name in _ARRAYS:
+        for name in ARRAYS:
             arr = contents[name]
             if arr.dtype.kind != "f" or arr.ndim not in (1, 2) or arr.shape[0] != n:
                 raise TrajectoryFileError(
@@ -247,7 +248,7 @@ class Trajectory:
         except TypeError:
             raise TrajectoryFileError(f"{path}: malformed limit_violations in the header") from None
         return cls(
-            **{name: contents[name] for name in _ARRAYS},
+            **{name: contents[name] for name in ARRAYS},
             ledger=ledger,
             limit_violations=violations,
             stats=dict(header.get("stats", {})),
@@ -264,7 +265,7 @@ class Trajectory:
         pieces = [cls.load(chunk) for chunk in chunks]
         last = pieces[-1]
         return cls(
-            **{name: np.concatenate([getattr(p, name) for p in pieces]) for name in _ARRAYS},
+            **{name: np.concatenate([getattr(p, name) for p in pieces]) for name in ARRAYS},
             ledger={
                 name: LedgerEntry(entry.kind, np.concatenate([p.ledger[name].energy for p in pieces]))
                 for name, entry in last.ledger.items()
