@@ -151,7 +151,7 @@ class Bench:
             out["manifold"] = (manifold, B)
         if self.mj is not None:
             mj_model, mj_data, states = self.mj
-            qpos, qvel = StateMap(robot, mj_model).state(Q0[0], V0[0])
+            qpos, qvel = StateMap(robot, mj_model).to_mujoco(Q0[0], V0[0])
 
             def mj_loop() -> None:
                 mj_set_state(mj_model, mj_data, qpos, qvel)
@@ -184,7 +184,7 @@ def mujoco_states(robot: Any, model: Any, Q0: np.ndarray, V0: np.ndarray) -> np.
     full = mujoco.mjtState.mjSTATE_FULLPHYSICS
     out = np.empty((len(Q0), mujoco.mj_stateSize(model, full)))
     for b in range(len(Q0)):
-        mj_set_state(model, data, *smap.state(Q0[b], V0[b]))
+        mj_set_state(model, data, *smap.to_mujoco(Q0[b], V0[b]))
         mujoco.mj_getState(model, data, out[b], full)
     return out
 
@@ -209,7 +209,7 @@ def check_same_motion(bench: Bench) -> float:
     ours = rollout(bench.robot, bench.Q0, bench.V0, duration=bench.steps * DT, dt=DT, progress=False)
     worst = 0.0
     for b in range(bench.batch):
-        qpos, qvel = smap.state(ours.q[b, -1], ours.v[b, -1])
+        qpos, qvel = smap.to_mujoco(ours.q[b, -1], ours.v[b, -1])
         mj_qpos = theirs[b, -1, 1 : 1 + model.nq].copy()  # FULLPHYSICS: time, qpos, qvel, ...
         mj_qvel = theirs[b, -1, 1 + model.nq : 1 + model.nq + model.nv]
         for kind, _, _, jq, _ in smap.joints:  # q and -q are the same rotation

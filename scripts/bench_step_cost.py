@@ -32,7 +32,6 @@ import pstats
 import statistics
 import sys
 import time
-import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +41,10 @@ import numpy as np
 import pinocchio as pin
 
 from multibody_sim import INTEGRATORS, load_robot, simulate
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from mujoco_peer import StateMap, mj_set_state  # noqa: E402, F401  (the shared MuJoCo peer; re-exported for siblings)
+from mujoco_peer import mujoco_model as peer_model  # noqa: E402
 
 try:
     import mujoco
@@ -125,86 +128,11 @@ class RobotResult:
 
 # ---- MuJoCo: the same URDF, the same dynamics --------------------------------------------------------------
 def mujoco_model(robot: Any) -> Any:
-    """MuJoCo model of the robot's URDF with only what Pinocchio models: rigid bodies, joints and gravity.
-
-    Visual and collision geometry go (their package:// paths would not resolve, and geometry costs time
-    that has nothing to do with dynamics); a floating robot gets a free joint on its root body (MuJoCo welds a
-    URDF's root); damping, armature and friction loss are zeroed; equality constraints (panda's finger
-    mimic), joint limits and contacts are disabled. RK4 with the same 1 ms step.
-    """
-    tree = ET.parse(robot.source["urdf_path"])
-    for parent in tree.getroot().iter():
-        for child in list(parent):
-            if child.tag in ("visual", "collision", "transmission", "gazebo"):
-                parent.remove(child)
-    spec = mujoco.MjSpec.from_string(ET.tostring(tree.getroot(), encoding="unicode"))
-    if robot.floating_base:
-        spec.worldbody.first_body().add_freejoint()
-    model = spec.compile()
-    model.dof_damping[:] = 0.0
-    model.dof_armature[:] = 0.0
-    model.dof_frictionloss[:] = 0.0
+    """The MuJoCo peer (scripts/mujoco_peer.py) with RK4 at the same 1 ms step."""
+    model = peer_model(robot)
     model.opt.integrator = int(mujoco.mjtIntegrator.mjINT_RK4)
     model.opt.timestep = DT
-    off = mujoco.mjtDisableBit
-    model.opt.disableflags |= int(off.mjDSBL_EQUALITY) | int(off.mjDSBL_LIMIT) | int(off.mjDSBL_CONTACT)
     return model
-
-
-class StateMap:
-    """Pinocchio (q, v, v̇) to MuJoCo (qpos, qvel, qacc), joint by joint by name (talos's orders differ).
-
-    Free joint: Pinocchio q = [p, (x y z w)], v = [R^T ṗ, ω_body]; MuJoCo qpos = [p, (w x y z)],
-    qvel = [ṗ in the world frame, ω_body]. So MuJoCo's linear acceleration is
-    d/dt(R v_lin) = R (v̇_lin + ω × v_lin).
-    """
-
-    def __init__(self, robot: Any, model: Any):
-        self.nq_mj, self.nv_mj = model.nq, model.nv
-        self.joints: list[tuple[str, int, int, int, int]] = []  # kind, pin idx_q, idx_v, mj qposadr, dofadr
-        free = [j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
-        for name in robot.joint_names:
-            joint = robot.model.joints[robot.model.getJointId(name)]
-            kind = {(7, 6): "free", (1, 1): "scalar", (2, 1): "continuous"}.get((joint.nq, joint.nv))
-            if kind is None:
-                raise NotImplementedError(f"StateMap: joint '{name}' ({joint.shortname()}) is not mapped")
-            j = free[0] if kind == "free" else model.joint(name).id
-            self.joints.append((kind, joint.idx_q, joint.idx_v, model.jnt_qposadr[j], model.jnt_dofadr[j]))
-
-    def state(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """MuJoCo (qpos, qvel) of the Pinocchio state (q, v)."""
-        qpos, qvel = np.zeros(self.nq_mj), np.zeros(self.nv_mj)
-        for kind, iq, iv, jq, jv in self.joints:
-            if kind == "free":
-                x, y, z, w = q[iq + 3 : iq + 7]
-                rotation = pin.Quaternion(w, x, y, z).toRotationMatrix()
-                qpos[jq : jq + 7] = [*q[iq : iq + 3], w, x, y, z]
-                qvel[jv : jv + 3] = rotation @ v[iv : iv + 3]
-                qvel[jv + 3 : jv + 6] = v[iv + 3 : iv + 6]
-            elif kind == "continuous":
-                qpos[jq], qvel[jv] = math.atan2(q[iq + 1], q[iq]), v[iv]
-            else:
-                qpos[jq], qvel[jv] = q[iq], v[iv]
-        return qpos, qvel
-
-    def acceleration(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
-        """MuJoCo qacc of the Pinocchio acceleration a at (q, v)."""
-        qacc = np.zeros(self.nv_mj)
-        for kind, iq, iv, _, jv in self.joints:
-            if kind == "free":
-                x, y, z, w = q[iq + 3 : iq + 7]
-                rotation = pin.Quaternion(w, x, y, z).toRotationMatrix()
-                v_lin, omega = v[iv : iv + 3], v[iv + 3 : iv + 6]
-                qacc[jv : jv + 3] = rotation @ (a[iv : iv + 3] + np.cross(omega, v_lin))
-                qacc[jv + 3 : jv + 6] = a[iv + 3 : iv + 6]
-            else:
-                qacc[jv] = a[iv]
-        return qacc
-
-
-def mj_set_state(model: Any, data: Any, qpos: np.ndarray, qvel: np.ndarray) -> None:
-    mujoco.mj_resetData(model, data)
-    data.qpos[:], data.qvel[:] = qpos, qvel
 
 
 # ---- the free-flyer chart map's accuracy ---------------------------------------------------------------------
@@ -482,7 +410,7 @@ def bench_robot(name: str, repeats: int, steps: int, methods: list[str]) -> Robo
         model = mujoco_model(robot)
         data = mujoco.MjData(model)
         smap = StateMap(robot, model)
-        qpos, qvel = smap.state(q0, v0)
+        qpos, qvel = smap.to_mujoco(q0, v0)
         # Sanity check, not a test: the same state must give the same accelerations.
         mj_set_state(model, data, qpos, qvel)
         mujoco.mj_forward(model, data)
@@ -527,7 +455,7 @@ def bench_robot(name: str, repeats: int, steps: int, methods: list[str]) -> Robo
         for _ in range(steps):
             mujoco.mj_step(model, data)
         traj = simulate(robot, q0, v0, duration=steps * DT, dt=DT, integrator="rk4")
-        ours_qpos, ours_qvel = smap.state(traj.q[-1], traj.v[-1])
+        ours_qpos, ours_qvel = smap.to_mujoco(traj.q[-1], traj.v[-1])
         mj_qpos = data.qpos.copy()
         for kind, _, _, jq, _ in smap.joints:  # q and -q are the same rotation
             if kind == "free" and mj_qpos[jq + 3 : jq + 7] @ ours_qpos[jq + 3 : jq + 7] < 0:

@@ -28,10 +28,8 @@ import platform
 import statistics
 import sys
 import time
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import matplotlib
 import numpy as np
@@ -39,6 +37,9 @@ import pinocchio as pin
 
 import multibody_sim as ms
 from multibody_sim import bench
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from mujoco_peer import StateMap, mujoco_model  # noqa: E402  (the shared MuJoCo peer)
 
 matplotlib.use("Agg")  # files only, no display
 import matplotlib.pyplot as plt  # noqa: E402 (the backend must be chosen first)
@@ -104,91 +105,6 @@ def initial_state(robot: ms.Robot, spin: float) -> tuple[np.ndarray, np.ndarray]
 
 
 # ---- MuJoCo on the same URDF ------------------------------------------------------------------------------------
-def mujoco_model(robot: ms.Robot) -> Any:
-    """MuJoCo model of the robot's URDF with only what our dynamics has: rigid bodies, joints, gravity, damping.
-
-    Visuals and collisions go (their package:// paths would not resolve), a floating robot gets a free joint on its
-    root body (MuJoCo welds a URDF's root); armature and friction loss are zeroed; joint limits, contacts and
-    equality constraints are disabled; joint damping is set joint by joint to ours.
-    """
-    tree = ET.parse(robot.source["urdf_path"])
-    for parent in tree.getroot().iter():
-        for child in list(parent):
-            if child.tag in ("visual", "collision", "transmission", "gazebo"):
-                parent.remove(child)
-    spec = mujoco.MjSpec.from_string(ET.tostring(tree.getroot(), encoding="unicode"))
-    if robot.floating_base:
-        spec.worldbody.first_body().add_freejoint()
-    model = spec.compile()
-    model.dof_armature[:] = 0.0
-    model.dof_frictionloss[:] = 0.0
-    model.dof_damping[:] = 0.0
-    off = mujoco.mjtDisableBit
-    model.opt.disableflags |= int(off.mjDSBL_EQUALITY) | int(off.mjDSBL_LIMIT) | int(off.mjDSBL_CONTACT)
-    return model
-
-
-class StateMap:
-    """Pinocchio (q, v) ⇄ MuJoCo (qpos, qvel), joint by joint by name.
-
-    Free joint: Pinocchio q = [p, (x y z w)], v = [Rᵀ ṗ, ω in the base frame]; MuJoCo qpos = [p, (w x y z)],
-    qvel = [ṗ in the world frame, ω in the body frame].
-    """
-
-    def __init__(self, robot: ms.Robot, model: Any):
-        self.robot = robot
-        self.nq_mj, self.nv_mj = model.nq, model.nv
-        self.joints: list[tuple[str, int, int, int, int]] = []  # kind, pin idx_q, idx_v, mj qposadr, dofadr
-        free = [j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
-        for name in robot.joint_names:
-            joint = robot.model.joints[robot.model.getJointId(name)]
-            kind = {(7, 6): "free", (1, 1): "scalar", (2, 1): "continuous"}.get((joint.nq, joint.nv))
-            if kind is None:
-                raise NotImplementedError(f"joint '{name}' ({joint.shortname()}) is not mapped")
-            j = free[0] if kind == "free" else model.joint(name).id
-            self.joints.append((kind, joint.idx_q, joint.idx_v, model.jnt_qposadr[j], model.jnt_dofadr[j]))
-        mapped = sum(6 if k == "free" else 1 for k, *_ in self.joints)
-        if mapped != model.nv:
-            raise NotImplementedError(f"MuJoCo has {model.nv} dofs, {mapped} mapped")
-
-    def to_mujoco(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        qpos, qvel = np.zeros(self.nq_mj), np.zeros(self.nv_mj)
-        for kind, iq, iv, jq, jv in self.joints:
-            if kind == "free":
-                x, y, z, w = q[iq + 3 : iq + 7]
-                rotation = pin.Quaternion(w, x, y, z).toRotationMatrix()
-                qpos[jq : jq + 7] = [*q[iq : iq + 3], w, x, y, z]
-                qvel[jv : jv + 3] = rotation @ v[iv : iv + 3]
-                qvel[jv + 3 : jv + 6] = v[iv + 3 : iv + 6]
-            elif kind == "continuous":
-                qpos[jq], qvel[jv] = math.atan2(q[iq + 1], q[iq]), v[iv]
-            else:
-                qpos[jq], qvel[jv] = q[iq], v[iv]
-        return qpos, qvel
-
-    def to_pinocchio(self, qpos: np.ndarray, qvel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        q, v = np.zeros(self.robot.nq), np.zeros(self.robot.nv)
-        for kind, iq, iv, jq, jv in self.joints:
-            if kind == "free":
-                w, x, y, z = qpos[jq + 3 : jq + 7] / np.linalg.norm(qpos[jq + 3 : jq + 7])
-                rotation = pin.Quaternion(w, x, y, z).toRotationMatrix()
-                q[iq : iq + 7] = [*qpos[jq : jq + 3], x, y, z, w]
-                v[iv : iv + 3] = rotation.T @ qvel[jv : jv + 3]
-                v[iv + 3 : iv + 6] = qvel[jv + 3 : jv + 6]
-            elif kind == "continuous":
-                q[iq : iq + 2] = math.cos(qpos[jq]), math.sin(qpos[jq])
-                v[iv] = qvel[jv]
-            else:
-                q[iq], v[iv] = qpos[jq], qvel[jv]
-        return q, v
-
-    def set_damping(self, model: Any) -> None:
-        """MuJoCo's dof damping = ours, dof by dof (a free joint's stays zero, as ours)."""
-        for kind, _, iv, _, jv in self.joints:
-            if kind != "free":
-                model.dof_damping[jv] = self.robot.damping[iv]
-
-
 @dataclass
 class MujocoRun:
     integrator: str
