@@ -152,8 +152,8 @@ class ProgressBar:
 
     def __init__(self, progress: bool | None, total: float, unit: str, desc: str, *, seconds: bool = False):
         self.bar = None
-        if progress is False:
-            return
+        if progress is False or (progress is None and not _is_terminal(sys.stderr)):
+            return  # nothing to show: not even tqdm's import on the way into a run
         from tqdm.auto import tqdm
 
         self.bar = tqdm(
@@ -183,6 +183,13 @@ class ProgressBar:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+
+
+def _is_terminal(stream: Any) -> bool:
+    try:
+        return bool(stream is not None and stream.isatty())
+    except (AttributeError, OSError, ValueError):  # closed or replaced streams
+        return False
 
 
 class _Sink:
