@@ -66,7 +66,7 @@ def interrupt_run(sig: signal.Signals, out: Path) -> subprocess.CompletedProcess
     try:
         assert proc.stdout is not None
         header = proc.stdout.readline()  # printed just before the first step, with the handlers in place
-        threading.Event().wait(1.0)  # let it take some steps, even on a busy machine
+        threading.Event().wait(2.0)  # let it take some steps, even on a busy machine
         proc.send_signal(sig)
         stdout, stderr = proc.communicate(timeout=90)
     finally:
