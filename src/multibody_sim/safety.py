@@ -40,6 +40,20 @@ _END_RECORD_SIZE = 22  # the fixed part of zip's end-of-central-directory record
 # C0 and C1 controls (line breaks, ESC and CSI start terminal escapes), DEL, zero-width and bidi overrides.
 _UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u200b-\u200f\u2028-\u202e\u2066-\u2069]")
 MAX_MESSAGE_CHARS = 2000
+# What reading a damaged or hostile archive raises besides our own errors: zlib.error for a corrupted deflate
+# stream, struct.error for a damaged header, NotImplementedError / RuntimeError for a zip version, compression
+# method or encryption zipfile cannot read (fuzzing found each of them).
+ARCHIVE_ERRORS = (
+    OSError,
+    ValueError,
+    EOFError,
+    KeyError,
+    zipfile.BadZipFile,
+    zlib.error,
+    struct.error,
+    NotImplementedError,
+    RuntimeError,
+)
 
 
 def printable(message: str) -> str:
@@ -97,17 +111,7 @@ def check_npz(path: str | os.PathLike[str], *, max_bytes: int | None = None) -> 
         raise TrajectoryFileError(shown) from None
     except FileNotFoundError:
         raise TrajectoryFileError(f"{path}: no such trajectory file") from None
-    # NotImplementedError: zipfile's word for a directory entry needing a newer zip version (fuzzing found it).
-    except (
-        OSError,
-        ValueError,
-        EOFError,
-        KeyError,
-        zipfile.BadZipFile,
-        zlib.error,
-        struct.error,
-        NotImplementedError,
-    ) as exc:
+    except ARCHIVE_ERRORS as exc:
         raise TrajectoryFileError(f"{path}: not a readable trajectory file ({_first_line(exc)})") from None
 
 
@@ -132,19 +136,7 @@ def read_npz(path: str | os.PathLike[str], *, max_bytes: int | None = None) -> d
             return {name: npz[name] for name in npz.files}
     except FileNotFoundError:
         raise TrajectoryFileError(f"{path}: no such trajectory file") from None
-    # zlib.error: a corrupted deflate stream; NotImplementedError / RuntimeError: a compression method or an
-    # encryption zipfile cannot read (check_npz refuses both first, kept for safety).
-    except (
-        OSError,
-        ValueError,
-        EOFError,
-        KeyError,
-        zipfile.BadZipFile,
-        zlib.error,
-        struct.error,
-        NotImplementedError,
-        RuntimeError,
-    ) as exc:
+    except ARCHIVE_ERRORS as exc:
         raise TrajectoryFileError(f"{path}: not a readable trajectory file ({_first_line(exc)})") from None
 
 

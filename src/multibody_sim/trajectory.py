@@ -6,7 +6,6 @@ import json
 import os
 import tempfile
 import zipfile
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -14,7 +13,7 @@ from typing import Any, Literal
 import numpy as np
 
 from .exceptions import TrajectoryFileError
-from .safety import check_npz
+from .safety import ARCHIVE_ERRORS, check_npz, read_npz
 
 FORMAT = "multibody-sim trajectory"
 FORMAT_VERSION = 1
@@ -195,16 +194,16 @@ class Trajectory:
             with path.open("rb") as f:
                 if f.read(4) != b"PK\x03\x04":  # zip's signature: anything else is not an .npz at all
                     raise TrajectoryFileError(f"{path}: not a trajectory file (not an .npz archive)")
-            check_npz(path)  # before numpy allocates what a hostile header claims: safety.py
-            contents = _map_npz(path) if mmap else None
-            if contents is None:
-                with np.load(path, allow_pickle=False) as npz:
-                    contents = {name: npz[name] for name in npz.files}
+            if mmap:
+                check_npz(path)  # before mapping what a hostile header claims: safety.py
+                contents = _map_npz(path)
+            if not mmap or contents is None:  # read_npz checks the archive the same way first
+                contents = read_npz(path)
         except TrajectoryFileError:
             raise
         except FileNotFoundError:
             raise TrajectoryFileError(f"{path}: no such trajectory file") from None
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError, zlib.error) as exc:  # zlib: bad deflate
+        except ARCHIVE_ERRORS as exc:
             raise TrajectoryFileError(f"{path}: not a readable trajectory file ({_first_line(exc)})") from None
         return cls._from_arrays(contents, path)
 
