@@ -16,6 +16,10 @@ class InvalidArgumentError(MultibodySimError, ValueError):
     """An argument has the wrong shape, type or value (the message names it and what was expected)."""
 
 
+class SceneError(InvalidArgumentError):
+    """A scene (TOML file or dict) is malformed: the one-line message names the file, the key and the valid options."""
+
+
 class UnknownNameError(MultibodySimError, LookupError):
     """A name (robot, integrator, ...) is not in its registry; the message lists close matches."""
 

@@ -1,0 +1,1 @@
+"""Scenes: declared physics (locks, springs, friction, forces, payloads, constraints) on a robot."""
