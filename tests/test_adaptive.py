@@ -213,7 +213,7 @@ def ms_rotation(q: np.ndarray) -> np.ndarray:
 class _BlowUp(ms.Robot):
     """A pendulum with an extra force that sends it to infinity in finite time (t* = 1/(2 v0))."""
 
-    def unchecked_forward_dynamics(self, q, v, tau):
+    def unchecked_forward_dynamics(self, q, v, tau, t=0.0):
         return np.array([2.0 * v[0] ** 3])  # v' = 2 v³  ⇒  v = v0 / sqrt(1 - 4 v0² t)
 
 

@@ -397,13 +397,13 @@ class LinearSlider:
         self.nq = self.nv = 1
         self.c = c
 
-    def unchecked_forward_dynamics(self, q, v, tau):
+    def unchecked_forward_dynamics(self, q, v, tau, t=0.0):
         return self.c * v
 
-    def unchecked_dynamics_derivatives(self, q, v, tau):
+    def unchecked_dynamics_derivatives(self, q, v, tau, t=0.0):
         return np.zeros((1, 1)), np.full((1, 1), self.c), np.ones((1, 1))
 
-    def ledger_power(self, q, v, tau):
+    def ledger_power(self, q, v, tau, out=None, t=0.0):
         return np.array([tau @ v])
 
 
@@ -435,15 +435,15 @@ class CountingSystem:
         self.space, self.nq, self.nv = system.space, system.nq, system.nv
         self.dynamics_calls = self.derivative_calls = 0
 
-    def unchecked_forward_dynamics(self, q, v, tau):
+    def unchecked_forward_dynamics(self, q, v, tau, t=0.0):
         self.dynamics_calls += 1
         return self._system.unchecked_forward_dynamics(q, v, tau)
 
-    def unchecked_dynamics_derivatives(self, q, v, tau):
+    def unchecked_dynamics_derivatives(self, q, v, tau, t=0.0):
         self.derivative_calls += 1
         return self._system.unchecked_dynamics_derivatives(q, v, tau)
 
-    def ledger_power(self, q, v, tau):
+    def ledger_power(self, q, v, tau, out=None, t=0.0):
         return self._system.ledger_power(q, v, tau)
 
 

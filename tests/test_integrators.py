@@ -45,7 +45,7 @@ class NaiveLieRungeKutta(ms.Integrator):
         self.tableau = tableau
 
     def step(
-        self, system: ms.Robot, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float
+        self, system: ms.Robot, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         a, b = self.tableau.a, self.tableau.b
         velocities: list[np.ndarray] = []

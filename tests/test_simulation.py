@@ -115,10 +115,10 @@ def test_evaluations_are_steps_times_the_methods_stage_count(pendulum, integrato
     calls = 0
     forward_dynamics = pendulum.unchecked_forward_dynamics
 
-    def counting(q, v, tau):  # count the dynamics evaluations independently of the stats
+    def counting(q, v, tau, t=0.0):  # count the dynamics evaluations independently of the stats
         nonlocal calls
         calls += 1
-        return forward_dynamics(q, v, tau)
+        return forward_dynamics(q, v, tau, t)
 
     pendulum.unchecked_forward_dynamics = counting
     traj = ms.simulate(pendulum, [0.3], [0.0], duration=0.105, dt=0.01, integrator=integrator)

@@ -298,10 +298,10 @@ class _UnstableAt(Integrator):
     def __init__(self, unstable_dts: list[float]):
         self.unstable_dts = unstable_dts
 
-    def step(self, system, q, v, tau, dt):
+    def step(self, system, q, v, tau, dt, t=0.0):
         if any(math.isclose(dt, bad, rel_tol=1e-9) for bad in self.unstable_dts):
             raise StepFailure("on the unstable list", status="newton_failed")
-        return ms.INTEGRATORS["euler"].step(system, q, v, tau, dt)
+        return ms.INTEGRATORS["euler"].step(system, q, v, tau, dt, t)
 
 
 def test_an_isolated_stable_rung_is_not_the_answer(robot):

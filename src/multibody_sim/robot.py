@@ -144,14 +144,14 @@ class Robot:
         tau = pin.rnea(self.model, self.data, q, v, a).copy()
         return tau + self.damping * v if self._damped else tau
 
-    def unchecked_forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
-        """forward_dynamics without argument checks: the stepping loop's hot path."""
+    def unchecked_forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """forward_dynamics without argument checks: the stepping loop's hot path (a robot's dynamics ignore t)."""
         if self._damped:
             tau = tau - self.damping * v
         return pin.aba(self.model, self.data, q, v, tau, _WORLD)
 
     def unchecked_dynamics_derivatives(
-        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray
+        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Analytic partial derivatives of forward dynamics (damping included), from Pinocchio's ABA derivatives.
 
@@ -190,7 +190,9 @@ class Robot:
             elements.append(("joint_damping", "dissipated"))
         return elements
 
-    def ledger_power(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def ledger_power(
+        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, out: np.ndarray | None = None, t: float = 0.0
+    ) -> np.ndarray:
         """Power of each ledger element [W] at (q, v, tau), in ledger_elements order (no checks).
 
         Writes into `out` (shape (n_elements,)) when given, so the stepping loop allocates nothing.

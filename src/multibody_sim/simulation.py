@@ -565,7 +565,7 @@ class _FixedStepRun(_Run):
                     return problem
             h = dt if k < n_steps - 1 else self.duration - t
             try:
-                q_next, v_next, step_flows = step(system, q, v, tau, h)
+                q_next, v_next, step_flows = step(system, q, v, tau, h, t)
             except StepFailure as failure:
                 self.evaluations += method.last_evaluations  # a failed Newton solve still cost its evaluations
                 return self._stopped(
@@ -636,7 +636,7 @@ class _AdaptiveRun(_Run):
             t_stop = duration if control_dt is None else min(duration, next_control * control_dt)
             landing = t + h >= t_stop - 1e-12 * duration
             h_try = t_stop - t if landing else h
-            attempt = method.attempt(system, q, v, tau, h_try, rtol=rtol, atol=atol, first_stage=first_stage)
+            attempt = method.attempt(system, q, v, tau, h_try, rtol=rtol, atol=atol, first_stage=first_stage, t=t)
             self.evaluations += attempt.evaluations
             accepted, h = controller.next_step(h_try, attempt.error)
             if not accepted:

@@ -321,7 +321,7 @@ class Stepper:
         method = self.integrator
         failure: StepFailure | None = None
         try:
-            q, v, step_flows = method.step(self.system, self._q, self._v, self._tau, h)
+            q, v, step_flows = method.step(self.system, self._q, self._v, self._tau, h, t)
         except StepFailure as exc:
             failure = exc
         if failure is not None:  # reported outside the except block: the failure is the cause, not a context
@@ -354,7 +354,9 @@ class Stepper:
         while t < t_stop:
             landing = t + h >= t_stop - 1e-12 * max(self.dt, abs(t_stop))
             h_try = t_stop - t if landing else h
-            attempt = method.attempt(self.system, q, v, tau, h_try, rtol=self._rtol, atol=self._atol, first_stage=first)
+            attempt = method.attempt(
+                self.system, q, v, tau, h_try, rtol=self._rtol, atol=self._atol, first_stage=first, t=t
+            )
             self.stats["evaluations"] += attempt.evaluations
             accepted, h = pi.next_step(h_try, attempt.error)
             if not accepted or h < min_step:

@@ -31,14 +31,14 @@ class System(Protocol):
     nv: int
     space: ConfigurationSpace
 
-    def unchecked_forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
-        """Accelerations v' [rad/s², m/s²], shape (nv,)."""
+    def unchecked_forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """Accelerations v' [rad/s², m/s²] at time t [s] (scenes may have time-dependent forces), shape (nv,)."""
         ...
 
     def unchecked_dynamics_derivatives(
-        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray
+        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(da/dq in the tangent space, da/dv, da/dtau), each (nv, nv): what implicit methods' Newton needs."""
+        """(da/dq in the tangent space, da/dv, da/dtau), each (nv, nv), at time t: what implicit methods' Newton needs."""
         ...
 
     @property
@@ -46,8 +46,10 @@ class System(Protocol):
         """(name, kind) of each energy-ledger element; kind "work" or "dissipated"."""
         ...
 
-    def ledger_power(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """Power [W] through each energy-ledger element, shape (n_elements,), written into `out` if given."""
+    def ledger_power(
+        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, out: np.ndarray | None = None, t: float = 0.0
+    ) -> np.ndarray:
+        """Power [W] through each energy-ledger element at time t, shape (n_elements,), written into `out` if given."""
         ...
 
 
@@ -79,7 +81,7 @@ class Integrator(ABC):
 
     @abstractmethod
     def step(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Advance one step.
 
@@ -89,6 +91,7 @@ class Integrator(ABC):
             v: velocity at the step's start, shape (nv,).
             tau: torque held over the step [N·m, N], shape (nv,).
             dt: step [s].
+            t: the step's start time [s] (time-dependent scene forces are evaluated at the stages' times).
 
         Returns:
             (q_next, v_next, flows): the new state and the energy [J] that went through each ledger element

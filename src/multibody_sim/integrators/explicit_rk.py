@@ -30,11 +30,12 @@ class ExplicitRungeKutta(Integrator):
         self.evaluations_per_step = tableau.stages
         self._a = np.array(tableau.a, dtype=float)
         self._b = np.array(tableau.b, dtype=float)
+        self._c = np.array(tableau.c, dtype=float)
 
     def step(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        K, _, _ = self._stages(system, q, v, tau, dt)
+        K, _, _ = self._stages(system, q, v, tau, dt, t)
         nv = len(v)
         increment = (self._b @ K) * dt
         return system.space.integrate(q, increment[:nv]), v + increment[nv : 2 * nv], increment[2 * nv :]
@@ -46,19 +47,20 @@ class ExplicitRungeKutta(Integrator):
         v: np.ndarray,
         tau: np.ndarray,
         h: float,
+        t: float,
         first_row: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Stage derivatives K, shape (s, 2 nv + n_ledger), rows (xi', v', ledger power); and the last stage's
-        (q, v). `first_row` is a known first row (FSAL reuse)."""
+        """Stage derivatives K, shape (s, 2 nv + n_ledger), rows (xi', v', ledger power), for the step from time t;
+        and the last stage's (q, v). `first_row` is a known first row (FSAL reuse)."""
         nv = len(v)
         K = np.empty((len(self._a), 2 * nv + len(system.ledger_elements)))
         K[0, :nv] = v  # at the step's start: xi = 0, where the chart Jacobian is the identity
         if first_row is not None:  # its chart rate was taken in the previous step's chart: not reused
             K[0, nv:] = first_row[nv:]
         else:
-            K[0, nv : 2 * nv] = system.unchecked_forward_dynamics(q, v, tau)
-            system.ledger_power(q, v, tau, out=K[0, 2 * nv :])
-        q_stage, v_stage = _fill_stages(system, q, v, tau, h, K, self._a, 1, len(self._a))
+            K[0, nv : 2 * nv] = system.unchecked_forward_dynamics(q, v, tau, t)
+            system.ledger_power(q, v, tau, K[0, 2 * nv :], t)
+        q_stage, v_stage = _fill_stages(system, q, v, tau, h, t, K, self._a, self._c, 1, len(self._a))
         return K, q_stage, v_stage
 
 
@@ -68,13 +70,15 @@ def _fill_stages(
     v: np.ndarray,
     tau: np.ndarray,
     h: float,
+    t: float,
     K: np.ndarray,
     a: np.ndarray,
+    c: np.ndarray,
     start: int,
     stop: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Fill rows start..stop-1 of K, each stage built from the rows before it with coefficients a[i, :i];
-    returns the last stage's (q, v)."""
+    """Fill rows start..stop-1 of K, each stage built from the rows before it with coefficients a[i, :i] at time
+    t + c[i] h; returns the last stage's (q, v)."""
     space = system.space
     flat = space.is_flat
     nv = len(v)
@@ -86,8 +90,9 @@ def _fill_stages(
         v_stage = v + y[nv : 2 * nv]
         q_stage = space.integrate(q, xi)
         row[:nv] = v_stage if flat else space.chart_velocity(q, xi, v_stage)
-        row[nv : 2 * nv] = system.unchecked_forward_dynamics(q_stage, v_stage, tau)
-        system.ledger_power(q_stage, v_stage, tau, out=row[2 * nv :])
+        t_stage = t + c[i] * h
+        row[nv : 2 * nv] = system.unchecked_forward_dynamics(q_stage, v_stage, tau, t_stage)
+        system.ledger_power(q_stage, v_stage, tau, row[2 * nv :], t_stage)
     return q_stage, v_stage
 
 
@@ -102,6 +107,7 @@ class Attempt:
     stages: np.ndarray  # K: the stage derivatives (xi', v', ledger power), one row per stage
     evaluations: int
     tau: np.ndarray  # the torque held over the step (dense output may need more stages)
+    t: float  # the step's start time [s]
     dense: np.ndarray | None = None  # interpolation data, built on the first dense_output call
     extra_evaluations: int = 0  # dynamics evaluations the dense output added (DOP853's extra stages)
 
@@ -135,10 +141,11 @@ class EmbeddedRungeKutta(ExplicitRungeKutta):
         rtol: float,
         atol: float,
         first_stage: np.ndarray | None = None,
+        t: float = 0.0,
     ) -> Attempt:
         """Try a step of h [s]. `first_stage`: the first row of K at (q, v, tau) if already known (the last stage
         of the previous accepted step with an FSAL tableau, or the first of a rejected attempt)."""
-        K, q_last, v_last = self._stages(system, q, v, tau, h, first_stage)
+        K, q_last, v_last = self._stages(system, q, v, tau, h, t, first_stage)
         nv = len(v)
         increment = (self._b @ K) * h
         if self.tableau.fsal:  # the last stage is the new state
@@ -151,7 +158,7 @@ class EmbeddedRungeKutta(ExplicitRungeKutta):
         if not math.isfinite(norm) or not math.isfinite(q_next @ q_next + v_next @ v_next):
             norm = math.inf
         evaluations = len(K) - (first_stage is not None)
-        return Attempt(q_next, v_next, increment[2 * nv :], norm, K, evaluations, tau)
+        return Attempt(q_next, v_next, increment[2 * nv :], norm, K, evaluations, tau, t)
 
     def dense_output(
         self, system: System, q: np.ndarray, v: np.ndarray, attempt: Attempt, h: float, theta: float
@@ -217,6 +224,7 @@ class DormandPrince853(ExplicitRungeKutta):
         self._e5 = np.array(tables.E5, dtype=float)
         self._e3 = np.array(tables.E3, dtype=float)
         self._a_extended = np.array(tables.A, dtype=float)  # rows 13..15: the dense output's extra stages
+        self._c_extended = np.array(tables.C, dtype=float)
         self._dense_weights = np.array(tables.D, dtype=float)
 
     def attempt(
@@ -230,9 +238,10 @@ class DormandPrince853(ExplicitRungeKutta):
         rtol: float,
         atol: float,
         first_stage: np.ndarray | None = None,
+        t: float = 0.0,
     ) -> Attempt:
         """Try a step of h [s] (see EmbeddedRungeKutta.attempt)."""
-        K, q_next, v_next = self._stages(system, q, v, tau, h, first_stage)
+        K, q_next, v_next = self._stages(system, q, v, tau, h, t, first_stage)
         nv = len(v)
         increment = (self._b @ K) * h
         scale = _error_scale(system, q, v, q_next, v_next, rtol, atol)
@@ -243,7 +252,7 @@ class DormandPrince853(ExplicitRungeKutta):
         if not math.isfinite(norm) or not math.isfinite(q_next @ q_next + v_next @ v_next):
             norm = math.inf
         evaluations = len(K) - (first_stage is not None)
-        return Attempt(q_next, v_next, increment[2 * nv :], norm, K, evaluations, tau)
+        return Attempt(q_next, v_next, increment[2 * nv :], norm, K, evaluations, tau, t)
 
     def dense_output(
         self, system: System, q: np.ndarray, v: np.ndarray, attempt: Attempt, h: float, theta: float
@@ -253,7 +262,9 @@ class DormandPrince853(ExplicitRungeKutta):
         if attempt.dense is None:  # three more stages, once per step, then the interpolation polynomial's data
             K = np.empty((len(self._a_extended), attempt.stages.shape[1]))
             K[: len(attempt.stages)] = attempt.stages
-            _fill_stages(system, q, v, attempt.tau, h, K, self._a_extended, len(attempt.stages), len(K))
+            _fill_stages(
+                system, q, v, attempt.tau, h, attempt.t, K, self._a_extended, self._c_extended, len(attempt.stages), len(K)
+            )
             attempt.extra_evaluations = len(K) - len(attempt.stages)
             delta = (self._b @ attempt.stages) * h
             F = np.empty((7, K.shape[1]))

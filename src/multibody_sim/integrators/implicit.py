@@ -27,7 +27,7 @@ _EPS = float(np.finfo(float).eps)
 
 
 def residual(
-    system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, s: float, x: np.ndarray
+    system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, s: float, x: np.ndarray, t: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
     """The implicit equation's residual at the trial velocity x (exposed for tests).
 
@@ -38,17 +38,18 @@ def residual(
         tau: torque held over the step, shape (nv,).
         s: the fraction of the step at which x acts [s] (h for backward Euler, h/2 for implicit midpoint).
         x: trial velocity, shape (nv,).
+        t: the step's start time [s]; the dynamics are evaluated at t + s.
 
     Returns:
         (R, q_x): ``R = x - v - s a(q_x, x, tau)`` [m/s, rad/s], shape (nv,), and ``q_x = q ⊕ s x``,
         shape (nq,).
     """
     q_x = system.space.integrate(q, s * x)
-    return x - v - s * system.unchecked_forward_dynamics(q_x, x, tau), q_x
+    return x - v - s * system.unchecked_forward_dynamics(q_x, x, tau, t + s), q_x
 
 
 def residual_jacobian(
-    system: System, q: np.ndarray, tau: np.ndarray, s: float, x: np.ndarray, q_x: np.ndarray
+    system: System, q: np.ndarray, tau: np.ndarray, s: float, x: np.ndarray, q_x: np.ndarray, t: float = 0.0
 ) -> np.ndarray:
     """dR/dx, the analytic Jacobian of residual() at x, shape (nv, nv) (exposed for tests).
 
@@ -63,8 +64,9 @@ def residual_jacobian(
         s: as in residual() [s].
         x: trial velocity, shape (nv,).
         q_x: ``q ⊕ s x`` as returned by residual(), shape (nq,).
+        t: the step's start time [s]; the derivatives are taken at t + s.
     """
-    da_dq, da_dv, _ = system.unchecked_dynamics_derivatives(q_x, x, tau)
+    da_dq, da_dv, _ = system.unchecked_dynamics_derivatives(q_x, x, tau, t + s)
     space = system.space
     if not space.is_flat:
         # dIntegrate is block-diagonal, the identity except on non-commutative joints (free-flyer, ...).
@@ -91,6 +93,7 @@ def _solve(
     v: np.ndarray,
     tau: np.ndarray,
     s: float,
+    t: float,
     *,
     max_iterations: int,
     rtol: float,
@@ -111,7 +114,7 @@ def _solve(
     previous_update = theta = math.nan
     residual_norm = update_norm = math.nan
     for iteration in range(1, max_iterations + 1):
-        R, q_x = residual(system, q, v, tau, s, x)
+        R, q_x = residual(system, q, v, tau, s, x, t)
         counts.iterations = counts.evaluations = iteration  # one forward-dynamics call per residual
         residual_norm = float(np.max(np.abs(R)))
         if not math.isfinite(residual_norm):
@@ -120,7 +123,7 @@ def _solve(
                 f"Newton's residual became non-finite at iteration {iteration}{after}", status="newton_failed"
             )
         if factors is None or (not fresh and theta > 0.5):
-            jacobian = residual_jacobian(system, q, tau, s, x, q_x)
+            jacobian = residual_jacobian(system, q, tau, s, x, q_x, t)
             counts.jacobians += 1
             factors = _factorise(jacobian, iteration, residual_norm)
             fresh = True
@@ -215,11 +218,13 @@ class _ImplicitOneStage(Integrator):
         self.last_jacobian_evaluations = 0
         self.last_iterations = 0
 
-    def _newton(self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, s: float) -> np.ndarray:
+    def _newton(
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, s: float, t: float
+    ) -> np.ndarray:
         counts = _Counts()
         try:
             return _solve(
-                system, q, v, tau, s, max_iterations=self.max_iterations, rtol=self.rtol, atol=self.atol, counts=counts
+                system, q, v, tau, s, t, max_iterations=self.max_iterations, rtol=self.rtol, atol=self.atol, counts=counts
             )
         finally:  # a failed solve costs evaluations too
             self.last_evaluations = counts.evaluations
@@ -241,11 +246,11 @@ class ImplicitEuler(_ImplicitOneStage):
     notes = "A- and L-stable, for stiff systems; damps oscillations (energy × 1/(1 + (ωh)²) per step at frequency ω)"
 
     def step(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        v_next = self._newton(system, q, v, tau, dt)
+        v_next = self._newton(system, q, v, tau, dt, t)
         q_next = system.space.integrate(q, dt * v_next)
-        return q_next, v_next, dt * system.ledger_power(q_next, v_next, tau)
+        return q_next, v_next, dt * system.ledger_power(q_next, v_next, tau, None, t + dt)
 
 
 class ImplicitMidpoint(_ImplicitOneStage):
@@ -269,10 +274,10 @@ class ImplicitMidpoint(_ImplicitOneStage):
     )
 
     def step(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         half = 0.5 * dt
-        u = self._newton(system, q, v, tau, half)
+        u = self._newton(system, q, v, tau, half, t)
         q_next = system.space.integrate(q, dt * u)
         q_mid = system.space.integrate(q, half * u)
-        return q_next, 2.0 * u - v, dt * system.ledger_power(q_mid, u, tau)
+        return q_next, 2.0 * u - v, dt * system.ledger_power(q_mid, u, tau, None, t + half)

@@ -22,9 +22,9 @@ class SemiImplicitEuler(Integrator):
     notes = "symplectic only where M is constant (e.g. a single pendulum), not for general M(q)"
 
     def step(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        v_next = v + dt * system.unchecked_forward_dynamics(q, v, tau)
+        v_next = v + dt * system.unchecked_forward_dynamics(q, v, tau, t)
         q_next = system.space.integrate(q, dt * v_next)
         # The configuration moved along v_next, so that is the velocity the torques and dampers work against.
-        return q_next, v_next, dt * system.ledger_power(q_next, v_next, tau)
+        return q_next, v_next, dt * system.ledger_power(q_next, v_next, tau, None, t + dt)

@@ -179,7 +179,7 @@ class VariationalIntegrator(Integrator):
             )
 
     def step(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if not system.space.is_flat:  # a cheap guard in case a caller skipped check_system
             self.check_system(system)
