@@ -38,7 +38,7 @@ class System(Protocol):
     def unchecked_dynamics_derivatives(
         self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(da/dq in the tangent space, da/dv, da/dtau), each (nv, nv), at time t: what implicit methods' Newton needs."""
+        """(da/dq in the tangent space, da/dv, da/dtau), each (nv, nv), at time t: for implicit methods' Newton."""
         ...
 
     @property

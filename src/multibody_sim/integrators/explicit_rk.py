@@ -263,7 +263,17 @@ class DormandPrince853(ExplicitRungeKutta):
             K = np.empty((len(self._a_extended), attempt.stages.shape[1]))
             K[: len(attempt.stages)] = attempt.stages
             _fill_stages(
-                system, q, v, attempt.tau, h, attempt.t, K, self._a_extended, self._c_extended, len(attempt.stages), len(K)
+                system,
+                q,
+                v,
+                attempt.tau,
+                h,
+                attempt.t,
+                K,
+                self._a_extended,
+                self._c_extended,
+                len(attempt.stages),
+                len(K),
             )
             attempt.extra_evaluations = len(K) - len(attempt.stages)
             delta = (self._b @ attempt.stages) * h

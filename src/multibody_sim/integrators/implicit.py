@@ -218,13 +218,20 @@ class _ImplicitOneStage(Integrator):
         self.last_jacobian_evaluations = 0
         self.last_iterations = 0
 
-    def _newton(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, s: float, t: float
-    ) -> np.ndarray:
+    def _newton(self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, s: float, t: float) -> np.ndarray:
         counts = _Counts()
         try:
             return _solve(
-                system, q, v, tau, s, t, max_iterations=self.max_iterations, rtol=self.rtol, atol=self.atol, counts=counts
+                system,
+                q,
+                v,
+                tau,
+                s,
+                t,
+                max_iterations=self.max_iterations,
+                rtol=self.rtol,
+                atol=self.atol,
+                counts=counts,
             )
         finally:  # a failed solve costs evaluations too
             self.last_evaluations = counts.evaluations
