@@ -43,7 +43,7 @@ from .rollout import BatchTrajectory, rollout
 from .simulation import simulate
 from .stability import LadderRung, StabilityLimit, Stiffness, largest_stable_dt, linearization, stiffness_ratio
 from .stepper import Stepper, StepperState
-from .trajectory import LedgerEntry, LimitViolations, Trajectory
+from .trajectory import ConstraintRecord, LedgerEntry, LimitViolations, Trajectory
 
 __version__ = "0.1.0"
 
@@ -57,6 +57,7 @@ __all__ = [
     "ButcherTableau",
     "Choice",
     "ComputedTorque",
+    "ConstraintRecord",
     "ExplicitRungeKutta",
     "GravityCompensation",
     "Integrator",

@@ -211,6 +211,14 @@ class Robot:
             pin.computePotentialEnergy(self.model, self.data)
         )
 
+    # What a system records at each sample besides the state and energies: (category, name, width) with category
+    # "potential" (a spring's stored energy) or "constraint" (forces, then drift and velocity drift). A robot alone
+    # records nothing; scenes do.
+    record_fields: tuple[tuple[str, str, int], ...] = ()
+
+    def unchecked_record(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, out: np.ndarray) -> None:
+        """Write the record_fields' values at a sample into `out` (a robot has none)."""
+
     @property
     def energy_scale(self) -> float:
         """A natural energy unit [J]: lifting the whole robot by one metre (floor for blow-up detection)."""

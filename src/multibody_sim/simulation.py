@@ -20,6 +20,7 @@ from .robot import Robot
 from .step_control import PIController
 from .trajectory import (
     PARTS_SUFFIX,
+    ConstraintRecord,
     LedgerEntry,
     LimitViolations,
     Trajectory,
@@ -255,8 +256,9 @@ def _steps_per(period: Any, dt: float, name: str) -> int:
 class _Samples:
     """Growable per-sample arrays (preallocated when the number of samples is known)."""
 
-    def __init__(self, nq: int, nv: int, n_elements: int, capacity: int):
+    def __init__(self, nq: int, nv: int, n_elements: int, capacity: int, n_extra: int = 0):
         self.n = 0
+        self.EXTRA = np.empty((capacity, n_extra))  # what a scene records per sample (springs, constraints)
         self.T = np.empty(capacity)
         self.Q = np.empty((capacity, nq))
         self.V = np.empty((capacity, nv))
@@ -277,7 +279,7 @@ class _Samples:
     ) -> None:
         i = self.n
         if i == len(self.T):
-            for name in ("T", "Q", "V", "TAU", "KIN", "POT", "FLOWS"):
+            for name in ("T", "Q", "V", "TAU", "KIN", "POT", "FLOWS", "EXTRA"):
                 old = getattr(self, name)
                 new = np.empty((2 * len(old) + 16, *old.shape[1:]))
                 new[:i] = old
@@ -317,7 +319,10 @@ class _Run:
         self.controller = controller
         self.options = options
         self.elements = system.ledger_elements
-        self.samples = _Samples(system.nq, system.nv, len(self.elements), capacity)
+        self.record_fields = system.record_fields  # (category, name, width) of what the system records per sample
+        self.samples = _Samples(
+            system.nq, system.nv, len(self.elements), capacity, sum(width for _, _, width in self.record_fields)
+        )
         self.is_work = np.array([kind == "work" for _, kind in self.elements])
         # The latest accepted state, kept current so that an early stop loses nothing.
         self.q, self.v, self.t, self.k = q0, v0, 0.0, 0
@@ -413,6 +418,8 @@ class _Run:
             self.initial_energy = (T, V)
             self.energy_scale = T + abs(V) + self.system.energy_scale
         samples.append(t, q, v, self.tau, T, V, flows)
+        if self.record_fields:
+            self.system.unchecked_record(q, v, self.tau, t, samples.EXTRA[samples.n - 1])
         self.last_recorded = t
         if self.sink.on_sample is not None:
             self.sink.on_sample(t, q, v)
@@ -474,6 +481,15 @@ class _Run:
         t, Q = s.T[:n].copy(), s.Q[:n].copy()
         kinetic, potential, flows = s.KIN[:n].copy(), s.POT[:n].copy(), s.FLOWS[:n]
         ledger = {name: LedgerEntry(kind, flows[:, j].copy()) for j, (name, kind) in enumerate(self.elements)}
+        constraints = {}
+        column = 0
+        for category, name, width in self.record_fields:
+            block = s.EXTRA[:n, column : column + width]
+            column += width
+            if category == "potential":
+                ledger[name] = LedgerEntry("potential", block[:, 0].copy())
+            else:  # "constraint": the forces, then the drift and the velocity drift
+                constraints[name] = ConstraintRecord(block[:, :-2].copy(), block[:, -2].copy(), block[:, -1].copy())
         work = flows[:, self.is_work].sum(axis=1)
         dissipated = flows[:, ~self.is_work].sum(axis=1)
         total = kinetic + potential
@@ -490,6 +506,7 @@ class _Run:
             dissipated=dissipated,
             energy_error=error,
             ledger=ledger,
+            constraints=constraints,
             limit_violations=_limit_violations(system, t, Q),
             stats={
                 "steps": self.k,

@@ -31,6 +31,8 @@ ARRAYS = (
     "energy_error",
 )
 _LEDGER_PREFIX = "ledger/"
+_CONSTRAINT_PREFIX = "constraint/"
+LEDGER_KINDS = ("work", "dissipated", "potential")
 
 
 @dataclass(frozen=True)
@@ -38,8 +40,9 @@ class LedgerEntry:
     """One element of the energy ledger.
 
     Attributes:
-        kind: "work" (energy put in, e.g. by joint torques) or "dissipated" (taken out, e.g. by damping).
-        energy: cumulative energy [J] at each sample, shape (n_samples,).
+        kind: "work" (energy put in, e.g. by joint torques), "dissipated" (taken out, e.g. by damping) or
+            "potential" (stored, e.g. by a spring: part of potential_energy).
+        energy: cumulative energy [J] at each sample (for "potential": the energy stored), shape (n_samples,).
     """
 
     kind: str
@@ -73,6 +76,21 @@ class LimitViolations:
         )
 
 
+@dataclass(frozen=True)
+class ConstraintRecord:
+    """One holonomic constraint of a scene, sampled with the trajectory.
+
+    Attributes:
+        force: the constraint force (Lagrange multipliers) in force at each sample [N, N·m], shape (n, rows).
+        drift: how far the constraint is violated [m; rad for a weld's rotation], shape (n,).
+        velocity_drift: how fast it is violated [m/s; rad/s], shape (n,).
+    """
+
+    force: np.ndarray
+    drift: np.ndarray
+    velocity_drift: np.ndarray
+
+
 @dataclass
 class Trajectory:
     """Samples of a simulation, one row per sample time.
@@ -87,7 +105,8 @@ class Trajectory:
         dissipated: cumulative energy removed by damping (and other "dissipated" elements) [J], shape (n,).
         energy_error: H - H(0) - work + dissipated [J], shape (n,): zero for the exact solution; a consistency
             check that does not see phase error.
-        ledger: per-element breakdown of work and dissipated.
+        ledger: per-element breakdown of work, dissipated and (springs') potential energy.
+        constraints: a scene's holonomic constraints: their forces and drift at each sample (empty otherwise).
         limit_violations: position-limit violations at the samples.
         stats: steps, rejected_steps, evaluations (forward dynamics), controller_calls, wall_time [s].
         status: "completed", or why the run stopped early ("diverged", "interrupted", ...).
@@ -105,6 +124,7 @@ class Trajectory:
     dissipated: np.ndarray
     energy_error: np.ndarray
     ledger: dict[str, LedgerEntry] = field(default_factory=dict)
+    constraints: dict[str, ConstraintRecord] = field(default_factory=dict)
     limit_violations: LimitViolations = field(default_factory=LimitViolations)
     stats: dict[str, Any] = field(default_factory=dict)
     status: str = "completed"
@@ -152,6 +172,12 @@ class Trajectory:
                 f"torque saturated at the effort limits in {s['saturated_controls']} of {s.get('controller_calls', 0)} "
                 f"controller calls (most often '{worst}')"
             )
+        for name, record in self.constraints.items():
+            if len(record.drift):
+                lines.append(
+                    f"constraint '{name}': max drift {_max_abs(record.drift):.3g}, max velocity drift "
+                    f"{_max_abs(record.velocity_drift):.3g}, max |force| {_max_abs(record.force):.3g}"
+                )
         lines.append(self.limit_violations.describe())
         return "\n".join(lines)
 
@@ -162,12 +188,16 @@ class Trajectory:
         arrays = {name: np.asarray(getattr(self, name)) for name in ARRAYS}
         for name, entry in self.ledger.items():
             arrays[_LEDGER_PREFIX + name] = np.asarray(entry.energy)
+        for name, record in self.constraints.items():
+            for part in ("force", "drift", "velocity_drift"):
+                arrays[f"{_CONSTRAINT_PREFIX}{name}/{part}"] = np.asarray(getattr(record, part))
         header = {
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
             "status": self.status,
             "stats": self.stats,
             "ledger_kinds": {name: entry.kind for name, entry in self.ledger.items()},
+            "constraints": list(self.constraints),
             "limit_violations": self.limit_violations.__dict__,
             "metadata": self.metadata,
         }
@@ -234,14 +264,36 @@ class Trajectory:
             if not isinstance(header.get(key, {}), dict):
                 raise TrajectoryFileError(f"{path}: malformed {key} in the header (expected a JSON object)")
         kinds = header.get("ledger_kinds", {})
-        if not all(isinstance(name, str) and kind in ("work", "dissipated") for name, kind in kinds.items()):
-            raise TrajectoryFileError(f"{path}: malformed ledger_kinds in the header (expected work or dissipated)")
+        if not all(isinstance(name, str) and kind in LEDGER_KINDS for name, kind in kinds.items()):
+            raise TrajectoryFileError(
+                f"{path}: malformed ledger_kinds in the header (expected {', '.join(LEDGER_KINDS)})"
+            )
         ledger = {}
         for name, kind in kinds.items():
             key = _LEDGER_PREFIX + name
             if key not in contents or contents[key].shape != (n,):
                 raise TrajectoryFileError(f"{path}: ledger entry '{name}' is missing or has the wrong shape")
             ledger[name] = LedgerEntry(kind=kind, energy=contents[key])
+        names = header.get("constraints", [])
+        if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
+            raise TrajectoryFileError(f"{path}: malformed constraints in the header (expected a list of names)")
+        constraints = {}
+        for name in names:
+            parts = [
+                contents.get(f"{_CONSTRAINT_PREFIX}{name}/{part}") for part in ("force", "drift", "velocity_drift")
+            ]
+            force, drift, velocity_drift = parts
+            if (
+                force is None
+                or drift is None
+                or velocity_drift is None
+                or force.ndim != 2
+                or force.shape[0] != n
+                or drift.shape != (n,)
+                or velocity_drift.shape != (n,)
+            ):
+                raise TrajectoryFileError(f"{path}: constraint record '{name}' is missing or has the wrong shape")
+            constraints[name] = ConstraintRecord(force, drift, velocity_drift)
         try:
             violations = LimitViolations(**header.get("limit_violations", {}))
         except TypeError:
@@ -249,6 +301,7 @@ class Trajectory:
         return cls(
             **{name: contents[name] for name in ARRAYS},
             ledger=ledger,
+            constraints=constraints,
             limit_violations=violations,
             stats=dict(header.get("stats", {})),
             status=str(header.get("status", "unknown")),
@@ -268,6 +321,15 @@ class Trajectory:
             ledger={
                 name: LedgerEntry(entry.kind, np.concatenate([p.ledger[name].energy for p in pieces]))
                 for name, entry in last.ledger.items()
+            },
+            constraints={
+                name: ConstraintRecord(
+                    *(
+                        np.concatenate([getattr(p.constraints[name], part) for p in pieces])
+                        for part in ("force", "drift", "velocity_drift")
+                    )
+                )
+                for name in last.constraints
             },
             limit_violations=combine_limit_violations([p.limit_violations for p in pieces]),
             stats=last.stats,
