@@ -31,6 +31,7 @@ from .exceptions import (
     ModelError,
     MultibodySimError,
     RobotNotFoundError,
+    SceneError,
     SimulationError,
     SimulationInterrupted,
     TrajectoryFileError,
@@ -40,6 +41,7 @@ from .exceptions import (
 from .integrators import INTEGRATORS, ButcherTableau, ExplicitRungeKutta, Integrator, get_integrator
 from .robot import Robot
 from .rollout import BatchTrajectory, rollout
+from .scenes import Scene, load_scene, make_scene
 from .simulation import simulate
 from .stability import LadderRung, StabilityLimit, Stiffness, largest_stable_dt, linearization, stiffness_ratio
 from .stepper import Stepper, StepperState
@@ -73,6 +75,8 @@ __all__ = [
     "PDGravity",
     "PotentialField",
     "Robot",
+    "Scene",
+    "SceneError",
     "RobotNotFoundError",
     "SimulationError",
     "SimulationInterrupted",
@@ -95,6 +99,8 @@ __all__ = [
     "linearization",
     "linearize",
     "load_robot",
+    "load_scene",
+    "make_scene",
     "make_controller",
     "plot_work_precision",
     "recommend",

@@ -84,6 +84,18 @@ CATALOG: dict[str, CatalogEntry] = {
             False,
             "planar point robot: a 1 kg puck on prismatic x, y joints in the horizontal plane (no gravity load)",
         ),
+        _shipped(
+            "spring_chain",
+            "spring_chain/spring_chain.urdf",
+            False,
+            "five 1 kg carts on prismatic joints in series (scenes add the springs between them)",
+        ),
+        _shipped(
+            "four_bar",
+            "four_bar/four_bar.urdf",
+            False,
+            "four-bar linkage (Grashof crank-rocker) as an open tree: a scene's loop constraint closes it",
+        ),
         _erd(
             "double_pendulum",
             "double_pendulum_description/urdf/double_pendulum.urdf",

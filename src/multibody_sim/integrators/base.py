@@ -7,6 +7,7 @@ from typing import Protocol
 
 import numpy as np
 
+from ..exceptions import InvalidArgumentError
 from ..state import ConfigurationSpace
 
 
@@ -98,8 +99,21 @@ class Integrator(ABC):
             over the step, integrated with the method's own quadrature.
         """
 
-    def check_system(self, system: System) -> None:  # noqa: B027 (deliberately a no-op by default)
-        """Refuse, before any step, a system this method cannot integrate (raise InvalidArgumentError)."""
+    def check_system(self, system: System) -> None:
+        """Refuse, before any step, a system this method cannot integrate (raise InvalidArgumentError).
+
+        Implicit methods need the dynamics' analytic derivatives, which a scene with constraints or mimic joints
+        does not provide: they refuse it, naming the integrators that accept it.
+        """
+        if self.implicit and not getattr(system, "has_derivatives", True):
+            from . import INTEGRATORS  # the registry imports this module
+
+            able = sorted(name for name, method in INTEGRATORS.items() if not method.implicit)
+            why = system._why_not()  # type: ignore[attr-defined]
+            raise InvalidArgumentError(
+                f"integrator '{self.name}' needs the dynamics' analytic derivatives, which scene "
+                f"'{getattr(system, 'name', '?')}' does not provide ({why}); use one of: {', '.join(able)}"
+            )
 
     def __repr__(self) -> str:
         return f"<integrator {self.name}: order {self.order}>"

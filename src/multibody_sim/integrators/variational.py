@@ -155,6 +155,7 @@ class VariationalIntegrator(Integrator):
             InvalidArgumentError: a floating base, a spherical or planar joint, or energy-ledger elements
                 other than joint torques and joint damping (scene elements such as springs).
         """
+        super().check_system(system)
         name = getattr(system, "name", type(system).__name__)
         if getattr(system, "floating_base", False):
             raise InvalidArgumentError(
@@ -172,6 +173,7 @@ class VariationalIntegrator(Integrator):
                 f"'{name}' has the {kind} joint '{model.names[joint]}'); {_ALTERNATIVES}"
             )
         others = [element for element, _ in system.ledger_elements if element not in _LEDGER]
+        others += [name for category, name, _ in getattr(system, "record_fields", ()) if category == "potential"]
         if others:
             raise InvalidArgumentError(
                 "integrator 'variational' models joint torques and joint damping only, but "

@@ -27,6 +27,11 @@ def robot_from_trajectory(trajectory: Trajectory) -> Robot:
     arguments = info.get("load_robot") if isinstance(info, dict) else None
     if not isinstance(info, dict) or not isinstance(arguments, dict) or not arguments.get("source"):
         raise TrajectoryFileError("the trajectory does not record how its robot was loaded (metadata 'robot')")
+    if isinstance(info.get("scene"), dict):  # a scene's reduced / modified model: rebuild the scene itself
+        from ..scenes import scene_from_metadata
+
+        robot: Robot = scene_from_metadata(info["scene"])
+        return _checked(robot, info, trajectory)
     source = str(arguments["source"])
     urdf_path = info.get("urdf_path")
     # A catalog name loads the catalog's URDF; a file loads the recorded absolute path, so that replaying does
@@ -45,6 +50,11 @@ def robot_from_trajectory(trajectory: Trajectory) -> Robot:
         )
     except ModelError as exc:
         raise ModelError(f"cannot load the trajectory's robot: {exc}") from None
+    return _checked(robot, info, trajectory)
+
+
+def _checked(robot: Robot, info: dict[str, Any], trajectory: Trajectory) -> Robot:
+    """The robot, if its URDF is the one recorded and its nq fits the trajectory's."""
     recorded = info.get("urdf_sha256")
     actual = robot.source.get("urdf_sha256")
     if recorded and actual != recorded:

@@ -1,0 +1,552 @@
+"""The Scene: a robot with exactly the physics a scene declares, and nothing else built or computed.
+
+A scene modifies the robot's Pinocchio model once, before any step (base pose, gravity, payloads, armature,
+joint damping and friction, locked joints removed with ``pin.buildReducedModel``), and adds at run time only the
+elements it declares: springs, Coulomb friction, external wrenches (ForceElements) and holonomic constraints
+(Constraints). A scene with none of them steps exactly like its robot.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from ..catalog import load_robot, read_urdf
+from ..exceptions import InvalidArgumentError, SceneError
+from ..robot import Robot
+from ..trajectory import Trajectory
+from .spec import SceneSpec
+
+_WORLD = pin.Convention.WORLD
+
+
+class Scene(Robot):
+    """A robot with the physics a scene declares: a Robot wherever one is accepted (simulate, Stepper, ...).
+
+    Equations of motion: ``M(q) v' + C(q, v) v + g(q) = tau - D v + f(q, v, t) (+ Jᵀλ)`` on the scene's model
+    (locked joints removed: q and v are the reduced model's), with f the springs, friction and external
+    wrenches and λ the constraint forces.
+
+    Build one with :func:`load_scene` (a TOML file) or :func:`make_scene` (the same tables in Python).
+
+    Attributes:
+        spec: the parsed scene.
+        full_nq, full_nv: sizes of the robot before locking joints.
+        locked: locked joint names and their positions.
+        elements: the force elements (None when the scene declares none).
+        constraints: the holonomic constraints (None when there are none).
+        mimic: whether URDF <mimic> joints are honoured (forward dynamics by CRBA, as ABA does not support them).
+        q0, v0: the scene's initial state ([initial], else the neutral configuration at rest).
+    """
+
+    def __init__(self, spec: SceneSpec):
+        from .elements import ForceElements
+
+        self.spec = spec
+        where = spec.source
+        robot = _load_robot(spec)
+        model = _build_model(robot, spec)
+        self.full_nq, self.full_nv = model.nq, model.nv
+        self.full_robot = robot
+        _apply_base_pose(model, spec)
+        if spec.gravity is not None:
+            model.gravity.linear = np.array(spec.gravity, dtype=float)
+        for i, payload in enumerate(spec.payloads):
+            _add_payload(model, payload, f"{where}: payload[{i}]")
+        friction = np.array(model.friction, dtype=float) if spec.robot.damping else np.zeros(model.nv)
+        damping = np.array(model.damping, dtype=float) if spec.robot.damping else np.zeros(model.nv)
+        stiffness, rest_values = np.zeros(model.nv), {}
+        for joint, settings in spec.joints.items():
+            key = f"{where}: joints.{joint}"
+            jid = _joint_id(model, joint, key, robot.floating_base)
+            if joint in spec.lock:
+                raise SceneError(
+                    f"{key}: joint '{joint}' is locked, so it takes no damping, friction, spring or armature"
+                )
+            i = model.joints[jid].idx_v
+            if settings.damping is not None:
+                damping[i] = settings.damping
+            if settings.friction is not None:
+                friction[i] = settings.friction
+            if settings.armature is not None:
+                model.armature[i] += settings.armature
+            if settings.stiffness is not None:
+                stiffness[i] = settings.stiffness
+            if settings.rest is not None:
+                if not settings.stiffness:
+                    raise SceneError(f"{key}.rest: a rest position needs a spring: give stiffness > 0")
+                rest_values[joint] = settings.rest
+        model.damping = damping
+        model.friction = friction
+        model, lock_config = _lock_joints(model, spec, robot.floating_base)
+        self.locked = dict(spec.lock)
+        # The Robot part: argument checks, limits, energies, damping (tau - D v) on the scene's model.
+        super().__init__(
+            model,
+            name=_scene_name(spec, robot),
+            floating_base=robot.floating_base,
+            damping=True,
+            source={**robot.source, "scene": _scene_source(spec)},
+        )
+        self.mimic = spec.robot.mimic
+        # Per-dof element parameters on the reduced model, read back by joint name (locking renumbers dofs).
+        kept_stiffness, kept_friction = np.zeros(self.nv), np.array(model.friction, dtype=float)
+        rest = pin.neutral(model)
+        for joint in spec.joints:
+            jid = model.getJointId(joint)
+            full_jid = self.full_robot.model.getJointId(joint)
+            kept_stiffness[model.joints[jid].idx_v] = stiffness[self.full_robot.model.joints[full_jid].idx_v]
+            if joint in rest_values:
+                _set_joint_position(model, jid, rest_values[joint], rest)
+        if self.floating_base:
+            kept_friction[:6] = 0.0
+        self.q0, self.v0 = _initial_state(self, spec)
+        wrenches = [_wrench(model, force, f"{where}: force[{i}]") for i, force in enumerate(spec.forces)]
+        elements = ForceElements(
+            model,
+            dof_names=self.dof_names,
+            damping=np.zeros(self.nv),  # viscous damping stays in the Robot part (D), which implicit methods use
+            friction=kept_friction,
+            friction_velocity=spec.friction_velocity,
+            stiffness=kept_stiffness,
+            rest=rest,
+            wrenches=wrenches,
+        )
+        self.elements = None if elements.empty else elements
+        self.constraints = None
+        if spec.constraints:
+            if self.mimic:
+                raise SceneError(f"{where}: constraint: constraints and mimic joints cannot be combined yet")
+            for i, constraint in enumerate(spec.constraints):
+                for frame in constraint.frames:
+                    _frame_id(model, frame, f"{where}: constraint[{i}].frames")
+            from .constraints import Constraints
+
+            self.constraints = Constraints(model, list(spec.constraints), self.q0)
+        self.lock_configuration = lock_config
+        self._flow_elements = list(super().ledger_elements)
+        self._n_robot_flows = len(self._flow_elements)
+        if self.elements is not None:
+            self._flow_elements += self.elements.ledger
+        if self.constraints is not None:
+            self._flow_elements += self.constraints.ledger
+        fields: list[tuple[str, str, int]] = []
+        if self.elements is not None:
+            fields += [("potential", name, 1) for name in self.elements.potentials]
+        if self.constraints is not None:
+            fields += [
+                ("constraint", name, rows + 2)
+                for name, rows in zip(self.constraints.names, self.constraints.rows, strict=True)
+            ]
+        self.record_fields = tuple(fields)
+        self._last: tuple[Any, Any, float] | None = None  # (q, v, t) of the latest element/constraint evaluation
+        self.has_derivatives = self.constraints is None and not self.mimic
+
+    def __repr__(self) -> str:
+        return f"Scene({self.name!r}, nq={self.nq}, nv={self.nv}, elements={len(self._flow_elements) - 1})"
+
+    # ---- what was modelled ---------------------------------------------------------------------------
+    def describe(self) -> str:
+        """What the scene modelled, a few lines for the run summary."""
+        spec = self.spec
+        base = "floating" if self.floating_base else "fixed"
+        if spec.robot.position is not None or spec.robot.rpy is not None:
+            base += f" at position {list(spec.robot.position or (0, 0, 0))} rpy {list(spec.robot.rpy or (0, 0, 0))}"
+        lines = [f"scene '{self.name}': robot {self.full_robot.name}, {base} base"]
+        if self.locked:
+            locked = ", ".join(f"{name} = {value:g}" for name, value in self.locked.items())
+            lines.append(f"  locked: {locked}; model nq/nv {self.full_nq}/{self.full_nv} -> {self.nq}/{self.nv}")
+        else:
+            lines.append(f"  model nq/nv {self.nq}/{self.nv} (nothing locked)")
+        lines.append(f"  gravity {np.round(self.model.gravity.linear, 6).tolist()} m/s²")
+        if spec.payloads:
+            lines.append("  payloads: " + ", ".join(f"{p.mass:g} kg on {p.frame}" for p in spec.payloads))
+        armature = [f"{self.dof_names[i]} {a:g}" for i, a in enumerate(self.model.armature) if a]
+        if armature:
+            lines.append("  armature [kg·m²]: " + ", ".join(armature))
+        if self.mimic:
+            lines.append("  mimic joints honoured (forward dynamics by CRBA: ABA does not support them)")
+        elements = [name for name, _ in self._flow_elements[1:] if not name.startswith("constraint:")]
+        if self.elements is not None:
+            elements += self.elements.potentials
+        lines.append("  force elements: " + (", ".join(elements) if elements else "none"))
+        if self.constraints is not None:
+            rows = ", ".join(
+                f"{n} ({r} rows)" for n, r in zip(self.constraints.names, self.constraints.rows, strict=True)
+            )
+            lines.append(f"  constraints: {rows}")
+        else:
+            lines.append("  constraints: none")
+        lines.append("  not modelled: collision geometry, contact (visual meshes are loaded only to view)")
+        return "\n".join(lines)
+
+    # ---- dynamics (the hot path) ---------------------------------------------------------------------
+    def _applied(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float) -> np.ndarray:
+        """tau plus the force elements and minus damping: everything but the constraints."""
+        if self.elements is not None:
+            tau = tau + self.elements.evaluate(q, v, t)
+        if self._damped:
+            tau = tau - self.damping * v
+        return tau
+
+    def unchecked_forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """Accelerations at time t [s] with every declared element and constraint, no argument checks."""
+        applied = self._applied(q, v, tau, t)
+        self._last = (q, v, t)
+        if self.constraints is not None:
+            return self.constraints.forward_dynamics(q, v, applied)
+        if self.mimic:
+            return _crba_forward_dynamics(self.model, self.data, q, v, applied)
+        return pin.aba(self.model, self.data, q, v, applied, _WORLD)
+
+    def unchecked_dynamics_derivatives(
+        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Partial derivatives of the forward dynamics with the force elements (see Robot); no constraints."""
+        if not self.has_derivatives:
+            raise InvalidArgumentError(f"scene '{self.name}' has no analytic dynamics derivatives ({self._why_not()})")
+        applied = self._applied(q, v, tau, t)
+        da_dq, da_dv, da_dtau = pin.computeABADerivatives(self.model, self.data, q, v, applied)
+        da_dq, da_dv, da_dtau = da_dq.copy(), da_dv.copy(), da_dtau.copy()
+        if self._damped:
+            da_dv -= da_dtau * self.damping
+        if self.elements is not None:
+            df_dq, df_dv = self.elements.jacobians(q, v, t)
+            da_dq += da_dtau @ df_dq
+            da_dv += da_dtau @ df_dv
+        return da_dq, da_dv, da_dtau
+
+    def _why_not(self) -> str:
+        if self.constraints is not None:
+            return f"it has constraints: {', '.join(self.constraints.names)}"
+        return "it honours mimic joints, which Pinocchio's ABA derivatives do not support"
+
+    # ---- energy ledger -------------------------------------------------------------------------------
+    @property
+    def ledger_elements(self) -> list[tuple[str, str]]:
+        """(name, kind) of every flow element: joint torques, damping, friction, external forces, constraints."""
+        return self._flow_elements
+
+    def ledger_power(
+        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, out: np.ndarray | None = None, t: float = 0.0
+    ) -> np.ndarray:
+        """Power [W] of each flow element at (q, v, tau, t), in ledger_elements order."""
+        if out is None:
+            out = np.empty(len(self._flow_elements))
+        n = self._n_robot_flows
+        super().ledger_power(q, v, tau, out[:n])
+        if len(out) == n:
+            return out
+        last = self._last
+        if last is None or last[0] is not q or last[1] is not v or last[2] != t:
+            self.unchecked_forward_dynamics(q, v, tau, t)  # the elements' parts at this very point
+        if self.elements is not None:
+            m = n + len(self.elements.ledger)
+            self.elements.powers(v, out[n:m])
+            n = m
+        if self.constraints is not None:
+            self.constraints.powers(v, out[n:])
+        return out
+
+    def unchecked_energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
+        """(T, V) [J]: V includes the springs' stored energy."""
+        kinetic, potential = (
+            _mimic_energies(self.model, self.data, q, v) if self.mimic else super().unchecked_energies(q, v)
+        )
+        if self.elements is not None and self.elements.potentials:
+            potential += float(self.elements.potential_energies(q).sum())
+        return kinetic, potential
+
+    def unchecked_record(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, out: np.ndarray) -> None:
+        """Springs' stored energies, then each constraint's forces, drift and velocity drift, into `out`."""
+        i = 0
+        if self.elements is not None and self.elements.potentials:
+            n = len(self.elements.potentials)
+            out[:n] = self.elements.potential_energies(q)
+            i = n
+        if self.constraints is not None:
+            self.unchecked_forward_dynamics(q, v, tau, t)  # the multipliers in force at this sample
+            forces = self.constraints.multipliers()
+            drift, velocity_drift = self.constraints.drift(q, v)
+            row = 0
+            for k, rows in enumerate(self.constraints.rows):
+                out[i : i + rows] = forces[row : row + rows]
+                out[i + rows], out[i + rows + 1] = drift[k], velocity_drift[k]
+                i += rows + 2
+                row += rows
+
+    # ---- running -------------------------------------------------------------------------------------
+    def run(self, **overrides: Any) -> Trajectory:
+        """Simulate the scene as it declares: its initial state, [simulation] settings and [controller].
+
+        Args:
+            **overrides: anything simulate() takes (q0, v0, duration, dt, integrator, controller, out, chunk,
+                on_sample, progress, output_dt, control_dt, rtol, atol, max_step); given values win over the
+                scene's. Defaults where the scene is silent too: duration 1 s, dt 1 ms, rk4.
+
+        Returns:
+            The trajectory (see simulate for the errors raised).
+        """
+        from ..simulation import simulate
+
+        settings = self.simulation_settings()
+        settings.update(overrides)
+        q0, v0 = settings.pop("q0"), settings.pop("v0")
+        return simulate(self, q0, v0, **settings)
+
+    def simulation_settings(self) -> dict[str, Any]:
+        """simulate()'s keyword arguments as the scene declares them (with q0 and v0), defaults filled in."""
+        sim = self.spec.simulation
+        settings: dict[str, Any] = {"q0": self.q0, "v0": self.v0, "duration": 1.0, "dt": 1e-3, "integrator": "rk4"}
+        if sim is not None:
+            for name in ("duration", "dt", "integrator"):
+                if getattr(sim, name) is not None:
+                    settings[name] = getattr(sim, name)
+            settings.update(sim.options)
+        controller = self.make_controller()
+        if controller is not None:
+            settings["controller"] = controller
+        return settings
+
+    def make_controller(self) -> Any:
+        """The scene's [controller], built for this scene's model, or None."""
+        if self.spec.controller is None:
+            return None
+        from ..controllers import make_controller
+
+        try:
+            return make_controller(self.spec.controller.name, self, self.spec.controller.as_param_strings())
+        except InvalidArgumentError as exc:
+            raise SceneError(f"{self.spec.source}: controller: {exc}") from None
+
+    # ---- savings -------------------------------------------------------------------------------------
+    def measure_savings(self, steps: int = 200, repeats: int = 5) -> dict[str, float]:
+        """Time per RK4 step of this scene against its full robot (nothing locked, no elements): a short side
+        benchmark, run only when asked (`--report-savings`, `inspect`).
+
+        Returns:
+            {"scene_us": median µs per step, "full_us": median µs per step of the full model, "ratio": scene/full}.
+        """
+        from ..simulation import simulate
+
+        def per_step(system: Robot, q0: np.ndarray) -> float:
+            times = []
+            for _ in range(repeats):
+                start = time.process_time()
+                simulate(
+                    system, q0, np.zeros(system.nv), duration=steps * 1e-3, dt=1e-3, progress=False, output_dt=0.01
+                )
+                times.append((time.process_time() - start) / steps * 1e6)
+            return float(np.median(times))
+
+        full = self.full_robot
+        scene_us = per_step(self, self.q0)
+        full_us = per_step(full, self.full_configuration(self.q0))
+        return {"scene_us": scene_us, "full_us": full_us, "ratio": scene_us / full_us}
+
+    def full_configuration(self, q: np.ndarray) -> np.ndarray:
+        """The full robot's configuration (locked joints at their lock positions) for a scene configuration q."""
+        full = self.full_robot.model
+        out = self.lock_configuration.copy()
+        for jid in range(1, self.model.njoints):
+            joint = self.model.joints[jid]
+            full_joint = full.joints[full.getJointId(self.model.names[jid])]
+            out[full_joint.idx_q : full_joint.idx_q + full_joint.nq] = q[joint.idx_q : joint.idx_q + joint.nq]
+        return out
+
+
+# ---- building ----------------------------------------------------------------------------------------
+def _load_robot(spec: SceneSpec) -> Robot:
+    r = spec.robot
+    floating = None if r.base is None else r.base == "floating"
+    try:
+        return load_robot(
+            r.source, floating_base=floating, damping=r.damping, package_dirs=list(r.package_dirs) or None
+        )
+    except InvalidArgumentError as exc:
+        raise SceneError(f"{spec.source}: robot.source: {exc}") from None
+
+
+def _build_model(robot: Robot, spec: SceneSpec) -> pin.Model:
+    """A copy of the robot's model to modify; rebuilt from its (already checked) URDF to honour mimic joints."""
+    if not spec.robot.mimic:
+        return robot.model.copy()
+    path = Path(robot.source["urdf_path"])
+    text = read_urdf(path).decode("utf-8")
+    model = (
+        pin.buildModelFromXML(text, pin.JointModelFreeFlyer(), True)
+        if robot.floating_base
+        else pin.buildModelFromXML(text, True)
+    )
+    mimics = [model.names[j] for j in range(1, model.njoints) if model.joints[j].shortname() == "JointModelMimic"]
+    if not mimics:
+        raise SceneError(f"{spec.source}: robot.mimic: the URDF of '{robot.name}' declares no <mimic> joint")
+    return model
+
+
+def _apply_base_pose(model: pin.Model, spec: SceneSpec) -> None:
+    """Weld the root at the scene's pose: every joint and frame attached to the world moves with it."""
+    position, rpy = spec.robot.position, spec.robot.rpy
+    if position is None and rpy is None:
+        return
+    pose = pin.SE3(pin.rpy.rpyToMatrix(*(rpy or (0.0, 0.0, 0.0))), np.array(position or (0.0, 0.0, 0.0), dtype=float))
+    for jid in range(1, model.njoints):
+        if model.parents[jid] == 0:
+            model.jointPlacements[jid] = pose * model.jointPlacements[jid]
+    for fid in range(len(model.frames)):
+        frame = model.frames[fid]
+        if frame.parentJoint == 0 and frame.name != "universe":
+            frame.placement = pose * frame.placement
+            model.frames[fid] = frame
+
+
+def _add_payload(model: pin.Model, payload: Any, key: str) -> None:
+    fid = _frame_id(model, payload.frame, f"{key}.frame")
+    frame = model.frames[fid]
+    if frame.parentJoint == 0:
+        raise SceneError(f"{key}.frame: '{payload.frame}' is welded to the world: a payload there moves nothing")
+    ixx, iyy, izz, ixy, ixz, iyz = payload.inertia
+    inertia = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]], dtype=float)
+    body = pin.Inertia(float(payload.mass), np.array(payload.com, dtype=float), inertia)
+    model.inertias[frame.parentJoint] = model.inertias[frame.parentJoint] + frame.placement.act(body)
+
+
+def _lock_joints(model: pin.Model, spec: SceneSpec, floating: bool) -> tuple[pin.Model, np.ndarray]:
+    """The reduced model without the locked joints, and the full configuration they are locked in."""
+    reference = pin.neutral(model)
+    if not spec.lock:
+        return model, reference
+    ids = []
+    for joint, value in spec.lock.items():
+        key = f"{spec.source}: lock.{joint}"
+        jid = _joint_id(model, joint, key, floating)
+        _set_joint_position(model, jid, value, reference, key)
+        ids.append(jid)
+    if len(ids) == len(_movable_joints(model)):
+        raise SceneError(f"{spec.source}: lock: every joint is locked: nothing is left to simulate")
+    return pin.buildReducedModel(model, ids, reference), reference
+
+
+def _set_joint_position(model: pin.Model, jid: int, value: float, q: np.ndarray, key: str = "") -> None:
+    joint = model.joints[jid]
+    i = joint.idx_q
+    if joint.nq == 1:
+        lo, hi = model.lowerPositionLimit[i], model.upperPositionLimit[i]
+        if key and -1e300 < lo < hi < 1e300 and not lo <= value <= hi:
+            raise SceneError(f"{key}: {value:g} is outside the joint's limits [{lo:g}, {hi:g}]")
+        q[i] = value
+    else:  # a continuous joint: (cos, sin)
+        q[i], q[i + 1] = math.cos(value), math.sin(value)
+
+
+def _movable_joints(model: pin.Model) -> list[str]:
+    return [model.names[j] for j in range(1, model.njoints) if model.joints[j].nv > 0]
+
+
+def _one_dof_joints(model: pin.Model) -> list[str]:
+    return [model.names[j] for j in range(1, model.njoints) if model.joints[j].nv == 1]
+
+
+def _joint_id(model: pin.Model, name: str, key: str, floating: bool) -> int:
+    """The id of a 1-dof joint by name, or SceneError naming the valid ones."""
+    valid = _one_dof_joints(model)
+    if name not in valid:
+        if floating and model.existJointName(name) and model.joints[model.getJointId(name)].nv == 6:
+            raise SceneError(f"{key}: '{name}' is the floating base: it cannot be locked or given joint settings")
+        raise SceneError(f"{key}: unknown joint '{name}' (valid: {', '.join(valid)})")
+    return model.getJointId(name)
+
+
+def _frame_id(model: pin.Model, name: str, key: str) -> int:
+    names = [f.name for f in model.frames if f.name != "universe"]
+    if name not in names:
+        raise SceneError(f"{key}: unknown frame '{name}' (valid: {', '.join(names)})")
+    return model.getFrameId(name)
+
+
+def _wrench(model: pin.Model, force: Any, key: str) -> Any:
+    from .elements import Wrench
+
+    fid = _frame_id(model, force.frame, f"{key}.frame")
+    if model.frames[fid].parentJoint == 0:
+        raise SceneError(f"{key}.frame: '{force.frame}' is welded to the world: a force there moves nothing")
+    return Wrench(
+        name=force.name,
+        frame_id=fid,
+        force=np.array(force.force, dtype=float),
+        torque=np.array(force.torque, dtype=float),
+        reference=force.reference,
+        scale=force.scale,
+    )
+
+
+def _initial_state(scene: Scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarray]:
+    where = spec.source
+    q, v = scene.neutral(), np.zeros(scene.nv)
+    for key, given, size, target in (
+        ("initial.q", spec.initial_q, scene.nq, q),
+        ("initial.v", spec.initial_v, scene.nv, v),
+    ):
+        if given is None:
+            continue
+        if isinstance(given, dict):
+            for joint, value in given.items():
+                jid = _joint_id(scene.model, joint, f"{where}: {key}.{joint}", scene.floating_base)
+                if key == "initial.q":
+                    _set_joint_position(scene.model, jid, value, target)
+                else:
+                    target[scene.model.joints[jid].idx_v] = value
+        else:
+            if len(given) != size:
+                locked = f" after locking {len(spec.lock)} joint(s)" if spec.lock else ""
+                raise SceneError(f"{where}: {key}: has {len(given)} entries, the scene's model needs {size}{locked}")
+            target[:] = given
+    try:
+        scene.check_q(q, "initial.q")
+    except InvalidArgumentError as exc:
+        raise SceneError(f"{where}: {exc}") from None
+    return q, v
+
+
+def _crba_forward_dynamics(
+    model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray, tau: np.ndarray
+) -> np.ndarray:
+    """v' = M⁻¹ (tau - C v - g) by CRBA and RNEA (for models ABA does not support: mimic joints)."""
+    M = pin.crba(model, data, q)
+    M = np.triu(M) + np.triu(M, 1).T
+    return np.linalg.solve(M, tau - pin.nonLinearEffects(model, data, q, v))
+
+
+def _mimic_energies(model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
+    """(T, V) [J] for a model with mimic joints, which Pinocchio's energy algorithms refuse: T = ½ vᵀ M v by CRBA,
+    V = -Σ m_i gᵀ c_i over the moving bodies (what computePotentialEnergy sums)."""
+    M = pin.crba(model, data, q)
+    kinetic = 0.5 * float(v @ (np.triu(M) + np.triu(M, 1).T) @ v)
+    pin.forwardKinematics(model, data, q)
+    gravity = model.gravity.linear
+    potential = 0.0
+    for jid in range(1, model.njoints):
+        body = model.inertias[jid]
+        potential -= body.mass * float(gravity @ data.oMi[jid].act(body.lever))
+    return kinetic, potential
+
+
+def _scene_name(spec: SceneSpec, robot: Robot) -> str:
+    """The scene file's stem, or '<robot>-scene' for a scene built in Python."""
+    return Path(spec.source).stem if spec.text is not None else f"{robot.name}-scene"
+
+
+def _scene_source(spec: SceneSpec) -> dict[str, Any]:
+    """How the scene was given, for trajectory metadata: its TOML text, or a description of the dict."""
+    source: dict[str, Any] = {"source": spec.source}
+    if spec.text is not None:
+        source["toml"] = spec.text
+    if spec.base_dir is not None:
+        source["base_dir"] = os.fspath(spec.base_dir)
+    return source

@@ -1,0 +1,799 @@
+"""Scene files: parse and validate a scene's TOML (or the same dict built in Python) into frozen dataclasses.
+
+This module checks structure and types only: unknown keys, wrong types, ranges, enumerations, counts. Names that
+need the model (joints, frames) are checked later, when the Scene is built. Every problem is a
+:class:`~multibody_sim.exceptions.SceneError` with one line, ``{source}: {key path}: {problem} (valid: ...)``,
+where the key path reads like ``joints.panda_joint2.damping`` or ``force[1].shape``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import numbers
+import os
+import re
+import sys
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NoReturn
+
+import numpy as np
+
+from ..catalog import CATALOG
+from ..controllers import CONTROLLERS
+from ..exceptions import InvalidArgumentError, SceneError
+from ..integrators import INTEGRATORS
+from ..safety import printable
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+MAX_SCENE_BYTES = 1024 * 1024  # a scene is a few hundred bytes; a megabyte of TOML is not a scene
+TOP_LEVEL_KEYS = (
+    "description",
+    "gravity",
+    "friction_velocity",
+    "robot",
+    "lock",
+    "joints",
+    "force",
+    "payload",
+    "constraint",
+    "initial",
+    "simulation",
+    "controller",
+)
+# Declared elements the format reserves for later: recognised, refused with what is missing.
+RESERVED_KEYS = {"contact": "ground contact is not modelled yet"}
+ROBOT_KEYS = ("source", "base", "position", "rpy", "damping", "mimic", "package_dirs")
+JOINT_KEYS = ("damping", "friction", "stiffness", "rest", "armature")
+FORCE_KEYS = ("name", "frame", "force", "torque", "reference", "shape", "start", "ramp_time", "frequency", "phase")
+PAYLOAD_KEYS = ("frame", "mass", "com", "inertia")
+CONSTRAINT_KEYS = ("name", "type", "frames", "position", "stabilization")
+INITIAL_KEYS = ("q", "v")
+SIMULATION_OPTIONS = ("output_dt", "control_dt", "rtol", "atol", "max_step")
+SIMULATION_KEYS = ("duration", "dt", "integrator", *SIMULATION_OPTIONS)
+BASES = ("fixed", "floating")
+REFERENCES = ("world", "local")
+SHAPES = ("constant", "step", "ramp", "sine")
+# Which optional keys of a [[force]] each shape reads: any other is a mistake worth reporting.
+SHAPE_KEYS = {
+    "constant": (),
+    "step": ("start",),
+    "ramp": ("start", "ramp_time"),
+    "sine": ("start", "frequency", "phase"),
+    "callable": (),
+}
+CONSTRAINT_FRAMES = {"loop": 2, "point": 1, "weld": 2}
+DEFAULT_FRICTION_VELOCITY = 1e-3
+# Ledger names become keys of trajectory files ("ledger/force:<name>"): keep them short and plain.
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
+_NAME_RULE = "1-64 letters, digits, '_', '.' or '-' (not starting with '.' or '-')"
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+_TOML_POSITION = re.compile(r"^(.*) \(at line (\d+), column (\d+)\)$", re.DOTALL)
+
+
+# ---- the parsed scene ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RobotSpec:
+    """The robot a scene simulates.
+
+    Attributes:
+        source: a catalog name, or a URDF path (a relative path in a scene file is made relative to the file's
+            folder).
+        base: "fixed", "floating", or None for the natural base (the catalog entry's; fixed for URDF paths).
+        position: where a fixed base's root link is welded [m], shape (3,); None: the origin.
+        rpy: roll, pitch, yaw of that weld [rad], shape (3,); None: identity.
+        damping: apply the URDF's ``<dynamics damping>``.
+        mimic: honour the URDF's ``<mimic>`` joints.
+        package_dirs: extra ``package://`` roots (relative ones made relative to the scene file's folder).
+    """
+
+    source: str
+    base: str | None = None
+    position: tuple[float, float, float] | None = None
+    rpy: tuple[float, float, float] | None = None
+    damping: bool = True
+    mimic: bool = False
+    package_dirs: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    """Per-joint overrides and additions on a 1-dof joint; None leaves a property as the URDF has it.
+
+    Attributes:
+        damping: viscous damping [N·m·s/rad or N·s/m], >= 0; replaces the URDF value.
+        friction: Coulomb friction [N·m or N], >= 0; replaces the URDF value.
+        stiffness: spring stiffness [N·m/rad or N/m], >= 0.
+        rest: spring rest position [rad or m] (None: 0).
+        armature: rotor inertia added to M's diagonal [kg·m² or kg], >= 0.
+    """
+
+    damping: float | None = None
+    friction: float | None = None
+    stiffness: float | None = None
+    rest: float | None = None
+    armature: float | None = None
+
+
+@dataclass(frozen=True)
+class ForceSpec:
+    """An external wrench on a named frame, scaled over time by a shape.
+
+    Attributes:
+        name: ledger name (the element is ``force:<name>``).
+        frame: a frame of the model (link, joint or fixed frame).
+        force: force [N], shape (3,).
+        torque: torque [N·m], shape (3,).
+        reference: "world" (world-aligned axes at the frame's origin) or "local" (the frame's own axes).
+        shape: "constant", "step", "ramp", "sine", or a Python callable ``t -> scale`` (from Python only).
+        start: when step, ramp and sine switch on [s].
+        ramp_time: time a ramp takes from 0 to full value [s], > 0.
+        frequency: sine frequency [Hz], > 0.
+        phase: sine phase [rad].
+    """
+
+    name: str
+    frame: str
+    force: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    torque: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    reference: str = "world"
+    shape: str | Callable[[float], float] = "constant"
+    start: float = 0.0
+    ramp_time: float = 1.0
+    frequency: float = 1.0
+    phase: float = 0.0
+
+    def scale(self, t: float) -> float:
+        """The factor on (force, torque) at time t [s].
+
+        constant: 1. step: 0 before start, 1 from start on. ramp: clip((t − start) / ramp_time, 0, 1).
+        sine: sin(2π frequency (t − start) + phase) from start on, 0 before. A callable: its value at t.
+
+        Raises:
+            InvalidArgumentError: a callable shape returned something other than a finite real number.
+        """
+        shape = self.shape
+        if callable(shape):
+            value = shape(t)
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+                raise InvalidArgumentError(
+                    printable(f"force '{self.name}': shape({t!r}) returned {value!r}, not a finite real number")
+                )
+            return float(value)
+        if shape == "constant":
+            return 1.0
+        if t < self.start:
+            return 0.0
+        if shape == "step":
+            return 1.0
+        if shape == "ramp":
+            return min((t - self.start) / self.ramp_time, 1.0)
+        return math.sin(2.0 * math.pi * self.frequency * (t - self.start) + self.phase)
+
+
+@dataclass(frozen=True)
+class PayloadSpec:
+    """Extra mass rigidly attached to a frame.
+
+    Attributes:
+        frame: the frame it is attached to.
+        mass: [kg], > 0.
+        com: centre of mass in the frame [m], shape (3,).
+        inertia: about the centre of mass, in the frame's axes: (ixx, iyy, izz, ixy, ixz, iyz) [kg·m²]; a
+            physical inertia (positive semi-definite, principal moments obeying the triangle inequality).
+    """
+
+    frame: str
+    mass: float
+    com: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    inertia: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class ConstraintSpec:
+    """A holonomic constraint, enforced with Lagrange multipliers.
+
+    Attributes:
+        name: ledger name (the element is ``constraint:<name>``).
+        type: "loop" (two frames' origins coincide, 3 rows), "point" (a frame's origin fixed in the world, 3
+            rows) or "weld" (two frames held at their initial relative pose, 6 rows).
+        frames: two distinct frames for loop and weld, one for point.
+        position: point only: the world anchor [m], shape (3,); None: where the frame is at the initial q.
+        stabilization: Baumgarte gains (Kp [1/s²], Kd [1/s]) on the drift, both >= 0; None: the default.
+    """
+
+    name: str
+    type: str
+    frames: tuple[str, ...]
+    position: tuple[float, float, float] | None = None
+    stabilization: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class SimulationSpec:
+    """How to run the scene; None leaves a setting to the caller (the command line or simulate's defaults).
+
+    Attributes:
+        duration: simulated time [s], > 0.
+        dt: step (first trial step for adaptive methods) [s], > 0.
+        integrator: an integrator name (multibody_sim.INTEGRATORS).
+        options: the simulate() options given: output_dt, control_dt, max_step [s] and rtol, atol, all > 0.
+    """
+
+    duration: float | None = None
+    dt: float | None = None
+    integrator: str | None = None
+    options: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ControllerSpec:
+    """A built-in controller and its parameters.
+
+    Attributes:
+        name: a key of multibody_sim.CONTROLLERS.
+        params: parameter values in the order given: numbers (int or float), booleans, strings, tuples of
+            numbers (vectors), tuples of such tuples ("rows" parameters such as waypoints).
+    """
+
+    name: str
+    params: dict[str, Any] = field(default_factory=dict)
+
+    def as_param_strings(self) -> list[str]:
+        """The parameters as make_controller's ``KEY=VALUE`` strings: ``["kp=100.0", "q_ref=0,-1,1"]``.
+
+        Vectors are comma-joined; a "rows" parameter gives one string per row; floats are written with repr,
+        which reads back to the same float.
+        """
+        strings = []
+        for key, value in self.params.items():
+            rows = value if isinstance(value, tuple) and value and isinstance(value[0], tuple) else (value,)
+            strings += [f"{key}={_param_text(row)}" for row in rows]
+        return strings
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """A validated scene, before any model is built.
+
+    Attributes:
+        robot: the robot and its base.
+        description: free text.
+        gravity: [m/s²], shape (3,); None: Pinocchio's (0, 0, −9.81).
+        friction_velocity: regularization velocity of Coulomb friction [rad/s or m/s], > 0.
+        lock: joints removed from the model and the positions they are held at [rad or m].
+        joints: per-joint overrides, by joint name.
+        forces: external wrenches.
+        payloads: extra masses.
+        constraints: holonomic constraints.
+        initial_q: the scene model's q (after locking), or {joint: value} over 1-dof joints; None: the default.
+        initial_v: the same for v.
+        simulation: run settings, or None when the scene has no [simulation] table.
+        controller: a built-in controller, or None.
+        source: the name used in messages (the file path as given, or "<scene>").
+        text: the scene file's text (for trajectory metadata); None for a dict.
+        base_dir: the folder relative paths were resolved against (the scene file's); None for a dict.
+    """
+
+    robot: RobotSpec
+    description: str = ""
+    gravity: tuple[float, float, float] | None = None
+    friction_velocity: float = DEFAULT_FRICTION_VELOCITY
+    lock: dict[str, float] = field(default_factory=dict)
+    joints: dict[str, JointSpec] = field(default_factory=dict)
+    forces: tuple[ForceSpec, ...] = ()
+    payloads: tuple[PayloadSpec, ...] = ()
+    constraints: tuple[ConstraintSpec, ...] = ()
+    initial_q: tuple[float, ...] | dict[str, float] | None = None
+    initial_v: tuple[float, ...] | dict[str, float] | None = None
+    simulation: SimulationSpec | None = None
+    controller: ControllerSpec | None = None
+    source: str = "<scene>"
+    text: str | None = None
+    base_dir: Path | None = None
+
+
+# ---- reading -------------------------------------------------------------------------------------------
+def read_scene_file(path: str | os.PathLike[str]) -> SceneSpec:
+    """Read and validate a scene file (TOML).
+
+    Scene files may come from strangers: files over MAX_SCENE_BYTES, binary files and text that is not UTF-8
+    are refused before parsing. Relative paths in the file are relative to its folder.
+
+    Args:
+        path: the scene file; messages name it as given.
+
+    Raises:
+        SceneError: the file is missing, too large, not UTF-8 text, not valid TOML (the message gives TOML's
+            line and column) or not a valid scene.
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise SceneError(f"a scene file must be a path, got {type(path).__name__}")
+    source = printable(os.fspath(path))
+    file = Path(path).expanduser()
+    if file.is_dir():
+        raise SceneError(f"{source}: is a folder, not a scene file")
+    if file.exists() and not file.is_file():  # a FIFO or a device would block or never end
+        raise SceneError(f"{source}: not a regular file")
+    try:
+        with open(file, "rb") as stream:
+            raw = stream.read(MAX_SCENE_BYTES + 1)  # never more than the limit, whatever the file claims
+    except FileNotFoundError:
+        raise SceneError(f"{source}: no such file") from None
+    except OSError as exc:
+        raise SceneError(printable(f"{source}: cannot read the file ({exc.strerror or exc})")) from None
+    if len(raw) > MAX_SCENE_BYTES:
+        raise SceneError(f"{source}: the file is larger than {MAX_SCENE_BYTES} bytes (1 MiB), too large for a scene")
+    nul = raw.find(b"\0")
+    if nul >= 0:  # TOML forbids it anyway; say plainly that this is a binary file
+        raise SceneError(f"{source}: not a text file (NUL byte at offset {nul})")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SceneError(
+            f"{source}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start}); save it as UTF-8"
+        ) from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(printable(f"{source}: {_toml_problem(exc)}")) from None
+    except RecursionError:  # tomllib recurses on nested arrays and inline tables
+        raise SceneError(f"{source}: TOML syntax error: values nested too deeply") from None
+    spec = parse_scene(data, source, base_dir=file.absolute().parent)
+    return dataclasses.replace(spec, text=text)
+
+
+def _toml_problem(exc: Exception) -> str:
+    """TOML's complaint as "TOML syntax error at line L, column C: what" (tomllib appends the position)."""
+    message = str(exc)
+    lineno, colno = getattr(exc, "lineno", None), getattr(exc, "colno", None)
+    what = getattr(exc, "msg", None)
+    if isinstance(lineno, int) and isinstance(colno, int) and isinstance(what, str):  # Python >= 3.14
+        return f"TOML syntax error at line {lineno}, column {colno}: {what}"
+    match = _TOML_POSITION.match(message)
+    if match:
+        return f"TOML syntax error at line {match[2]}, column {match[3]}: {match[1]}"
+    return f"TOML syntax error: {message}"
+
+
+def parse_scene(data: Mapping[str, Any], source: str, *, base_dir: Path | None) -> SceneSpec:
+    """Validate a scene's tables (from TOML or built in Python) into a SceneSpec.
+
+    Args:
+        data: the top-level table: description, gravity, friction_velocity, robot, lock, joints, force,
+            payload, constraint, initial, simulation, controller.
+        source: the name messages use (the file path as given, or "<scene>").
+        base_dir: the folder relative robot paths resolve against (the scene file's); None: left as given
+            (relative to the working directory).
+
+    Raises:
+        SceneError: one line naming source, the key path, the problem and the valid options.
+    """
+    return _Parser(printable(str(source)), base_dir).scene(data)
+
+
+# ---- validation ----------------------------------------------------------------------------------------
+def _describe(value: Any) -> str:
+    """A value as a message shows it: TOML words for TOML types, bounded in length."""
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return repr(value if len(value) <= 80 else value[:80] + "...")
+    if isinstance(value, Mapping):
+        return "a table"
+    if isinstance(value, np.ndarray):
+        return f"an array of shape {value.shape}"
+    if isinstance(value, (list, tuple)):
+        return f"an array of {len(value)}"
+    if isinstance(value, numbers.Integral) and abs(int(value)) >= 10**20:
+        return f"an integer of {len(str(abs(int(value))))} digits"
+    if isinstance(value, numbers.Real):
+        return repr(float(value)) if isinstance(value, float) else str(value)
+    if value is None:
+        return "None"
+    return f"a {type(value).__name__}"
+
+
+def _key(name: str) -> str:
+    """A key as a path shows it: bare when TOML allows, quoted otherwise ("a.b" must not read as a path)."""
+    return name if _BARE_KEY.fullmatch(name) else '"' + name.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{_key(key)}" if path else _key(key)
+
+
+def _param_text(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, tuple):
+        return ",".join(_param_text(v) for v in value)
+    if isinstance(value, float):
+        return repr(value)
+    return str(value)
+
+
+def _hint(word: str, options: Iterable[str]) -> str:
+    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.6)
+    return f"did you mean '{close[0]}'? " if close else ""
+
+
+class _Parser:
+    """The checks, with the source name every message starts with."""
+
+    def __init__(self, source: str, base_dir: Path | None):
+        self.source = source
+        self.base_dir = base_dir
+
+    def fail(self, path: str, problem: str) -> NoReturn:
+        prefix = f"{self.source}: {path}: " if path else f"{self.source}: "
+        raise SceneError(printable(prefix + problem))
+
+    # -- generic shapes --
+    def table(self, value: Any, path: str, valid: Sequence[str] | None = None) -> Mapping[str, Any]:
+        """value as a table whose keys are strings (and among `valid` when given)."""
+        if not isinstance(value, Mapping):
+            self.fail(path, f"must be a table, got {_describe(value)}")
+        for key in value:
+            if not isinstance(key, str):
+                self.fail(path, f"keys must be strings, got {_describe(key)}")
+            if valid is not None and key not in valid:
+                listing = ", ".join(sorted(valid))
+                self.fail(path, f"unknown key '{key}' ({_hint(key, valid)}valid: {listing})")
+        return value
+
+    def array_of_tables(self, value: Any, path: str) -> list[Mapping[str, Any]]:
+        if isinstance(value, Mapping):
+            self.fail(path, f"must be an array of tables ([[{path}]] in TOML, a list of dicts in Python), got a table")
+        if not isinstance(value, (list, tuple)):
+            self.fail(path, f"must be an array of tables, got {_describe(value)}")
+        return list(value)
+
+    def number(self, value: Any, path: str) -> float:
+        """A finite real number (not a boolean, not a string)."""
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+            self.fail(path, f"must be a real number, got {_describe(value)}")
+        try:
+            result = float(value)
+        except OverflowError:  # a huge integer
+            result = math.inf
+        if not math.isfinite(result):
+            self.fail(path, f"must be a finite number, got {_describe(value)}")
+        return result
+
+    def positive(self, value: Any, path: str, *, allow_zero: bool = False) -> float:
+        result = self.number(value, path)
+        if result < 0 or (result == 0 and not allow_zero):
+            self.fail(path, f"must be {'>= 0' if allow_zero else '> 0'}, got {_describe(value)}")
+        return result
+
+    def vector(self, value: Any, path: str, size: int | None = None) -> tuple[float, ...]:
+        """A list of finite real numbers, of exactly `size` entries when given."""
+        wanted = f"an array of {size} numbers" if size is not None else "an array of numbers"
+        if isinstance(value, np.ndarray) and value.ndim != 1:
+            self.fail(path, f"must be {wanted}, got an array of shape {value.shape}")
+        if not isinstance(value, (list, tuple, np.ndarray)):
+            self.fail(path, f"must be {wanted}, got {_describe(value)}")
+        if size is not None and len(value) != size:
+            self.fail(path, f"must be {wanted}, got {len(value)}")
+        return tuple(self.number(item, f"{path}[{i}]") for i, item in enumerate(value))
+
+    def vec3(self, value: Any, path: str) -> tuple[float, float, float]:
+        x, y, z = self.vector(value, path, 3)
+        return (x, y, z)
+
+    def string(self, value: Any, path: str) -> str:
+        if not isinstance(value, str):
+            self.fail(path, f"must be a string, got {_describe(value)}")
+        if not value:
+            self.fail(path, "must not be empty")
+        return value
+
+    def flag(self, value: Any, path: str) -> bool:
+        if not isinstance(value, (bool, np.bool_)):
+            self.fail(path, f"must be true or false, got {_describe(value)}")
+        return bool(value)
+
+    def choice(self, value: Any, path: str, options: Sequence[str]) -> str:
+        listing = ", ".join(sorted(options))
+        if not isinstance(value, str) or value not in options:
+            hint = f" ({_hint(value, options).rstrip()})" if isinstance(value, str) and _hint(value, options) else ""
+            self.fail(path, f"must be one of {listing}, got {_describe(value)}{hint}")
+        return value
+
+    def name(self, value: Any, path: str) -> str:
+        text = self.string(value, path)
+        if not _NAME.fullmatch(text):
+            self.fail(path, f"must be {_NAME_RULE}, got {_describe(text)}")
+        return text
+
+    def required(self, table: Mapping[str, Any], key: str, path: str, what: str) -> Any:
+        if key not in table:
+            self.fail(_join(path, key), f"missing ({what})")
+        return table[key]
+
+    def path_value(self, text: str) -> str:
+        """A path from the scene, relative ones made relative to the scene file's folder."""
+        path = Path(text).expanduser()
+        if self.base_dir is not None and not path.is_absolute():
+            path = self.base_dir / path
+        return str(path)
+
+    # -- the tables --
+    def scene(self, data: Any) -> SceneSpec:
+        if not isinstance(data, Mapping):
+            self.fail("", f"a scene must be a table of keys, got {_describe(data)}")
+        for key, why in RESERVED_KEYS.items():
+            if key in data:
+                self.fail(key, why)
+        self.table(data, "", TOP_LEVEL_KEYS)
+        if "robot" not in data:
+            self.fail("robot", "missing (a scene needs a [robot] table with source = a catalog name or URDF path)")
+        robot = self.robot(data["robot"])
+        lock = {
+            key: self.number(value, _join("lock", key))
+            for key, value in self.table(data.get("lock", {}), "lock").items()
+        }
+        joints = {}
+        for key, value in self.table(data.get("joints", {}), "joints").items():
+            path = _join("joints", key)
+            if key in lock:
+                self.fail(path, f"the joint is locked ({_join('lock', key)}); a locked joint takes no overrides")
+            joints[key] = self.joint(value, path)
+        forces = tuple(
+            self.force(value, f"force[{i}]", i)
+            for i, value in enumerate(self.array_of_tables(data.get("force", []), "force"))
+        )
+        self.unique([f.name for f in forces], "force")
+        payloads = tuple(
+            self.payload(value, f"payload[{i}]")
+            for i, value in enumerate(self.array_of_tables(data.get("payload", []), "payload"))
+        )
+        constraints = tuple(
+            self.constraint(value, f"constraint[{i}]", i)
+            for i, value in enumerate(self.array_of_tables(data.get("constraint", []), "constraint"))
+        )
+        self.unique([c.name for c in constraints], "constraint")
+        initial = self.table(data.get("initial", {}), "initial", INITIAL_KEYS)
+        return SceneSpec(
+            robot=robot,
+            description=self.text(data.get("description", ""), "description"),
+            gravity=self.vec3(data["gravity"], "gravity") if "gravity" in data else None,
+            friction_velocity=self.positive(
+                data.get("friction_velocity", DEFAULT_FRICTION_VELOCITY), "friction_velocity"
+            ),
+            lock=lock,
+            joints=joints,
+            forces=forces,
+            payloads=payloads,
+            constraints=constraints,
+            initial_q=self.state(initial["q"], "initial.q") if "q" in initial else None,
+            initial_v=self.state(initial["v"], "initial.v") if "v" in initial else None,
+            simulation=self.simulation(data["simulation"]) if "simulation" in data else None,
+            controller=self.controller(data["controller"]) if "controller" in data else None,
+            source=self.source,
+            text=None,
+            base_dir=self.base_dir,
+        )
+
+    def text(self, value: Any, path: str) -> str:
+        if not isinstance(value, str):
+            self.fail(path, f"must be a string, got {_describe(value)}")
+        return value
+
+    def unique(self, names: list[str], path: str) -> None:
+        seen: dict[str, int] = {}
+        for i, name in enumerate(names):
+            if name in seen:
+                self.fail(f"{path}[{i}].name", f"'{name}' is already the name of {path}[{seen[name]}]")
+            seen[name] = i
+
+    def robot(self, value: Any) -> RobotSpec:
+        table = self.table(value, "robot", ROBOT_KEYS)
+        source = self.string(self.required(table, "source", "robot", "a catalog name or a URDF path"), "robot.source")
+        base = self.choice(table["base"], "robot.base", BASES) if "base" in table else None
+        if source not in CATALOG:  # a catalog name stays a name, as load_robot reads it
+            source = self.path_value(source)
+        natural_floating = CATALOG[source].floating_base if source in CATALOG else False
+        for key in ("position", "rpy"):
+            if key not in table:
+                continue
+            if base == "floating":
+                self.fail(f"robot.{key}", 'only for a fixed base, not with base = "floating"')
+            if base is None and natural_floating:
+                self.fail(
+                    f"robot.{key}",
+                    f"only for a fixed base, and '{source}' is floating by default (add base = \"fixed\")",
+                )
+        dirs = table.get("package_dirs", [])
+        if not isinstance(dirs, (list, tuple)):
+            self.fail("robot.package_dirs", f"must be an array of folder paths, got {_describe(dirs)}")
+        return RobotSpec(
+            source=source,
+            base=base,
+            position=self.vec3(table["position"], "robot.position") if "position" in table else None,
+            rpy=self.vec3(table["rpy"], "robot.rpy") if "rpy" in table else None,
+            damping=self.flag(table.get("damping", True), "robot.damping"),
+            mimic=self.flag(table.get("mimic", False), "robot.mimic"),
+            package_dirs=tuple(self.path_value(self.string(d, f"robot.package_dirs[{i}]")) for i, d in enumerate(dirs)),
+        )
+
+    def joint(self, value: Any, path: str) -> JointSpec:
+        table = self.table(value, path, JOINT_KEYS)
+        values: dict[str, float] = {}
+        for key in JOINT_KEYS:
+            if key in table:
+                sub = _join(path, key)
+                values[key] = (
+                    self.number(table[key], sub) if key == "rest" else self.positive(table[key], sub, allow_zero=True)
+                )
+        return JointSpec(**values)
+
+    def force(self, value: Any, path: str, index: int) -> ForceSpec:
+        table = self.table(value, path, FORCE_KEYS)
+        name = self.name(table.get("name", f"force{index}"), f"{path}.name")
+        frame = self.string(self.required(table, "frame", path, "the frame the force acts on"), f"{path}.frame")
+        shape = table.get("shape", "constant")
+        if callable(shape) and not isinstance(shape, str):
+            kind = "callable"
+        else:
+            kind = shape = self.choice(shape, f"{path}.shape", SHAPES)
+        for key in ("start", "ramp_time", "frequency", "phase"):
+            if key in table and key not in SHAPE_KEYS[kind]:
+                users = [s for s in SHAPES if key in SHAPE_KEYS[s]]
+                listing = users[0] if len(users) == 1 else f"{', '.join(users[:-1])} or {users[-1]}"
+                self.fail(f"{path}.{key}", f"only for shape {listing}, not {kind}")
+        return ForceSpec(
+            name=name,
+            frame=frame,
+            force=self.vec3(table.get("force", (0.0, 0.0, 0.0)), f"{path}.force"),
+            torque=self.vec3(table.get("torque", (0.0, 0.0, 0.0)), f"{path}.torque"),
+            reference=self.choice(table.get("reference", "world"), f"{path}.reference", REFERENCES),
+            shape=shape,
+            start=self.number(table.get("start", 0.0), f"{path}.start"),
+            ramp_time=self.positive(table.get("ramp_time", 1.0), f"{path}.ramp_time"),
+            frequency=self.positive(table.get("frequency", 1.0), f"{path}.frequency"),
+            phase=self.number(table.get("phase", 0.0), f"{path}.phase"),
+        )
+
+    def payload(self, value: Any, path: str) -> PayloadSpec:
+        table = self.table(value, path, PAYLOAD_KEYS)
+        frame = self.string(
+            self.required(table, "frame", path, "the frame the payload is attached to"), f"{path}.frame"
+        )
+        mass = self.positive(self.required(table, "mass", path, "kg, > 0"), f"{path}.mass")
+        com = self.vec3(table.get("com", (0.0, 0.0, 0.0)), f"{path}.com")
+        ixx, iyy, izz, ixy, ixz, iyz = self.vector(table.get("inertia", (0.0,) * 6), f"{path}.inertia", 6)
+        inertia = (ixx, iyy, izz, ixy, ixz, iyz)
+        self.check_inertia(inertia, f"{path}.inertia")
+        return PayloadSpec(frame=frame, mass=mass, com=com, inertia=inertia)
+
+    def check_inertia(self, inertia: tuple[float, ...], path: str) -> None:
+        """A physical rotational inertia: positive semi-definite, each principal moment <= the sum of the others.
+
+        Round-off allowance: 1e-12 of the trace (a diagonal written with 1e-3 entries passes exactly).
+        """
+        ixx, iyy, izz, ixy, ixz, iyz = inertia
+        matrix = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
+        moments = np.linalg.eigvalsh(matrix)
+        tol = 1e-12 * max(abs(ixx) + abs(iyy) + abs(izz), np.abs(matrix).max())
+        shown = ", ".join(f"{m:.6g}" for m in moments)
+        if moments[0] < -tol:
+            self.fail(path, f"not positive semi-definite (principal moments {shown} kg·m²)")
+        if moments[2] > moments[0] + moments[1] + tol:
+            self.fail(
+                path,
+                f"principal moments {shown} kg·m² break the triangle inequality (each at most the sum of the others)",
+            )
+
+    def constraint(self, value: Any, path: str, index: int) -> ConstraintSpec:
+        table = self.table(value, path, CONSTRAINT_KEYS)
+        name = self.name(table.get("name", f"constraint{index}"), f"{path}.name")
+        kind = self.choice(
+            self.required(table, "type", path, "loop, point or weld"), f"{path}.type", tuple(CONSTRAINT_FRAMES)
+        )
+        count = CONSTRAINT_FRAMES[kind]
+        wanted = "two distinct frames" if count == 2 else "one frame"
+        frames_value = self.required(table, "frames", path, f"{kind} needs {wanted}")
+        if not isinstance(frames_value, (list, tuple)):
+            self.fail(f"{path}.frames", f"must be an array of frame names, got {_describe(frames_value)}")
+        frames = tuple(self.string(f, f"{path}.frames[{i}]") for i, f in enumerate(frames_value))
+        if len(frames) != count:
+            self.fail(f"{path}.frames", f"a {kind} constraint needs {wanted}, got {len(frames)}")
+        if count == 2 and frames[0] == frames[1]:
+            self.fail(f"{path}.frames", f"a {kind} constraint needs {wanted}, got '{frames[0]}' twice")
+        if "position" in table and kind != "point":
+            self.fail(f"{path}.position", f"only for type point, not {kind}")
+        gains = None
+        if "stabilization" in table:
+            kp, kd = self.vector(table["stabilization"], f"{path}.stabilization", 2)
+            for i, gain in enumerate((kp, kd)):
+                if gain < 0:
+                    self.fail(f"{path}.stabilization[{i}]", f"must be >= 0, got {_describe(table['stabilization'][i])}")
+            gains = (kp, kd)
+        return ConstraintSpec(
+            name=name,
+            type=kind,
+            frames=frames,
+            position=self.vec3(table["position"], f"{path}.position") if "position" in table else None,
+            stabilization=gains,
+        )
+
+    def state(self, value: Any, path: str) -> tuple[float, ...] | dict[str, float]:
+        if isinstance(value, Mapping):
+            return {key: self.number(item, _join(path, key)) for key, item in self.table(value, path).items()}
+        if not isinstance(value, (list, tuple, np.ndarray)):
+            self.fail(path, f"must be an array of numbers or a table {{joint = value}}, got {_describe(value)}")
+        return self.vector(value, path)
+
+    def simulation(self, value: Any) -> SimulationSpec:
+        table = self.table(value, "simulation", SIMULATION_KEYS)
+        integrator = None
+        if "integrator" in table:
+            integrator = self.choice(table["integrator"], "simulation.integrator", tuple(INTEGRATORS))
+        return SimulationSpec(
+            duration=self.positive(table["duration"], "simulation.duration") if "duration" in table else None,
+            dt=self.positive(table["dt"], "simulation.dt") if "dt" in table else None,
+            integrator=integrator,
+            options={key: self.positive(table[key], f"simulation.{key}") for key in SIMULATION_OPTIONS if key in table},
+        )
+
+    def controller(self, value: Any) -> ControllerSpec:
+        table = self.table(value, "controller")
+        name = self.choice(
+            self.required(table, "name", "controller", f"valid: {', '.join(sorted(CONTROLLERS))}"),
+            "controller.name",
+            tuple(CONTROLLERS),
+        )
+        parameters = {p.name: p for p in CONTROLLERS[name].parameters}
+        self.table(table, "controller", ("name", *parameters))
+        params: dict[str, Any] = {}
+        for key, item in table.items():
+            if key != "name":
+                params[key] = self.parameter(item, f"controller.{key}", parameters[key].kind)
+        for parameter in CONTROLLERS[name].parameters:
+            if parameter.required and parameter.name not in params:
+                self.fail(f"controller.{parameter.name}", f"missing (required by controller {name})")
+        return ControllerSpec(name=name, params=params)
+
+    def parameter(self, value: Any, path: str, kind: str) -> Any:
+        """A controller parameter of make_controller's `kind`, with numbers kept int or float as written."""
+        if kind == "flag":
+            return self.flag(value, path)
+        if kind == "text":
+            return self.string(value, path)
+        if kind == "integer":
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+                self.fail(path, f"must be a whole number, got {_describe(value)}")
+            return int(value)
+        if kind == "number" or (kind == "gain" and not isinstance(value, (list, tuple, np.ndarray))):
+            return self.plain_number(value, path)
+        if kind == "rows" and isinstance(value, np.ndarray) and value.ndim == 2:
+            value = list(value)
+        if (
+            kind == "rows"
+            and isinstance(value, (list, tuple))
+            and value
+            and isinstance(value[0], (list, tuple, np.ndarray))
+        ):
+            return tuple(self.plain_vector(row, f"{path}[{i}]") for i, row in enumerate(value))
+        if kind == "vector" and not isinstance(value, (list, tuple, np.ndarray)):
+            return (self.plain_number(value, path),)
+        return self.plain_vector(value, path)
+
+    def plain_number(self, value: Any, path: str) -> int | float:
+        self.number(value, path)
+        return int(value) if isinstance(value, numbers.Integral) else float(value)
+
+    def plain_vector(self, value: Any, path: str) -> tuple[int | float, ...]:
+        self.vector(value, path)
+        if len(value) == 0:
+            self.fail(path, "must not be empty")
+        return tuple(self.plain_number(item, f"{path}[{i}]") for i, item in enumerate(value))
