@@ -87,6 +87,12 @@ class _Counts:
     jacobians: int = 0  # ABA-derivative calls
 
 
+# A reused Jacobian is refreshed when the iteration contracts slower than this rate per iteration.
+_REFRESH_RATE = 0.25
+# Damped Newton halves a step at most this far before taking it anyway.
+_MIN_STEP_FRACTION = 1.0 / 64
+
+
 def _solve(
     system: System,
     q: np.ndarray,
@@ -106,23 +112,34 @@ def _solve(
     refreshed at the current iterate when it does not. With a reused Jacobian the iteration converges
     linearly, and the error left after an update of size ‖Δx‖ is about θ/(1 - θ)·‖Δx‖ (Hairer & Wanner,
     Solving ODEs II, IV.8): that estimate, not the bare update, must be within ``atol + rtol·max(‖x‖, ‖v‖)``
-    (max norms), so no unconverged state passes.
+    (max norms), so no unconverged state passes. A full step from a fresh Jacobian that does not reduce the
+    residual is halved (damped Newton) until it does, down to 1/64 of it; every residual counts as an iteration.
     """
     x = v.copy()
     factors: tuple[np.ndarray, np.ndarray] | None = None
     fresh = False  # whether the factorised Jacobian was taken at the current iterate
     previous_update = theta = math.nan
     residual_norm = update_norm = math.nan
+    # Damped Newton: a full step from a fresh Jacobian that did not reduce the residual (a strongly nonlinear
+    # force, e.g. stiff regularized friction, where the plain iteration cycles) is halved until it does.
+    base: tuple[np.ndarray, np.ndarray, float] | None = None  # (iterate, full update, residual norm) to back off
+    fraction = 1.0
     for iteration in range(1, max_iterations + 1):
         R, q_x = residual(system, q, v, tau, s, x, t)
         counts.iterations = counts.evaluations = iteration  # one forward-dynamics call per residual
         residual_norm = float(np.max(np.abs(R)))
+        if base is not None and not residual_norm < base[2] and fraction > _MIN_STEP_FRACTION:
+            fraction *= 0.5
+            x = base[0] + fraction * base[1]
+            continue
         if not math.isfinite(residual_norm):
             after = f" (last update norm {update_norm:.3g})" if iteration > 1 else " (at the step's start velocity)"
             raise StepFailure(
                 f"Newton's residual became non-finite at iteration {iteration}{after}", status="newton_failed"
             )
-        if factors is None or (not fresh and theta > 0.5):
+        damped = fraction < 1.0
+        base, fraction = None, 1.0
+        if factors is None or damped or (not fresh and theta > _REFRESH_RATE):
             jacobian = residual_jacobian(system, q, tau, s, x, q_x, t)
             counts.jacobians += 1
             factors = _factorise(jacobian, iteration, residual_norm)
@@ -130,6 +147,8 @@ def _solve(
         else:
             fresh = False
         update = scipy.linalg.lu_solve(factors, -R, check_finite=False)
+        if fresh:
+            base = (x, update, residual_norm)
         x = x + update
         update_norm = float(np.max(np.abs(update)))
         if not math.isfinite(update_norm):
@@ -137,7 +156,7 @@ def _solve(
                 f"Newton's iterate became non-finite at iteration {iteration} (residual norm {residual_norm:.3g})",
                 status="newton_failed",
             )
-        if iteration == 1:  # no rate yet, but the Jacobian is fresh, so the error left is quadratic
+        if iteration == 1 or damped:  # no rate yet, but the Jacobian is fresh, so the error left is quadratic
             theta, error = math.nan, update_norm
         else:  # a rate >= 1 is not contracting (yet): keep iterating
             theta = update_norm / previous_update

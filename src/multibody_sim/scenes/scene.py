@@ -176,6 +176,16 @@ class Scene(Robot):
         if self.elements is not None:
             elements += self.elements.potentials
         lines.append("  force elements: " + (", ".join(elements) if elements else "none"))
+        friction = np.array(self.model.friction, dtype=float)
+        if self.elements is not None and friction.any():
+            # The regularized friction's slope F/v_s over the joint's inertia: the rate of a stiff mode.
+            inverse_mass = np.diag(np.linalg.inv(self.mass_matrix(self.q0)))
+            rates = friction / self.spec.friction_velocity * inverse_mass
+            i = int(np.argmax(rates))
+            lines.append(
+                f"  friction stiffness: a mode of rate ~{rates[i]:.3g} 1/s in '{self.dof_names[i]}' at the initial "
+                f"state: explicit methods need dt < ~{2.8 / rates[i]:.2g} s (RK4); implicit_euler takes any step"
+            )
         if self.constraints is not None:
             rows = ", ".join(
                 f"{n} ({r} rows)" for n, r in zip(self.constraints.names, self.constraints.rows, strict=True)
