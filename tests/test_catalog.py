@@ -40,6 +40,8 @@ NATURALLY_FIXED = {
     "z1",
     "stiff_arm",
     "point_robot",
+    "spring_chain",
+    "four_bar",
 }
 NATURALLY_FLOATING = {"free_body", "solo12", "go2", "anymal", "anymal_c", "talos", "g1"}
 CATALOG_NAMES = sorted(ms.CATALOG)

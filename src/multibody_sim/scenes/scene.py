@@ -82,8 +82,17 @@ class Scene(Robot):
                 if not settings.stiffness:
                     raise SceneError(f"{key}.rest: a rest position needs a spring: give stiffness > 0")
                 rest_values[joint] = settings.rest
+        if spec.robot.mimic:
+            if spec.lock:
+                raise SceneError(
+                    f"{where}: lock.{next(iter(spec.lock))}: locked joints and mimic joints cannot be combined yet "
+                    "(drop the lock or robot.mimic)"
+                )
+            if spec.robot.damping:  # the URDF's <dynamics> of the followers act on their leaders
+                _fold_mimic_dissipation(model, robot.model, damping, friction)
         model.damping = damping
         model.friction = friction
+        built = model  # before locking: the dof indices the per-joint arrays above use
         model, lock_config = _lock_joints(model, spec, robot.floating_base)
         self.locked = dict(spec.lock)
         # The Robot part: argument checks, limits, energies, damping (tau - D v) on the scene's model.
@@ -100,8 +109,7 @@ class Scene(Robot):
         rest = pin.neutral(model)
         for joint in spec.joints:
             jid = model.getJointId(joint)
-            full_jid = self.full_robot.model.getJointId(joint)
-            kept_stiffness[model.joints[jid].idx_v] = stiffness[self.full_robot.model.joints[full_jid].idx_v]
+            kept_stiffness[model.joints[jid].idx_v] = stiffness[built.joints[built.getJointId(joint)].idx_v]
             if joint in rest_values:
                 _set_joint_position(model, jid, rest_values[joint], rest)
         if self.floating_base:
@@ -263,6 +271,21 @@ class Scene(Robot):
         if self.constraints is not None:
             self.constraints.powers(v, out[n:])
         return out
+
+    def mass_matrix(self, q: Any) -> np.ndarray:
+        """Joint-space inertia matrix M(q) of the scene's model (armature and payloads included), (nv, nv)."""
+        if self.mimic:
+            return _mimic_mass_matrix(self.model, self.data, self.check_q(q))
+        return super().mass_matrix(q)
+
+    def kinetic_energy(self, q: Any, v: Any) -> float:
+        """T = ½ vᵀ M(q) v [J]."""
+        return self.unchecked_energies(self.check_q(q), self.check_v(v))[0]
+
+    def potential_energy(self, q: Any) -> float:
+        """V(q) [J]: gravity's and the springs'."""
+        q = self.check_q(q)
+        return self.unchecked_energies(q, np.zeros(self.nv))[1]
 
     def unchecked_energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
         """(T, V) [J]: V includes the springs' stored energy."""
@@ -524,20 +547,44 @@ def _initial_state(scene: Scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarra
     return q, v
 
 
+def _mimic_mass_matrix(model: pin.Model, data: pin.Data, q: np.ndarray) -> np.ndarray:
+    """M(q) by CRBA on a model with mimic joints, symmetric.
+
+    Pinocchio 4.1's CRBA accumulates into data.Fcrb on such models (a mimic joint with children gets its coupling
+    added again at every call), so the workspace is cleared first.
+    """
+    zero = np.zeros((6, model.nv))
+    for i in range(len(data.Fcrb)):
+        data.Fcrb[i] = zero
+    M = pin.crba(model, data, q)
+    return np.triu(M) + np.triu(M, 1).T
+
+
 def _crba_forward_dynamics(
     model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray, tau: np.ndarray
 ) -> np.ndarray:
     """v' = M⁻¹ (tau - C v - g) by CRBA and RNEA (for models ABA does not support: mimic joints)."""
-    M = pin.crba(model, data, q)
-    M = np.triu(M) + np.triu(M, 1).T
+    M = _mimic_mass_matrix(model, data, q)
     return np.linalg.solve(M, tau - pin.nonLinearEffects(model, data, q, v))
+
+
+def _fold_mimic_dissipation(model: pin.Model, plain: pin.Model, damping: np.ndarray, friction: np.ndarray) -> None:
+    """A follower's damper and friction act on its leader's dof: damping s² D_f (exact, GᵀDG), friction |s| F_f
+    (exact where |v| ≫ friction_velocity)."""
+    for jid in range(1, model.njoints):
+        joint = model.joints[jid]
+        if joint.shortname() != "JointModelMimic":
+            continue
+        scaling = joint.extract().scaling
+        follower = plain.joints[plain.getJointId(model.names[jid])].idx_v
+        damping[joint.idx_v] += scaling**2 * plain.damping[follower]
+        friction[joint.idx_v] += abs(scaling) * plain.friction[follower]
 
 
 def _mimic_energies(model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
     """(T, V) [J] for a model with mimic joints, which Pinocchio's energy algorithms refuse: T = ½ vᵀ M v by CRBA,
     V = -Σ m_i gᵀ c_i over the moving bodies (what computePotentialEnergy sums)."""
-    M = pin.crba(model, data, q)
-    kinetic = 0.5 * float(v @ (np.triu(M) + np.triu(M, 1).T) @ v)
+    kinetic = 0.5 * float(v @ _mimic_mass_matrix(model, data, q) @ v)
     pin.forwardKinematics(model, data, q)
     gravity = model.gravity.linear
     potential = 0.0
