@@ -52,7 +52,7 @@ class Scene(Robot):
         where = spec.source
         robot = _load_robot(spec)
         model = _build_model(robot, spec)
-        self.full_nq, self.full_nv = model.nq, model.nv
+        self.full_nq, self.full_nv = robot.nq, robot.nv
         self.full_robot = robot
         _apply_base_pose(model, spec)
         if spec.gravity is not None:
@@ -384,13 +384,22 @@ class Scene(Robot):
         return {"scene_us": scene_us, "full_us": full_us, "ratio": scene_us / full_us}
 
     def full_configuration(self, q: np.ndarray) -> np.ndarray:
-        """The full robot's configuration (locked joints at their lock positions) for a scene configuration q."""
-        full = self.full_robot.model
-        out = self.lock_configuration.copy()
-        for jid in range(1, self.model.njoints):
-            joint = self.model.joints[jid]
-            full_joint = full.joints[full.getJointId(self.model.names[jid])]
-            out[full_joint.idx_q : full_joint.idx_q + full_joint.nq] = q[joint.idx_q : joint.idx_q + joint.nq]
+        """The full robot's configuration for a scene configuration q: locked joints at their lock positions,
+        mimic followers at scaling · leader + offset."""
+        full, model = self.full_robot.model, self.model
+        out = pin.neutral(full)
+        for jid in range(1, full.njoints):
+            name, joint = full.names[jid], full.joints[jid]
+            i, n = joint.idx_q, joint.nq
+            if not model.existJointName(name):  # locked: the pre-lock model has the full robot's layout
+                out[i : i + n] = self.lock_configuration[i : i + n]
+                continue
+            kept = model.joints[model.getJointId(name)]
+            if kept.shortname() == "JointModelMimic":  # shares its leader's coordinate
+                mimic = kept.extract()
+                out[i] = mimic.scaling * q[kept.idx_q] + mimic.offset
+            else:
+                out[i : i + n] = q[kept.idx_q : kept.idx_q + n]
         return out
 
 
