@@ -359,9 +359,11 @@ def test_models_lists_the_catalog_with_sizes_from_the_urdfs(capsys: pytest.Captu
 def test_models_console_script(console: ConsoleRuns) -> None:
     result = console["models"]
     assert (result.returncode, result.stderr) == (0, "")
-    header, *rows = result.stdout.splitlines()
+    robots, _, scenes = result.stdout.partition("\n\n")  # the catalog, then the shipped scenes
+    header, *rows = robots.splitlines()
     assert header.split() == ["name", "nq", "nv", "base", "description"]
     assert {r.split()[0] for r in rows} == set(CATALOG)
+    assert scenes.startswith("scenes (run one with")
     ur5 = next(r for r in rows if r.split()[0] == "ur5")
     assert ur5.split()[1:4] == ["6", "6", "fixed"]
 

@@ -38,7 +38,7 @@ class StepJacobians(NamedTuple):
 
 
 def linearize(
-    system: Robot, q: Any, v: Any, tau: Any, dt: float, *, integrator: str | Integrator = "rk4"
+    system: Robot, q: Any, v: Any, tau: Any, dt: float, *, integrator: str | Integrator = "rk4", t: float = 0.0
 ) -> StepJacobians:
     """The Jacobians (A, B) of ONE integrator step of dt from (q, v) with tau held, in the tangent space.
 
@@ -70,6 +70,7 @@ def linearize(
         integrator: a registry name or an Integrator: an explicit Runge–Kutta method (for the adaptive ones,
             bs32, dp54 and dop853, one step of dt as if the step-size controller had accepted it), semi-implicit
             Euler, implicit Euler or implicit midpoint. The variational integrator is not supported yet.
+        t: the step's start time [s] (a scene's time-dependent forces are taken at the stages' times).
 
     Returns:
         StepJacobians (A, B): unpack as ``A, B = linearize(...)``.
@@ -85,14 +86,17 @@ def linearize(
     v = system.check_v(v)
     tau = system.check_tau(tau)
     dt = _positive(dt, "dt")
+    if isinstance(t, bool) or not isinstance(t, (int, float, np.integer, np.floating)) or not math.isfinite(t):
+        raise InvalidArgumentError(f"t must be a finite number of seconds, got {t!r}")
+    t = float(t)
     method.check_system(system)
     with np.errstate(over="ignore", invalid="ignore"):
         if isinstance(method, ExplicitRungeKutta):
-            A, B = _explicit_rk(system, method, q, v, tau, dt)
+            A, B = _explicit_rk(system, method, q, v, tau, dt, t)
         elif isinstance(method, SemiImplicitEuler):
-            A, B = _semi_implicit_euler(system, q, v, tau, dt)
+            A, B = _semi_implicit_euler(system, q, v, tau, dt, t)
         elif isinstance(method, (ImplicitEuler, ImplicitMidpoint)):
-            A, B = _implicit(system, method, q, v, tau, dt)
+            A, B = _implicit(system, method, q, v, tau, dt, t)
         else:
             raise InvalidArgumentError(
                 f"linearize does not support integrator '{method.name}' yet (supported: {_SUPPORTED})"
@@ -108,7 +112,7 @@ def linearize(
 
 # ---- explicit Runge–Kutta --------------------------------------------------------------------------------------
 def _explicit_rk(
-    system: Robot, method: ExplicitRungeKutta, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float
+    system: Robot, method: ExplicitRungeKutta, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, t: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Forward-mode chain rule through the stages of ExplicitRungeKutta.step.
 
@@ -118,6 +122,7 @@ def _explicit_rk(
     """
     a = np.array(method.tableau.a, dtype=float)
     b = np.array(method.tableau.b, dtype=float)
+    c = np.array(method.tableau.c, dtype=float)
     nv = system.nv
     space = system.space
     curved = space.curved_blocks
@@ -135,8 +140,8 @@ def _explicit_rk(
         d_V = select_v + (np.tensordot(weights, d_acc[:i], axes=1) if i else 0.0)
         Q = space.integrate(q, xi)
         d_Q = _d_integrate(space, q, xi, select_q, d_xi)
-        da_dq, da_dv, da_dtau = system.unchecked_dynamics_derivatives(Q, V, tau)
-        acc[i] = system.unchecked_forward_dynamics(Q, V, tau)
+        da_dq, da_dv, da_dtau = system.unchecked_dynamics_derivatives(Q, V, tau, t + c[i] * h)
+        acc[i] = system.unchecked_forward_dynamics(Q, V, tau, t + c[i] * h)
         d_acc[i] = da_dq @ d_Q + da_dv @ d_V
         d_acc[i][:, 2 * nv :] += da_dtau
         if not curved or i == 0:  # the first stage has ξ = 0 whatever y: there J = I and dξ = 0
@@ -167,20 +172,26 @@ def _add_chart_curvature(system: Robot, d_rate: np.ndarray, xi: np.ndarray, V: n
 
 # ---- partitioned and implicit methods -------------------------------------------------------------------------
 def _semi_implicit_euler(
-    system: Robot, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float
+    system: Robot, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, t: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """v' = v + h a(q, v, tau), q' = q ⊕ h v' (SemiImplicitEuler.step)."""
     nv = system.nv
     select_q, select_v, _ = _selectors(nv)
-    da_dq, da_dv, da_dtau = system.unchecked_dynamics_derivatives(q, v, tau)
-    v_next = v + h * system.unchecked_forward_dynamics(q, v, tau)
+    da_dq, da_dv, da_dtau = system.unchecked_dynamics_derivatives(q, v, tau, t)
+    v_next = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
     d_v = select_v + h * np.hstack((da_dq, da_dv, da_dtau))
     d_q = _d_integrate(system.space, q, h * v_next, select_q, h * d_v)
     return _split(np.vstack((d_q, d_v)), nv)
 
 
 def _implicit(
-    system: Robot, method: ImplicitEuler | ImplicitMidpoint, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float
+    system: Robot,
+    method: ImplicitEuler | ImplicitMidpoint,
+    q: np.ndarray,
+    v: np.ndarray,
+    tau: np.ndarray,
+    h: float,
+    t: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The implicit function theorem on R(x; q, v, tau) = x - v - s a(q ⊕ s x, x, tau) = 0.
 
@@ -193,14 +204,14 @@ def _implicit(
     s = 0.5 * h if midpoint else h
     failure: StepFailure | None = None
     try:
-        _, v_next = method.step(system, q, v, tau, h)[:2]
+        _, v_next = method.step(system, q, v, tau, h, t)[:2]
     except StepFailure as exc:
         failure = exc
     if failure is not None:  # raised outside the except block: the failure is the cause, not a context
         raise SimulationError(f"linearize: {failure}; try a smaller dt (now {h:g} s)", status=failure.status)
     x = 0.5 * (v_next + v) if midpoint else v_next  # the converged unknown (to round-off)
     q_x = space.integrate(q, s * x)
-    da_dq, da_dv, da_dtau = system.unchecked_dynamics_derivatives(q_x, x, tau)
+    da_dq, da_dv, da_dtau = system.unchecked_dynamics_derivatives(q_x, x, tau, t + s)
     D_q = pin.dIntegrate(space.model, q, s * x, _ARG_Q)
     D_xi = pin.dIntegrate(space.model, q, s * x, _ARG_V)
     dR_dx = np.eye(nv) - s * (s * da_dq @ D_xi + da_dv)

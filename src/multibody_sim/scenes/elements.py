@@ -303,11 +303,12 @@ class ForceElements:
         model, data = self._model, self._data
         if len(self._wrenches) == 1:  # kinematics along the frame's support only: cheaper than all joints
             J = pin.computeFrameJacobian(model, data, q, self._wrenches[0].frame_id, self._refs[0])
-            np.dot(self._w6[0], J, out=self._wrench_rows[0])
+            # (6, nv), but Pinocchio returns a flat (6,) when nv = 1
+            np.dot(self._w6[0], J.reshape(6, -1), out=self._wrench_rows[0])
         else:
             pin.computeJointJacobians(model, data, q)  # one kinematics pass for every wrench
             for wrench, ref, w6, row in zip(self._wrenches, self._refs, self._w6, self._wrench_rows, strict=True):
-                np.dot(w6, pin.getFrameJacobian(model, data, wrench.frame_id, ref), out=row)
+                np.dot(w6, pin.getFrameJacobian(model, data, wrench.frame_id, ref).reshape(6, -1), out=row)
         zw = self._zw
         assert zw is not None
         for k, scale in self._scaled:
