@@ -944,3 +944,16 @@ def test_linearize_takes_time_dependent_forces_at_the_stage_times() -> None:
     scale = np.abs(finite_differences).max()
     assert np.abs(A_t - finite_differences).max() < 1e-7 * scale
     assert np.abs(A_0 - finite_differences).max() > 1e-5 * scale
+
+
+def test_a_stepper_on_a_time_dependent_scene_is_simulate_bitwise() -> None:
+    """Stepper passes each step's start time too: 1000 RK4 steps of ur5_ceiling_push (ramp and sine forces) land
+    exactly where simulate() does."""
+    scene = ms.load_scene("ur5_ceiling_push")
+    stepper = ms.Stepper(scene, dt=1e-3, q0=scene.q0, v0=scene.v0)
+    for _ in range(1000):
+        t, q, v = stepper.step(np.zeros(scene.nv))
+    traj = ms.simulate(scene, scene.q0, scene.v0, duration=1.0, dt=1e-3, progress=False)
+    assert t == traj.t[-1]
+    np.testing.assert_array_equal(q, traj.q[-1])
+    np.testing.assert_array_equal(v, traj.v[-1])
