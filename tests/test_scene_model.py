@@ -368,7 +368,9 @@ def test_payload_equals_an_extra_link_in_the_urdf(robot: Callable[..., ms.Robot]
 
 
 def test_payload_on_a_frame_welded_to_the_world_is_refused() -> None:
-    message = "<scene>: payload[0].frame: 'base_link' is welded to the world: a payload there moves nothing"
+    full = ms.load_robot("ur5")
+    moving = ", ".join(f.name for f in full.model.frames if f.parentJoint != 0)
+    message = f"<scene>: payload[0].frame: 'base_link' is welded to the world: nothing there moves (valid: {moving})"
     with _scene_error(message):
         make_scene(robot={"source": "ur5"}, payload=[{"frame": "base_link", "mass": 1.0}])
 
@@ -600,15 +602,15 @@ SEMANTIC_CASES: dict[str, Callable[[list[str], list[str]], tuple[dict[str, Any],
     ),
     "force-unknown-frame": lambda joints, frames: (
         {"force": [{"frame": "tool9", "force": [1.0, 0.0, 0.0]}]},
-        f"force[0].frame: unknown frame 'tool9' (valid: {', '.join(frames)})",
+        f"force[0].frame: unknown frame 'tool9' (valid: {', '.join(frames[1])})",
     ),
     "payload-unknown-frame": lambda joints, frames: (
         {"payload": [{"frame": "tool9", "mass": 1.0}]},
-        f"payload[0].frame: unknown frame 'tool9' (valid: {', '.join(frames)})",
+        f"payload[0].frame: unknown frame 'tool9' (valid: {', '.join(frames[1])})",
     ),
     "constraint-unknown-frame": lambda joints, frames: (
         {"constraint": [{"type": "point", "frames": ["tool9"]}]},
-        f"constraint[0].frames: unknown frame 'tool9' (valid: {', '.join(frames)})",
+        f"constraint[0].frames: unknown frame 'tool9' (valid: {', '.join(frames[0])})",
     ),
     "initial-q-length-after-locking": lambda joints, frames: (
         {"lock": {"elbow_joint": 1.0}, "initial": {"q": [0.0] * len(joints)}},
@@ -638,7 +640,8 @@ def test_semantic_errors_are_one_line_scene_errors(robot: Callable[..., ms.Robot
     """Names the model does not have, sizes that do not fit the reduced model, inconsistent joint settings."""
     full = robot("ur5")
     frames = [f.name for f in full.model.frames if f.name != "universe"]
-    tables, message = SEMANTIC_CASES[case](full.joint_names, frames)
+    moving = [f.name for f in full.model.frames if f.parentJoint != 0]  # forces and payloads need a moving body
+    tables, message = SEMANTIC_CASES[case](full.joint_names, (frames, moving))
     with _scene_error("<scene>: " + message):
         make_scene(robot={"source": "ur5"}, **tables)
 

@@ -449,10 +449,8 @@ def _apply_base_pose(model: pin.Model, spec: SceneSpec) -> None:
 
 
 def _add_payload(model: pin.Model, payload: Any, key: str) -> None:
-    fid = _frame_id(model, payload.frame, f"{key}.frame")
+    fid = _frame_id(model, payload.frame, f"{key}.frame", moving=True)
     frame = model.frames[fid]
-    if frame.parentJoint == 0:
-        raise SceneError(f"{key}.frame: '{payload.frame}' is welded to the world: a payload there moves nothing")
     ixx, iyy, izz, ixy, ixz, iyz = payload.inertia
     inertia = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]], dtype=float)
     body = pin.Inertia(float(payload.mass), np.array(payload.com, dtype=float), inertia)
@@ -505,9 +503,12 @@ def _joint_id(model: pin.Model, name: str, key: str, floating: bool) -> int:
     return model.getJointId(name)
 
 
-def _frame_id(model: pin.Model, name: str, key: str) -> int:
-    names = [f.name for f in model.frames if f.name != "universe"]
+def _frame_id(model: pin.Model, name: str, key: str, *, moving: bool = False) -> int:
+    """The id of a frame by name, or SceneError naming the valid ones (only those on moving bodies if `moving`)."""
+    names = [f.name for f in model.frames if f.name != "universe" and (f.parentJoint != 0 or not moving)]
     if name not in names:
+        if moving and model.existFrame(name):
+            raise SceneError(f"{key}: '{name}' is welded to the world: nothing there moves (valid: {', '.join(names)})")
         raise SceneError(f"{key}: unknown frame '{name}' (valid: {', '.join(names)})")
     return model.getFrameId(name)
 
@@ -515,9 +516,7 @@ def _frame_id(model: pin.Model, name: str, key: str) -> int:
 def _wrench(model: pin.Model, force: Any, key: str) -> Any:
     from .elements import Wrench
 
-    fid = _frame_id(model, force.frame, f"{key}.frame")
-    if model.frames[fid].parentJoint == 0:
-        raise SceneError(f"{key}.frame: '{force.frame}' is welded to the world: a force there moves nothing")
+    fid = _frame_id(model, force.frame, f"{key}.frame", moving=True)
     return Wrench(
         name=force.name,
         frame_id=fid,
