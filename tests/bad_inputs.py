@@ -83,6 +83,15 @@ class BadInput:
     error: type[Exception] = ms.ModelError
 
 
+# ur5's movable joints and the frames on its moving bodies, as the scene errors list them.
+UR5_JOINTS = "shoulder_pan_joint, shoulder_lift_joint, elbow_joint, wrist_1_joint, wrist_2_joint, wrist_3_joint"
+UR5_MOVING_FRAMES = (
+    "shoulder_pan_joint, shoulder_link, shoulder_lift_joint, upper_arm_link, elbow_joint, forearm_link, "
+    "wrist_1_joint, wrist_1_link, wrist_2_joint, wrist_2_link, wrist_3_joint, wrist_3_link, ee_fixed_joint, ee_link, "
+    "wrist_3_link-tool0_fixed_joint, tool0"
+)
+
+
 # What the table shows for the placeholders (the tests fill in real paths).
 DISPLAY = {
     "urdf": "/home/me/robot/robot.urdf",
@@ -98,6 +107,9 @@ DISPLAY = {
     "integrators": "bs32, dop853, dp54, euler, ...",
     "adaptive": "bs32, dop853, dp54",
     "numpy": "('EOF in multi-line statement', (2, 0))",
+    "scene": "/home/me/scene.toml",
+    "joints": UR5_JOINTS,
+    "frames": UR5_MOVING_FRAMES,
 }
 
 
@@ -397,6 +409,23 @@ def missing_folder(option: str, argument: str) -> Callable[[Path], Trigger]:
         return Trigger(call=call, argv=["inspect", "pendulum", option, str(folder)], fields={"folder": str(folder)})
 
     return build
+
+
+def scene_trigger(text: str) -> Callable[[Path], Trigger]:
+    """Write scene.toml and load it through the API and `run`."""
+
+    def build(tmp: Path) -> Trigger:
+        path = tmp / "scene.toml"
+        path.write_text(text)
+        fields = {"scene": str(path), "joints": UR5_JOINTS, "frames": UR5_MOVING_FRAMES}
+        return Trigger(call=lambda: ms.load_scene(path), argv=["run", str(path)], fields=fields)
+
+    return build
+
+
+def constrained_scene_on_implicit() -> object:
+    scene = ms.load_scene("four_bar")
+    return ms.simulate(scene, scene.q0, scene.v0, duration=0.1, dt=1e-3, integrator="implicit_euler")
 
 
 def api(call: Callable[[], object], **fields: str) -> Callable[[Path], Trigger]:
@@ -1019,6 +1048,75 @@ CATALOGUE: list[BadInput] = [
                 [0, 0, 0, 0, 0, 0, 1.0], [0.0] * 6, [1.0, 0, 0, 0, 0, 0]
             )
         ),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "scene-unknown-key",
+        "scene file",
+        "a misspelt top-level key in a scene",
+        "{scene}: unknown key 'gravty' (did you mean 'gravity'? valid: constraint, controller, description, force, "
+        "friction_velocity, gravity, initial, joints, lock, payload, robot, simulation)",
+        "Fix the key; every table lists its valid keys the same way.",
+        scene_trigger('gravty = [0, 0, 0]\n[robot]\nsource = "ur5"\n'),
+        ms.SceneError,
+    ),
+    BadInput(
+        "scene-unknown-joint",
+        "scene file",
+        "joint settings for a joint the robot does not have",
+        "{scene}: joints.elbow: unknown joint 'elbow' (valid: {joints})",
+        "Use one of the listed names (`multibody-sim inspect ROBOT` shows them).",
+        scene_trigger('[robot]\nsource = "ur5"\n[joints.elbow]\ndamping = 1.0\n'),
+        ms.SceneError,
+    ),
+    BadInput(
+        "scene-unknown-frame",
+        "scene file",
+        "a force on a frame the robot does not have",
+        "{scene}: force[0].frame: unknown frame 'tool9' (valid: {frames})",
+        "Use one of the listed frames (only frames on moving bodies take forces and payloads).",
+        scene_trigger('[robot]\nsource = "ur5"\n[[force]]\nframe = "tool9"\nforce = [1.0, 0.0, 0.0]\n'),
+        ms.SceneError,
+    ),
+    BadInput(
+        "scene-lock-floating-base",
+        "scene file",
+        "locking a floating base",
+        "{scene}: lock.root_joint: 'root_joint' is the floating base: it cannot be locked or given joint settings",
+        'Give the robot a fixed base instead ([robot] base = "fixed", with position and rpy).',
+        scene_trigger('[robot]\nsource = "solo12"\n[lock]\nroot_joint = 0.0\n'),
+        ms.SceneError,
+    ),
+    BadInput(
+        "scene-q-length-after-locking",
+        "scene file",
+        "an initial configuration sized for the full robot after locking joints",
+        "{scene}: initial.q: has 9 entries, the scene's model needs 7 after locking 2 joint(s)",
+        "Give the reduced model's q (locked joints left out), or a table {{joint = value}}.",
+        scene_trigger(
+            '[robot]\nsource = "panda"\n[lock]\npanda_finger_joint1 = 0.0\npanda_finger_joint2 = 0.0\n'
+            "[initial]\nq = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]\n"
+        ),
+        ms.SceneError,
+    ),
+    BadInput(
+        "scene-toml-syntax",
+        "scene file",
+        "a scene file that is not valid TOML",
+        "{scene}: TOML syntax error at line 1, column 7: Expected ']' at the end of a table declaration",
+        "Fix the TOML at the given line and column.",
+        scene_trigger('[robot\nsource = "ur5"\n'),
+        ms.SceneError,
+    ),
+    BadInput(
+        "constrained-scene-implicit",
+        "Python API",
+        "an implicit integrator on a scene with constraints",
+        "integrator 'implicit_euler' needs the dynamics' analytic derivatives, which scene 'four_bar' does not "
+        "provide (it has constraints: loop); use one of: bs32, dop853, dp54, euler, midpoint, rk4, "
+        "semi_implicit_euler",
+        "Use an explicit integrator: constraints are solved with Lagrange multipliers at each stage.",
+        api(constrained_scene_on_implicit),
         ms.InvalidArgumentError,
     ),
 ]
