@@ -413,6 +413,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     scene = robot if isinstance(robot, ms.Scene) else None
     # A scene's own settings, which the command line's flags override.
     declared = scene.simulation_settings() if scene is not None else {}
+    if args.tolerance is not None:  # the pilot study chooses the method and its step, not the scene
+        for name in ("integrator", "dt", "rtol", "atol", "max_step"):
+            declared.pop(name, None)
     method = ms.get_integrator(args.integrator or declared.pop("integrator", "rk4"))
     args.dt = declared.pop("dt", None) if args.dt is None else args.dt
     args.duration = declared.pop("duration", 1.0) if args.duration is None else args.duration
