@@ -8,6 +8,7 @@ elements it declares: springs, Coulomb friction, external wrenches (ForceElement
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -612,6 +613,8 @@ def _scene_source(spec: SceneSpec) -> dict[str, Any]:
     source: dict[str, Any] = {"source": spec.source}
     if spec.text is not None:
         source["toml"] = spec.text
+    else:  # built in Python: its tables as text (a callable shape shows as its repr), so caches keyed on it differ
+        source["spec"] = repr(dataclasses.replace(spec, text=None))
     if spec.base_dir is not None:
         source["base_dir"] = os.fspath(spec.base_dir)
     return source
