@@ -105,6 +105,7 @@ class Scene(Robot):
             source={**robot.source, "scene": _scene_source(spec)},
         )
         self.mimic = spec.robot.mimic
+        self._clear_crba = self.mimic and _mimic_has_children(model)
         # Per-dof element parameters on the reduced model, read back by joint name (locking renumbers dofs).
         kept_stiffness, kept_friction = np.zeros(self.nv), np.array(model.friction, dtype=float)
         rest = pin.neutral(model)
@@ -221,7 +222,7 @@ class Scene(Robot):
         if self.constraints is not None:
             return self.constraints.forward_dynamics(q, v, applied)
         if self.mimic:
-            return _crba_forward_dynamics(self.model, self.data, q, v, applied)
+            return _crba_forward_dynamics(self.model, self.data, q, v, applied, self._clear_crba)
         return pin.aba(self.model, self.data, q, v, applied, _WORLD)
 
     def unchecked_dynamics_derivatives(
@@ -276,7 +277,7 @@ class Scene(Robot):
     def mass_matrix(self, q: Any) -> np.ndarray:
         """Joint-space inertia matrix M(q) of the scene's model (armature and payloads included), (nv, nv)."""
         if self.mimic:
-            return _mimic_mass_matrix(self.model, self.data, self.check_q(q))
+            return _mimic_mass_matrix(self.model, self.data, self.check_q(q), self._clear_crba)
         return super().mass_matrix(q)
 
     def kinetic_energy(self, q: Any, v: Any) -> float:
@@ -291,7 +292,9 @@ class Scene(Robot):
     def unchecked_energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
         """(T, V) [J]: V includes the springs' stored energy."""
         kinetic, potential = (
-            _mimic_energies(self.model, self.data, q, v) if self.mimic else super().unchecked_energies(q, v)
+            _mimic_energies(self.model, self.data, q, v, self._clear_crba)
+            if self.mimic
+            else super().unchecked_energies(q, v)
         )
         if self.elements is not None and self.elements.potentials:
             potential += float(self.elements.potential_energies(q).sum())
@@ -556,24 +559,32 @@ def _initial_state(scene: Scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarra
     return q, v
 
 
-def _mimic_mass_matrix(model: pin.Model, data: pin.Data, q: np.ndarray) -> np.ndarray:
+def _mimic_has_children(model: pin.Model) -> bool:
+    """Whether a mimic joint of the model has joints below it (where Pinocchio 4.1's CRBA accumulates)."""
+    return any(
+        model.joints[j].shortname() == "JointModelMimic" and len(model.subtrees[j]) > 1 for j in range(1, model.njoints)
+    )
+
+
+def _mimic_mass_matrix(model: pin.Model, data: pin.Data, q: np.ndarray, clear: bool = True) -> np.ndarray:
     """M(q) by CRBA on a model with mimic joints, symmetric.
 
     Pinocchio 4.1's CRBA accumulates into data.Fcrb on such models (a mimic joint with children gets its coupling
-    added again at every call), so the workspace is cleared first.
+    added again at every call), so the workspace is cleared first when `clear` (_mimic_has_children(model)).
     """
-    zero = np.zeros((6, model.nv))
-    for i in range(len(data.Fcrb)):
-        data.Fcrb[i] = zero
+    if clear:
+        zero = np.zeros((6, model.nv))
+        for i in range(len(data.Fcrb)):
+            data.Fcrb[i] = zero
     M = pin.crba(model, data, q)
     return np.triu(M) + np.triu(M, 1).T
 
 
 def _crba_forward_dynamics(
-    model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray, tau: np.ndarray
+    model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray, tau: np.ndarray, clear: bool = True
 ) -> np.ndarray:
     """v' = M⁻¹ (tau - C v - g) by CRBA and RNEA (for models ABA does not support: mimic joints)."""
-    M = _mimic_mass_matrix(model, data, q)
+    M = _mimic_mass_matrix(model, data, q, clear)
     return np.linalg.solve(M, tau - pin.nonLinearEffects(model, data, q, v))
 
 
@@ -590,10 +601,12 @@ def _fold_mimic_dissipation(model: pin.Model, plain: pin.Model, damping: np.ndar
         friction[joint.idx_v] += abs(scaling) * plain.friction[follower]
 
 
-def _mimic_energies(model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
+def _mimic_energies(
+    model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray, clear: bool = True
+) -> tuple[float, float]:
     """(T, V) [J] for a model with mimic joints, which Pinocchio's energy algorithms refuse: T = ½ vᵀ M v by CRBA,
     V = -Σ m_i gᵀ c_i over the moving bodies (what computePotentialEnergy sums)."""
-    kinetic = 0.5 * float(v @ _mimic_mass_matrix(model, data, q) @ v)
+    kinetic = 0.5 * float(v @ _mimic_mass_matrix(model, data, q, clear) @ v)
     pin.forwardKinematics(model, data, q)
     gravity = model.gravity.linear
     potential = 0.0
