@@ -583,9 +583,20 @@ def _mimic_mass_matrix(model: pin.Model, data: pin.Data, q: np.ndarray, clear: b
 def _crba_forward_dynamics(
     model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray, tau: np.ndarray, clear: bool = True
 ) -> np.ndarray:
-    """v' = M⁻¹ (tau - C v - g) by CRBA and RNEA (for models ABA does not support: mimic joints)."""
-    M = _mimic_mass_matrix(model, data, q, clear)
-    return np.linalg.solve(M, tau - pin.nonLinearEffects(model, data, q, v))
+    """v' = M⁻¹ (tau - C v - g) by CRBA and RNEA (for models ABA does not support: mimic joints).
+
+    A Cholesky solve on the upper triangle CRBA fills (LAPACK dposv), with no symmetrized copy.
+    """
+    from scipy.linalg.lapack import dposv
+
+    if clear:
+        _mimic_mass_matrix(model, data, q, clear)
+    else:
+        pin.crba(model, data, q)
+    _, a, info = dposv(data.M, tau - pin.nonLinearEffects(model, data, q, v), lower=0)
+    if info != 0:  # not positive definite: a NaN state, which the stepping loop reports as divergence
+        return np.full(model.nv, np.nan)
+    return a
 
 
 def _fold_mimic_dissipation(model: pin.Model, plain: pin.Model, damping: np.ndarray, friction: np.ndarray) -> None:
