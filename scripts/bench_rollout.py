@@ -5,17 +5,22 @@ each figure is a median over rounds in which every variant was timed once, under
 µs per state-step (one state advanced by one step):
 
 - ours: ``simulate`` (one state) and ``rollout`` over a batch of B states (output every step, the default,
-  and every 10 steps), RK4, dt = 1 ms, zero torque, robots loaded with ``damping=False``;
+  and every 10 steps; and every 10 steps with open-loop torques, whose power the energy ledger integrates),
+  RK4, dt = 1 ms, robots loaded with ``damping=False``;
 - the Pinocchio floor: 4 × ``pin.aba`` per state in a Python loop, and 4 × ``pin.abaInParallel`` (one thread)
   over the batch, per state: what four ABA calls cost without Python in between;
 - MuJoCo on the same URDF (RK4, contacts, limits and equality constraints off, damping and armature zeroed):
-  ``mj_step`` in a Python loop and ``mujoco.rollout`` over the same B states on one thread.
+  ``mj_step`` in a Python loop and ``mujoco.rollout`` over the same B states on one thread;
+- for floating robots, the same robot with its base welded (``floating_base=False``): rollout and floor, so
+  that the free-flyer's share (configuration update and chart map) shows.
 
-Then the scaling over the batch size (CPU time) and over cores (wall time: abaInParallel's threads, MuJoCo's
-threads and, with Ray installed, the Ray backend on a local two-CPU instance).
+Ratios are medians of per-round ratios: in each round the floor, rollout and mujoco.rollout run back to back,
+so that the load of the moment weighs on all three alike. Then the scaling over the batch size (CPU time) and
+over cores (wall time: abaInParallel's threads, MuJoCo's threads and, with Ray installed, the Ray backend on a
+local two-CPU instance).
 
 Usage:
-    .venv/bin/python scripts/bench_rollout.py [--repeats 7] [--steps 100] [--batch 128] [--no-ray]
+    .venv/bin/python scripts/bench_rollout.py [--repeats 9] [--steps 200] [--batch 128] [--no-ray]
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from multibody_sim import load_robot, rollout, simulate
+from multibody_sim import BatchTrajectory, load_robot, rollout, simulate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_step_cost import (  # noqa: E402  (a sibling script: the same MuJoCo model and state map)
@@ -55,7 +60,7 @@ except ImportError:
     mj_rollout = None
 
 ROBOTS = ("double_pendulum", "ur5", "panda", "solo12", "talos")
-SCALING_ROBOTS = ("ur5", "solo12")
+SCALING_ROBOTS = ("double_pendulum", "ur5", "solo12")
 BATCHES = (1, 4, 16, 64, 256, 1024)
 DT = 1e-3
 SEED = 0
@@ -99,18 +104,22 @@ class Bench:
     steps: int
     runs: dict[str, list[float]] = field(default_factory=dict)
     mj: tuple[Any, Any, np.ndarray] | None = None  # (model, data, initial states (B, nstate))
+    welded: Bench | None = None  # a floating robot with its base welded: rollout and floor only
 
     @property
     def batch(self) -> int:
         return len(self.Q0)
 
-    def variants(self) -> dict[str, tuple[Callable[[], Any], int]]:
+    def variants(self, full: bool = True) -> dict[str, tuple[Callable[[], Any], int]]:
+        """The timed variants, in the order of a round: the floor, rollout (output every 10 steps) and
+        mujoco.rollout back to back, the others around them. `full=False`: the floor and rollout only."""
         robot, Q0, V0, steps, B = self.robot, self.Q0, self.V0, self.steps, self.batch
         duration = steps * DT
         model, data = robot.model, robot.data
         pool = pin.ModelPool(model, 1)
         tau = np.zeros((B, robot.nv))
         acc = np.empty((B, robot.nv))
+        taus = open_loop_torques(robot, Q0, steps // 10)
 
         def aba_loop() -> None:
             aba, z = pin.aba, tau[0]
@@ -125,32 +134,36 @@ class Bench:
             for _ in range(4 * steps):
                 pin.abaInParallel(1, pool, Q0.T, V0.T, tau.T, acc.T)
 
+        sparse = dict(duration=duration, dt=DT, output_dt=10 * DT, progress=False)
         out: dict[str, tuple[Callable[[], Any], int]] = {
-            # One state over ten times the steps, so that simulate()'s fixed per-call cost is amortised as a
-            # batch's is.
-            "simulate": (lambda: simulate(robot, Q0[0], V0[0], duration=10 * duration, dt=DT), 10 * steps),
-            "rollout": (lambda: rollout(robot, Q0, V0, duration=duration, dt=DT, progress=False), B * steps),
-            "rollout_sparse": (
-                lambda: rollout(robot, Q0, V0, duration=duration, dt=DT, output_dt=10 * DT, progress=False),
-                B * steps,
-            ),
-            "aba4": (aba_loop, B),
             "aba4_parallel": (aba_parallel, B * steps),
+            "rollout_sparse": (lambda: rollout(robot, Q0, V0, **sparse), B * steps),
         }
-        if not robot.space.is_flat:  # the per-element configuration updates a floating base needs
-            space, xi = robot.space, V0 * DT
-
-            def manifold() -> None:
-                for b in range(B):
-                    q, v, x = Q0[b], V0[b], xi[b]
-                    for _ in range(4):
-                        pin.integrate(model, q, x)
-                    for _ in range(3):
-                        space.chart_velocity(q, x, v)
-
-            out["manifold"] = (manifold, B)
+        if not full:
+            return out
+        if self.mj is not None and mj_rollout is not None:
+            mj_model, mj_data, mj_states = self.mj
+            out["mj_rollout"] = (
+                lambda: mj_rollout.rollout(mj_model, mj_data, mj_states, nstep=steps),
+                B * steps,
+            )
+        out["rollout"] = (lambda: rollout(robot, Q0, V0, duration=duration, dt=DT, progress=False), B * steps)
+        # For the breakdown: samples only at the start and the end, and a one-step call (its fixed cost, spread
+        # over the timed run's state-steps as it is in that run).
+        out["rollout_bare"] = (
+            lambda: rollout(robot, Q0, V0, duration=duration, dt=DT, output_dt=duration, progress=False),
+            B * steps,
+        )
+        out["rollout_call"] = (lambda: rollout(robot, Q0, V0, duration=DT, dt=DT, progress=False), B * steps)
+        out["rollout_taus"] = (
+            lambda: rollout(robot, Q0, V0, taus=taus, control_dt=10 * DT, **sparse),
+            B * steps,
+        )
+        # One state over ten times the steps, so that simulate()'s fixed per-call cost is amortised as a batch's is.
+        out["simulate"] = (lambda: simulate(robot, Q0[0], V0[0], duration=10 * duration, dt=DT), 10 * steps)
+        out["aba4"] = (aba_loop, B)
         if self.mj is not None:
-            mj_model, mj_data, states = self.mj
+            mj_model, mj_data, _ = self.mj
             qpos, qvel = StateMap(robot, mj_model).to_mujoco(Q0[0], V0[0])
 
             def mj_loop() -> None:
@@ -159,8 +172,6 @@ class Bench:
                     mujoco.mj_step(mj_model, mj_data)
 
             out["mj_step"] = (mj_loop, steps)
-            if mj_rollout is not None:
-                out["mj_rollout"] = (lambda: mj_rollout.rollout(mj_model, mj_data, states, nstep=steps), B * steps)
         return out
 
     def time_round(self, variants: dict[str, tuple[Callable[[], Any], int]]) -> None:
@@ -169,6 +180,53 @@ class Bench:
 
     def m(self, label: str) -> float:
         return median(self.runs.get(label, []))
+
+    def ratio(self, num: str, den: str) -> tuple[float, float, float]:
+        """(median, first quartile, third quartile) of the per-round ratios num / den."""
+        pairs = [a / b for a, b in zip(self.runs.get(num, []), self.runs.get(den, []), strict=False)]
+        if not pairs:
+            return math.nan, math.nan, math.nan
+        if len(pairs) < 2:
+            return pairs[0], pairs[0], pairs[0]
+        q1, _, q3 = statistics.quantiles(pairs, n=4)
+        return statistics.median(pairs), q1, q3
+
+
+def breakdown(b: Bench) -> dict[str, float]:
+    """µs per state-step of what rollout (output every 10 steps) adds to the floor: stepping, samples, fixed;
+    medians of the rounds' differences (each round times them back to back)."""
+    runs = zip(
+        *(b.runs.get(k, []) for k in ("aba4_parallel", "rollout_sparse", "rollout_bare", "rollout_call")), strict=False
+    )
+    parts: dict[str, list[float]] = {"total": [], "stepping": [], "samples": [], "fixed": []}
+    for floor, sparse, bare, call in runs:
+        parts["total"].append(sparse - floor)
+        parts["stepping"].append(bare - floor - call)
+        parts["samples"].append(sparse - bare)
+        parts["fixed"].append(call)
+    return {k: median(v) for k, v in parts.items()}
+
+
+def breakdown_row(b: Bench) -> list[str]:
+    parts, floor = breakdown(b), b.m("aba4_parallel")
+    return [b.name] + [f"{fmt(parts[k])} ({fmt(parts[k] / floor)})" for k in ("total", "stepping", "samples", "fixed")]
+
+
+def fmt_ratio(r: tuple[float, float, float]) -> str:
+    """A median ratio with its interquartile range over the rounds."""
+    return f"{fmt(r[0])} ({fmt(r[1])}–{fmt(r[2])})"
+
+
+def open_loop_torques(robot: Any, Q0: np.ndarray, n_control: int) -> np.ndarray:
+    """Open-loop torques (B, n_control, nv) for the column "with torques": random, up to half of each joint's
+    gravity torque at the element's initial configuration, so that the motion stays as tame as without them;
+    their power enters the energy ledger at every stage."""
+    rng = np.random.default_rng(SEED)
+    scale = np.abs([robot.gravity(q) for q in Q0])[:, None, :]
+    taus = 0.5 * scale * rng.uniform(-1.0, 1.0, (len(Q0), n_control, robot.nv))
+    if robot.floating_base:
+        taus[:, :, :6] = 0.0
+    return np.clip(taus, -robot.effort_limit, robot.effort_limit)
 
 
 def states(robot: Any, B: int, seed: int = SEED) -> tuple[np.ndarray, np.ndarray]:
@@ -196,6 +254,9 @@ def make_bench(name: str, B: int, steps: int) -> Bench:
     if mujoco is not None:
         model = mujoco_model(robot)
         bench.mj = (model, mujoco.MjData(model), mujoco_states(robot, model, Q0, V0))
+    if robot.floating_base:  # the same joints from the same states, the base welded where it starts
+        welded = load_robot(name, floating_base=False, damping=False)
+        bench.welded = Bench(name + " (base welded)", welded, Q0[:, 7:], V0[:, 6:], steps)
     return bench
 
 
@@ -239,6 +300,15 @@ def scaling_over_batch(name: str, base_steps: int, repeats: int) -> dict[int, di
                     B * steps,
                 )
             )
+            pool = pin.ModelPool(robot.model, 1)
+
+            def floor(pool: Any = pool, Q0: np.ndarray = Q0, V0: np.ndarray = V0, steps: int = steps) -> None:
+                tau, acc = np.zeros(Q0.shape[0:1] + V0.shape[1:]), np.empty(V0.shape)
+                for _ in range(4 * steps):
+                    pin.abaInParallel(1, pool, Q0.T, V0.T, tau.T, acc.T)
+
+            r.setdefault("floor", []).append(cpu_us(floor, B * steps))
+            r.setdefault("ratio", []).append(r["rollout"][-1] / r["floor"][-1])
             if model is not None and mj_rollout is not None:
                 data, mj_states = mujoco.MjData(model), mujoco_states(robot, model, Q0, V0)
                 r.setdefault("mj_rollout", []).append(
@@ -338,10 +408,13 @@ def write_report(
         f"- Versions: pin {pin.__version__}, numpy {np.__version__}, mujoco {mj_version}",
         para(f"""- Machine: {cpu_name()}, {os.cpu_count()} cores, shared: the 1-minute load average was
             {loads[0]:.1f} at the start and {loads[1]:.1f} at the end. Every variant is timed once per round,
-            round-robin, and each figure is the median over {args.repeats} rounds of CPU time (wall time where
-            cores are compared): absolute figures from a loaded machine run high, the ratios are the robust
+            round-robin (the floor, rollout and mujoco.rollout back to back), and each figure is the median over
+            {args.repeats} rounds of CPU time (wall time where cores are compared); each ratio is the median of
+            the rounds' ratios. Absolute figures from a loaded machine run high; the ratios are the robust
             figures."""),
-        para(f"""- Workload: RK4, dt = {DT:g} s, {steps} steps, zero torque, B = {B} states
+        para(f"""- Workload: RK4, dt = {DT:g} s, {steps} steps, zero torque (but for the column with open-loop
+            torques: random, up to half of each joint's gravity torque at the initial state, held for 10 steps), B = {B}
+            states
             `robot.random_configuration(np.random.default_rng({SEED}))` with velocities ~ N(0, {V0_SCALE}²);
             robots loaded with `damping=False`. MuJoCo runs the same URDF (contacts, joint limits and equality
             constraints disabled; damping, armature and friction loss zeroed; RK4 at the same dt), from the
@@ -354,38 +427,79 @@ def write_report(
         "robot",
         "nq/nv",
         f"simulate (1 state, {10 * steps} steps)",
-        f"rollout B={B}: output every step / every 10",
+        f"rollout B={B}: output every step / every 10 / every 10 with torques",
         "4 × aba, Python loop",
         "4 × abaInParallel (floor)",
         "mj_step loop",
         f"mujoco.rollout B={B}",
-        f"rollout / floor (target ≤ {TARGET})",
-        "rollout / mujoco.rollout",
     ]
     rows = []
     for b in benches:
-        floor, mj = b.m("aba4_parallel"), b.m("mj_rollout")
-        every, sparse = b.m("rollout"), b.m("rollout_sparse")
         rows.append(
             [
                 b.name + (" (floating)" if b.robot.floating_base else ""),
                 f"{b.robot.nq}/{b.robot.nv}",
                 fmt(b.m("simulate")),
-                f"{fmt(every)} / {fmt(sparse)}",
+                f"{fmt(b.m('rollout'))} / {fmt(b.m('rollout_sparse'))} / {fmt(b.m('rollout_taus'))}",
                 fmt(b.m("aba4")),
-                fmt(floor),
+                fmt(b.m("aba4_parallel")),
                 fmt(b.m("mj_step")),
-                fmt(mj),
-                f"{fmt(every / floor)} / {fmt(sparse / floor)}",
-                f"{fmt(every / mj)} / {fmt(sparse / mj)}",
+                fmt(b.m("mj_rollout")),
             ]
         )
     lines += table(head, rows)
     lines += [
         "",
-        para("""Ratio columns: output every step / every 10 steps. Recording a sample costs one
-            `forwardKinematics` and the two energy calls per state (the energy ledger and blow-up check need
-            them), which MuJoCo's rollout does not compute; output every 10 steps leaves the stepping itself."""),
+        "## Ratios (medians of per-round ratios, interquartile range in brackets)",
+        "",
+        para(f"""The issue's target: batched RK4 within {TARGET}× the floor per state-step (output every 10 steps,
+            the first column), and ahead of mujoco.rollout where the floor allows it (below 1 in the last
+            column)."""),
+        "",
+    ]
+    lines += table(
+        [
+            "robot",
+            "rollout / floor (every 10)",
+            "every step / floor",
+            "every 10 with torques / floor",
+            "floor / mujoco.rollout",
+            "rollout / mujoco.rollout (every 10)",
+        ],
+        [
+            [
+                b.name,
+                fmt_ratio(b.ratio("rollout_sparse", "aba4_parallel")),
+                fmt_ratio(b.ratio("rollout", "aba4_parallel")),
+                fmt_ratio(b.ratio("rollout_taus", "aba4_parallel")),
+                fmt_ratio(b.ratio("aba4_parallel", "mj_rollout")),
+                fmt_ratio(b.ratio("rollout_sparse", "mj_rollout")),
+            ]
+            for b in benches
+        ],
+    )
+    lines += [
+        "",
+        para("""Output every step records a sample per step: one `forwardKinematics` and the two energy calls per
+            state (the energy ledger and the blow-up check need them), made element by element, which MuJoCo's
+            rollout does not compute. With torques, the ledger's torque power (a dot product per element and
+            stage) is integrated too; without any it is zero and skipped."""),
+        "",
+        "## Where the rest goes (output every 10 steps; µs per state-step, and as a fraction of the floor)",
+        "",
+        para(f"""Medians of the rounds' differences: the samples are the difference to a run that records only its
+            first and last state; the fixed cost is a one-step call's whole cost (argument checks, set-up, the
+            result's assembly, one step and two samples) spread over the {B} × {steps} state-steps of a timed run;
+            the stepping is the rest above the floor (stage arithmetic, Python's loop, and the configuration
+            updates and chart map of a floating base). Differences of noisy timings: a few hundredths of the floor
+            are within the noise."""),
+        "",
+    ]
+    lines += table(
+        ["robot", "rollout − floor", "stepping", "samples (every 10 steps)", "fixed cost per call"],
+        [breakdown_row(b) for b in benches],
+    )
+    lines += [
         "",
         para(f"""Same motion (a check, not a test): after {steps} steps the batch's final states differ from
             mujoco.rollout's by at most""")
@@ -393,35 +507,44 @@ def write_report(
         + ", ".join(f"{name} {err:.1e}" for name, err in motion.items())
         + " (MuJoCo's coordinates; its RK4 and ours integrate the same equations from the same states).",
     ]
-    floating = [b for b in benches if "manifold" in b.runs]
+    floating = [b for b in benches if b.welded is not None]
     if floating:
-        lines += ["", "## Floating bases: where the rest goes", ""]
+        lines += ["", "## Floating bases: the free-flyer's share", ""]
         lines += table(
             [
                 "robot",
-                "rollout every 10 − floor",
-                "per-element manifold updates (4 × integrate + 3 × chart_velocity)",
-                "rollout without them / floor",
-                "rollout without them / mujoco.rollout",
+                "rollout / floor, floating",
+                "rollout / floor, base welded",
+                "floating: rollout − floor (µs)",
+                "welded: rollout − floor (µs)",
             ],
             [
                 [
                     b.name,
+                    fmt_ratio(b.ratio("rollout_sparse", "aba4_parallel")),
+                    fmt_ratio(b.welded.ratio("rollout_sparse", "aba4_parallel")),
                     fmt(b.m("rollout_sparse") - b.m("aba4_parallel")),
-                    fmt(b.m("manifold")),
-                    fmt((b.m("rollout_sparse") - b.m("manifold")) / b.m("aba4_parallel")),
-                    fmt((b.m("rollout_sparse") - b.m("manifold")) / b.m("mj_rollout")),
+                    fmt(b.welded.m("rollout_sparse") - b.welded.m("aba4_parallel")),
                 ]
                 for b in floating
+                if b.welded is not None
             ],
         )
+        lines += [
+            "",
+            para("""The welded twin runs the same joints from the same states with the base fixed where it starts:
+                its configuration update is one vectorised addition and its chart map the identity, so the
+                difference between the two overheads is the free-flyer's: Pinocchio's integrate over copies of
+                the free-flyer joint (one call per stage) and the closed-form chart map over the batch."""),
+        ]
     lines += [
         "",
         "## Scaling over the batch size (µs per state-step, CPU time, output every 10 steps)",
         "",
         para(f"""Batches below 64 run 64 / B times {args.steps} steps, so that every measurement covers at least
             {64 * args.steps} state-steps and the fixed cost of a call (argument checks, the result's
-            assembly) weighs alike."""),
+            assembly) weighs alike. The floor (4 × abaInParallel over the same batch) is timed right after each
+            rollout, and the ratio is the median of those pairs."""),
         "",
     ]
     for name, rows_by_b in over_batch.items():
@@ -430,6 +553,8 @@ def write_report(
             ["B", *(str(x) for x in rows_by_b)],
             [
                 ["rollout", *(fmt(r.get("rollout")) for r in rows_by_b.values())],
+                ["4 × abaInParallel (floor)", *(fmt(r.get("floor")) for r in rows_by_b.values())],
+                ["rollout / floor (median of rounds)", *(fmt(r.get("ratio")) for r in rows_by_b.values())],
                 ["mujoco.rollout", *(fmt(r.get("mj_rollout")) for r in rows_by_b.values())],
             ],
         )
@@ -473,63 +598,104 @@ def write_report(
                 workers were warmed by one small rollout first). Each task receives the robot once through
                 `ray.put` and returns its chunk's arrays."""),
         ]
-    lines += ["", "## Reading", "", *reading(benches, over_cores, over_ray), ""]
+    lines += ["", "## Reading", "", *reading(benches, over_cores, over_ray, over_batch), ""]
     text = "\n".join(lines)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text, encoding="utf-8")
     return text
 
 
-def reading(benches: list[Bench], over_cores: dict[str, float] | None, over_ray: dict[str, float] | None) -> list[str]:
+def reading(
+    benches: list[Bench],
+    over_cores: dict[str, float] | None,
+    over_ray: dict[str, float] | None,
+    over_batch: dict[str, dict[int, dict[str, float]]] | None = None,
+) -> list[str]:
     """Paragraphs written from this run's numbers."""
     text = []
-    flat = [b for b in benches if "manifold" not in b.runs]
-    floating = [b for b in benches if "manifold" in b.runs]
-    if flat:
-        ratios = ", ".join(f"{b.name} {b.m('rollout_sparse') / b.m('aba4_parallel'):.2f}" for b in flat)
-        met = [b.name for b in flat if b.m("rollout_sparse") / b.m("aba4_parallel") <= TARGET]
-        ahead = [b.name for b in flat if b.m("rollout_sparse") < b.m("mj_rollout")]
+    fixed = [b for b in benches if not b.robot.floating_base]
+    floating = [b for b in benches if b.robot.floating_base]
+    if fixed:
+        ratios = ", ".join(f"{b.name} {b.ratio('rollout_sparse', 'aba4_parallel')[0]:.2f}" for b in fixed)
+        met = [b.name for b in fixed if b.ratio("rollout_sparse", "aba4_parallel")[0] <= TARGET]
+        ahead = [b.name for b in fixed if b.ratio("rollout_sparse", "mj_rollout")[0] < 1.0]
+        torques = ", ".join(f"{b.name} {b.ratio('rollout_taus', 'aba4_parallel')[0]:.2f}" for b in fixed)
+        worst = max(fixed, key=lambda b: b.ratio("rollout_sparse", "aba4_parallel")[0])
+        parts = breakdown(worst)
+        floor = worst.m("aba4_parallel")
         text.append(
-            para(f"""Fixed bases (configuration updates vectorised as q + dv): a batched RK4 state-step costs
-            {ratios} times four ABA calls made by abaInParallel, with output every 10 steps; within the
-            {TARGET}× target: {", ".join(met) if met else "none"}. Ahead of mujoco.rollout (same states, one
-            thread): {", ".join(ahead) if ahead else "none"}. What remains above the floor is the stage
-            arithmetic over the batch (one small BLAS call per element and stage, kept so that every element
-            matches simulate() bit for bit) and the ledger's dot products; it weighs most on the double
-            pendulum, whose ABA is cheapest.""")
+            para(f"""Fixed bases: a batched RK4 state-step (output every 10 steps) costs {ratios} times four ABA
+            calls made by abaInParallel; within the {TARGET}× target: {", ".join(met) if met else "none"}. Ahead of
+            mujoco.rollout (same states, one thread): {", ".join(ahead) if ahead else "none"}. With open-loop
+            torques, whose power the ledger integrates stage by stage: {torques}. Where the rest goes, on
+            {worst.name} (the breakdown table): the stepping {parts["stepping"] / floor:.0%} of the floor (per
+            stage two contiguous numpy operations and the ABA call, per step one batched BLAS call for the
+            combination, which keeps every element bit for bit equal to simulate(), and Python's loop), the
+            samples {parts["samples"] / floor:.0%} (the energies are two Pinocchio calls per element and
+            sample, which no batched Pinocchio function offers) and the fixed cost of the call
+            {parts["fixed"] / floor:.0%}. Each weighs most on the double pendulum, whose ABA is the cheapest, and
+            shrinks with larger batches (the scaling table) and sparser output.""")
         )
+        if over_batch:
+            scaling = "; ".join(
+                f"{name} " + ", ".join(f"{fmt(r.get('ratio'))} at B = {b}" for b, r in rows.items() if b >= 64)
+                for name, rows in over_batch.items()
+            )
+            text += ["", para(f"""Over the batch size (rollout / floor, the scaling tables): {scaling}.""")]
     if floating:
-        floors = ", ".join(f"{b.name} {b.m('aba4_parallel') / b.m('mj_rollout'):.2f}" for b in floating)
         parts = ", ".join(
-            f"{b.name}: {b.m('rollout_sparse') / b.m('aba4_parallel'):.2f}× the floor and "
-            f"{b.m('rollout_sparse') / b.m('mj_rollout'):.2f}× mujoco.rollout, of which the per-element "
-            f"manifold updates are {b.m('manifold'):.1f} µs"
+            f"{b.name}: {b.ratio('rollout_sparse', 'aba4_parallel')[0]:.2f}× the floor and "
+            f"{b.ratio('rollout_sparse', 'mj_rollout')[0]:.2f}× mujoco.rollout"
             for b in floating
+        )
+        welded = ", ".join(
+            f"{b.name} {b.welded.ratio('rollout_sparse', 'aba4_parallel')[0]:.2f}" for b in floating if b.welded
+        )
+        # What the welded twin's overhead on the floating robot's floor would give against MuJoCo.
+        estimates = {
+            b.name: (
+                b.ratio("aba4_parallel", "mj_rollout")[0],
+                b.welded.ratio("rollout_sparse", "aba4_parallel")[0] * b.ratio("aba4_parallel", "mj_rollout")[0],
+            )
+            for b in floating
+            if b.welded
+        }
+        verdicts = "; ".join(
+            f"{name}: four ABA passes alone cost {floor:.2f}× a MuJoCo RK4 step here, so about {est:.2f}× "
+            + ("mujoco.rollout: just ahead" if est < 1.0 else "mujoco.rollout: still behind")
+            for name, (floor, est) in estimates.items()
         )
         text += [
             "",
-            para(f"""Floating bases: {parts}. A free-flyer's configuration update (`pin.integrate`) and its chart
-            map (`dIntegrate` and a 6 × 6 solve, which keeps RK4 fourth-order) are made element by element in
-            Python, so they cost Python calls per state and stage. Without them the batch would run at the
-            ratios of the table above ("rollout without them"). What it would take: vectorised SE(3) exp and
-            inverse right Jacobian over the batch in numpy (round-off equal to Pinocchio's, no longer bit for
-            bit), or a batched integrate/dIntegrate in Pinocchio (C++). Even then the floor itself, four ABA
-            calls, costs {floors} times a mujoco.rollout state-step here: MuJoCo's RK4 step on a floating robot
-            is about as cheap as four ABA calls or cheaper, so beating it would take fewer dynamics evaluations
-            per step, not less overhead."""),
+            para(f"""Floating bases: {parts}. The free-flyer's configuration update is one Pinocchio integrate call
+            over copies of its joint per stage, and its chart map (which keeps RK4 fourth-order) a closed form
+            over the batch, exact to round-off (Pinocchio's own Jexp6 loses up to 8 digits just above 1.2e-4 rad),
+            but about fifty numpy operations on small arrays per stage. With the base welded the same robots run
+            at {welded} times their floor: that is what moving the free-flyer's update and chart map into C++
+            (a batched integrate and inverse-Jacobian product in Pinocchio) would give at most. Against MuJoCo
+            that would make {verdicts}. Where four ABA passes cost more than MuJoCo's step, being ahead would take
+            cheaper or fewer dynamics evaluations per step (an articulated-body pass that reuses the joint kinematics
+            between stages, or a method with fewer stages at the same accuracy), not less overhead."""),
         ]
     if over_cores:
         aba_speedup = over_cores["aba4_parallel_1"] / over_cores["aba4_parallel_2"]
         rollout_speedup = over_cores["rollout_1"] / over_cores["rollout_2"]
         mj_speedup = over_cores.get("mj_rollout_1", math.nan) / over_cores.get("mj_rollout_2", math.nan)
+        why = (
+            """Here the second core was free enough for threads to pay; on this shared 2-core machine other runs
+            measured below 1× when other jobs held the cores (a second thread then waits for a core, and
+            OpenMP's waiting threads cost more than they give), hence the default num_threads=1."""
+            if aba_speedup >= 1.3
+            else """On this shared 2-core machine other jobs held the cores (see the load average above), so a
+            second thread mostly waited for a core, and OpenMP's waiting threads cost more than they give; hence
+            the default num_threads=1."""
+        )
         text += [
             "",
             para(f"""Cores: abaInParallel on 2 threads ran {aba_speedup:.2f}× as fast as on 1, and
-            rollout(num_threads=2) {rollout_speedup:.2f}× (its stage arithmetic stays on one thread); MuJoCo's
-            rollout on two threads {mj_speedup:.2f}×. On this shared 2-core machine other jobs hold the cores
-            (see the load average above), so a second thread mostly waits for a core, and OpenMP's waiting
-            threads cost more than they give; hence the default num_threads=1. How far threads pay on an idle
-            multi-core machine is not measured here."""),
+            rollout(num_threads=2) {rollout_speedup:.2f}× (its stage arithmetic and samples stay on one thread);
+            MuJoCo's rollout on two threads {mj_speedup:.2f}×. {why} How far threads pay on an idle multi-core
+            machine is not measured here."""),
         ]
     if over_ray:
         text += [
@@ -543,7 +709,7 @@ def reading(benches: list[Bench], over_cores: dict[str, float] | None, over_ray:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=7, help="rounds; each figure is a median over them")
+    parser.add_argument("--repeats", type=int, default=9, help="rounds; each figure is a median over them")
     parser.add_argument("--steps", type=int, default=200, help="steps per timed batch run")
     parser.add_argument("--batch", type=int, default=128, help="states per batch in the main table")
     parser.add_argument("--robots", default=",".join(ROBOTS), help="comma-separated catalog names")
@@ -561,18 +727,22 @@ def main(argv: list[str] | None = None) -> int:
     start, load_before = time.perf_counter(), load_average()
 
     benches = [make_bench(name, args.batch, args.steps) for name in args.robots.split(",")]
-    variants = {b.name: b.variants() for b in benches}
-    for b in benches:  # an untimed round: caches, allocators, lazy initialisations
-        for fn, _ in variants[b.name].values():
-            fn()
+    workloads = [(b, b.variants()) for b in benches]
+    workloads += [(b.welded, b.welded.variants(full=False)) for b in benches if b.welded is not None]
+    for bench, variants in workloads:  # an untimed round: caches, allocators, lazy initialisations
+        for label, (fn, _) in variants.items():
+            result = fn()
+            # A figure per state-step means something only if every state ran every step.
+            if isinstance(result, BatchTrajectory) and not result.completed.all():
+                raise SystemExit(f"{bench.name} {label}: {int((~result.completed).sum())} elements stopped early")
     for i in range(args.repeats):
-        for b in benches:
-            b.time_round(variants[b.name])
+        for bench, variants in workloads:
+            bench.time_round(variants)
         print(f"round {i + 1}/{args.repeats} done ({time.perf_counter() - start:.0f} s)", flush=True)
-    for b in benches:
+    for b, _ in workloads:
         print(
-            f"{b.name}: rollout {b.m('rollout'):.2f} / {b.m('rollout_sparse'):.2f} µs per state-step, "
-            f"floor {b.m('aba4_parallel'):.2f}, mujoco.rollout {b.m('mj_rollout'):.2f}",
+            f"{b.name}: rollout / floor {fmt_ratio(b.ratio('rollout_sparse', 'aba4_parallel'))}, "
+            f"rollout / mujoco.rollout {fmt_ratio(b.ratio('rollout_sparse', 'mj_rollout'))}",
             flush=True,
         )
     motion = {b.name: check_same_motion(b) for b in benches}

@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+import importlib
 import os
 import re
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 import pytest
 from conftest import joint, link, urdf
 
 import multibody_sim as ms
+from multibody_sim.integrators.explicit_rk import ExplicitRungeKutta
+from multibody_sim.integrators.tableau import ButcherTableau
+
+rollout_module = importlib.import_module("multibody_sim.rollout")  # the module (the package exports the function)
 
 FIXED_STEP_EXPLICIT = sorted(name for name, m in ms.INTEGRATORS.items() if not m.adaptive and not m.implicit)
 ARRAYS = (
@@ -65,6 +71,23 @@ def assert_same(batch: ms.BatchTrajectory, reference: list[tuple[ms.Trajectory, 
     assert np.array_equal(batch.mask.sum(axis=1), batch.n_samples)
 
 
+def assert_close(batch: ms.BatchTrajectory, reference: list[tuple[ms.Trajectory, str]], atol: float) -> None:
+    """As assert_same, but the arrays (and the ledger) only within atol + atol * |reference|: for paths whose
+    arithmetic differs from simulate()'s by round-off."""
+    assert len(batch) == len(reference)
+    for b, (traj, message) in enumerate(reference):
+        element = batch.element(b)
+        assert element.status == traj.status and batch.messages[b] == message, b
+        assert batch.n_samples[b] == len(traj)
+        for name in ARRAYS:
+            np.testing.assert_allclose(getattr(element, name), getattr(traj, name), rtol=atol, atol=atol, err_msg=name)
+        for name, entry in traj.ledger.items():
+            np.testing.assert_allclose(element.ledger[name].energy, entry.energy, rtol=atol, atol=atol)
+        for name in COUNTS:
+            assert element.stats[name] == traj.stats[name], (name, b)
+        assert element.limit_violations.count == traj.limit_violations.count, b
+
+
 def random_states(system: ms.Robot, B: int, seed: int, v_scale: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     Q0 = np.array([system.random_configuration(rng) for _ in range(B)])
@@ -86,14 +109,15 @@ def wheel_arm(write_urdf) -> ms.Robot:
     return ms.load_robot(write_urdf(text))
 
 
-# ---- the batched path reproduces simulate() bit for bit ----------------------------------------------------------
+# ---- the batched path reproduces simulate() ------------------------------------------------------------------------
 @pytest.mark.parametrize("integrator", FIXED_STEP_EXPLICIT)
 @pytest.mark.parametrize("case", ["double_pendulum", "ur5_pd", "solo12", "wheel_arm"])
-def test_batch_equals_looped_simulate_bit_for_bit(robot, request, integrator: str, case: str) -> None:
+def test_batch_equals_looped_simulate(robot, request, integrator: str, case: str) -> None:
     # Every configuration update the batched path can take: vectorised q + dv (double pendulum, ur5), Pinocchio's
-    # integrate per element with the chart map (solo12's free-flyer) and without it (the continuous joint); the
-    # damping ledger (double pendulum, wheel arm); saturation at effort limits (ur5's PD asks for too much);
-    # a control period and an output period that differ, and a last step shortened to land on the duration.
+    # integrate over copies of the free-flyer (solo12) or of the continuous joint, with the vectorised chart map
+    # (solo12, methods with more than one stage) and without it; the damping ledger (double pendulum, wheel arm);
+    # saturation at effort limits (ur5's PD asks for too much); a control period and an output period that
+    # differ, and a last step shortened to land on the duration.
     controllers = None
     if case == "double_pendulum":
         system = robot("double_pendulum")  # damped (URDF 0.05), no limits
@@ -109,11 +133,38 @@ def test_batch_equals_looped_simulate_bit_for_bit(robot, request, integrator: st
     options = dict(duration=0.0305, dt=1e-3, integrator=integrator, output_dt=3e-3, control_dt=2e-3)
     batch = ms.rollout(system, Q0, V0, controller=controllers, **options)
     reference = looped(system, Q0, V0, controllers, **options)
-    assert_same(batch, reference)
+    if system.space.is_flat or ms.INTEGRATORS[integrator].evaluations_per_step == 1:
+        assert_same(batch, reference)  # the same arithmetic, bit for bit
+    else:
+        # The free-flyer's chart map xi' = Jexp6(xi)^-1 v is a closed form over the batch here and a 6 x 6 solve
+        # with Pinocchio's Jexp6 in simulate(): both exact to round-off at these rotation increments (below
+        # 1e-4 rad, where Pinocchio's Jexp6 uses its series), a few ulps of |q|, |v| ~ 1 and of the energies
+        # (~25 J) per step, ~30 steps.
+        assert_close(batch, reference, atol=1e-13)
     assert np.all(batch.status == "completed")
     assert batch.t.shape == (4, 12) and batch.t[0, -1] == 0.0305  # 0, 3, ..., 30 ms and the end
     if case == "ur5_pd":
         assert batch.stats["saturated_controls"][0] > 0 and batch.stats["saturated_controls"][2] == 0
+
+
+def test_tableaus_whose_stage_sums_need_blas_are_bit_for_bit_too(robot) -> None:
+    # RK4's stage sums have one coefficient each, a power of two: one exact multiplication over the batch. Other
+    # tableaus go through the same per-element BLAS call as ExplicitRungeKutta: Kutta's 3/8 rule (several terms
+    # per stage) and Ralston's method (one term, 2/3, whose product is not exact) must match bit for bit too.
+    three_eighths = ButcherTableau(
+        a=((0, 0, 0, 0), (1 / 3, 0, 0, 0), (-1 / 3, 1, 0, 0), (1, -1, 1, 0)),
+        b=(1 / 8, 3 / 8, 3 / 8, 1 / 8),
+        c=(0, 1 / 3, 2 / 3, 1),
+        order=4,
+    )
+    ralston = ButcherTableau(a=((0, 0), (2 / 3, 0)), b=(1 / 4, 3 / 4), c=(0, 2 / 3), order=2)
+    dp = robot("double_pendulum")
+    Q0, V0 = random_states(dp, 3, seed=12)
+    spring = lambda t, q, v: -q  # noqa: E731  (torques, so that the torque ledger goes through the stage sums)
+    for tableau in (three_eighths, ralston):
+        method = ExplicitRungeKutta("custom", tableau, "a tableau built in the test")
+        options = dict(duration=0.02, dt=1e-3, integrator=method, output_dt=4e-3)
+        assert_same(ms.rollout(dp, Q0, V0, controller=spring, **options), looped(dp, Q0, V0, [spring] * 3, **options))
 
 
 def test_batched_controller_equals_per_state_controller_and_taus_equal_an_indexing_controller(robot) -> None:
@@ -169,35 +220,142 @@ def test_stateful_controller_gets_a_fresh_copy_per_element(robot) -> None:
     assert np.all(shared.integral == 0.0)  # the caller's object was copied, not used
 
 
-def test_permutation_threads_and_batch_size_do_not_change_an_element(robot) -> None:
-    # Elements are independent: the same arithmetic whatever their neighbours, order or thread count.
-    panda = robot("panda")
-    Q0, V0 = random_states(panda, 5, seed=5)
+@pytest.mark.parametrize("name", ["panda", "solo12"])
+def test_permutation_threads_and_batch_size_do_not_change_an_element(robot, name: str) -> None:
+    # Elements are independent: the same arithmetic whatever their neighbours, order or thread count (on a
+    # floating base too, where each row's chart map picks its own series or closed form by its own angle).
+    system = robot(name)
+    Q0, V0 = random_states(system, 5, seed=5)
+    if system.floating_base:  # a base spinning ~1 rad per step: the closed forms, next to rows using the series
+        V0[1, 3:6] = [900.0, 0.0, 900.0]
     options = dict(duration=0.01, dt=1e-3)
-    whole = ms.rollout(panda, Q0, V0, **options)
+    whole = ms.rollout(system, Q0, V0, **options)
     order = np.array([3, 0, 4, 1, 2])
-    permuted = ms.rollout(panda, Q0[order], V0[order], num_threads=2, **options)
-    alone = ms.rollout(panda, Q0[2:3], V0[2:3], **options)
-    for name in ARRAYS:
-        np.testing.assert_array_equal(getattr(permuted, name), getattr(whole, name)[order])
-        np.testing.assert_array_equal(getattr(alone, name)[0], getattr(whole, name)[2])
+    permuted = ms.rollout(system, Q0[order], V0[order], num_threads=2, **options)
+    alone = ms.rollout(system, Q0[2:3], V0[2:3], **options)
+    for field in ARRAYS:
+        np.testing.assert_array_equal(getattr(permuted, field), getattr(whole, field)[order])
+        np.testing.assert_array_equal(getattr(alone, field)[0], getattr(whole, field)[2])
+
+
+# ---- configuration updates and the chart map over a batch ---------------------------------------------------------
+JOINT_MODELS = {
+    "free_flyer": pin.JointModelFreeFlyer,
+    "spherical": pin.JointModelSpherical,
+    "planar": pin.JointModelPlanar,
+    "continuous": pin.JointModelRUBY,
+    "prismatic": pin.JointModelPZ,
+    "revolute": pin.JointModelRX,
+}
+
+
+def chain(*kinds: str) -> ms.Robot:
+    """A chain of the given joint kinds built in code (URDF has no spherical joint), one 1 kg body on each."""
+    model = pin.Model()
+    parent = 0
+    for i, kind in enumerate(kinds):
+        placement = pin.SE3(np.eye(3), np.array([0.0, 0.1, -0.3 if i else 0.0]))
+        parent = model.addJoint(parent, JOINT_MODELS[kind](), placement, f"{kind}_{i}")
+        inertia = pin.Inertia(1.0, np.array([0.05, 0.02, -0.2]), np.diag([0.02, 0.03, 0.01]))
+        model.appendBodyToJoint(parent, inertia, pin.SE3.Identity())
+    return ms.Robot(model, name="chain", floating_base=False)
+
+
+def test_every_joint_kind_integrates_as_pinocchio_and_the_batch_follows_simulate() -> None:
+    # Vector coordinates (revolute, prismatic) are added in numpy; the free-flyer, spherical, planar and continuous
+    # joints go through one pin.integrate call on a model of copies of just those joints: bit for bit as
+    # pin.integrate on each element, for increments from round-off to several radians.
+    mixed = chain("free_flyer", "spherical", "planar", "continuous", "prismatic", "revolute")
+    space = rollout_module._BatchSpace(mixed)
+    assert not space.per_element and not space.vector_space
+    rng = np.random.default_rng(14)
+    Q = np.array([mixed.random_configuration(rng) for _ in range(6)])
+    DV = rng.normal(size=(6, mixed.nv)) * 10.0 ** rng.uniform(-12, 0.5, (6, 1))
+    out = np.empty_like(Q)
+    space.integrate(Q, DV, out)
+    np.testing.assert_array_equal(out, [pin.integrate(mixed.model, Q[b], DV[b]) for b in range(6)])
+    # A planar joint's chart map is computed element by element (ConfigurationSpace's own): with it, RK4 over
+    # the batch is simulate() bit for bit; without it, the free-flyer's and spherical joint's chart maps are
+    # the closed forms, equal to simulate()'s to round-off at these rotation increments (see above).
+    options = dict(duration=0.02, dt=1e-3, output_dt=5e-3)
+    Q0, V0 = random_states(mixed, 3, seed=15, v_scale=0.1)
+    assert_same(ms.rollout(mixed, Q0, V0, **options), looped(mixed, Q0, V0, **options))
+    curved = chain("free_flyer", "spherical", "revolute")
+    assert rollout_module._BatchSpace(curved).chart_blocks == [("se3", 0), ("so3", 6)]
+    Q0, V0 = random_states(curved, 3, seed=16, v_scale=0.1)
+    assert_close(ms.rollout(curved, Q0, V0, **options), looped(curved, Q0, V0, **options), atol=1e-13)
+
+
+def _jexp_inverse_times(xi: np.ndarray, v: np.ndarray, mpmath: Any) -> np.ndarray:
+    """J(xi)^-1 v with 40 digits, J = Σ_k (-ad_xi)^k / (k + 1)! the right Jacobian of SE(3)'s exp (xi, v of
+    length 6, [linear, angular]) or SO(3)'s (length 3): its power series, independent of any closed form."""
+    with mpmath.workdps(40):
+        x = [mpmath.mpf(float(c)) for c in xi]
+
+        def skew(a: list[Any]) -> Any:
+            return mpmath.matrix([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+
+        n = len(x)
+        ad = mpmath.zeros(n, n)
+        W = skew(x[-3:])
+        for r in range(3):
+            for c in range(3):
+                ad[r, c] = ad[n - 3 + r, n - 3 + c] = W[r, c]
+                if n == 6:
+                    ad[r, 3 + c] = skew(x[:3])[r, c]
+        J, term, k = mpmath.zeros(n, n), mpmath.eye(n), 1  # term = (-ad)^(k-1) / k!
+        while mpmath.mnorm(term, 1) > mpmath.mpf(10) ** -45:
+            J += term
+            term, k = term * (-ad) / (k + 1), k + 1
+        return np.array([float(c) for c in mpmath.lu_solve(J, mpmath.matrix([float(c) for c in v]))])
+
+
+def test_chart_maps_match_the_jacobian_power_series_to_round_off() -> None:
+    # The free-flyer's chart map xi' = Jexp6(xi)^-1 v and the spherical joint's Jexp3(w)^-1 v over a batch, against
+    # the Jacobian's own power series summed with 40 digits. Rotation angles span the series branch (θ < 0.5 rad),
+    # the closed forms up to 3 rad, and 1e-4 to 1e-2 rad, where Pinocchio's closed-form Jexp6 loses up to 8 digits
+    # (why simulate()'s chart map can differ from the batch's by more than round-off at such increments).
+    import mpmath
+
+    rng = np.random.default_rng(17)
+    angles = np.concatenate(
+        [10.0 ** rng.uniform(-9, 0, 16), [1.2e-4, 1.3e-4, 3e-4, 0.49, 0.51], rng.uniform(0.5, 3, 5)]
+    )
+    n = len(angles)
+    axes = rng.normal(size=(n, 3))
+    xi = np.empty((n, 6))
+    xi[:, 3:] = axes / np.linalg.norm(axes, axis=1, keepdims=True) * angles[:, None]
+    xi[:, :3] = rng.normal(size=(n, 3)) * angles[:, None] * 10.0 ** rng.uniform(-1, 1, (n, 1))
+    v = rng.normal(size=(n, 6))
+    se3, so3 = np.empty((n, 6)), np.empty((n, 3))
+    rollout_module._se3_chart(xi, v, se3)
+    rollout_module._so3_chart(xi[:, 3:], v[:, 3:], so3)
+    for j in range(n):
+        for ours, exact in (
+            (se3[j], _jexp_inverse_times(xi[j], v[j], mpmath)),
+            (so3[j], _jexp_inverse_times(xi[j, 3:], v[j, 3:], mpmath)),
+        ):
+            # Round-off (~45 ulps of the result at most), far below the 1e-8 Pinocchio loses in that band.
+            assert np.max(np.abs(ours - exact)) <= 1e-14 * np.max(np.abs(exact)), (angles[j], ours - exact)
 
 
 # ---- early stops: one element's fate does not spoil the others ----------------------------------------------------
 def test_diverging_elements_stop_with_simulates_status_and_message_and_the_rest_complete(robot) -> None:
     dp = robot("double_pendulum")
-    Q0 = np.array([[3.0, 0.0], [0.1, 0.2], [3.0, 0.1], [1.0, 1.0]])
+    Q0 = np.array([[3.0, 0.0], [0.1, 0.2], [3.0, 0.1], [1.0, 1.0], [1.0, 1.0]])
     # Element 1 spins so fast that explicit Euler's energy error explodes; element 3's kinetic energy
-    # overflows at t = 0 already (no sample at all), as simulate() reports it.
-    V0 = np.array([[0.0, 0.0], [1e3, -1e3], [0.0, 0.0], [1e200, 0.0]])
+    # overflows at t = 0 already (no sample at all), as simulate() reports it; element 4's energy is finite,
+    # but its accelerations (~ v²) overflow within a step: the state itself becomes non-finite.
+    V0 = np.array([[0.0, 0.0], [1e3, -1e3], [0.0, 0.0], [1e200, 0.0], [0.0, 1e100]])
     for integrator, output_dt in [("euler", 0.1), ("rk4", 0.1), ("rk4", 0.02)]:
         options = dict(duration=1.0, dt=0.02, integrator=integrator, output_dt=output_dt)
         batch = ms.rollout(dp, Q0, V0, **options)
         assert_same(batch, looped(dp, Q0, V0, **options))
-        assert batch.status.tolist() == ["completed", "diverged", "completed", "diverged"]
+        assert batch.status.tolist() == ["completed", "diverged", "completed", "diverged", "diverged"]
         assert batch.n_samples[3] == 0 and np.all(batch.q[3] == Q0[3]) and np.all(batch.kinetic_energy[3] == 0)
         assert "the energy became non-finite" in batch.messages[3]
-        assert batch.completed.tolist() == [True, False, True, False]
+        assert "the state became non-finite" in batch.messages[4]
+        assert batch.completed.tolist() == [True, False, True, False, False]
 
 
 def test_adaptive_and_implicit_methods_run_element_by_element_through_simulate(robot) -> None:

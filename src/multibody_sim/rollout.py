@@ -1,16 +1,22 @@
 """Batched rollouts: many initial states, controllers or torque sequences at once, on one machine or on Ray.
 
 The fixed-step explicit methods (every Runge–Kutta tableau, semi-implicit Euler) advance the whole batch
-together: one ``pin.abaInParallel`` call per stage over a ``pin.ModelPool``, stage arithmetic vectorised over
-the batch, configuration updates vectorised where the manifold is a vector space. Every per-element operation
-is the one ``simulate()`` performs (the same BLAS kernel for the stage sums and the ledger's dot products, the
-same Pinocchio calls), so a batch gives ``simulate()``'s samples bit for bit. Adaptive and implicit methods
-run element by element through ``simulate()``.
+together: one ``pin.abaInParallel`` call per stage over a ``pin.ModelPool``, the stage arithmetic in a few
+operations over the whole batch, configuration updates vectorised (vector coordinates by numpy, the other
+joints by one Pinocchio ``integrate`` call over copies of them). Per element the arithmetic is simulate()'s:
+the same BLAS calls (multi-term stage sums, the step's combination, the ledger's dot products), exact products
+where a stage sum has one power-of-two coefficient (RK4's), the same Pinocchio calls; so a batch gives
+``simulate()``'s samples bit for bit. One exception: the chart map of free-flyer and spherical joints (in the
+Runge–Kutta stages after the first) is a closed form over the batch, exact to round-off, where simulate()
+solves with Pinocchio's Jexp6; the two agree to round-off but where Pinocchio's closed form loses digits
+(rotations per stage just above 1.2e-4 rad). Adaptive and implicit methods run element by element through
+``simulate()``.
 """
 
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import time
 from collections.abc import Sequence
@@ -45,11 +51,15 @@ _BACKENDS = ("local", "ray")
 _vecdot = getattr(np, "vecdot", None)
 
 
-def _rowdot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Row-wise dot products, each computed exactly as ``x[i] @ y[i]``."""
+def _rowdot(x: np.ndarray, y: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Row-wise dot products, each computed exactly as ``x[i] @ y[i]``; written into `out` when given."""
     if _vecdot is not None:
-        return _vecdot(x, y)
-    return np.matmul(x[:, None, :], y[:, :, None])[:, 0, 0]
+        return _vecdot(x, y, out=out)
+    dots = np.matmul(x[:, None, :], y[:, :, None])[:, 0, 0]
+    if out is None:
+        return dots
+    out[...] = dots
+    return out
 
 
 @dataclass
@@ -177,9 +187,10 @@ def rollout(
 ) -> BatchTrajectory:
     """Simulate a batch of initial states (with controllers or open-loop torques) for `duration` seconds.
 
-    Each element gets exactly the samples ``simulate(system, q0s[b], v0s[b], ...)`` would return (bit for bit
-    on the local backend); an element that stops early keeps its samples and its status, and never stops the
-    others.
+    Each element gets the samples ``simulate(system, q0s[b], v0s[b], ...)`` would return: bit for bit on the
+    local backend, but to round-off on free-flyer and spherical joints with multi-stage methods (their chart
+    map is a closed form over the batch); an element that stops early keeps its samples and its status, and
+    never stops the others.
 
     Args:
         system: the robot (or scene).
@@ -470,11 +481,331 @@ class _OneRow:
 
 
 # ---- the batched fixed-step path -------------------------------------------------------------------------------
+# The chart map's scalar functions of the rotation angle θ as power series in θ² (row k: the coefficient of
+# θ^2k), columns a1 = (1 - cos θ)/θ², β = 1/θ² - sin θ / (2θ (1 - cos θ)), a2 = (θ - sin θ)/θ³, β'/θ and
+# g = 2β + θ² β'/θ. Their closed forms cancel catastrophically at small θ (Pinocchio's own Jexp6 loses up to 8
+# digits just above θ = 1.2e-4 rad that way); truncated after θ^14, the series are exact to round-off below
+# θ = 0.5 rad (the next terms are below 1e-17 relative), and above it the closed forms lose a few ulps at most.
+_ANGLE_SERIES = np.array(
+    [
+        [1 / 2, 1 / 12, 1 / 6, 1 / 360, 1 / 6],
+        [-1 / 24, 1 / 720, -1 / 120, 1 / 7560, 1 / 180],
+        [1 / 720, 1 / 30240, 1 / 5040, 1 / 201600, 1 / 5040],
+        [-1 / 40320, 1 / 1209600, -1 / 362880, 1 / 5987520, 1 / 151200],
+        [1 / 3628800, 1 / 47900160, 1 / 39916800, 691 / 130767436800, 1 / 4790016],
+        [-1 / 479001600, 691 / 1307674368000, -1 / 6227020800, 1 / 6227020800, 691 / 108972864000],
+        [1 / 87178291200, 1 / 74724249600, 1 / 1307674368000, 3617 / 762187345920000, 1 / 5337446400],
+        [
+            -1 / 20922789888000,
+            3617 / 10670622842880000,
+            -1 / 355687428096000,
+            43867 / 319318388573184000,
+            3617 / 666913927680000,
+        ],
+    ]
+)
+_HALF = np.eye(8)[0] / 2  # the constant ½ as a series
+# Rows of the (8, n) result of _angle_functions: ½, ½, a1, β, β, a2, β'/θ, g (so that slices of it scale the
+# columns of a stacked computation: see _se3_chart).
+_ANGLE_SERIES_T = np.array([_HALF, _HALF, *_ANGLE_SERIES[:, [0, 1, 1, 2, 3, 4]].T])
+_SERIES_LIMIT = 0.25  # θ² below which the series serve (θ < 0.5 rad)
+
+
+def _angle_functions(t2: np.ndarray) -> np.ndarray:
+    """The chart map's scalar functions of θ² = |ω|² for each element, shape (8, n): ½, ½, a1, β, β, a2, β'/θ, g."""
+    powers = np.empty((8, len(t2)))
+    powers[0] = 1.0
+    powers[1] = t2
+    np.multiply(t2, t2, out=powers[2])
+    np.multiply(powers[2], t2, out=powers[3])
+    np.multiply(powers[2], powers[2], out=powers[4])
+    np.multiply(powers[4], powers[1:4], out=powers[5:8])  # θ^10, θ^12, θ^14
+    # einsum's own loop, not BLAS: each element's sum in the same order whatever the batch's size (a BLAS
+    # product's blocking could differ with it), so an element's result does not depend on its neighbours.
+    f = np.einsum("rk,kn->rn", _ANGLE_SERIES_T, powers)
+    if len(t2) and t2.max() >= _SERIES_LIMIT:  # large rotations within one step: the closed forms
+        big = np.flatnonzero(t2 >= _SERIES_LIMIT)
+        s2 = t2[big]
+        s = np.sqrt(s2)
+        sin, cos = np.sin(s), np.cos(s)
+        half_inverse = 1.0 / (2.0 * (1.0 - cos))
+        beta = 1.0 / s2 - sin / s * half_inverse
+        beta_dot = -2.0 / (s2 * s2) + (1.0 + sin / s) / s2 * half_inverse
+        f[2, big] = (1.0 - cos) / s2
+        f[3, big] = f[4, big] = beta
+        f[5, big] = (s - sin) / s2 / s
+        f[6, big] = beta_dot
+        f[7, big] = 2.0 * beta + s2 * beta_dot
+    return f
+
+
+def _cross(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """a × b along axis 0 of component-major arrays extended cyclically to 5 rows (rows 3, 4 repeat 0, 1, so
+    that the shifted components are views, not copies), broadcasting the other axes; into out[0:3], and
+    extended the same way if out has 5 rows. Returns out[0:3]."""
+    np.multiply(a[1:4], b[2:5], out=out[0:3])
+    out[0:3] -= a[2:5] * b[1:4]
+    if len(out) == 5:
+        out[3:5] = out[0:2]
+    return out[0:3]
+
+
+def _extended(rows: list[np.ndarray], n: int) -> np.ndarray:
+    """Vectors given as (n, 3) arrays, component-major and cyclically extended: shape (5, len(rows), n)."""
+    out = np.empty((5, len(rows), n))
+    for j, r in enumerate(rows):
+        out[0:3, j] = r.T
+    out[3:5] = out[0:2]
+    return out
+
+
+def _se3_chart(xi: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
+    """Chart rate of free-flyer rows: out = Jexp6(xi)^-1 v, shapes (n, 6), [linear, angular] as Pinocchio.
+
+    Jexp6(xi) is dIntegrate/dv of q ⊕ xi (ConfigurationSpace.chart_velocity solves with it). Its inverse is
+    Pinocchio's Jlog6 at exp6(xi): [[A, C A], [0, A]] with A = Jexp3(ω)^-1 = I + ½[ω]× + β[ω]×² and C the
+    coupling term of the translation p = exp6(xi).translation = (I + a1[ω]× + a2[ω]×²) xi_lin. Computed
+    component-major (each coordinate of all elements contiguous), where numpy's operations are cheapest.
+    """
+    n = len(xi)
+    # Angular velocity, linear velocity, the chart's translation and rotation, component-major and extended.
+    E = np.empty((5, 4, n))
+    E[0:3, 0], E[0:3, 1], E[0:3, 2], E[0:3, 3] = v[:, 3:6].T, v[:, 0:3].T, xi[:, 0:3].T, xi[:, 3:6].T
+    E[3:5] = E[0:2]
+    X, W, w = E[:, 0:3], E[:, 3:4], E[0:3, 3]
+    f = _angle_functions(np.einsum("cn,cn->n", w, w))
+    WX = np.empty((5, 3, n))
+    _cross(W, X, WX)
+    # X + [½, ½, a1] ω × X + [β, β, a2] ω × (ω × X): A v_ang, A v_lin and p at once
+    AX = np.empty((5, 3, n))
+    np.multiply(WX[0:3], f[0:3], out=AX[0:3])
+    AX[0:3] += X[0:3]
+    WWX = _cross(W, WX, np.empty((3, 3, n)))
+    WWX *= f[3:6]
+    AX[0:3] += WWX
+    AX[3:5] = AX[0:2]
+    u, Av, p = AX[0:3, 0], AX[0:3, 1], AX[0:3, 2]
+    wu, _, wp = np.einsum("cn,cvn->vn", w, AX[0:3])
+    pu = np.einsum("cn,cn->n", p, u)
+    beta, beta_dot, g = f[3], f[6], f[7]
+    # A v_lin + C u with C u = ((β'/θ)(ω·p)(ω·u) + β (p·u)) ω - g (ω·u) p + β (ω·p) u + ½ p × u
+    lin = _cross(AX[:, 2], AX[:, 0], np.empty((3, n)))
+    lin *= 0.5
+    lin += Av
+    scale = beta_dot * wp
+    scale *= wu
+    scale += beta * pu
+    lin += scale * w
+    lin -= (g * wu) * p
+    lin += (beta * wp) * u
+    out[:, 0:3] = lin.T
+    out[:, 3:6] = u.T
+
+
+def _so3_chart(w: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
+    """Chart rate of spherical-joint rows: out = Jexp3(w)^-1 v = v + ½ w × v + β w × (w × v), shapes (n, 3)."""
+    n = len(w)
+    W, X = _extended([w], n), _extended([v], n)
+    f = _angle_functions(np.einsum("in,in->n", W[0:3, 0], W[0:3, 0]))
+    WX = np.empty((5, 1, n))
+    _cross(W, X, WX)
+    out[:] = (X[0:3, 0] + 0.5 * WX[0:3, 0] + f[3] * _cross(W, WX, np.empty((3, 1, n)))[:, 0]).T
+
+
+class _BatchSpace:
+    """The configuration manifold over a batch: q ⊕ dv and the chart map, for n rows at once.
+
+    Coordinates of joints whose configuration is a vector (revolute, prismatic: Pinocchio's integrate is
+    q + dv there, checked) are added in one numpy operation per run of them; the other joints (free-flyer,
+    spherical, continuous, planar) go through one ``pin.integrate`` call on a model made of n copies of just
+    those joints: Pinocchio's own per-joint code, so its results bit for bit, in one C++ loop. The chart map
+    of free-flyer and spherical joints (ConfigurationSpace.chart_velocity) is evaluated in closed form over
+    the batch, exact to round-off; models with other curved joints fall back to one call per element.
+    """
+
+    def __init__(self, system: Robot):
+        model = system.model
+        self.model, self.space = model, system.space
+        self.nq, self.nv = model.nq, model.nv
+        runs: list[list[int]] = []  # [q start, v start, length] of consecutive vector-coordinate joints
+        lie: list[Any] = []
+        lie_q: list[int] = []
+        lie_v: list[int] = []
+        for joint in model.joints[1:]:
+            if joint.nq == joint.nv:
+                if joint.nq == 0:
+                    continue
+                last = runs[-1] if runs else None
+                if last is not None and last[0] + last[2] == joint.idx_q and last[1] + last[2] == joint.idx_v:
+                    last[2] += joint.nq
+                else:
+                    runs.append([joint.idx_q, joint.idx_v, joint.nq])
+            else:
+                lie.append(joint)
+                lie_q += range(joint.idx_q, joint.idx_q + joint.nq)
+                lie_v += range(joint.idx_v, joint.idx_v + joint.nv)
+        self.runs = [(q, v, n) for q, v, n in runs]
+        self.lie_joints = lie
+        self.lie_q, self.lie_v = _indexer(lie_q), _indexer(lie_v)
+        self._lie_models: dict[int, pin.Model] = {}
+        self.per_element = not self._check_integrate()
+        self.vector_space = not lie and self.runs == [(0, 0, model.nq)] and not self.per_element
+        # The chart map: identity on flat spaces; closed forms for free-flyer and spherical blocks.
+        self.flat = system.space.is_flat
+        self.chart_blocks: list[tuple[str, int]] | None = []
+        for start, stop in system.space.curved_blocks:
+            kind = next(j.shortname() for j in model.joints[1:] if j.idx_v == start and j.nv == stop - start)
+            if kind == "JointModelFreeFlyer":
+                self.chart_blocks.append(("se3", start))
+            elif kind == "JointModelSpherical":
+                self.chart_blocks.append(("so3", start))
+            else:  # e.g. a planar joint: one ConfigurationSpace call per element
+                self.chart_blocks = None
+                break
+
+    def _check_integrate(self) -> bool:
+        """Whether the vectorised integrate gives pin.integrate's results bit for bit on this model (a few random
+        rows): vector coordinates must really be q + dv, and the copies-of-joints model must act as the original."""
+        model = self.model
+        rng = np.random.default_rng(0)
+        rows = 3
+        Q = np.array([pin.integrate(model, pin.neutral(model), rng.uniform(-3.0, 3.0, model.nv)) for _ in range(rows)])
+        DV = rng.normal(size=(rows, model.nv)) * 10.0 ** rng.uniform(-8, 1, (rows, model.nv))
+        out = np.empty_like(Q)
+        self._vectorised_integrate(Q, DV, out)
+        return all(np.array_equal(out[b], pin.integrate(model, Q[b], DV[b])) for b in range(rows))
+
+    def _lie_model(self, n: int) -> pin.Model:
+        model = self._lie_models.get(n)
+        if model is None:
+            model = pin.Model()
+            for b in range(n):
+                for j, joint in enumerate(self.lie_joints):
+                    model.addJoint(0, joint, pin.SE3.Identity(), f"element{b}_joint{j}")
+            self._lie_models[n] = model
+        return model
+
+    def integrate(self, Q: np.ndarray, DV: np.ndarray, out: np.ndarray) -> None:
+        """out = Q ⊕ DV row by row, as pin.integrate; shapes (n, nq), (n, nv), (n, nq)."""
+        if self.vector_space:
+            np.add(Q, DV, out=out)
+        elif self.per_element:
+            model = self.model
+            for j in range(len(Q)):
+                out[j] = pin.integrate(model, Q[j], DV[j])
+        else:
+            self._vectorised_integrate(Q, DV, out)
+
+    def _vectorised_integrate(self, Q: np.ndarray, DV: np.ndarray, out: np.ndarray) -> None:
+        for q, v, n in self.runs:
+            np.add(Q[:, q : q + n], DV[:, v : v + n], out=out[:, q : q + n])
+        if self.lie_joints:
+            n = len(Q)
+            q_lie = np.ascontiguousarray(Q[:, self.lie_q]).reshape(-1)
+            dv = np.ascontiguousarray(DV[:, self.lie_v]).reshape(-1)
+            out[:, self.lie_q] = pin.integrate(self._lie_model(n), q_lie, dv).reshape(n, -1)
+
+    def chart_velocity(self, Q: np.ndarray, XI: np.ndarray, V: np.ndarray, out: np.ndarray) -> None:
+        """out = ConfigurationSpace.chart_velocity(Q, XI, V) row by row; shapes (n, nq), (n, nv) × 3."""
+        if self.chart_blocks is None:
+            chart_velocity = self.space.chart_velocity
+            for j in range(len(Q)):
+                out[j] = chart_velocity(Q[j], XI[j], V[j])
+            return
+        np.copyto(out, V)
+        for kind, start in self.chart_blocks:
+            if kind == "se3":
+                _se3_chart(XI[:, start : start + 6], V[:, start : start + 6], out[:, start : start + 6])
+            else:
+                _so3_chart(XI[:, start : start + 3], V[:, start : start + 3], out[:, start : start + 3])
+
+
+def _indexer(indices: list[int]) -> slice | np.ndarray:
+    """Column indices as a slice when they are consecutive (a view and a fast copy), else as an index array."""
+    if indices and indices == list(range(indices[0], indices[-1] + 1)):
+        return slice(indices[0], indices[-1] + 1)
+    return np.array(indices, dtype=int)
+
+
+def _exact_power_of_two(c: float) -> bool:
+    """Whether multiplying by c is exact (c = ±2^k): then (c K) h == K (c h) bit for bit."""
+    return c != 0.0 and math.frexp(c)[0] in (0.5, -0.5)
+
+
+class _Views:
+    """Named views into one stage buffer W of shape (stages, n, width): W[i] is stage i's rows
+    [q | v | xi' (curved charts only) | v' | ledger power], one contiguous block per stage; W[0] holds the state
+    the step starts from. K, the stage derivatives (xi', v', ledger power) of each element, is a (n, stages, m)
+    view whose per-element blocks the BLAS calls read as ExplicitRungeKutta's K."""
+
+    def __init__(self, W: np.ndarray, layout: _Layout, tau_effective: np.ndarray, num_threads: int, pool: Any):
+        nq, nv, k = layout.nq, layout.nv, layout.k
+        stages = range(len(W))
+        self.W = W
+        self.flat = [W[i].reshape(-1) for i in stages]
+        # Flat views offset by k: head[i][x] and tail[j][x] are the same column of the same element in stage i's
+        # state [q | v] and stage j's K (see _rk_step).
+        self.head = [f[: len(f) - k] for f in self.flat]
+        self.tail = [f[k:] for f in self.flat]
+        self.X = W[0][:, : nq + nv]  # the state [q | v]
+        self.Q = W[0][:, :nq]
+        self.V = W[0][:, nq : nq + nv]
+        self.K = W[:, :, k:].transpose(1, 0, 2)
+        self.Ks = [W[i][:, k:] for i in stages]
+        self.Xs = [W[i][:, : nq + nv] for i in stages]
+        self.Qs = [W[i][:, :nq] for i in stages]
+        self.Vs = [W[i][:, nq : nq + nv] for i in stages]
+        self.XI_DOT = [W[i][:, k : k + nv] for i in stages]
+        self.A = [W[i][:, k + nv : k + 2 * nv] for i in stages]
+        self.P = [[W[i][:, k + 2 * nv + e] for e in range(layout.n_ledger)] for i in stages]
+        # Column-major (nq, n) views of row-major (n, nq) arrays: abaInParallel reads and writes them in place.
+        self.aba = [
+            functools.partial(
+                pin.abaInParallel, num_threads, pool, self.Qs[i].T, self.Vs[i].T, tau_effective.T, self.A[i].T
+            )
+            for i in stages
+        ]
+        self.flows = np.zeros((W.shape[1], layout.n_ledger))
+        self._rows: tuple[list[np.ndarray], list[np.ndarray]] | None = None
+
+    @property
+    def rows(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """One view of q and of v per element (made once: per-element calls need no new ones per sample)."""
+        if self._rows is None:
+            self._rows = list(self.Q), list(self.V)
+        return self._rows
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Column layout of the stage buffers (see _Views)."""
+
+    nq: int
+    nv: int
+    n_ledger: int
+    stages: int
+    k: int  # first column of K: v itself (the chart rate on flat spaces) or a separate xi' block
+
+    @property
+    def width(self) -> int:
+        return self.k + 2 * self.nv + self.n_ledger
+
+
 class _BatchedRun:
     """simulate()'s fixed-step loop over a batch: the same arithmetic per element, vectorised over elements.
 
-    Running elements are the rows of the working arrays (Q, V, TAU, FLOWS); ``rows`` maps them to batch indices.
-    An element that stops leaves the working arrays, and the others go on.
+    Running elements are the rows of the working arrays; ``rows`` maps them to batch indices. An element that
+    stops leaves the working arrays, and the others go on. The current state lives in stage 0 of one of two
+    stage buffers and each step writes the next state into the other's, so a step allocates nothing and the
+    previous state stays intact until the step is accepted; ``now = (buffer, t, k)`` switches in one assignment
+    (a Ctrl-C never sees a state from one step with the time of another).
+
+    Arithmetic, per element as ExplicitRungeKutta.step does it: a stage sum with one non-zero coefficient that is
+    a power of two (RK4's, midpoint's) is one multiplication, exact as the BLAS call's (for stage values in the
+    normal floating-point range; where a step's values become non-finite, which ones can differ, so a diverged
+    element's message comes from simulate()'s own step); other stage sums and the step's combination go through
+    the same BLAS call per element (a batched matmul); ABA through abaInParallel (WORLD convention, as
+    Robot.unchecked_forward_dynamics); the ledger's dot products through the same BLAS dot.
     """
 
     def __init__(
@@ -505,18 +836,36 @@ class _BatchedRun:
         n_ledger = len(self.elements)
         self.is_work = np.array([kind == "work" for _, kind in self.elements])
         self.damping = system.damping if np.any(system.damping) else None
-        self.vector_space = _is_vector_space(system)
-        self._K: np.ndarray | None = None  # the stage matrix of every element, (n, stages, 2 nv + n_ledger)
-        self.flat = system.space.is_flat
+        # Without a controller or torques tau is zero: its power tau·v is zero too (for the finite states that
+        # are kept), so the column stays at its initial zeros.
+        self.torque_power = control.kind != "none"
+        # With neither torques nor damping every ledger flow is zero (as simulate() finds it): none is computed.
+        self.ledger_needed = self.torque_power or self.damping is not None
+        self.space = _BatchSpace(system)
+        self.chart_map = not self.space.flat
+        self.sie = type(method) is SemiImplicitEuler
+        if self.sie:
+            stages = 1
+        else:
+            assert isinstance(method, ExplicitRungeKutta)
+            a = method._a
+            stages = len(a)
+            self.stage_rules = [self._rule(a[i, :i]) for i in range(1, stages)]
+            self.weights = method._b
+        self.layout = _Layout(nq, nv, n_ledger, stages, nq + nv if self.chart_map else nq)
+        # (stage, source stage, coefficient) when every stage takes the fast path of _rk_step, else None
+        self.shifted_stages: list[tuple[int, int, float]] | None = None
+        if not self.sie and self.space.vector_space and all(isinstance(r, tuple) for r in self.stage_rules):
+            self.shifted_stages = [(i, r[0], r[1]) for i, r in enumerate(self.stage_rules, start=1)]  # type: ignore[index]
         # Samples: every output step, plus the final one (and an early stop's last state, which fits: see below).
         N = (self.n_steps - 1) // self.output_every + 2
-        self.out_t = np.zeros((B, N))
-        self.out_q = np.empty((B, N, nq))
-        self.out_v = np.empty((B, N, nv))
-        self.out_tau = np.empty((B, N, nv))
-        self.out_kin = np.zeros((B, N))
-        self.out_pot = np.zeros((B, N))
-        self.out_flows = np.zeros((B, N, n_ledger))
+        # Sample-major while recording (a sample of all rows is one contiguous block), batch-major in the result.
+        self.out_t = np.zeros((N, B))
+        self.out_q = np.empty((N, B, nq))
+        self.out_v = np.empty((N, B, nv))
+        self.out_tau = np.empty((N, B, nv))
+        self.out_energy = np.zeros((N, B, 2))  # (T, V)
+        self.out_flows = np.zeros((N, B, n_ledger))
         self.n_samples = np.zeros(B, dtype=int)
         self.status = np.full(B, "running", dtype=object)
         self.messages = [""] * B
@@ -526,21 +875,66 @@ class _BatchedRun:
         self.saturated_calls = np.zeros(B, dtype=int)
         self.saturated_dofs = np.zeros((B, nv), dtype=int)
         self.initial_energy = np.zeros((B, 2))  # (T, V) at t = 0
+        self.initial_total = np.zeros(B)  # T + V at t = 0
         self.energy_scale = np.zeros(B)
-        # The running elements' latest accepted state.
+        # The ledger as Robot has it: one work column first, then at most one dissipated one (their sums over
+        # kinds are then the columns themselves, as simulate()'s one-element sums are).
+        kinds = [kind for _, kind in self.elements]
+        self.simple_ledger = kinds in (["work"], ["work", "dissipated"])
+        self.stopped = False  # whether some rows stopped since the last _compact
         self.rows = np.arange(B)
-        self.Q, self.V = Q0.copy(), V0.copy()
-        self.TAU = np.zeros((B, nv))
-        self.FLOWS = np.zeros((B, n_ledger))
-        self.t, self.k = 0.0, 0
         self.last_recorded = -math.inf
         self.initial_q, self.initial_v = Q0, V0  # for elements with no sample at all
+        self._allocate(np.concatenate([Q0, V0], axis=1), np.zeros((B, nv)), np.zeros((B, n_ledger)), 0.0, 0)
+
+    @staticmethod
+    def _rule(coefficients: np.ndarray) -> tuple[int, float] | np.ndarray:
+        """How stage i's sum Σ_j a_ij K_j is formed: (j, a_ij) when it has one term whose coefficient is a power
+        of two (one exact multiplication gives the BLAS call's result), else the coefficients (the BLAS call)."""
+        nonzero = np.flatnonzero(coefficients)
+        if len(nonzero) == 1 and _exact_power_of_two(float(coefficients[nonzero[0]])):
+            return int(nonzero[0]), float(coefficients[nonzero[0]])
+        return coefficients
+
+    def _allocate(self, X: np.ndarray, TAU: np.ndarray, flows: np.ndarray, t: float, k: int) -> None:
+        """Working arrays for len(X) running elements, starting from states X = [q | v], torques and flows."""
+        n, layout = len(X), self.layout
+        self.TAU = TAU.copy()
+        self.tau_effective = np.empty_like(self.TAU) if self.damping is not None else self.TAU
+        self.damping_v = np.empty_like(self.TAU)  # D v of the latest stage
+        self.Y = np.empty((n, layout.width - layout.k))  # a stage sum (when not shifted, see _rk_step)
+        self.increment = np.zeros((n, layout.width))  # the step's increment in columns k: (0 before them)
+        first, nv = layout.k, layout.nv
+        self.increment_k, self.increment_flows = self.increment[:, first:], self.increment[:, first + 2 * nv :]
+        self.increment_flat = self.increment.reshape(-1)
+        self.increment_tail = self.increment_flat[first:]
+        self.shifted = np.empty(max(0, n * layout.width - first))
+        self.views = [
+            _Views(np.zeros((layout.stages, n, layout.width)), layout, self.tau_effective, self.num_threads, self.pool)
+            for _ in range(2)
+        ]
+        self.views[0].X[...] = X
+        self.views[0].flows[...] = flows
+        self.now = (0, t, k)
+
+    @property
+    def current(self) -> _Views:
+        """The buffer holding the running elements' latest accepted state (Q, V, flows)."""
+        return self.views[self.now[0]]
+
+    @property
+    def t(self) -> float:
+        return self.now[1]
+
+    @property
+    def k(self) -> int:
+        return self.now[2]
 
     # ---- the loop --------------------------------------------------------------------------------------------
     def execute(self, start: float) -> BatchTrajectory:
         self.bar.reset(self.n_steps * self.B, "element-step")
         try:
-            with np.errstate(over="ignore", invalid="ignore"):  # divergence is detected and reported, not warned
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # divergence is reported, not warned
                 self._loop()
         except KeyboardInterrupt:
             if len(self.rows):
@@ -557,6 +951,7 @@ class _BatchedRun:
     def _loop(self) -> None:
         dt, n_steps, control = self.dt, self.n_steps, self.control
         control_every, output_every = self.control_every, self.output_every
+        step = self._sie_step if self.sie else self._rk_step
         tick = max(1, n_steps // 200)  # progress updates: cheap enough at ~200 per run
         for k in range(n_steps):
             t = k * dt
@@ -567,95 +962,116 @@ class _BatchedRun:
                 if not len(self.rows):
                     return
             h = dt if k < n_steps - 1 else self.duration - t
-            Q, V = self.Q, self.V
-            Q_next, V_next, step_flows = self._step(Q, V, self.TAU, h)
-            # NaN or inf anywhere makes the whole sum non-finite (so can a huge but finite state: the exact check
-            # below tells them apart). One contiguous reduction per array is far cheaper than per-row ones.
-            if not math.isfinite(Q_next.sum() + V_next.sum()):
-                bad = np.flatnonzero(~(np.isfinite(Q_next).all(axis=1) & np.isfinite(V_next).all(axis=1)))
+            current = self.now[0]
+            cur, nxt = self.views[current], self.views[1 - current]
+            step(cur, nxt, h)
+            # NaN or inf anywhere makes the whole sum non-finite (so can a huge but finite state, or the junk
+            # beside the state in the buffer: the exact check below tells them apart). One contiguous reduction
+            # over the new state's buffer block is far cheaper than per-row ones.
+            stopped = False
+            if not math.isfinite(nxt.flat[0].sum()):
+                bad = np.flatnonzero(~np.isfinite(nxt.X).all(axis=1))
                 if len(bad):
-                    self._diverged_nonfinite(bad, t + h, Q_next, V_next)
-                    keep = np.ones(len(Q_next), dtype=bool)
-                    keep[bad] = False
-                    Q_next, V_next, step_flows = Q_next[keep], V_next[keep], step_flows[keep]
-                    if not len(self.rows):
-                        return
-            self.Q, self.V = Q_next, V_next
-            self.FLOWS = self.FLOWS + step_flows
-            self.t, self.k = t + h, k + 1
+                    self._diverged_nonfinite(bad, t + h, h)
+                    stopped = True
+            self.now = (1 - current, t + h, k + 1)  # the step is accepted: one assignment switches state and time
+            if stopped:
+                self._compact()
+                if not len(self.rows):
+                    return
             if (k + 1) % tick == 0:
                 self.bar.update(tick * len(self.rows))
-        self.t = self.duration
+        self.now = (self.now[0], self.duration, self.now[2])
         self._record(self.duration, problems=True)
         self._stop(np.arange(len(self.rows)), "completed")
         self.rows = self.rows[:0]
 
-    def _step(
-        self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, h: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if type(self.method) is SemiImplicitEuler:
-            # As SemiImplicitEuler.step: v first, then q with the new v; the ledger at the new state.
-            A = self._accelerations(Q, V, TAU)
-            V_next = V + h * A
-            Q_next = self._integrate(Q, h * V_next)
-            return Q_next, V_next, h * self._ledger_power(V_next, TAU)
-        method = self.method
-        assert isinstance(method, ExplicitRungeKutta)
-        a, b = method._a, method._b
-        nv = self.nv
-        K = self._K
-        if K is None or len(K) != len(Q):  # one buffer for the run (reallocated when elements stop)
-            K = self._K = np.empty((len(Q), len(a), 2 * nv + len(self.elements)))
-        for i in range(len(a)):
-            if i == 0:  # at the step's start: xi = 0, where the chart Jacobian is the identity
-                Q_stage, V_stage = Q, V
-                K[:, 0, :nv] = V
+    def _rk_step(self, cur: _Views, nxt: _Views, h: float) -> None:
+        """ExplicitRungeKutta.step on every row: stages into cur's buffer, the new state and flows into nxt's."""
+        evaluate = self._evaluate
+        if self.shifted_stages is not None:
+            # Vector coordinates and stage sums of one exact product: [q | v] + c h [v_j | v'_j] for all rows in
+            # two contiguous operations. On flat views K_j's row starts k = nq columns after the state's, so an
+            # offset of k lines every element up with its own (the columns after 2 nv receive junk, which the
+            # stage's dynamics and ledger overwrite, or which nothing reads).
+            head0, shifted = cur.head[0], self.shifted
+            evaluate(cur, 0)
+            for i, j, coefficient in self.shifted_stages:
+                np.add(head0, np.multiply(cur.tail[j], coefficient * h, out=shifted), out=cur.head[i])
+                evaluate(cur, i)
+            # `(b @ K) * dt` with the same per-element BLAS call, into columns k: of a zeroed (n, width) buffer,
+            # then the new [q | v] by the same offset addition.
+            np.matmul(self.weights, cur.K, out=self.increment_k)
+            np.multiply(self.increment_flat, h, out=self.increment_flat)
+            np.add(head0, self.increment_tail, out=nxt.head[0])
+            if self.ledger_needed:  # else every flow is zero (and the ledger columns of K hold junk)
+                np.add(cur.flows, self.increment_flows, out=nxt.flows)
+            return
+        nv, K, space, k = self.nv, cur.K, self.space, self.layout.k
+        if self.chart_map:  # at the step's start xi = 0, where the chart Jacobian is the identity
+            np.copyto(cur.XI_DOT[0], cur.V)
+        evaluate(cur, 0)
+        for i, rule in enumerate(self.stage_rules, start=1):
+            if isinstance(rule, tuple):
+                j, coefficient = rule
+                Ys = np.multiply(cur.Ks[j], coefficient * h, out=self.Y)
+            else:  # the same per-element BLAS call as ExplicitRungeKutta's `a[i, :i] @ K[:i]`, then `* h`
+                Ys = np.multiply(np.matmul(rule, K[:, :i, :], out=self.Y), h, out=self.Y)
+            if space.vector_space:
+                np.add(cur.X, Ys[:, : 2 * nv], out=cur.Xs[i])
             else:
-                # The same per-element BLAS call as ExplicitRungeKutta._stages' `a[i, :i] @ K[:i]`.
-                Y = np.matmul(a[i, :i], K[:, :i, :]) * h
-                V_stage = V + Y[:, nv : 2 * nv]
-                Q_stage = self._integrate(Q, Y[:, :nv])
-                if self.flat:
-                    K[:, i, :nv] = V_stage
-                else:
-                    chart_velocity = self.system.space.chart_velocity
-                    XI = Y[:, :nv]
-                    for j in range(len(Q)):
-                        K[j, i, :nv] = chart_velocity(Q[j], XI[j], V_stage[j])
-            self._accelerations(Q_stage, V_stage, TAU, out=K[:, i, nv : 2 * nv])
-            self._ledger_power(V_stage, TAU, out=K[:, i, 2 * nv :])
-        increment = np.matmul(b, K) * h
-        Q_next = self._integrate(Q, increment[:, :nv])
-        return Q_next, V + increment[:, nv : 2 * nv], increment[:, 2 * nv :]
+                np.add(cur.V, Ys[:, nv : 2 * nv], out=cur.Vs[i])
+                space.integrate(cur.Q, Ys[:, :nv], cur.Qs[i])
+                if self.chart_map:
+                    space.chart_velocity(cur.Q, Ys[:, :nv], cur.Vs[i], cur.XI_DOT[i])
+            evaluate(cur, i)
+        increment = self.increment
+        np.matmul(self.weights, K, out=self.increment_k)  # `(b @ K) * dt` with the same per-element BLAS call
+        np.multiply(self.increment_flat, h, out=self.increment_flat)
+        if space.vector_space:
+            np.add(cur.X, increment[:, k : k + 2 * nv], out=nxt.X)
+        else:
+            np.add(cur.V, increment[:, k + nv : k + 2 * nv], out=nxt.V)
+            space.integrate(cur.Q, increment[:, k : k + nv], nxt.Q)
+        if self.ledger_needed:  # else every flow is zero (and the ledger columns of K hold junk)
+            np.add(cur.flows, self.increment_flows, out=nxt.flows)
 
-    def _accelerations(
-        self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, out: np.ndarray | None = None
-    ) -> np.ndarray:
-        """ABA (WORLD convention, as Robot.unchecked_forward_dynamics) of every row, with damping; written into
-        `out` (n, nv) when given, which may be a strided view."""
+    def _sie_step(self, cur: _Views, nxt: _Views, h: float) -> None:
+        """SemiImplicitEuler.step on every row: v first, then q with the new v; the ledger at the new state."""
+        nv = self.nv
+        self._accelerations(cur, 0)
+        np.add(cur.V, np.multiply(cur.A[0], h, out=cur.A[0]), out=nxt.V)
+        self.space.integrate(cur.Q, np.multiply(nxt.V, h, out=self.Y[:, :nv]), nxt.Q)
+        if self.ledger_needed:
+            power = self.Y[:, nv : nv + len(self.elements)]
+            self._ledger_power(nxt.V, [power[:, e] for e in range(len(self.elements))])
+            np.add(cur.flows, np.multiply(power, h, out=power), out=nxt.flows)
+
+    def _evaluate(self, cur: _Views, i: int) -> None:
+        """Stage i's accelerations and ledger power (Robot.unchecked_forward_dynamics and ledger_power)."""
+        if self.damping is not None:  # tau - D v, as Robot.unchecked_forward_dynamics
+            np.subtract(self.TAU, np.multiply(self.damping, cur.Vs[i], out=self.damping_v), out=self.tau_effective)
+        cur.aba[i]()
+        if self.ledger_needed:
+            self._ledger_power(cur.Vs[i], cur.P[i], damping_v_known=True)
+
+    def _accelerations(self, cur: _Views, i: int) -> None:
+        if self.damping is not None:  # tau - D v, as Robot.unchecked_forward_dynamics
+            np.subtract(self.TAU, np.multiply(self.damping, cur.Vs[i], out=self.damping_v), out=self.tau_effective)
+        cur.aba[i]()
+
+    def _ledger_power(self, V: np.ndarray, out: list[np.ndarray], damping_v_known: bool = False) -> None:
+        """Robot.ledger_power of every row: tau·v, then v·(D v), written into the columns `out`."""
+        if not len(V):
+            return
+        if self.torque_power:
+            _rowdot(self.TAU, V, out=out[0])
+        else:  # zero torque, zero power (the column may hold junk: see _rk_step)
+            out[0][...] = 0.0
         if self.damping is not None:
-            TAU = TAU - self.damping * V
-        A = np.empty((len(Q), self.nv)) if out is None else out
-        # Column-major (n, B) views of row-major (B, n) arrays: Pinocchio reads and writes them in place.
-        pin.abaInParallel(self.num_threads, self.pool, Q.T, V.T, TAU.T, A.T)
-        return A
-
-    def _ledger_power(self, V: np.ndarray, TAU: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """Robot.ledger_power of every row: torque power, then damping power; written into `out` if given."""
-        P = np.empty((len(V), len(self.elements))) if out is None else out
-        P[:, 0] = _rowdot(TAU, V)
-        if self.damping is not None:
-            P[:, 1] = _rowdot(V, self.damping * V)
-        return P
-
-    def _integrate(self, Q: np.ndarray, DV: np.ndarray) -> np.ndarray:
-        if self.vector_space:  # pin.integrate is q + dv, exactly, on every joint
-            return Q + DV
-        model = self.model
-        out = np.empty_like(Q)
-        for j in range(len(Q)):
-            out[j] = pin.integrate(model, Q[j], DV[j])
-        return out
+            if not damping_v_known:
+                np.multiply(self.damping, V, out=self.damping_v)
+            _rowdot(V, self.damping_v, out=out[1])
 
     # ---- control -------------------------------------------------------------------------------------------
     def _control(self, t: float, instant: int) -> None:
@@ -665,7 +1081,7 @@ class _BatchedRun:
             assert control.taus is not None
             tau = control.taus[rows, instant]
         elif control.kind == "batched":
-            Q, V = self.Q.copy(), self.V.copy()
+            Q, V = self.current.Q.copy(), self.current.V.copy()
             Q.setflags(write=False)  # the controller sees the state; it must not edit it
             V.setflags(write=False)
             out = control.batched(t, Q, V)
@@ -686,8 +1102,9 @@ class _BatchedRun:
         else:
             assert control.per_element is not None
             tau = np.empty((n, nv))
+            Qs, Vs = self.current.Q, self.current.V
             for j, row in enumerate(rows.tolist()):
-                q, v = self.Q[j].copy(), self.V[j].copy()
+                q, v = Qs[j].copy(), Vs[j].copy()
                 q.setflags(write=False)
                 v.setflags(write=False)
                 out = control.per_element[row](t, q, v)
@@ -704,30 +1121,36 @@ class _BatchedRun:
             hit = over.any(axis=1)
             self.saturated_calls[rows] += hit
             self.saturated_dofs[rows] += over
-        self.TAU = np.array(tau, dtype=float)
+        self.TAU[...] = tau  # in place: the stage buffers' ABA arguments view this array
 
     # ---- recording and early stops ------------------------------------------------------------------------
-    def _energies(self, Q: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(T, V) of every row as Robot.unchecked_energies computes them (one kinematics pass each)."""
+    def _energies(self, Q: list[np.ndarray], V: list[np.ndarray]) -> np.ndarray:
+        """(T, V) of every row (given as lists of row arrays) as Robot.unchecked_energies computes them, (n, 2)."""
         model, data = self.model, self.data
         kinetic, potential = pin.computeKineticEnergy, pin.computePotentialEnergy
-        kin, pot = np.empty(len(Q)), np.empty(len(Q))
-        for j in range(len(Q)):
-            # computeKineticEnergy(model, data, q, v) is forwardKinematics then the data-only call: the same
-            # arithmetic in two Python calls instead of three.
-            kin[j] = kinetic(model, data, Q[j], V[j])
-            pot[j] = potential(model, data)
-        return kin, pot
+        out = np.empty((len(Q), 2))
+        # computeKineticEnergy(model, data, q, v) is forwardKinematics then the data-only call: the same
+        # arithmetic in two Python calls instead of three.
+        out.reshape(-1)[:] = [
+            e for q, v in zip(Q, V, strict=True) for e in (kinetic(model, data, q, v), potential(model, data))
+        ]
+        return out
 
     def _record(self, t: float, *, problems: bool, which: np.ndarray | None = None) -> None:
         """Store a sample of the running rows `which` (default all) with the torque in force from t on; rows
         whose energy is non-finite or has blown up stop as "diverged" (when `problems`)."""
-        which = np.arange(len(self.rows)) if which is None else which
+        cur = self.current
+        if which is None:
+            which = np.arange(len(self.rows))
+            Q, V, flows, tau = cur.Q, cur.V, cur.flows, self.TAU
+            energies = self._energies(*cur.rows)
+        else:
+            Q, V, flows, tau = cur.Q[which], cur.V[which], cur.flows[which], self.TAU[which]
+            energies = self._energies(list(Q), list(V))
         rows = self.rows[which]
-        Q, V, flows = self.Q[which], self.V[which], self.FLOWS[which]
-        kin, pot = self._energies(Q, V)
-        finite = np.isfinite(kin + pot)
-        if not finite.all():  # a huge state whose energy overflows: keep only finite samples
+        total = energies.sum(axis=1)  # T + V, as simulate adds them
+        if not math.isfinite(total.sum()):  # a huge state whose energy overflows: keep only finite samples
+            finite = np.isfinite(total)
             bad = np.flatnonzero(~finite)
             if problems:
                 for j in bad:
@@ -737,43 +1160,57 @@ class _BatchedRun:
                         f"'{self.system.dof_names[fastest]}' ({V[j, fastest]:.3g}); {self._cure()}"
                     )
                 self._stop(which[bad], "diverged")
-            keep = finite
-            which, rows, Q, V, flows = which[keep], rows[keep], Q[keep], V[keep], flows[keep]
-            kin, pot = kin[keep], pot[keep]
+            which, rows, energies, total = which[finite], rows[finite], energies[finite], total[finite]
+            Q, V, flows, tau = Q[finite], V[finite], flows[finite], tau[finite]
+        at = slice(None) if len(rows) == self.B else rows  # all rows: basic slicing, no gathers
         if t == 0.0:
-            self.initial_energy[rows, 0], self.initial_energy[rows, 1] = kin, pot
-            self.energy_scale[rows] = kin + np.abs(pot) + self.system.energy_scale
-        col = self.n_samples[rows]
-        self.out_t[rows, col] = t
-        self.out_q[rows, col] = Q
-        self.out_v[rows, col] = V
-        self.out_tau[rows, col] = self.TAU[which]
-        self.out_kin[rows, col], self.out_pot[rows, col] = kin, pot
-        self.out_flows[rows, col] = flows
-        self.n_samples[rows] += 1
+            self.initial_energy[rows] = energies
+            self.initial_total[rows] = total  # simulate's sum((T, V))
+            self.energy_scale[rows] = energies[:, 0] + np.abs(energies[:, 1]) + self.system.energy_scale
+        if len(rows):
+            # Running elements have all recorded the same samples so far: one column for all of them.
+            col = int(self.n_samples[rows[0]])
+            self.out_t[col, at] = t
+            self.out_q[col, at] = Q
+            self.out_v[col, at] = V
+            self.out_tau[col, at] = tau
+            self.out_energy[col, at] = energies
+            self.out_flows[col, at] = flows
+            self.n_samples[at] += 1
         self.last_recorded = t
         if t == 0.0 or not problems:
             self._compact()
             return
-        work = flows[:, self.is_work].sum(axis=1)
-        dissipated = flows[:, ~self.is_work].sum(axis=1)
-        error = kin + pot - self.initial_energy[rows].sum(axis=1) - work + dissipated
-        # Dissipation is left out of the scale (see simulate): a run can only dissipate what it had or was given.
-        bound = BLOWUP_FACTOR * (self.energy_scale[rows] + np.abs(work))
-        blown = (np.abs(error) > bound) | (dissipated > bound)
-        for j in np.flatnonzero(blown):
-            fastest = int(np.argmax(np.abs(V[j])))
-            what = (
-                f"the energy error {error[j]:.3g} J"
-                if abs(error[j]) > bound[j]
-                else f"the dissipated energy {dissipated[j]:.3g} J"
-            )
-            self.messages[rows[j]] = (
-                f"diverged at t = {t:.6g} s (step {self.k}): {what} exceeds {BLOWUP_FACTOR:g} times the run's "
-                f"energy scale ({bound[j] / BLOWUP_FACTOR:.3g} J), fastest in '{self.system.dof_names[fastest]}' "
-                f"({V[j, fastest]:.3g}); {self._cure()}"
-            )
+        if self.simple_ledger:
+            work = flows[:, 0]
+            dissipated = flows[:, 1] if flows.shape[1] == 2 else None
+        else:
+            work = flows[:, self.is_work].sum(axis=1)
+            dissipated = flows[:, ~self.is_work].sum(axis=1)
+        # As simulate: error = T + V - (T0 + V0) - work + dissipated, and the bound leaves dissipation out (a run
+        # can only dissipate what it had or was given).
+        error = total - self.initial_total[at]
+        error -= work
+        if dissipated is not None:
+            error += dissipated
+        bound = self.energy_scale[at] + np.abs(work)
+        bound *= BLOWUP_FACTOR
+        blown = np.abs(error) > bound
+        if dissipated is not None:
+            blown |= dissipated > bound
         if blown.any():
+            for j in np.flatnonzero(blown):
+                fastest = int(np.argmax(np.abs(V[j])))
+                what = (
+                    f"the energy error {error[j]:.3g} J"
+                    if abs(error[j]) > bound[j]
+                    else f"the dissipated energy {dissipated[j]:.3g} J"  # type: ignore[index]
+                )
+                self.messages[rows[j]] = (
+                    f"diverged at t = {t:.6g} s (step {self.k}): {what} exceeds {BLOWUP_FACTOR:g} times the run's "
+                    f"energy scale ({bound[j] / BLOWUP_FACTOR:.3g} J), fastest in "
+                    f"'{self.system.dof_names[fastest]}' ({V[j, fastest]:.3g}); {self._cure()}"
+                )
             self._stop(which[blown], "diverged")
         self._compact()
 
@@ -783,36 +1220,49 @@ class _BatchedRun:
             return
         self._record(self.t, problems=False, which=which)
 
-    def _diverged_nonfinite(self, bad: np.ndarray, t_next: float, Q_next: np.ndarray, V_next: np.ndarray) -> None:
+    def _diverged_nonfinite(self, bad: np.ndarray, t_next: float, h: float) -> None:
+        """Stop rows `bad`, whose step from the current state ended non-finite, with simulate()'s message."""
+        method, system = self.method, self.system
+        Q, V, TAU = self.current.Q, self.current.V, self.TAU
+        nxt = self.views[1 - self.now[0]]
         for j in bad:
-            bad_v = ~np.isfinite(V_next[j])
+            # The message names the first non-finite coordinate; which ones are NaN can depend on the order of
+            # operations, so the element's step is redone exactly as simulate() does it.
+            q_next, v_next, _ = method.step(system, Q[j].copy(), V[j].copy(), TAU[j].copy(), h)
+            if np.isfinite(q_next).all() and np.isfinite(v_next).all():  # only ever by round-off: keep ours
+                q_next, v_next = nxt.Q[j], nxt.V[j]
+            bad_v = ~np.isfinite(v_next)
             if bad_v.any():
                 dof = int(np.argmax(bad_v))
             else:
-                finite_q = np.where(np.isfinite(Q_next[j]), Q_next[j], 0.0)
-                dof = int(np.argmax(~np.isfinite(self.system.space.difference(self.Q[j], finite_q))))
+                finite_q = np.where(np.isfinite(q_next), q_next, 0.0)
+                dof = int(np.argmax(~np.isfinite(system.space.difference(Q[j], finite_q))))
             self.messages[self.rows[j]] = (
                 f"diverged at t = {t_next:.6g} s (step {self.k + 1}): the state became non-finite in "
-                f"'{self.system.dof_names[dof]}'; {self._cure()}"
+                f"'{system.dof_names[dof]}'; {self._cure()}"
             )
         self._record_current(bad)
         self._stop(bad, "diverged", attempted=self.k + 1)  # the failed step's evaluations count too
-        self._compact()
 
     def _stop(self, which: np.ndarray, status: str, attempted: int | None = None) -> None:
         """Mark running rows `which` as stopped after self.k steps and `attempted` (default self.k) evaluated
         ones (they leave the working arrays at the next _compact)."""
         rows = self.rows[which]
+        self.stopped = True
         self.status[rows] = status
         self.steps[rows] = self.k
         self.evaluations[rows] = self.method.evaluations_per_step * (self.k if attempted is None else attempted)
 
     def _compact(self) -> None:
+        if not self.stopped:
+            return
+        self.stopped = False
         keep = self.status[self.rows] == "running"
         if keep.all():
             return
         self.rows = self.rows[keep]
-        self.Q, self.V, self.TAU, self.FLOWS = self.Q[keep], self.V[keep], self.TAU[keep], self.FLOWS[keep]
+        cur = self.views[self.now[0]]
+        self._allocate(cur.X[keep], self.TAU[keep], cur.flows[keep], self.t, self.k)
 
     def _cure(self) -> str:
         implicit = stable_implicit_integrators(self.system)
@@ -822,16 +1272,20 @@ class _BatchedRun:
     # ---- the result ------------------------------------------------------------------------------------------
     def _batch(self, wall_time: float) -> BatchTrajectory:
         n = self.n_samples
-        kin, pot, flows = self.out_kin, self.out_pot, self.out_flows
+        out_t, out_q, out_v, out_tau, energy, flows = (
+            np.ascontiguousarray(np.swapaxes(a, 0, 1))
+            for a in (self.out_t, self.out_q, self.out_v, self.out_tau, self.out_energy, self.out_flows)
+        )
+        kin, pot = energy[:, :, 0].copy(), energy[:, :, 1].copy()
         work = flows[:, :, self.is_work].sum(axis=2)
         dissipated = flows[:, :, ~self.is_work].sum(axis=2)
         total = kin + pot
         error = total - self.initial_energy.sum(axis=1)[:, None] - work + dissipated
         arrays = {
-            "t": self.out_t,
-            "q": self.out_q,
-            "v": self.out_v,
-            "tau": self.out_tau,
+            "t": out_t,
+            "q": out_q,
+            "v": out_v,
+            "tau": out_tau,
             "kinetic_energy": kin,
             "potential_energy": pot,
             "total_energy": total,
@@ -841,7 +1295,7 @@ class _BatchedRun:
         }
         ledger = {name: LedgerEntry(kind, flows[:, :, j]) for j, (name, kind) in enumerate(self.elements)}
         _pad(arrays, ledger, n, self.initial_q, self.initial_v)
-        violations = _batch_limit_violations(self.system, self.out_t, self.out_q, n)
+        violations = _batch_limit_violations(self.system, out_t, out_q, n)
         return BatchTrajectory(
             **arrays,
             n_samples=n.copy(),
@@ -866,25 +1320,9 @@ def _batch_limit_violations(system: Robot, T: np.ndarray, Q: np.ndarray, n: np.n
     """simulate()'s limit report of each element; one vectorised pass finds the elements that need one."""
     B, N, nq = Q.shape
     excess = system.limit_excess(Q.reshape(B * N, nq)).reshape(B, N, nq)
-    outside = (excess > 0).any(axis=2) & (np.arange(N) < n[:, None])
-    return [
-        _limit_violations(system, T[b, : n[b]], Q[b, : n[b]]) if outside[b].any() else LimitViolations()
-        for b in range(B)
-    ]
-
-
-def _is_vector_space(system: Robot) -> bool:
-    """Whether pin.integrate is exactly q + dv for this model (revolute and prismatic joints only, say)."""
-    model = system.model
-    if model.nq != model.nv or any(j.nq != j.nv for j in model.joints[1:]):
-        return False
-    rng = np.random.default_rng(0)
-    for _ in range(4):
-        q = rng.uniform(-3.0, 3.0, model.nq)
-        dv = rng.normal(size=model.nv) * 10.0 ** rng.uniform(-8, 1, model.nv)
-        if not np.array_equal(pin.integrate(model, q, dv), q + dv):
-            return False
-    return True
+    outside: list[bool] = ((excess > 0).any(axis=2) & (np.arange(N) < n[:, None])).any(axis=1).tolist()
+    none = LimitViolations()  # frozen: one instance serves every element without violations
+    return [_limit_violations(system, T[b, : n[b]], Q[b, : n[b]]) if outside[b] else none for b in range(B)]
 
 
 def _pad(
