@@ -429,9 +429,7 @@ MIMIC_CRBA_BUG = (
 )
 
 
-@pytest.mark.parametrize(
-    "name", ["panda", "chain"]
-)
+@pytest.mark.parametrize("name", ["panda", "chain"])
 def test_mimic_scene_is_the_full_robot_restricted_to_the_mimic_map(write_urdf: Callable[..., Path], name: str) -> None:
     """With G and the offset read from the URDF's <mimic> (q_full = G q + offset, v_full = G v, G constant):
     M = Gᵀ M_full G, C v + g = Gᵀ (C v + g)_full, g = Gᵀ g_full, (Gᵀ M_full G) a = τ − Gᵀ (C v + g)_full, and T, V

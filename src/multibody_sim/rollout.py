@@ -1320,7 +1320,7 @@ def _batch_limit_violations(system: Robot, T: np.ndarray, Q: np.ndarray, n: np.n
     """simulate()'s limit report of each element; one vectorised pass finds the elements that need one."""
     B, N, nq = Q.shape
     excess = system.limit_excess(Q.reshape(B * N, nq)).reshape(B, N, nq)
-    outside: list[bool] = ((excess > 0).any(axis=2) & (np.arange(N) < n[:, None])).any(axis=1).tolist()
+    outside = np.asarray(((excess > 0).any(axis=2) & (np.arange(N) < n[:, None])).any(axis=1), dtype=bool)
     none = LimitViolations()  # frozen: one instance serves every element without violations
     return [_limit_violations(system, T[b, : n[b]], Q[b, : n[b]]) if outside[b] else none for b in range(B)]
 
