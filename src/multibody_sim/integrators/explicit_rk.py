@@ -112,8 +112,9 @@ class Attempt:
     extra_evaluations: int = 0  # dynamics evaluations the dense output added (DOP853's extra stages)
 
 
-class EmbeddedRungeKutta(ExplicitRungeKutta):
-    """An explicit Runge–Kutta pair with error estimation and dense output, for adaptive stepping.
+class AdaptiveRungeKutta(ExplicitRungeKutta):
+    """An explicit Runge–Kutta method with an error estimate, for adaptive stepping: one trial step (attempt) with
+    its scaled error norm; subclasses say how the norm is formed from the stages.
 
     The error is estimated on the chart coordinates and velocities (the tangent space, so floating bases
     work) and scaled by ``atol + rtol · max(|y_n|, |y_n+1|)``, where a configuration's magnitude is its
@@ -121,14 +122,7 @@ class EmbeddedRungeKutta(ExplicitRungeKutta):
     """
 
     adaptive = True
-
-    def __init__(self, name: str, tableau: EmbeddedTableau, description: str, *, notes: str = ""):
-        super().__init__(name, tableau, description, notes=notes)
-        self.tableau: EmbeddedTableau = tableau
-        self.embedded_order = tableau.embedded_order  # the order the step-size controller assumes of the error
-        self.fsal = tableau.fsal
-        self._e = self._b - np.array(tableau.b_hat, dtype=float)
-        self._d = np.array(tableau.dense, dtype=float) if tableau.dense else None
+    fsal: bool  # the last stage is at the new state (and is the next step's first)
 
     def attempt(
         self,
@@ -148,17 +142,37 @@ class EmbeddedRungeKutta(ExplicitRungeKutta):
         K, q_last, v_last = self._stages(system, q, v, tau, h, t, first_stage)
         nv = len(v)
         increment = (self._b @ K) * h
-        if self.tableau.fsal:  # the last stage is the new state
+        if self.fsal:  # the last stage is the new state
             q_next, v_next = q_last, v_last
         else:
             q_next, v_next = system.space.integrate(q, increment[:nv]), v + increment[nv : 2 * nv]
         scale = _error_scale(system, q, v, q_next, v_next, rtol, atol)
-        scaled = (self._e @ K[:, : 2 * nv]) * h / scale
-        norm = math.sqrt((scaled @ scaled) / (2 * nv))
+        norm = self._error_norm(K[:, : 2 * nv], h, scale)
         if not math.isfinite(norm) or not math.isfinite(q_next @ q_next + v_next @ v_next):
             norm = math.inf
         evaluations = len(K) - (first_stage is not None)
         return Attempt(q_next, v_next, increment[2 * nv :], norm, K, evaluations, tau, t)
+
+    def _error_norm(self, K: np.ndarray, h: float, scale: np.ndarray) -> float:
+        """The scaled error norm (accept when ≤ 1) from the stages' (xi', v') rows K, shape (s, 2 nv)."""
+        raise NotImplementedError
+
+
+class EmbeddedRungeKutta(AdaptiveRungeKutta):
+    """An explicit Runge–Kutta pair with error estimation and dense output, for adaptive stepping (the error is
+    the difference of the two solutions, RMS over the tangent components)."""
+
+    def __init__(self, name: str, tableau: EmbeddedTableau, description: str, *, notes: str = ""):
+        super().__init__(name, tableau, description, notes=notes)
+        self.tableau: EmbeddedTableau = tableau
+        self.embedded_order = tableau.embedded_order  # the order the step-size controller assumes of the error
+        self.fsal = tableau.fsal
+        self._e = self._b - np.array(tableau.b_hat, dtype=float)
+        self._d = np.array(tableau.dense, dtype=float) if tableau.dense else None
+
+    def _error_norm(self, K: np.ndarray, h: float, scale: np.ndarray) -> float:
+        scaled = (self._e @ K) * h / scale
+        return math.sqrt((scaled @ scaled) / len(scale))
 
     def dense_output(
         self, system: System, q: np.ndarray, v: np.ndarray, attempt: Attempt, h: float, theta: float
@@ -192,7 +206,7 @@ def _error_scale(
     return atol + rtol * size
 
 
-class DormandPrince853(ExplicitRungeKutta):
+class DormandPrince853(AdaptiveRungeKutta):
     """DOP853: Dormand and Prince's 8th-order method with Hairer's 5th/3rd-order combined error estimate
     (7th order) and 7th-order dense output from three extra stages.
 
@@ -201,7 +215,6 @@ class DormandPrince853(ExplicitRungeKutta):
     output on the chart are this package's.
     """
 
-    adaptive = True
     fsal = True
     embedded_order = 7  # the combined estimate behaves like a 7th-order one (scipy's error_estimator_order)
 
@@ -227,32 +240,12 @@ class DormandPrince853(ExplicitRungeKutta):
         self._c_extended = np.array(tables.C, dtype=float)
         self._dense_weights = np.array(tables.D, dtype=float)
 
-    def attempt(
-        self,
-        system: System,
-        q: np.ndarray,
-        v: np.ndarray,
-        tau: np.ndarray,
-        h: float,
-        *,
-        rtol: float,
-        atol: float,
-        first_stage: np.ndarray | None = None,
-        t: float = 0.0,
-    ) -> Attempt:
-        """Try a step of h [s] (see EmbeddedRungeKutta.attempt)."""
-        K, q_next, v_next = self._stages(system, q, v, tau, h, t, first_stage)
-        nv = len(v)
-        increment = (self._b @ K) * h
-        scale = _error_scale(system, q, v, q_next, v_next, rtol, atol)
-        err5 = (self._e5 @ K[:, : 2 * nv]) / scale
-        err3 = (self._e3 @ K[:, : 2 * nv]) / scale
+    def _error_norm(self, K: np.ndarray, h: float, scale: np.ndarray) -> float:
+        """Hairer's combined estimate: h |err5|² / sqrt((|err5|² + 0.01 |err3|²) · 2 nv)."""
+        err5 = (self._e5 @ K) / scale
+        err3 = (self._e3 @ K) / scale
         e5, e3 = err5 @ err5, err3 @ err3
-        norm = 0.0 if e5 == 0.0 and e3 == 0.0 else h * e5 / math.sqrt((e5 + 0.01 * e3) * 2 * nv)
-        if not math.isfinite(norm) or not math.isfinite(q_next @ q_next + v_next @ v_next):
-            norm = math.inf
-        evaluations = len(K) - (first_stage is not None)
-        return Attempt(q_next, v_next, increment[2 * nv :], norm, K, evaluations, tau, t)
+        return 0.0 if e5 == 0.0 and e3 == 0.0 else h * e5 / math.sqrt((e5 + 0.01 * e3) * len(scale))
 
     def dense_output(
         self, system: System, q: np.ndarray, v: np.ndarray, attempt: Attempt, h: float, theta: float
