@@ -37,8 +37,8 @@ from .simulation import (
     _check_options,
     _limit_violations,
     _steps_per,
-    _versions,
     positive_number,
+    run_metadata,
     simulate,
     stable_implicit_integrators,
 )
@@ -1355,17 +1355,7 @@ def _metadata(
     backend: str,
 ) -> dict[str, Any]:
     return {
-        "versions": dict(_versions()),
-        "robot": {
-            "name": system.name,
-            "nq": system.nq,
-            "nv": system.nv,
-            "floating_base": system.floating_base,
-            "damping": bool(system.source.get("load_robot", {}).get("damping", True)),
-            "joint_names": system.joint_names,
-            "dof_names": system.dof_names,
-            **system.source,
-        },
+        **run_metadata(system),
         "integrator": method.name,
         "options": {"dt": dt, "duration": duration, **options},
         "controller": control.label,

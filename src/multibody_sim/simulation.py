@@ -522,19 +522,8 @@ class _Run:
         )
 
     def _metadata(self) -> dict[str, Any]:
-        system = self.system
         return {
-            "versions": dict(_versions()),
-            "robot": {
-                "name": system.name,
-                "nq": system.nq,
-                "nv": system.nv,
-                "floating_base": system.floating_base,
-                "damping": bool(system.source.get("load_robot", {}).get("damping", True)),
-                "joint_names": system.joint_names,
-                "dof_names": system.dof_names,
-                **system.source,  # load_robot (the full arguments), urdf_path, urdf_sha256
-            },
+            **run_metadata(self.system),
             "integrator": self.method.name,
             "options": {"dt": self.dt, "duration": self.duration, **self.options},
             "controller": None
@@ -768,6 +757,23 @@ def _limit_violations(system: Robot, t: np.ndarray, Q: np.ndarray) -> LimitViola
         worst_excess=float(excess[i, j]),
         worst_time=float(t[i]),
     )
+
+
+def run_metadata(system: Robot) -> dict[str, Any]:
+    """The metadata every trajectory starts with: package versions and how its robot (or scene) was made."""
+    return {
+        "versions": dict(_versions()),
+        "robot": {
+            "name": system.name,
+            "nq": system.nq,
+            "nv": system.nv,
+            "floating_base": system.floating_base,
+            "damping": bool(system.source.get("load_robot", {}).get("damping", True)),
+            "joint_names": system.joint_names,
+            "dof_names": system.dof_names,
+            **system.source,  # load_robot (the full arguments), urdf_path, urdf_sha256; a scene's TOML
+        },
+    }
 
 
 @functools.cache
