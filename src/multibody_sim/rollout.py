@@ -30,7 +30,7 @@ from .exceptions import InvalidArgumentError, SimulationError, SimulationInterru
 from .integrators import Integrator, get_integrator
 from .integrators.explicit_rk import EmbeddedRungeKutta, ExplicitRungeKutta
 from .integrators.partitioned import SemiImplicitEuler
-from .robot import Robot
+from .robot import Robot, real_array
 from .simulation import (
     BLOWUP_FACTOR,
     ProgressBar,
@@ -273,14 +273,7 @@ def _check_batch(system: Robot, q0s: Any, v0s: Any) -> tuple[np.ndarray, np.ndar
 
 
 def _as_batch(value: Any, size: int, name: str) -> np.ndarray:
-    got = f"dtype {value.dtype}" if isinstance(value, np.ndarray) else type(value).__name__
-    try:
-        raw = np.asarray(value)
-    except ValueError:  # ragged nesting
-        raw = None
-    if raw is None or raw.dtype.kind not in "biuf":  # refuse strings, objects and complex rather than coerce
-        raise InvalidArgumentError(f"{name} must be an array of real numbers of shape (B, {size}), got {got}")
-    arr = np.array(raw, dtype=float)
+    arr = real_array(value, name, f"an array of real numbers of shape (B, {size})")
     if arr.ndim != 2 or arr.shape[1] != size:
         raise InvalidArgumentError(f"{name} must have shape (B, {size}), got {arr.shape}")
     if not np.all(np.isfinite(arr)):
