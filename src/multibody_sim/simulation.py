@@ -211,18 +211,24 @@ class _Sink:
         self.on_sample: Callable[[float, np.ndarray, np.ndarray], None] | None = None
 
 
-def _check_options(method: Integrator, options: dict[str, Any]) -> None:
-    valid = _ADAPTIVE_OPTIONS if method.adaptive else _FIXED_STEP_OPTIONS
+def _check_options(
+    method: Integrator,
+    options: dict[str, Any],
+    fixed_step: tuple[str, ...] = _FIXED_STEP_OPTIONS,
+    adaptive_only: tuple[str, ...] = _ADAPTIVE_OPTIONS,
+) -> None:
+    """Refuse options the method does not take (simulate's by default; the Stepper passes its own sets)."""
+    valid = adaptive_only if method.adaptive else fixed_step
     for name in options:
         if name in valid:
             continue
-        if name in _ADAPTIVE_OPTIONS:
+        if name in adaptive_only:
             adaptive = sorted(n for n, m in INTEGRATORS.items() if m.adaptive)
             where = f" (it applies to the adaptive integrators: {', '.join(adaptive)})" if adaptive else ""
             raise InvalidArgumentError(
                 f"option '{name}' does not apply to the fixed-step integrator '{method.name}'{where}"
             )
-        raise InvalidArgumentError(f"unknown option '{name}' (valid for '{method.name}': {', '.join(valid)})")
+        raise InvalidArgumentError(f"unknown option '{name}' (valid for '{method.name}': {', '.join(valid) or 'none'})")
     if method.adaptive:
         missing = [name for name in ("rtol", "atol") if options.get(name) is None]
         if missing:

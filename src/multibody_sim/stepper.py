@@ -8,9 +8,16 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .exceptions import InvalidArgumentError, SimulationError
-from .integrators import INTEGRATORS, Integrator, StepFailure, get_integrator
+from .integrators import Integrator, StepFailure, get_integrator
 from .robot import Robot
-from .simulation import BLOWUP_FACTOR, MIN_STEP_FRACTION, Controller, positive_number, stable_implicit_integrators
+from .simulation import (
+    BLOWUP_FACTOR,
+    MIN_STEP_FRACTION,
+    Controller,
+    _check_options,
+    positive_number,
+    stable_implicit_integrators,
+)
 from .step_control import PIController
 from .trajectory import LedgerEntry, Trajectory
 
@@ -90,7 +97,7 @@ class Stepper:
             UnknownIntegratorError: an unknown integrator name.
         """
         method = get_integrator(integrator)
-        _check_options(method, options)
+        _check_options(method, options, fixed_step=(), adaptive_only=_ADAPTIVE_OPTIONS)
         self.system = system
         self.integrator = method
         self.dt = positive_number(dt, "dt")
@@ -472,27 +479,6 @@ class Stepper:
     def __repr__(self) -> str:
         name = getattr(self.system, "name", type(self.system).__name__)
         return f"<Stepper {name} {self.integrator.name} dt={self.dt:g} s at t={self.t:g} s>"
-
-
-def _check_options(method: Integrator, options: dict[str, Any]) -> None:
-    for name in options:
-        if method.adaptive and name in _ADAPTIVE_OPTIONS:
-            continue
-        if name in _ADAPTIVE_OPTIONS:
-            adaptive = sorted(n for n, m in INTEGRATORS.items() if m.adaptive)
-            raise InvalidArgumentError(
-                f"option '{name}' does not apply to the fixed-step integrator '{method.name}' (it applies to the "
-                f"adaptive integrators: {', '.join(adaptive)})"
-            )
-        valid = ", ".join(_ADAPTIVE_OPTIONS) if method.adaptive else "none"
-        raise InvalidArgumentError(f"unknown option '{name}' (valid for '{method.name}': {valid})")
-    if method.adaptive:
-        missing = [name for name in ("rtol", "atol") if options.get(name) is None]
-        if missing:
-            raise InvalidArgumentError(
-                f"integrator '{method.name}' is adaptive: pass {' and '.join(missing)} (error tolerances; "
-                "e.g. rtol=1e-6, atol=1e-8)"
-            )
 
 
 def _is_number(value: Any) -> bool:
