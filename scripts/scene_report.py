@@ -30,13 +30,11 @@ def main() -> None:
         half = scene.run(progress=False, dt=settings["dt"] / 2)
         drift = max((float(abs(r.drift).max()) for r in traj.constraints.values()), default=None)
         savings = scene.measure_savings()
-        elements = [n for n, _ in scene.ledger_elements[1:] if not n.startswith("constraint:")]
-        elements += [n for c, n, _ in scene.record_fields if c == "potential"]
         rows.append(
             [
                 name,
                 f"{scene.full_nq}/{scene.full_nv} -> {scene.nq}/{scene.nv}",
-                str(len(elements)),
+                str(len(scene.element_names)),
                 ", ".join(scene.constraints.names) if scene.constraints is not None else "-",
                 f"{settings['integrator']}, {settings['dt']:g} s",
                 f"{traj.max_abs_energy_error:.2e}",
@@ -74,8 +72,9 @@ def main() -> None:
         "|" + "---|" * len(header),
         *("| " + " | ".join(row) + " |" for row in rows),
         "",
-        "Locking joints pays where the model is large (talos: 32 -> 20 dof); force elements and constraints cost "
-        "their own evaluations at every stage, so a scene that adds physics costs more per step than the bare robot, "
+        "Locking joints removes ABA work, but at these sizes the per-step Python overhead dominates: talos's "
+        "32 -> 20 dof costs about the same per step as the full model (0.85-1.1x across runs). Force elements and "
+        "constraints cost their own evaluations at every stage, so a scene that adds physics costs more per step than the bare robot, "
         "and that is what it measures. Nothing in a scene is computed unless it declares it.",
     ]
     Path(args.out).write_text("\n".join(lines) + "\n")

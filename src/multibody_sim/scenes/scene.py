@@ -162,6 +162,12 @@ class Scene(Robot):
         return f"Scene({self.name!r}, nq={self.nq}, nv={self.nv}, elements={len(self._flow_elements) - 1})"
 
     # ---- what was modelled ---------------------------------------------------------------------------
+    @property
+    def element_names(self) -> list[str]:
+        """The force elements in play (ledger names, springs included; constraints and joint torques not)."""
+        names = [name for name, _ in self._flow_elements[1:] if not name.startswith("constraint:")]
+        return names + (self.elements.potentials if self.elements is not None else [])
+
     def describe(self) -> str:
         """What the scene modelled, a few lines for the run summary."""
         spec = self.spec
@@ -182,9 +188,7 @@ class Scene(Robot):
             lines.append("  armature [kg·m²]: " + ", ".join(armature))
         if self.mimic:
             lines.append("  mimic joints honoured (forward dynamics by CRBA: ABA does not support them)")
-        elements = [name for name, _ in self._flow_elements[1:] if not name.startswith("constraint:")]
-        if self.elements is not None:
-            elements += self.elements.potentials
+        elements = self.element_names
         lines.append("  force elements: " + (", ".join(elements) if elements else "none"))
         friction = np.array(self.model.friction, dtype=float)
         if self.elements is not None and friction.any():
@@ -572,12 +576,17 @@ def _mimic_mass_matrix(model: pin.Model, data: pin.Data, q: np.ndarray, clear: b
     Pinocchio 4.1's CRBA accumulates into data.Fcrb on such models (a mimic joint with children gets its coupling
     added again at every call), so the workspace is cleared first when `clear` (_mimic_has_children(model)).
     """
+    M = _mimic_crba(model, data, q, clear)
+    return np.triu(M) + np.triu(M, 1).T
+
+
+def _mimic_crba(model: pin.Model, data: pin.Data, q: np.ndarray, clear: bool) -> np.ndarray:
+    """CRBA's upper triangle of M(q), its workspace cleared first when `clear` (see _mimic_mass_matrix)."""
     if clear:
         zero = np.zeros((6, model.nv))
         for i in range(len(data.Fcrb)):
             data.Fcrb[i] = zero
-    M = pin.crba(model, data, q)
-    return np.triu(M) + np.triu(M, 1).T
+    return pin.crba(model, data, q)
 
 
 def _crba_forward_dynamics(
@@ -589,11 +598,8 @@ def _crba_forward_dynamics(
     """
     from scipy.linalg.lapack import dposv
 
-    if clear:
-        _mimic_mass_matrix(model, data, q, clear)
-    else:
-        pin.crba(model, data, q)
-    _, a, info = dposv(data.M, tau - pin.nonLinearEffects(model, data, q, v), lower=0)
+    M = _mimic_crba(model, data, q, clear)
+    _, a, info = dposv(M, tau - pin.nonLinearEffects(model, data, q, v), lower=0)
     if info != 0:  # not positive definite: a NaN state, which the stepping loop reports as divergence
         return np.full(model.nv, np.nan)
     return a
