@@ -74,8 +74,8 @@ def main() -> None:
         "",
         "Locking joints removes ABA work, but at these sizes the per-step Python overhead dominates: talos's "
         "32 -> 20 dof costs about the same per step as the full model (0.85-1.1x across runs). Force elements and "
-        "constraints cost their own evaluations at every stage, so a scene that adds physics costs more per step than the bare robot, "
-        "and that is what it measures. Nothing in a scene is computed unless it declares it.",
+        "constraints cost their own evaluations at every stage, so a scene that adds physics costs more per step "
+        "than the bare robot, and that is what it measures. Nothing in a scene is computed unless it declares it.",
     ]
     Path(args.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
