@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import functools
 import math
-from fractions import Fraction
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -16,6 +15,7 @@ from .integrators.explicit_rk import ExplicitRungeKutta
 from .integrators.implicit import ImplicitEuler, ImplicitMidpoint
 from .integrators.partitioned import SemiImplicitEuler
 from .robot import Robot
+from .state import CHART_SERIES
 
 _ARG_Q = pin.ArgumentPosition.ARG0
 _ARG_V = pin.ArgumentPosition.ARG1
@@ -126,6 +126,7 @@ def _explicit_rk(
     nv = system.nv
     space = system.space
     curved = space.curved_blocks
+    terms = method.chart_terms
     stages = len(b)
     xi_rate = np.zeros((stages, nv))  # ξ'_i
     acc = np.zeros((stages, nv))  # v'_i
@@ -144,16 +145,15 @@ def _explicit_rk(
         acc[i] = system.unchecked_forward_dynamics(Q, V, tau, t + c[i] * h)
         d_acc[i] = da_dq @ d_Q + da_dv @ d_V
         d_acc[i][:, 2 * nv :] += da_dtau
-        if not curved or i == 0:  # the first stage has ξ = 0 whatever y: there J = I and dξ = 0
+        if not curved or i == 0:  # the first stage has ξ = 0 whatever y: there the chart map is the identity
             xi_rate[i] = V
             d_xi_rate[i] = d_V
         else:
-            xi_rate[i] = space.chart_velocity(q, xi, V)
-            J = pin.dIntegrate(space.model, q, xi, _ARG_V)
+            xi_rate[i] = space.chart_velocity(xi, V, terms)
             d_xi_rate[i] = d_V
-            for start, stop in curved:
-                d_xi_rate[i][start:stop] = np.linalg.solve(J[start:stop, start:stop], d_V[start:stop])
-            _add_chart_curvature(system, d_xi_rate[i], xi, V, d_xi)
+            for (start, stop), P in zip(curved, space.chart_matrix(xi, terms), strict=True):
+                d_xi_rate[i][start:stop] = P @ d_V[start:stop]
+            _add_chart_curvature(system, d_xi_rate[i], xi, V, d_xi, terms)
     weights = b * h
     xi_end = weights @ xi_rate
     d_xi_end = np.tensordot(weights, d_xi_rate, axes=1)
@@ -162,11 +162,13 @@ def _explicit_rk(
     return _split(np.vstack((d_q_end, d_v_end)), nv)
 
 
-def _add_chart_curvature(system: Robot, d_rate: np.ndarray, xi: np.ndarray, V: np.ndarray, d_xi: np.ndarray) -> None:
-    """Add ∂(J(ξ)⁻¹ V)/∂ξ · dξ on each non-commutative joint's block of the chart velocity's derivative."""
-    for start, stop in system.space.curved_blocks:
-        ad = _ad_function(system.model, start)
-        N = _chart_velocity_derivative(ad, xi[start:stop], V[start:stop])
+def _add_chart_curvature(
+    system: Robot, d_rate: np.ndarray, xi: np.ndarray, V: np.ndarray, d_xi: np.ndarray, terms: int
+) -> None:
+    """Add ∂(chart_velocity(ξ, V))/∂ξ · dξ on each non-commutative joint's block of the chart rate's derivative."""
+    space = system.space
+    for (start, stop), G in zip(space.curved_blocks, space.chart_generators, strict=True):
+        N = _chart_velocity_derivative(G, xi[start:stop], V[start:stop], terms)
         d_rate[start:stop] += N @ d_xi[start:stop]
 
 
@@ -233,94 +235,24 @@ def _d_integrate(space: Any, q: np.ndarray, xi: np.ndarray, select_q: np.ndarray
     return D_q @ select_q + D_xi @ d_xi
 
 
-def _chart_velocity_derivative(ad: Any, xi: np.ndarray, V: np.ndarray) -> np.ndarray:
-    """∂/∂ξ of J(ξ)⁻¹ V on one Lie group, J = dIntegrate/dξ = Σ (-ad_ξ)ⁿ/(n+1)! (right Jacobian of exp).
+def _chart_velocity_derivative(G: np.ndarray, xi: np.ndarray, V: np.ndarray, terms: int) -> np.ndarray:
+    """∂/∂ξ of Σ_{n≤terms} b_n A(ξ)ⁿ V (ConfigurationSpace.chart_velocity) on one block, A(x) = (x @ G).reshape(d, d).
 
-    J(ξ)⁻¹ = Σ c_n Yⁿ with Y = -ad_ξ and c_n = B_n/n! (the Taylor coefficients of y/(eʸ - 1)). The derivative of
-    Yⁿ V along η is Σ_k Y^k (-ad_η) Y^(n-1-k) V = Σ_k Y^k ad(w_{n-1-k}) η with w_m = Yᵐ V, so with
-    T_n = Σ_{k<n} Y^k ad(w_{n-1-k}) = ad(w_{n-1}) + Y T_{n-1} the derivative is Σ c_n T_n. The series converges
-    for rotations below 2π; it is summed until its terms fall below round-off.
+    The derivative of Aⁿ V along η is Σ_k A^k A(η) A^(n-1-k) V, and A(η) w = -A(w) η (A is ± the Lie algebra's ad,
+    antisymmetric in its two arguments). With w_m = Aᵐ V and T_n = Σ_{k<n} A^k A(w_{n-1-k}) = A(w_{n-1}) + A T_{n-1}
+    the derivative is -Σ b_n T_n.
     """
-    angle = ad.angle(xi)
-    if angle >= math.pi:
-        raise InvalidArgumentError(
-            f"linearize: a Runge–Kutta stage turns a joint by {angle:.3g} rad (more than π) within one step; "
-            "take a smaller dt"
-        )
-    Y = -ad.matrix(xi)
-    coefficients = _series_coefficients()
+    d = len(V)
+    A = (xi @ G).reshape(d, d)
     w = V.copy()
-    T = np.zeros((len(V), len(V)))
-    N = np.zeros_like(T)
-    scale = float(np.abs(ad.matrix(V)).max()) + 1e-300
-    # Terms shrink like (angle / 2π)^n: at angle < π about 60 terms reach round-off.
-    for n in range(1, len(coefficients)):
-        T = ad.matrix(w) + Y @ T
-        if coefficients[n]:
-            term = coefficients[n] * T
-            N += term
-            if n > 2 and float(np.abs(term).max()) <= 1e-17 * scale:
-                break
-        w = Y @ w
+    T = np.zeros((d, d))
+    N = np.zeros((d, d))
+    for n in range(1, terms + 1):
+        T = (w @ G).reshape(d, d) + A @ T
+        if CHART_SERIES[n]:
+            N -= CHART_SERIES[n] * T
+        w = A @ w
     return N
-
-
-@functools.cache
-def _series_coefficients(count: int = 120) -> tuple[float, ...]:
-    """c_n = B_n / n!, the Taylor coefficients of y / (eʸ - 1), exactly (from Σ_{k≤n} c_k/(n+1-k)! = 0)."""
-    c = [Fraction(1)]
-    factorials = [Fraction(math.factorial(k)) for k in range(count + 2)]
-    for n in range(1, count):
-        c.append(-sum((c[k] / factorials[n + 1 - k] for k in range(n)), Fraction(0)))
-    return tuple(float(x) for x in c)
-
-
-class _Se3:
-    """se(3), v = (linear, angular): Pinocchio's motion cross-product matrix."""
-
-    @staticmethod
-    def matrix(v: np.ndarray) -> np.ndarray:
-        return np.array(pin.Motion(v).action)
-
-    @staticmethod
-    def angle(v: np.ndarray) -> float:
-        return float(np.linalg.norm(v[3:]))
-
-
-class _So3:
-    """so(3): ad_ω = [ω]×."""
-
-    @staticmethod
-    def matrix(v: np.ndarray) -> np.ndarray:
-        return np.array(pin.skew(v))
-
-    @staticmethod
-    def angle(v: np.ndarray) -> float:
-        return float(np.linalg.norm(v))
-
-
-class _Se2:
-    """se(2), v = (vx, vy, ω): [v, ξ] = (ω R ξ_t - ξ_ω R v_t, 0) with R the quarter turn."""
-
-    @staticmethod
-    def matrix(v: np.ndarray) -> np.ndarray:
-        return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [0.0, 0.0, 0.0]])
-
-    @staticmethod
-    def angle(v: np.ndarray) -> float:
-        return abs(float(v[2]))
-
-
-def _ad_function(model: pin.Model, start: int) -> Any:
-    """The Lie algebra (ad matrix and rotation angle) of the joint whose velocity block starts at `start`."""
-    joint = next(j for j in model.joints[1:] if j.idx_v == start)
-    if joint.nv == 6:
-        return _Se3
-    if joint.shortname() == "JointModelPlanar":
-        return _Se2
-    if joint.nv == 3 and joint.nq == 4:
-        return _So3
-    raise InvalidArgumentError(f"linearize: unsupported joint type {joint.shortname()}")  # pragma: no cover
 
 
 # ---- small helpers -------------------------------------------------------------------------------------------

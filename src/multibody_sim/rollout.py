@@ -6,11 +6,9 @@ operations over the whole batch, configuration updates vectorised (vector coordi
 joints by one Pinocchio ``integrate`` call over copies of them). Per element the arithmetic is simulate()'s:
 the same BLAS calls (multi-term stage sums, the step's combination, the ledger's dot products), exact products
 where a stage sum has one power-of-two coefficient (RK4's), the same Pinocchio calls; so a batch gives
-``simulate()``'s samples bit for bit. One exception: the chart map of free-flyer and spherical joints (in the
-Runge–Kutta stages after the first) is a closed form over the batch, exact to round-off, where simulate()
-solves with Pinocchio's Jexp6; the two agree to round-off but where Pinocchio's closed form loses digits
-(rotations per stage just above 1.2e-4 rad). Adaptive and implicit methods run element by element through
-``simulate()``.
+``simulate()``'s samples bit for bit, floating bases included (the chart map of free-flyer, spherical and
+planar joints is ConfigurationSpace.chart_rates, row for row chart_velocity's operations). Adaptive and
+implicit methods run element by element through ``simulate()``.
 """
 
 from __future__ import annotations
@@ -187,10 +185,8 @@ def rollout(
 ) -> BatchTrajectory:
     """Simulate a batch of initial states (with controllers or open-loop torques) for `duration` seconds.
 
-    Each element gets the samples ``simulate(system, q0s[b], v0s[b], ...)`` would return: bit for bit on the
-    local backend, but to round-off on free-flyer and spherical joints with multi-stage methods (their chart
-    map is a closed form over the batch); an element that stops early keeps its samples and its status, and
-    never stops the others.
+    Each element gets the samples ``simulate(system, q0s[b], v0s[b], ...)`` would return, bit for bit on the
+    local backend; an element that stops early keeps its samples and its status, and never stops the others.
 
     Args:
         system: the robot (or scene).
@@ -473,147 +469,14 @@ class _OneRow:
         return np.asarray(out)[0]
 
 
-# ---- the batched fixed-step path -------------------------------------------------------------------------------
-# The chart map's scalar functions of the rotation angle θ as power series in θ² (row k: the coefficient of
-# θ^2k), columns a1 = (1 - cos θ)/θ², β = 1/θ² - sin θ / (2θ (1 - cos θ)), a2 = (θ - sin θ)/θ³, β'/θ and
-# g = 2β + θ² β'/θ. Their closed forms cancel catastrophically at small θ (Pinocchio's own Jexp6 loses up to 8
-# digits just above θ = 1.2e-4 rad that way); truncated after θ^14, the series are exact to round-off below
-# θ = 0.5 rad (the next terms are below 1e-17 relative), and above it the closed forms lose a few ulps at most.
-_ANGLE_SERIES = np.array(
-    [
-        [1 / 2, 1 / 12, 1 / 6, 1 / 360, 1 / 6],
-        [-1 / 24, 1 / 720, -1 / 120, 1 / 7560, 1 / 180],
-        [1 / 720, 1 / 30240, 1 / 5040, 1 / 201600, 1 / 5040],
-        [-1 / 40320, 1 / 1209600, -1 / 362880, 1 / 5987520, 1 / 151200],
-        [1 / 3628800, 1 / 47900160, 1 / 39916800, 691 / 130767436800, 1 / 4790016],
-        [-1 / 479001600, 691 / 1307674368000, -1 / 6227020800, 1 / 6227020800, 691 / 108972864000],
-        [1 / 87178291200, 1 / 74724249600, 1 / 1307674368000, 3617 / 762187345920000, 1 / 5337446400],
-        [
-            -1 / 20922789888000,
-            3617 / 10670622842880000,
-            -1 / 355687428096000,
-            43867 / 319318388573184000,
-            3617 / 666913927680000,
-        ],
-    ]
-)
-_HALF = np.eye(8)[0] / 2  # the constant ½ as a series
-# Rows of the (8, n) result of _angle_functions: ½, ½, a1, β, β, a2, β'/θ, g (so that slices of it scale the
-# columns of a stacked computation: see _se3_chart).
-_ANGLE_SERIES_T = np.array([_HALF, _HALF, *_ANGLE_SERIES[:, [0, 1, 1, 2, 3, 4]].T])
-_SERIES_LIMIT = 0.25  # θ² below which the series serve (θ < 0.5 rad)
-
-
-def _angle_functions(t2: np.ndarray) -> np.ndarray:
-    """The chart map's scalar functions of θ² = |ω|² for each element, shape (8, n): ½, ½, a1, β, β, a2, β'/θ, g."""
-    powers = np.empty((8, len(t2)))
-    powers[0] = 1.0
-    powers[1] = t2
-    np.multiply(t2, t2, out=powers[2])
-    np.multiply(powers[2], t2, out=powers[3])
-    np.multiply(powers[2], powers[2], out=powers[4])
-    np.multiply(powers[4], powers[1:4], out=powers[5:8])  # θ^10, θ^12, θ^14
-    # einsum's own loop, not BLAS: each element's sum in the same order whatever the batch's size (a BLAS
-    # product's blocking could differ with it), so an element's result does not depend on its neighbours.
-    f = np.einsum("rk,kn->rn", _ANGLE_SERIES_T, powers)
-    if len(t2) and t2.max() >= _SERIES_LIMIT:  # large rotations within one step: the closed forms
-        big = np.flatnonzero(t2 >= _SERIES_LIMIT)
-        s2 = t2[big]
-        s = np.sqrt(s2)
-        sin, cos = np.sin(s), np.cos(s)
-        half_inverse = 1.0 / (2.0 * (1.0 - cos))
-        beta = 1.0 / s2 - sin / s * half_inverse
-        beta_dot = -2.0 / (s2 * s2) + (1.0 + sin / s) / s2 * half_inverse
-        f[2, big] = (1.0 - cos) / s2
-        f[3, big] = f[4, big] = beta
-        f[5, big] = (s - sin) / s2 / s
-        f[6, big] = beta_dot
-        f[7, big] = 2.0 * beta + s2 * beta_dot
-    return f
-
-
-def _cross(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """a × b along axis 0 of component-major arrays extended cyclically to 5 rows (rows 3, 4 repeat 0, 1, so
-    that the shifted components are views, not copies), broadcasting the other axes; into out[0:3], and
-    extended the same way if out has 5 rows. Returns out[0:3]."""
-    np.multiply(a[1:4], b[2:5], out=out[0:3])
-    out[0:3] -= a[2:5] * b[1:4]
-    if len(out) == 5:
-        out[3:5] = out[0:2]
-    return out[0:3]
-
-
-def _extended(rows: list[np.ndarray], n: int) -> np.ndarray:
-    """Vectors given as (n, 3) arrays, component-major and cyclically extended: shape (5, len(rows), n)."""
-    out = np.empty((5, len(rows), n))
-    for j, r in enumerate(rows):
-        out[0:3, j] = r.T
-    out[3:5] = out[0:2]
-    return out
-
-
-def _se3_chart(xi: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
-    """Chart rate of free-flyer rows: out = Jexp6(xi)^-1 v, shapes (n, 6), [linear, angular] as Pinocchio.
-
-    Jexp6(xi) is dIntegrate/dv of q ⊕ xi (ConfigurationSpace.chart_velocity solves with it). Its inverse is
-    Pinocchio's Jlog6 at exp6(xi): [[A, C A], [0, A]] with A = Jexp3(ω)^-1 = I + ½[ω]× + β[ω]×² and C the
-    coupling term of the translation p = exp6(xi).translation = (I + a1[ω]× + a2[ω]×²) xi_lin. Computed
-    component-major (each coordinate of all elements contiguous), where numpy's operations are cheapest.
-    """
-    n = len(xi)
-    # Angular velocity, linear velocity, the chart's translation and rotation, component-major and extended.
-    E = np.empty((5, 4, n))
-    E[0:3, 0], E[0:3, 1], E[0:3, 2], E[0:3, 3] = v[:, 3:6].T, v[:, 0:3].T, xi[:, 0:3].T, xi[:, 3:6].T
-    E[3:5] = E[0:2]
-    X, W, w = E[:, 0:3], E[:, 3:4], E[0:3, 3]
-    f = _angle_functions(np.einsum("cn,cn->n", w, w))
-    WX = np.empty((5, 3, n))
-    _cross(W, X, WX)
-    # X + [½, ½, a1] ω × X + [β, β, a2] ω × (ω × X): A v_ang, A v_lin and p at once
-    AX = np.empty((5, 3, n))
-    np.multiply(WX[0:3], f[0:3], out=AX[0:3])
-    AX[0:3] += X[0:3]
-    WWX = _cross(W, WX, np.empty((3, 3, n)))
-    WWX *= f[3:6]
-    AX[0:3] += WWX
-    AX[3:5] = AX[0:2]
-    u, Av, p = AX[0:3, 0], AX[0:3, 1], AX[0:3, 2]
-    wu, _, wp = np.einsum("cn,cvn->vn", w, AX[0:3])
-    pu = np.einsum("cn,cn->n", p, u)
-    beta, beta_dot, g = f[3], f[6], f[7]
-    # A v_lin + C u with C u = ((β'/θ)(ω·p)(ω·u) + β (p·u)) ω - g (ω·u) p + β (ω·p) u + ½ p × u
-    lin = _cross(AX[:, 2], AX[:, 0], np.empty((3, n)))
-    lin *= 0.5
-    lin += Av
-    scale = beta_dot * wp
-    scale *= wu
-    scale += beta * pu
-    lin += scale * w
-    lin -= (g * wu) * p
-    lin += (beta * wp) * u
-    out[:, 0:3] = lin.T
-    out[:, 3:6] = u.T
-
-
-def _so3_chart(w: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
-    """Chart rate of spherical-joint rows: out = Jexp3(w)^-1 v = v + ½ w × v + β w × (w × v), shapes (n, 3)."""
-    n = len(w)
-    W, X = _extended([w], n), _extended([v], n)
-    f = _angle_functions(np.einsum("in,in->n", W[0:3, 0], W[0:3, 0]))
-    WX = np.empty((5, 1, n))
-    _cross(W, X, WX)
-    out[:] = (X[0:3, 0] + 0.5 * WX[0:3, 0] + f[3] * _cross(W, WX, np.empty((3, 1, n)))[:, 0]).T
-
-
 class _BatchSpace:
-    """The configuration manifold over a batch: q ⊕ dv and the chart map, for n rows at once.
+    """The configuration manifold over a batch: q ⊕ dv for n rows at once.
 
     Coordinates of joints whose configuration is a vector (revolute, prismatic: Pinocchio's integrate is
     q + dv there, checked) are added in one numpy operation per run of them; the other joints (free-flyer,
     spherical, continuous, planar) go through one ``pin.integrate`` call on a model made of n copies of just
-    those joints: Pinocchio's own per-joint code, so its results bit for bit, in one C++ loop. The chart map
-    of free-flyer and spherical joints (ConfigurationSpace.chart_velocity) is evaluated in closed form over
-    the batch, exact to round-off; models with other curved joints fall back to one call per element.
+    those joints: Pinocchio's own per-joint code, so its results bit for bit, in one C++ loop. (The chart map needs no
+    batch version: ConfigurationSpace.chart_rates takes many rows.)
     """
 
     def __init__(self, system: Robot):
@@ -643,18 +506,7 @@ class _BatchSpace:
         self._lie_models: dict[int, pin.Model] = {}
         self.per_element = not self._check_integrate()
         self.vector_space = not lie and self.runs == [(0, 0, model.nq)] and not self.per_element
-        # The chart map: identity on flat spaces; closed forms for free-flyer and spherical blocks.
         self.flat = system.space.is_flat
-        self.chart_blocks: list[tuple[str, int]] | None = []
-        for start, stop in system.space.curved_blocks:
-            kind = next(j.shortname() for j in model.joints[1:] if j.idx_v == start and j.nv == stop - start)
-            if kind == "JointModelFreeFlyer":
-                self.chart_blocks.append(("se3", start))
-            elif kind == "JointModelSpherical":
-                self.chart_blocks.append(("so3", start))
-            else:  # e.g. a planar joint: one ConfigurationSpace call per element
-                self.chart_blocks = None
-                break
 
     def _check_integrate(self) -> bool:
         """Whether the vectorised integrate gives pin.integrate's results bit for bit on this model (a few random
@@ -697,20 +549,6 @@ class _BatchSpace:
             q_lie = np.ascontiguousarray(Q[:, self.lie_q]).reshape(-1)
             dv = np.ascontiguousarray(DV[:, self.lie_v]).reshape(-1)
             out[:, self.lie_q] = pin.integrate(self._lie_model(n), q_lie, dv).reshape(n, -1)
-
-    def chart_velocity(self, Q: np.ndarray, XI: np.ndarray, V: np.ndarray, out: np.ndarray) -> None:
-        """out = ConfigurationSpace.chart_velocity(Q, XI, V) row by row; shapes (n, nq), (n, nv) × 3."""
-        if self.chart_blocks is None:
-            chart_velocity = self.space.chart_velocity
-            for j in range(len(Q)):
-                out[j] = chart_velocity(Q[j], XI[j], V[j])
-            return
-        np.copyto(out, V)
-        for kind, start in self.chart_blocks:
-            if kind == "se3":
-                _se3_chart(XI[:, start : start + 6], V[:, start : start + 6], out[:, start : start + 6])
-            else:
-                _so3_chart(XI[:, start : start + 3], V[:, start : start + 3], out[:, start : start + 3])
 
 
 def _indexer(indices: list[int]) -> slice | np.ndarray:
@@ -1001,6 +839,7 @@ class _BatchedRun:
                 np.add(cur.flows, self.increment_flows, out=nxt.flows)
             return
         nv, K, space, k = self.nv, cur.K, self.space, self.layout.k
+        system_space, terms = self.system.space, self.method.chart_terms
         if self.chart_map:  # at the step's start xi = 0, where the chart Jacobian is the identity
             np.copyto(cur.XI_DOT[0], cur.V)
         evaluate(cur, 0)
@@ -1016,7 +855,7 @@ class _BatchedRun:
                 np.add(cur.V, Ys[:, nv : 2 * nv], out=cur.Vs[i])
                 space.integrate(cur.Q, Ys[:, :nv], cur.Qs[i])
                 if self.chart_map:
-                    space.chart_velocity(cur.Q, Ys[:, :nv], cur.Vs[i], cur.XI_DOT[i])
+                    system_space.chart_rates(Ys[:, :nv], cur.Vs[i], terms, cur.XI_DOT[i])
             evaluate(cur, i)
         increment = self.increment
         np.matmul(self.weights, K, out=self.increment_k)  # `(b @ K) * dt` with the same per-element BLAS call

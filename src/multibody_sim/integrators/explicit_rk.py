@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..state import chart_terms
 from .base import Integrator, System
 from .tableau import ButcherTableau, EmbeddedTableau
 
@@ -25,6 +26,7 @@ class ExplicitRungeKutta(Integrator):
         self.name = name
         self.tableau = tableau
         self.order = tableau.order
+        self.chart_terms = chart_terms(tableau.order)  # the chart map's series, truncated where the order allows
         self.description = description
         self.notes = notes
         self.evaluations_per_step = tableau.stages
@@ -60,7 +62,7 @@ class ExplicitRungeKutta(Integrator):
         else:
             K[0, nv : 2 * nv] = system.unchecked_forward_dynamics(q, v, tau, t)
             system.ledger_power(q, v, tau, K[0, 2 * nv :], t)
-        q_stage, v_stage = _fill_stages(system, q, v, tau, h, t, K, self._a, self._c, 1, len(self._a))
+        q_stage, v_stage = _fill_stages(system, q, v, tau, h, t, K, self._a, self._c, 1, len(self._a), self.chart_terms)
         return K, q_stage, v_stage
 
 
@@ -76,9 +78,10 @@ def _fill_stages(
     c: np.ndarray,
     start: int,
     stop: int,
+    terms: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fill rows start..stop-1 of K, each stage built from the rows before it with coefficients a[i, :i] at time
-    t + c[i] h; returns the last stage's (q, v)."""
+    t + c[i] h, the chart map's series truncated after A^terms; returns the last stage's (q, v)."""
     space = system.space
     flat = space.is_flat
     nv = len(v)
@@ -89,7 +92,7 @@ def _fill_stages(
         xi = y[:nv]
         v_stage = v + y[nv : 2 * nv]
         q_stage = space.integrate(q, xi)
-        row[:nv] = v_stage if flat else space.chart_velocity(q, xi, v_stage)
+        row[:nv] = v_stage if flat else space.chart_velocity(xi, v_stage, terms)
         t_stage = t + c[i] * h
         row[nv : 2 * nv] = system.unchecked_forward_dynamics(q_stage, v_stage, tau, t_stage)
         system.ledger_power(q_stage, v_stage, tau, row[2 * nv :], t_stage)
@@ -267,6 +270,7 @@ class DormandPrince853(AdaptiveRungeKutta):
                 self._c_extended,
                 len(attempt.stages),
                 len(K),
+                self.chart_terms,
             )
             attempt.extra_evaluations = len(K) - len(attempt.stages)
             delta = (self._b @ attempt.stages) * h
