@@ -137,6 +137,32 @@ def mujoco_model(robot: Any) -> Any:
 
 # ---- the free-flyer chart map's accuracy ---------------------------------------------------------------------
 _BERNOULLI = (1.0, -1 / 2, 1 / 6, 0.0, -1 / 30, 0.0, 1 / 42, 0.0, -1 / 30, 0.0, 5 / 66, 0.0, -691 / 2730, 0.0, 7 / 6)
+THETAS = np.logspace(-6, -1, 21)  # the sweep's stage-twist sizes
+EVERYDAY_THETA = 1e-3  # an RK4 stage at dt = 1 ms has θ ≈ 0.5–1 ms × the base's speed
+ROUND_OFF = 1000 * np.finfo(float).eps  # errors below this are not fitted: round-off, not truncation
+RK4_TERMS = INTEGRATORS["rk4"].chart_terms  # the series' last power each method keeps
+DOP853_TERMS = INTEGRATORS["dop853"].chart_terms
+SERIES_RK4 = f"chart_velocity(xi, v, {RK4_TERMS})"
+SERIES_DOP853 = f"chart_velocity(xi, v, {DOP853_TERMS})"
+CLOSED_FORM = "Jlog6(exp6(xi))"
+IN_USE = "chart_velocity inside rk4 runs"
+IN_USE_JLOG = "Jlog6(exp6(xi)) on the same stages"
+
+
+@dataclass
+class ChartError:
+    """One row of the chart map's accuracy table: errors per unit velocity against the 15-term series."""
+
+    kept: str  # what the map computes: "A²" for the series kept up to A², or "closed form"
+    worst: float
+    theta: float  # where the worst error was (|xi|)
+    everyday: float = math.nan  # worst for θ ≤ EVERYDAY_THETA (sweep rows only)
+    order: float | None = None  # slope of log(worst error) against log θ where above ROUND_OFF (≥ 3 points)
+    calls: int = 0  # chart maps checked (in-use rows only)
+
+
+def _power(k: int) -> str:
+    return "A" + str(k).translate(str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹"))
 
 
 def _hat(x: np.ndarray) -> np.ndarray:
@@ -146,7 +172,8 @@ def _hat(x: np.ndarray) -> np.ndarray:
 def inverse_right_jacobian_series(xi: np.ndarray) -> np.ndarray:
     """J_r(xi)^-1 of SE(3) for a small twist xi = (linear, angular), by its Bernoulli series Σ B_n (-ad)^n / n!.
 
-    Independent of Pinocchio's closed forms, and accurate to round-off for |xi| ≤ 0.1 with these 15 terms.
+    Written here apart from the package's truncated series and Pinocchio's closed forms (its own ad and
+    coefficients), and accurate to round-off for |xi| ≤ 0.1 with these 15 terms.
     """
     ad = np.zeros((6, 6))
     ad[:3, :3] = ad[3:, 3:] = _hat(xi[3:])
@@ -158,16 +185,22 @@ def inverse_right_jacobian_series(xi: np.ndarray) -> np.ndarray:
     return result
 
 
-def chart_map_accuracy(robot: Any, seed: int = SEED) -> dict[str, tuple[float, float]]:
-    """Worst error [per unit velocity] and where (|xi|) of free-flyer chart rates against the series.
+def chart_map_accuracy(robot: Any, seed: int = SEED) -> dict[str, ChartError]:
+    """Errors [per unit velocity] of free-flyer chart rates against the 15-term series, over a θ sweep.
 
-    Both the translation and rotation parts of the stage twist xi have norm θ, swept over 1e-6 … 1e-1; an RK4
-    stage at dt = 1 ms has θ ≈ 1e-3 · |v| to 5e-4 · |v|.
+    Rows: the package's series truncated as rk4 uses it (after A², the truncation being the error by design) and
+    as dop853 uses it (after A⁶), and Pinocchio's closed form. Both the translation and rotation parts of the stage
+    twist xi have norm θ, swept over 1e-6 … 1e-1; an RK4 stage at dt = 1 ms has θ ≈ 1e-3 · |v| to 5e-4 · |v|.
     """
     rng = np.random.default_rng(seed)
-    q = robot.random_configuration(rng)
-    worst = {"chart_velocity (dIntegrate + solve)": (0.0, 0.0), "Jlog6(exp6(xi))": (0.0, 0.0)}
-    for theta in np.logspace(-6, -1, 21):
+    space = robot.space
+    maps: dict[str, tuple[str, Callable[[np.ndarray, np.ndarray], np.ndarray]]] = {
+        SERIES_RK4: (_power(RK4_TERMS), lambda xi, v: space.chart_velocity(xi, v, RK4_TERMS)[:6]),
+        SERIES_DOP853: (_power(DOP853_TERMS), lambda xi, v: space.chart_velocity(xi, v, DOP853_TERMS)[:6]),
+        CLOSED_FORM: ("closed form (Pinocchio)", lambda xi, v: pin.Jlog6(pin.exp6(xi[:6])) @ v[:6]),
+    }
+    errors = {name: np.zeros(len(THETAS)) for name in maps}  # worst per θ
+    for i, theta in enumerate(THETAS):
         for _ in range(10):
             xi = np.zeros(robot.nv)
             xi[:3], xi[3:6] = rng.normal(size=3), rng.normal(size=3)
@@ -176,22 +209,22 @@ def chart_map_accuracy(robot: Any, seed: int = SEED) -> dict[str, tuple[float, f
             v = rng.normal(size=robot.nv)
             v /= np.max(np.abs(v[:6]))
             reference = inverse_right_jacobian_series(xi[:6]) @ v[:6]
-            candidates = {
-                "chart_velocity (dIntegrate + solve)": robot.space.chart_velocity(q, xi, v)[:6],
-                "Jlog6(exp6(xi))": pin.Jlog6(pin.exp6(xi[:6])) @ v[:6],
-            }
-            for name, rates in candidates.items():
-                error = float(np.max(np.abs(rates - reference)))
-                if error > worst[name][0]:
-                    worst[name] = (error, float(theta))
-    return worst
+            for name, (_, rates) in maps.items():
+                errors[name][i] = max(errors[name][i], float(np.max(np.abs(rates(xi, v) - reference))))
+    rows = {}
+    for name, (kept, _) in maps.items():
+        err = errors[name]
+        fitted = err > ROUND_OFF
+        order = None
+        if name != CLOSED_FORM and fitted.sum() >= 3:  # a power law is expected of the truncated series only
+            order = float(np.polyfit(np.log(THETAS[fitted]), np.log(err[fitted]), 1)[0])
+        worst = int(np.argmax(err))
+        everyday = float(err[THETAS <= EVERYDAY_THETA * (1 + 1e-9)].max())
+        rows[name] = ChartError(kept, float(err[worst]), float(THETAS[worst]), everyday, order)
+    return rows
 
 
-IN_USE = "chart_velocity inside rk4 runs"
-IN_USE_JLOG = "Jlog6(exp6(xi)) on the same stages"
-
-
-def chart_map_in_use(robot: Any, steps: int = 200, seed: int = SEED) -> dict[str, tuple[float, float]]:
+def chart_map_in_use(robot: Any, steps: int = 200, seed: int = SEED) -> dict[str, ChartError]:
     """Worst error of the chart rates the rk4 integrator actually uses, against the series (and where); and
     of the closed form Jlog6 on the same stages.
 
@@ -202,9 +235,14 @@ def chart_map_in_use(robot: Any, steps: int = 200, seed: int = SEED) -> dict[str
     space = robot.space
     original = space.chart_velocity
     worst = {IN_USE: (0.0, 0.0), IN_USE_JLOG: (0.0, 0.0)}
+    terms_seen: set[int] = set()
+    calls = 0
 
-    def checked(q_base: np.ndarray, xi: np.ndarray, v: np.ndarray) -> np.ndarray:
-        rates = original(q_base, xi, v)
+    def checked(xi: np.ndarray, v: np.ndarray, terms: int) -> np.ndarray:
+        nonlocal calls
+        rates = original(xi, v, terms)
+        calls += 1
+        terms_seen.add(terms)
         reference = inverse_right_jacobian_series(xi[:6]) @ v[:6]
         theta = float(np.linalg.norm(xi[3:6]))
         for name, candidate in ((IN_USE, rates[:6]), (IN_USE_JLOG, pin.Jlog6(pin.exp6(xi[:6])) @ v[:6])):
@@ -223,7 +261,13 @@ def chart_map_in_use(robot: Any, steps: int = 200, seed: int = SEED) -> dict[str
             simulate(robot, q0, v0, duration=steps * DT, dt=DT, integrator="rk4")
     finally:
         del space.chart_velocity
-    return worst
+    if not calls:  # the loop no longer goes through chart_velocity: these rows would be empty, not good news
+        raise RuntimeError("rk4 runs made no chart_velocity call: update chart_map_in_use")
+    kept = ", ".join(_power(k) for k in sorted(terms_seen))
+    return {
+        IN_USE: ChartError(kept, *worst[IN_USE], calls=calls),
+        IN_USE_JLOG: ChartError("closed form (Pinocchio)", *worst[IN_USE_JLOG], calls=calls),
+    }
 
 
 # ---- timed pieces ------------------------------------------------------------------------------------------
@@ -277,8 +321,8 @@ class PartTimer:
 
     An RK4 step makes 4 forward-dynamics calls, 4 integrate calls (3 stages and the update), 4 ledger-power
     calls, 3 chart-velocity maps on a floating base (stages 2 to 4), and the loop records energies every step
-    (the default output). The extras are related costs (the 6 × 6 solve inside the chart map, cheaper ways to
-    compute the same energies and chart rates), so the report can say whether a change would pay. Timed
+    (the default output). The extras are related costs (other ways to compute the same energies and chart
+    rates), so the report can say whether a change would pay. Timed
     once per round of the main measurement, so that both see the same machine.
     """
 
@@ -301,6 +345,7 @@ class PartTimer:
 
 
 Calls = dict[str, tuple[int, Callable[[], Any]]]
+CHART_CLOSED_FORM_COST = "chart rates, closed form"  # Jlog6(exp6(xi)) on rk4's 3 chart maps per step
 
 
 def _part_calls(robot: Any, q: np.ndarray, v: np.ndarray) -> tuple[Calls, Calls]:
@@ -324,7 +369,7 @@ def _part_calls(robot: Any, q: np.ndarray, v: np.ndarray) -> tuple[Calls, Calls]
     }
     extras: Calls = {"energies, one kinematics pass": (1, energies_one_pass)}
     if not space.is_flat:
-        calls["3 × chart_velocity"] = (3, lambda: space.chart_velocity(q, dv, v))
+        calls["3 × chart_velocity"] = (3, lambda: space.chart_velocity(dv, v, RK4_TERMS))
         free = [(a, b) for a, b in space.curved_blocks if b - a == 6 and robot.floating_base and a == 0]
         if free == list(space.curved_blocks):  # only a free-flyer: its chart Jacobian has a closed-form inverse
 
@@ -333,9 +378,7 @@ def _part_calls(robot: Any, q: np.ndarray, v: np.ndarray) -> tuple[Calls, Calls]
                 rates[:6] = pin.Jlog6(pin.exp6(dv[:6])) @ v[:6]
                 return rates
 
-            extras["chart rates, closed form"] = (3, chart_closed_form)
-            block = pin.dIntegrate(model, q, dv, pin.ArgumentPosition.ARG1)[:6, :6]
-            extras["np.linalg.solve, 6 × 6"] = (3, lambda: np.linalg.solve(block, v[:6]))
+            extras[CHART_CLOSED_FORM_COST] = (3, chart_closed_form)
     return calls, extras
 
 
@@ -500,6 +543,80 @@ def table(head: list[str], rows: list[list[str]]) -> list[str]:
     return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows]
 
 
+def chart_section(accuracy: dict[str, ChartError]) -> list[str]:
+    """The chart map's table and what it says, written from this run's numbers."""
+    rk4, dop, closed = accuracy[SERIES_RK4], accuracy[SERIES_DOP853], accuracy[CLOSED_FORM]
+    in_use, in_use_jlog = accuracy[IN_USE], accuracy[IN_USE_JLOG]
+    lines = [
+        para(f"""Free-flyer chart map: the stage rates xi' = J_r(xi)^-1 v that keep RK4's order on a floating
+            base. The integrators compute them by the series J_r(xi)^-1 = Σ b_n A^n (A = ad_xi; b = 1, 1/2,
+            1/12, 0, -1/720, …) truncated after the power their order needs, K = `chart_terms` ({RK4_TERMS}
+            for rk4, {DOP853_TERMS} for dop853). Each map is compared with the same series carried to 15 terms,
+            written independently in this script (exact to round-off for θ ≤ 0.1), for stage twists whose
+            linear and angular parts both have norm θ from 1e-6 to 1e-1 and velocities of unit size. At dt =
+            1 ms an RK4 stage has θ ≈ 0.5–1 ms × the base's speed, so θ = 1e-4 … 1e-3 is the everyday range.
+            The last two rows use the stages of actual rk4 runs instead (the first floating robot's base
+            spinning at 0.3, 0.6 and 1.2 rad/s, dt = 1 ms; {in_use.calls} chart maps)."""),
+        "",
+    ]
+    lines += table(
+        ["chart rates by", "series kept", "worst error", "at θ", f"worst for θ ≤ {EVERYDAY_THETA:.0e}", "fitted order"],
+        [
+            [
+                f"`{name}`",
+                row.kept,
+                f"{row.worst:.1e}",
+                f"{row.theta:.0e}",
+                "–" if math.isnan(row.everyday) else f"{row.everyday:.1e}",
+                "–" if row.order is None else f"{row.order:.1f}",
+            ]
+            for name, row in accuracy.items()
+        ],
+    )
+    eps = np.finfo(float).eps
+    # The first term dropped after A^K is b_(K+1) A^(K+1), or b_(K+2) A^(K+2) when b_(K+1) = 0 (K even, K ≥ 2).
+    expected = RK4_TERMS + (2 if RK4_TERMS >= 2 and RK4_TERMS % 2 == 0 else 1)
+    if rk4.order is None:
+        rk4_text = f"""rk4's map ({rk4.kept}) stays within {rk4.worst:.0e} over the whole sweep: round-off, no
+            visible truncation."""
+    else:
+        where = "the top of the sweep" if rk4.theta == THETAS[-1] else "not at the top of the sweep"
+        if abs(rk4.order - expected) < 0.5:
+            rk4_text = f"""rk4's map ({rk4.kept}) errs by up to {rk4.worst:.0e}, at θ = {rk4.theta:.0e} ({where}):
+                the truncation, by design. Its error grows as θ^{rk4.order:.1f} (fitted where above round-off),
+                as the first dropped term, b_{expected} A^{expected} v, predicts; in the everyday range it is
+                at most {rk4.everyday:.0e}. A stage's θ is O(dt), so the dropped terms change a step by
+                O(dt^{expected + 1})"""
+            local = INTEGRATORS["rk4"].order + 1
+            rk4_text += f", no more than RK4's own local error, O(dt^{local})." if expected + 1 >= local else "."
+        else:
+            rk4_text = f"""rk4's map ({rk4.kept}) errs by up to {rk4.worst:.0e}, at θ = {rk4.theta:.0e} ({where}),
+                and its error grows as θ^{rk4.order:.1f}, not as the θ^{expected} of the first dropped term,
+                b_{expected} A^{expected} v: more than the truncation; check the map. In the everyday range it
+                is at most {rk4.everyday:.0e}."""
+    dop_text = f"""dop853's map ({dop.kept}) errs by at most {dop.worst:.0e} ({dop.worst / eps:.0f} × machine
+        epsilon, at θ = {dop.theta:.0e}) and by {dop.everyday:.0e} for θ ≤ {EVERYDAY_THETA:.0e}."""
+    if closed.worst > 1e-12 and closed.theta < 1e-2:
+        closed_text = f"""Pinocchio's closed form errs by up to {closed.worst:.0e} at θ = {closed.theta:.0e},
+            inside the everyday range: just above a small-angle switch, where its coefficients lose digits to
+            cancellation. For θ ≤ {EVERYDAY_THETA:.0e} its worst error is
+            {closed.everyday / max(rk4.everyday, eps):.0e} times that of rk4's truncated series."""
+    else:
+        closed_text = f"""Pinocchio's closed form errs by at most {closed.worst:.0e} (at θ = {closed.theta:.0e})."""
+    if in_use.worst < 1e-11:
+        use_text = f"""Inside the rk4 runs the map erred by at most {in_use.worst:.0e}, so its truncation does not
+            limit the integrator in practice."""
+    else:
+        use_text = f"""Inside the rk4 runs the map erred by up to {in_use.worst:.0e}, which puts a floor under
+            floating-base convergence studies."""
+    if in_use.worst < rk4.everyday / 10:  # False for NaN
+        use_text += f""" That is below the sweep's {rk4.everyday:.0e} in the same range: a stage's velocity is
+            nearly parallel to its twist (exactly so in RK4's second stage), and ad_xi xi = 0."""
+    if in_use_jlog.worst > 10 * max(in_use.worst, eps):
+        use_text += f""" The closed form would have erred by {in_use_jlog.worst:.0e} on the same stages."""
+    return [*lines, "", para(" ".join([rk4_text, dop_text, closed_text, use_text]))]
+
+
 def write_report(
     path: Path,
     results: list[RobotResult],
@@ -511,7 +628,7 @@ def write_report(
     call_profile: str,
     numpy_op_us: float,
     loads: tuple[float, float],
-    accuracy: dict[str, tuple[float, float]] | None,
+    accuracy: dict[str, ChartError] | None,
 ) -> str:
     load_before, load_after = loads
     v = versions()
@@ -624,42 +741,7 @@ def write_report(
         lines.append("MuJoCo is not installed (`pip install mujoco` into .venv): its columns and checks were skipped.")
 
     if accuracy:
-        lines += [
-            "",
-            para("""Free-flyer chart map: the stage rates xi' = J_r(xi)^-1 v that keep RK4's order on a floating
-            base, against the Bernoulli series of SE(3)'s inverse right Jacobian (Σ B_n (-ad_xi)^n / n!,
-            independent of Pinocchio), for stage twists whose linear and angular parts both have norm θ from
-            1e-6 to 1e-1 and velocities of unit size. At dt = 1 ms an RK4 stage has θ ≈ 0.5–1 ms × the
-            base's speed, so θ = 1e-4 … 1e-3 is the everyday range.
-            The last two rows use the stages of actual rk4 runs instead (the first floating robot's base
-            spinning at 0.3, 0.6 and 1.2 rad/s, dt = 1 ms)."""),
-            "",
-        ]
-        lines += table(
-            ["chart rates by", "worst error", "at θ"],
-            [[f"`{name}`", f"{err:.1e}", f"{th:.0e}"] for name, (err, th) in accuracy.items()],
-        )
-        worst_error, worst_theta = accuracy["chart_velocity (dIntegrate + solve)"]
-        in_use, in_use_jlog = accuracy[IN_USE][0], accuracy[IN_USE_JLOG][0]
-        if worst_error > 1e-12:
-            if in_use < 1e-11:
-                consequence = f"""Inside the rk4 runs (third row) today's map erred by at most {in_use:.0e}: a
-                    stage's velocity is nearly parallel to its twist (exactly so in RK4's second stage, where
-                    J_r(xi)^-1 v = v), where the exact map barely differs from the identity and the faulty
-                    coefficient hardly contributes, so it does not limit the integrator in practice."""
-            else:
-                consequence = f"""Inside the rk4 runs (third row) it reached {in_use:.0e}, which puts a floor
-                    under floating-base convergence studies."""
-            if in_use_jlog > 10 * max(in_use, 1e-16):
-                consequence += f""" Jlog6's error (fourth row, {in_use_jlog:.0e}) is not suppressed that way:
-                    it comes through log6 ∘ exp6 rather than through ad_xi."""
-            lines += [
-                "",
-                para(f"""The series is exact to round-off over this range, so the first two rows are errors of
-                Pinocchio's closed forms (`dIntegrate`'s free-flyer block is `Jexp6`) for twists and velocities
-                in general position, largest near θ = {worst_theta:.0e}: just above a small-angle switch, where
-                a closed-form coefficient loses digits to cancellation. {consequence}"""),
-            ]
+        lines += ["", *chart_section(accuracy)]
     lines += [
         "",
         "## Where the time goes in an RK4 step",
@@ -708,7 +790,7 @@ def interpretation(
     steps: int,
     numpy_op_us: float,
     profile: Profile | None,
-    accuracy: dict[str, tuple[float, float]] | None,
+    accuracy: dict[str, ChartError] | None,
 ) -> list[str]:
     """The paragraphs on where the time goes, written from this run's numbers.
 
@@ -738,13 +820,35 @@ def interpretation(
         text += [
             "",
             para(f"""In the profile of {name}, the largest own-time shares are {listed}. cProfile does not see
-            Pinocchio's Boost.Python functions as calls of their own: their time is the own time of the
-            Python function that calls them (`unchecked_forward_dynamics` holds `pin.aba`, `integrate` holds
-            `pin.integrate`, `chart_velocity` holds `pin.dIntegrate`); numpy's Python-level wrappers (e.g.
-            `_linalg.py`) do show."""),
+            Pinocchio's Boost.Python functions, nor numpy's operators (`@`, `*`, indexing), as calls of their
+            own: their time is the own time of the Python function that uses them (`unchecked_forward_dynamics`
+            holds `pin.aba`, `integrate` holds `pin.integrate`, `chart_velocity` holds its truncated series'
+            6 × 6 products and makes no Pinocchio call); numpy functions and array methods called by name
+            (`copy`, `reshape`) do show."""),
+        ]
+    charts = [
+        (r.name, r.parts["3 × chart_velocity"], r.extras[CHART_CLOSED_FORM_COST], rk4)
+        for r, rk4, *_ in rows
+        if "3 × chart_velocity" in r.parts and CHART_CLOSED_FORM_COST in r.extras
+    ]
+    if charts:
+        listed = ", ".join(
+            f"{n} {fmt(series)} µs ({series / rk4:.0%} of the step) against {fmt(closed)} µs"
+            for n, series, closed, rk4 in charts
+        )
+        verdict = ""
+        if accuracy:
+            closed, series = accuracy[CLOSED_FORM].everyday, accuracy[SERIES_RK4].everyday
+            if closed > 10 * max(series, np.finfo(float).eps):  # the cheaper map would cost digits
+                verdict = f""" Whatever its cost, the closed form is no alternative: for θ ≤ {EVERYDAY_THETA:.0e}
+                    it errs by up to {closed:.0e} against the series' {series:.0e} (the chart-map table)."""
+        text += [
+            "",
+            para(f"""The chart map (3 × `chart_velocity` per step, the series kept up to {_power(RK4_TERMS)})
+            against Pinocchio's closed form `Jlog6(exp6(xi)) @ v` on the same stages: {listed} per
+            step.{verdict}"""),
         ]
     suggestions = []
-    # (The chart map's solve was made a direct LAPACK call on this script's earlier advice: no suggestion left.)
     beyond = [(r.name, record - r.parts["1 × energies (record)"], rk4) for r, rk4, _, _, record in rows]
     if median([extra / rk4 for _, extra, rk4 in beyond]) > 0.05:
         listed = ", ".join(f"{n} {fmt(extra)} µs" for n, extra, _ in beyond)

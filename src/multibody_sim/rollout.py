@@ -6,9 +6,11 @@ operations over the whole batch, configuration updates vectorised (vector coordi
 joints by one Pinocchio ``integrate`` call over copies of them). Per element the arithmetic is simulate()'s:
 the same BLAS calls (multi-term stage sums, the step's combination, the ledger's dot products), exact products
 where a stage sum has one power-of-two coefficient (RK4's), the same Pinocchio calls; so a batch gives
-``simulate()``'s samples bit for bit, floating bases included (the chart map of free-flyer, spherical and
-planar joints is ConfigurationSpace.chart_rates, row for row chart_velocity's operations). Adaptive and
-implicit methods run element by element through ``simulate()``.
+``simulate()``'s samples bit for bit. One exception: the chart map of free-flyer, spherical and planar joints
+(in the Runge–Kutta stages after the first) is the same series as simulate()'s but its small matrix products are
+made as a stack over the batch (ConfigurationSpace.chart_rates), which can round differently by an ulp: there
+the batch equals simulate() to round-off. Adaptive and implicit methods run element by element through
+``simulate()``.
 """
 
 from __future__ import annotations
@@ -185,8 +187,10 @@ def rollout(
 ) -> BatchTrajectory:
     """Simulate a batch of initial states (with controllers or open-loop torques) for `duration` seconds.
 
-    Each element gets the samples ``simulate(system, q0s[b], v0s[b], ...)`` would return, bit for bit on the
-    local backend; an element that stops early keeps its samples and its status, and never stops the others.
+    Each element gets the samples ``simulate(system, q0s[b], v0s[b], ...)`` would return: bit for bit on the
+    local backend, but to round-off on free-flyer, spherical and planar joints with multi-stage methods (their
+    chart map's products are stacked over the batch); an element that stops early keeps its samples and its
+    status, and never stops the others.
 
     Args:
         system: the robot (or scene).

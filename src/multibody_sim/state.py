@@ -54,9 +54,12 @@ class ConfigurationSpace:
         self.nv = model.nv
         self.curved_blocks = _curved_blocks(model)
         # Per curved block, A's generators G (d, d·d): A(xi) = (xi_block @ G).reshape(d, d). Every entry of A is
-        # one coordinate of xi times 0 or ±1, so A is built by indexing: A.flat = xi_block[index] * sign.
+        # one coordinate of xi times 0 or ±1, so A is built by indexing: A = xi_block[index] * sign, (d, d) each.
         self.chart_generators = [_chart_generators(model, start, stop) for start, stop in self.curved_blocks]
-        self._chart_entries = [(np.argmax(G != 0.0, axis=0), G.sum(axis=0)) for G in self.chart_generators]
+        self._chart_entries = [
+            (np.argmax(G != 0.0, axis=0).reshape(stop - start, -1), G.sum(axis=0).reshape(stop - start, -1))
+            for (start, stop), G in zip(self.curved_blocks, self.chart_generators, strict=True)
+        ]
         self.neutral = pin.neutral(model)
 
     @property
@@ -77,37 +80,34 @@ class ConfigurationSpace:
         return pin.interpolate(self.model, q0, q1, u)
 
     def chart_velocity(self, xi: np.ndarray, v: np.ndarray, terms: int) -> np.ndarray:
-        """Rate of the chart coordinate, xi' = J(xi)^-1 v with the series truncated after A^terms, shape (nv,).
-
-        The same operations as one row of chart_rates (numpy's matmul makes the same per-item product for a
-        (d, d) @ (d, 1) pair alone or in a stack), so a batch's rows equal this bit for bit."""
+        """Rate of the chart coordinate, xi' = J(xi)^-1 v with the series truncated after A^terms, shape (nv,)."""
         if not self.curved_blocks or terms == 0:
             return v
         out = v.copy()
         for (start, stop), (index, sign) in zip(self.curved_blocks, self._chart_entries, strict=True):
-            d = stop - start
-            A = (xi[start:stop][index] * sign).reshape(d, d)
-            v_block = out[start:stop].reshape(d, 1).copy()
+            A = xi[start:stop][index] * sign
+            v_block = v[start:stop]
             y = v_block * CHART_SERIES[terms]
             for k in range(terms - 1, 0, -1):  # Horner: y = A y + b_k v
-                y = A @ y
+                y = A.dot(y)
                 if CHART_SERIES[k]:
                     y += v_block * CHART_SERIES[k]
-            y = A @ y
+            y = A.dot(y)
             y += v_block
-            out[start:stop] = y[:, 0]
+            out[start:stop] = y
         return out
 
     def chart_rates(self, XI: np.ndarray, V: np.ndarray, terms: int, out: np.ndarray) -> np.ndarray:
-        """chart_velocity of n rows at once, shapes (n, nv) × 3; returns out. Row for row the operations of
-        chart_velocity (a stack of per-row matrix products), so no row's result depends on the batch."""
+        """chart_velocity of n rows at once, shapes (n, nv) × 3; returns out. The same operations as
+        chart_velocity but the matrix products, made as a stack (per-row BLAS calls whose rounding can differ from
+        chart_velocity's by an ulp); no row's result depends on the batch."""
         np.copyto(out, V)
         if terms == 0:
             return out
         n = len(V)
         for (start, stop), (index, sign) in zip(self.curved_blocks, self._chart_entries, strict=True):
             d = stop - start
-            A = (XI[:, start:stop][:, index] * sign).reshape(n, d, d)
+            A = XI[:, start:stop][:, index] * sign
             v = np.ascontiguousarray(V[:, start:stop]).reshape(n, d, 1)
             y = v * CHART_SERIES[terms]
             for k in range(terms - 1, 0, -1):  # Horner: y = A y + b_k v
