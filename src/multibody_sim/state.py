@@ -13,6 +13,9 @@ _ARG_V = pin.ArgumentPosition.ARG1
 # Taylor coefficients b_n of x / (1 - e^-x) = Σ b_n xⁿ (b_n = |B_n| / n! but b_1 = +½): the chart map's series,
 # J(ξ)⁻¹ = Σ b_n A(ξ)ⁿ with A linear in ξ (see ConfigurationSpace).
 CHART_SERIES = (1.0, 1 / 2, 1 / 12, 0.0, -1 / 720, 0.0, 1 / 30240, 0.0, -1 / 1209600)
+# The same series in H = A / 2 (an exact scaling): Σ b_n 2ⁿ Hⁿ, whose first two coefficients are 1, so Horner's
+# rule on H needs no multiplication at its last two steps.
+_HALF_SERIES = tuple(b * 2.0**n for n, b in enumerate(CHART_SERIES))
 
 
 def chart_terms(order: int) -> int:
@@ -54,10 +57,10 @@ class ConfigurationSpace:
         self.nv = model.nv
         self.curved_blocks = _curved_blocks(model)
         # Per curved block, A's generators G (d, d·d): A(xi) = (xi_block @ G).reshape(d, d). Every entry of A is
-        # one coordinate of xi times 0 or ±1, so A is built by indexing: A = xi_block[index] * sign, (d, d) each.
+        # one coordinate of xi times 0 or ±1, so H = A / 2 is built by indexing: H = xi_block[index] * sign / 2.
         self.chart_generators = [_chart_generators(model, start, stop) for start, stop in self.curved_blocks]
         self._chart_entries = [
-            (np.argmax(G != 0.0, axis=0).reshape(stop - start, -1), G.sum(axis=0).reshape(stop - start, -1))
+            (np.argmax(G != 0.0, axis=0).reshape(stop - start, -1), 0.5 * G.sum(axis=0).reshape(stop - start, -1))
             for (start, stop), G in zip(self.curved_blocks, self.chart_generators, strict=True)
         ]
         self.neutral = pin.neutral(model)
@@ -84,16 +87,16 @@ class ConfigurationSpace:
         if not self.curved_blocks or terms == 0:
             return v
         out = v.copy()
-        for (start, stop), (index, sign) in zip(self.curved_blocks, self._chart_entries, strict=True):
-            A = xi[start:stop][index] * sign
+        for (start, stop), (index, half_sign) in zip(self.curved_blocks, self._chart_entries, strict=True):
+            H = xi[start:stop][index] * half_sign
             v_block = v[start:stop]
-            y = v_block * CHART_SERIES[terms]
-            for k in range(terms - 1, 0, -1):  # Horner: y = A y + b_k v
-                y = A.dot(y)
-                if CHART_SERIES[k]:
-                    y += v_block * CHART_SERIES[k]
-            y = A.dot(y)
-            y += v_block
+            y = v_block * _HALF_SERIES[terms]
+            for k in range(terms - 1, -1, -1):  # Horner: y = H y + c_k v
+                y = H.dot(y)
+                if k < 2:
+                    y += v_block
+                elif _HALF_SERIES[k]:
+                    y += v_block * _HALF_SERIES[k]
             out[start:stop] = y
         return out
 
@@ -105,17 +108,17 @@ class ConfigurationSpace:
         if terms == 0:
             return out
         n = len(V)
-        for (start, stop), (index, sign) in zip(self.curved_blocks, self._chart_entries, strict=True):
+        for (start, stop), (index, half_sign) in zip(self.curved_blocks, self._chart_entries, strict=True):
             d = stop - start
-            A = XI[:, start:stop][:, index] * sign
+            H = XI[:, start:stop][:, index] * half_sign
             v = np.ascontiguousarray(V[:, start:stop]).reshape(n, d, 1)
-            y = v * CHART_SERIES[terms]
-            for k in range(terms - 1, 0, -1):  # Horner: y = A y + b_k v
-                y = np.matmul(A, y)
-                if CHART_SERIES[k]:
-                    y += v * CHART_SERIES[k]
-            y = np.matmul(A, y)
-            y += v
+            y = v * _HALF_SERIES[terms]
+            for k in range(terms - 1, -1, -1):  # Horner: y = H y + c_k v
+                y = np.matmul(H, y)
+                if k < 2:
+                    y += v
+                elif _HALF_SERIES[k]:
+                    y += v * _HALF_SERIES[k]
             out[:, start:stop] = y.reshape(n, d)
         return out
 
