@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import math
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -15,6 +14,7 @@ from .integrators.explicit_rk import ExplicitRungeKutta
 from .integrators.implicit import ImplicitEuler, ImplicitMidpoint
 from .integrators.partitioned import SemiImplicitEuler
 from .robot import Robot
+from .simulation import finite_number, positive_number
 from .state import CHART_SERIES
 
 _ARG_Q = pin.ArgumentPosition.ARG0
@@ -85,10 +85,8 @@ def linearize(
     q = system.check_q(q)
     v = system.check_v(v)
     tau = system.check_tau(tau)
-    dt = _positive(dt, "dt")
-    if isinstance(t, bool) or not isinstance(t, (int, float, np.integer, np.floating)) or not math.isfinite(t):
-        raise InvalidArgumentError(f"t must be a finite number of seconds, got {t!r}")
-    t = float(t)
+    dt = positive_number(dt, "dt")
+    t = finite_number(t, "t")
     method.check_system(system)
     with np.errstate(over="ignore", invalid="ignore"):
         if isinstance(method, ExplicitRungeKutta):
@@ -272,10 +270,3 @@ def _selectors(nv: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _split(jacobian: np.ndarray, nv: int) -> tuple[np.ndarray, np.ndarray]:
     return jacobian[:, : 2 * nv].copy(), jacobian[:, 2 * nv :].copy()
-
-
-def _positive(value: Any, name: str) -> float:
-    is_number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-    if not is_number or not (math.isfinite(value) and value > 0):
-        raise InvalidArgumentError(f"{name} must be a positive number of seconds, got {value!r}")
-    return float(value)

@@ -238,13 +238,24 @@ def _check_options(
             )
 
 
+def _is_number(value: Any) -> bool:
+    # Numbers only: float() would also take "0.5" and True (1 s), which hide mistakes at the public boundary.
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
 def positive_number(value: Any, name: str, unit: str | None = "seconds") -> float:
     """value as a float if it is a positive finite number (not a string or bool), else InvalidArgumentError."""
-    # Numbers only: float() would also take "0.5" and True (1 s), which hide mistakes at the public boundary.
-    is_number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-    if not is_number or not (math.isfinite(value) and value > 0):
+    if not _is_number(value) or not (math.isfinite(value) and value > 0):
         what = f"a positive number of {unit}" if unit else "a positive number"
         raise InvalidArgumentError(f"{name} must be {what}, got {value!r}")
+    return float(value)
+
+
+def finite_number(value: Any, name: str) -> float:
+    """value as a float if it is a finite number of seconds (a time; not a string or bool), else
+    InvalidArgumentError."""
+    if not _is_number(value) or not math.isfinite(value):
+        raise InvalidArgumentError(f"{name} must be a finite number of seconds, got {value!r}")
     return float(value)
 
 

@@ -15,6 +15,7 @@ from .simulation import (
     MIN_STEP_FRACTION,
     Controller,
     _check_options,
+    finite_number,
     positive_number,
     stable_implicit_integrators,
 )
@@ -113,7 +114,7 @@ class Stepper:
         method.check_system(system)
         self._q0 = system.check_q(q0, "q0") if q0 is not None else system.neutral()
         self._v0 = system.check_v(v0, "v0") if v0 is not None else np.zeros(system.nv)
-        self._t0_initial = _finite(t0, "t0")
+        self._t0_initial = finite_number(t0, "t0")
         self.check_energy = bool(check_energy)
         elements = system.ledger_elements
         self._element_names = [name for name, _ in elements]
@@ -137,7 +138,7 @@ class Stepper:
         """
         q = self.system.check_q(q, "q") if q is not None else self._q0.copy()
         v = self.system.check_v(v, "v") if v is not None else self._v0.copy()
-        t = _finite(t, "t") if t is not None else self._t0_initial
+        t = finite_number(t, "t") if t is not None else self._t0_initial
         self._q, self._v = _frozen(q), _frozen(v)
         self._t0, self._k = t, 0  # time is t0 + k·dt: counted, never summed, as in simulate()
         self._tau = _frozen(np.zeros(self.system.nv))
@@ -176,7 +177,7 @@ class Stepper:
 
     @t.setter
     def t(self, value: float) -> None:
-        self._t0, self._k = _finite(value, "t"), 0
+        self._t0, self._k = finite_number(value, "t"), 0
 
     @property
     def q(self) -> np.ndarray:
@@ -285,7 +286,7 @@ class Stepper:
                 torque.
             SimulationError: a step failed; the stepper stays at the last good state, before t.
         """
-        t_end = _finite(t, "t")
+        t_end = finite_number(t, "t")
         now = self.t
         if t_end < now:
             raise InvalidArgumentError(f"t must not be before the current time {now!r} s, got {t_end!r} s")
@@ -479,17 +480,6 @@ class Stepper:
     def __repr__(self) -> str:
         name = getattr(self.system, "name", type(self.system).__name__)
         return f"<Stepper {name} {self.integrator.name} dt={self.dt:g} s at t={self.t:g} s>"
-
-
-def _is_number(value: Any) -> bool:
-    # Numbers only: float() would also take "0.5" and True (1 s), which hide mistakes at the public boundary.
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-
-
-def _finite(value: Any, name: str) -> float:
-    if not _is_number(value) or not math.isfinite(value):
-        raise InvalidArgumentError(f"{name} must be a finite number of seconds, got {value!r}")
-    return float(value)
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
