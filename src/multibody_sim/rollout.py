@@ -485,7 +485,7 @@ class _BatchSpace:
 
     def __init__(self, system: Robot):
         model = system.model
-        self.model, self.space = model, system.space
+        self.model = model
         self.nq, self.nv = model.nq, model.nv
         runs: list[list[int]] = []  # [q start, v start, length] of consecutive vector-coordinate joints
         lie: list[Any] = []
@@ -510,7 +510,6 @@ class _BatchSpace:
         self._lie_models: dict[int, pin.Model] = {}
         self.per_element = not self._check_integrate()
         self.vector_space = not lie and self.runs == [(0, 0, model.nq)] and not self.per_element
-        self.flat = system.space.is_flat
 
     def _check_integrate(self) -> bool:
         """Whether the vectorised integrate gives pin.integrate's results bit for bit on this model (a few random
@@ -677,7 +676,7 @@ class _BatchedRun:
         # With neither torques nor damping every ledger flow is zero (as simulate() finds it): none is computed.
         self.ledger_needed = self.torque_power or self.damping is not None
         self.space = _BatchSpace(system)
-        self.chart_map = not self.space.flat
+        self.chart_map = not system.space.is_flat
         self.sie = type(method) is SemiImplicitEuler
         if self.sie:
             stages = 1
