@@ -5,6 +5,9 @@ Every integrator moves configurations through this module, so nobody writes ``q 
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
 import numpy as np
 import pinocchio as pin
 
@@ -89,15 +92,7 @@ class ConfigurationSpace:
         out = v.copy()
         for (start, stop), (index, half_sign) in zip(self.curved_blocks, self._chart_entries, strict=True):
             H = xi[start:stop][index] * half_sign
-            v_block = v[start:stop]
-            y = v_block * _HALF_SERIES[terms]
-            for k in range(terms - 1, -1, -1):  # Horner: y = H y + c_k v
-                y = H.dot(y)
-                if k < 2:
-                    y += v_block
-                elif _HALF_SERIES[k]:
-                    y += v_block * _HALF_SERIES[k]
-            out[start:stop] = y
+            out[start:stop] = _chart_series(H.dot, v[start:stop], terms)
         return out
 
     def chart_rates(self, XI: np.ndarray, V: np.ndarray, terms: int, out: np.ndarray) -> np.ndarray:
@@ -112,31 +107,33 @@ class ConfigurationSpace:
             d = stop - start
             H = XI[:, start:stop][:, index] * half_sign
             v = np.ascontiguousarray(V[:, start:stop]).reshape(n, d, 1)
-            y = v * _HALF_SERIES[terms]
-            for k in range(terms - 1, -1, -1):  # Horner: y = H y + c_k v
-                y = np.matmul(H, y)
-                if k < 2:
-                    y += v
-                elif _HALF_SERIES[k]:
-                    y += v * _HALF_SERIES[k]
-            out[:, start:stop] = y.reshape(n, d)
+            out[:, start:stop] = _chart_series(functools.partial(np.matmul, H), v, terms).reshape(n, d)
         return out
 
     def chart_matrix(self, xi: np.ndarray, terms: int) -> list[np.ndarray]:
         """The truncated J(xi)^-1 = Σ_{n≤terms} b_n A(xi)^n of each curved block, shapes (d, d)."""
         out = []
-        for (start, stop), G in zip(self.curved_blocks, self.chart_generators, strict=True):
-            d = stop - start
-            A = (xi[start:stop] @ G).reshape(d, d)
-            P = np.eye(d) * CHART_SERIES[terms]
-            for k in range(terms - 1, -1, -1):
-                P = A @ P + np.eye(d) * CHART_SERIES[k]
-            out.append(P)
+        for (start, stop), (index, half_sign) in zip(self.curved_blocks, self._chart_entries, strict=True):
+            H = xi[start:stop][index] * half_sign
+            out.append(_chart_series(H.dot, np.eye(stop - start), terms))
         return out
 
     def is_normalized(self, q: np.ndarray, tolerance: float = 1e-6) -> bool:
         """Whether the unit-quaternion and unit-complex entries of q have unit norm."""
         return bool(pin.isNormalized(self.model, q, tolerance))
+
+
+def _chart_series(apply_h: Callable[[np.ndarray], np.ndarray], v: np.ndarray, terms: int) -> np.ndarray:
+    """Σ_{n≤terms} c_n Hⁿ v by Horner's rule, with H = A / 2 applied by `apply_h` (c_n: _HALF_SERIES). v is a
+    vector, a stack of column vectors or a matrix (then the result is the truncated J⁻¹ itself when v = I)."""
+    y = v * _HALF_SERIES[terms]
+    for k in range(terms - 1, -1, -1):  # y = H y + c_k v
+        y = apply_h(y)
+        if k < 2:  # c_0 = c_1 = 1
+            y += v
+        elif _HALF_SERIES[k]:
+            y += v * _HALF_SERIES[k]
+    return y
 
 
 def _curved_blocks(model: pin.Model) -> list[tuple[int, int]]:
