@@ -686,6 +686,7 @@ class _BatchedRun:
             stages = len(a)
             self.stage_rules = [self._rule(a[i, :i]) for i in range(1, stages)]
             self.weights = method._b
+            self.chart_terms = method.chart_terms  # the chart map's series, truncated as the method's step does
         self.layout = _Layout(nq, nv, n_ledger, stages, nq + nv if self.chart_map else nq)
         # (stage, source stage, coefficient) when every stage takes the fast path of _rk_step, else None
         self.shifted_stages: list[tuple[int, int, float]] | None = None
@@ -842,7 +843,7 @@ class _BatchedRun:
                 np.add(cur.flows, self.increment_flows, out=nxt.flows)
             return
         nv, K, space, k = self.nv, cur.K, self.space, self.layout.k
-        system_space, terms = self.system.space, self.method.chart_terms
+        system_space = self.system.space
         if self.chart_map:  # at the step's start xi = 0, where the chart Jacobian is the identity
             np.copyto(cur.XI_DOT[0], cur.V)
         evaluate(cur, 0)
@@ -858,7 +859,7 @@ class _BatchedRun:
                 np.add(cur.V, Ys[:, nv : 2 * nv], out=cur.Vs[i])
                 space.integrate(cur.Q, Ys[:, :nv], cur.Qs[i])
                 if self.chart_map:
-                    system_space.chart_rates(Ys[:, :nv], cur.Vs[i], terms, cur.XI_DOT[i])
+                    system_space.chart_rates(Ys[:, :nv], cur.Vs[i], self.chart_terms, cur.XI_DOT[i])
             evaluate(cur, i)
         increment = self.increment
         np.matmul(self.weights, K, out=self.increment_k)  # `(b @ K) * dt` with the same per-element BLAS call
