@@ -513,6 +513,11 @@ class _BatchSpace:
         self._lie_models: dict[int, pin.Model] = {}
         self.per_element = not self._check_integrate()
         self.vector_space = not lie and self.runs == [(0, 0, model.nq)] and not self.per_element
+        # Whether every vector coordinate sits nq - nv columns after its velocity (the other joints come first,
+        # as a floating base does): then q's vector coordinates and v line up with the stage rates' row under
+        # one offset, as on a vector space (see _rk_step).
+        self.extra = model.nq - model.nv
+        self.aligned = not self.per_element and all(q - v == self.extra for q, v, _ in self.runs)
 
     def _check_integrate(self) -> bool:
         """Whether the vectorised integrate gives pin.integrate's results bit for bit on this model (a few random
@@ -553,10 +558,17 @@ class _BatchSpace:
         for q, v, n in self.runs:
             np.add(Q[:, q : q + n], DV[:, v : v + n], out=out[:, q : q + n])
         if self.lie_joints:
-            n = len(Q)
-            q_lie = np.ascontiguousarray(Q[:, self.lie_q]).reshape(-1)
-            dv = np.ascontiguousarray(DV[:, self.lie_v]).reshape(-1)
-            out[:, self.lie_q] = pin.integrate(self._lie_model(n), q_lie, dv).reshape(n, -1)
+            self.integrate_lie(self.lie_coordinates(Q), DV, out)
+
+    def lie_coordinates(self, Q: np.ndarray) -> np.ndarray:
+        """The coordinates of Q's non-vector joints, flat and contiguous: integrate_lie's argument."""
+        return np.ascontiguousarray(Q[:, self.lie_q]).reshape(-1)
+
+    def integrate_lie(self, q_lie: np.ndarray, DV: np.ndarray, out: np.ndarray) -> None:
+        """The non-vector joints' columns of out = Q ⊕ DV, from q_lie = lie_coordinates(Q); DV (n, nv)."""
+        n = len(DV)
+        dv = np.ascontiguousarray(DV[:, self.lie_v]).reshape(-1)
+        out[:, self.lie_q] = pin.integrate(self._lie_model(n), q_lie, dv).reshape(n, -1)
 
 
 # Set-up shared by the rollout calls on one robot (the bit-for-bit check of the vectorised integrate, and the
@@ -591,14 +603,14 @@ class _Views:
     view whose per-element blocks the BLAS calls read as ExplicitRungeKutta's K."""
 
     def __init__(self, W: np.ndarray, layout: _Layout, tau_effective: np.ndarray, num_threads: int, pool: Any):
-        nq, nv, k = layout.nq, layout.nv, layout.k
+        nq, nv, k, shift = layout.nq, layout.nv, layout.k, layout.shift
         stages = range(len(W))
         self.W = W
         self.flat = [W[i].reshape(-1) for i in stages]
-        # Flat views offset by k: head[i][x] and tail[j][x] are the same column of the same element in stage i's
-        # state [q | v] and stage j's K (see _rk_step).
-        self.head = [f[: len(f) - k] for f in self.flat]
-        self.tail = [f[k:] for f in self.flat]
+        # Flat views offset by `shift`: head[i][x] and tail[j][x] are the same element's column of stage i's state
+        # [q | v] and the matching column of stage j's K (see _rk_step).
+        self.head = [f[: len(f) - shift] for f in self.flat]
+        self.tail = [f[shift:] for f in self.flat]
         self.X = W[0][:, : nq + nv]  # the state [q | v]
         self.Q = W[0][:, :nq]
         self.V = W[0][:, nq : nq + nv]
@@ -641,6 +653,12 @@ class _Layout:
     @property
     def width(self) -> int:
         return self.k + 2 * self.nv + self.n_ledger
+
+    @property
+    def shift(self) -> int:
+        """Flat offset from a vector coordinate of q (or v) to its rate in K, when the non-vector joints come
+        first (each has nq - nv more coordinates than velocities)."""
+        return self.k - (self.nq - self.nv)
 
 
 class _BatchedRun:
@@ -708,7 +726,7 @@ class _BatchedRun:
         self.layout = _Layout(nq, nv, n_ledger, stages, nq + nv if self.chart_map else nq)
         # (stage, source stage, coefficient) when every stage takes the fast path of _rk_step, else None
         self.shifted_stages: list[tuple[int, int, float]] | None = None
-        if not self.sie and self.space.vector_space and all(isinstance(r, tuple) for r in self.stage_rules):
+        if not self.sie and self.space.aligned and all(isinstance(r, tuple) for r in self.stage_rules):
             self.shifted_stages = [(i, r[0], r[1]) for i, r in enumerate(self.stage_rules, start=1)]  # type: ignore[index]
         # Samples: every output step, plus the final one (and an early stop's last state, which fits: see below).
         N = (self.n_steps - 1) // self.output_every + 2
@@ -757,11 +775,15 @@ class _BatchedRun:
         self.damping_v = np.empty_like(self.TAU)  # D v of the latest stage
         self.Y = np.empty((n, layout.width - layout.k))  # a stage sum (when not shifted, see _rk_step)
         self.increment = np.zeros((n, layout.width))  # the step's increment in columns k: (0 before them)
-        first, nv = layout.k, layout.nv
+        first, nv, shift, extra = layout.k, layout.nv, layout.shift, layout.nq - layout.nv
         self.increment_k, self.increment_flows = self.increment[:, first:], self.increment[:, first + 2 * nv :]
+        self.increment_xi = self.increment[:, first : first + nv]
         self.increment_flat = self.increment.reshape(-1)
-        self.increment_tail = self.increment_flat[first:]
-        self.shifted = np.empty(max(0, n * layout.width - first))
+        self.increment_tail = self.increment_flat[shift:]
+        # A stage's shifted product, whose rows hold c h K_j with its xi' block in columns extra:extra + nv
+        shifted = np.empty(n * layout.width)
+        self.shifted = shifted[: max(0, len(shifted) - shift)]
+        self.shifted_xi = shifted.reshape(n, layout.width)[:, extra : extra + nv]
         self.views = [
             _Views(np.zeros((layout.stages, n, layout.width)), layout, self.tau_effective, self.num_threads, self.pool)
             for _ in range(2)
@@ -843,20 +865,30 @@ class _BatchedRun:
         """ExplicitRungeKutta.step on every row: stages into cur's buffer, the new state and flows into nxt's."""
         evaluate = self._evaluate
         if self.shifted_stages is not None:
-            # Vector coordinates and stage sums of one exact product: [q | v] + c h [v_j | v'_j] for all rows in
-            # two contiguous operations. On flat views K_j's row starts k = nq columns after the state's, so an
-            # offset of k lines every element up with its own (the columns after 2 nv receive junk, which the
-            # stage's dynamics and ledger overwrite, or which nothing reads).
-            head0, shifted = cur.head[0], self.shifted
+            # Vector coordinates and stage sums of one exact product: [q | v] + c h [xi'_j | v'_j] for all rows in
+            # two contiguous operations. On flat views a vector coordinate's rate in K_j sits `shift` entries after
+            # it, so that offset lines every element up with its own (the columns after the state, and those of
+            # the non-vector joints, receive junk, which the stage's chart map, dynamics, ledger and Pinocchio's
+            # integrate overwrite, or which nothing reads).
+            head0, shifted, space = cur.head[0], self.shifted, self.space
+            q_lie = space.lie_coordinates(cur.Q) if space.lie_joints else None  # the stages' common base
+            if self.chart_map:  # at the step's start xi = 0, where the chart Jacobian is the identity
+                np.copyto(cur.XI_DOT[0], cur.V)
             evaluate(cur, 0)
             for i, j, coefficient in self.shifted_stages:
                 np.add(head0, np.multiply(cur.tail[j], coefficient * h, out=shifted), out=cur.head[i])
+                if q_lie is not None:  # xi = c h xi'_j: the product's own columns
+                    space.integrate_lie(q_lie, self.shifted_xi, cur.Qs[i])
+                    if self.chart_map:
+                        self.system.space.chart_rates(self.shifted_xi, cur.Vs[i], self.chart_terms, cur.XI_DOT[i])
                 evaluate(cur, i)
             # `(b @ K) * dt` with the same per-element BLAS call, into columns k: of a zeroed (n, width) buffer,
             # then the new [q | v] by the same offset addition.
             np.matmul(self.weights, cur.K, out=self.increment_k)
             np.multiply(self.increment_flat, h, out=self.increment_flat)
             np.add(head0, self.increment_tail, out=nxt.head[0])
+            if q_lie is not None:
+                space.integrate_lie(q_lie, self.increment_xi, nxt.Q)
             if self.ledger_needed:  # else every flow is zero (and the ledger columns of K hold junk)
                 np.add(cur.flows, self.increment_flows, out=nxt.flows)
             return
