@@ -109,7 +109,7 @@ class Integrator(ABC):
             from . import INTEGRATORS  # the registry imports this module
 
             able = sorted(name for name, method in INTEGRATORS.items() if not method.implicit)
-            why = system._why_not()  # type: ignore[attr-defined]
+            why = getattr(system, "no_derivatives_reason", "")
             raise InvalidArgumentError(
                 f"integrator '{self.name}' needs the dynamics' analytic derivatives, which scene "
                 f"'{getattr(system, 'name', '?')}' does not provide ({why}); use one of: {', '.join(able)}"

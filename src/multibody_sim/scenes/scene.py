@@ -43,6 +43,8 @@ class Scene(Robot):
         elements: the force elements (None when the scene declares none).
         constraints: the holonomic constraints (None when there are none).
         mimic: whether URDF <mimic> joints are honoured (forward dynamics by CRBA, as ABA does not support them).
+        has_derivatives: whether the dynamics' analytic derivatives exist (implicit methods and linearize need
+            them); `no_derivatives_reason` says why not ("" when they do).
         q0, v0: the scene's initial state ([initial], else the neutral configuration at rest).
     """
 
@@ -157,6 +159,11 @@ class Scene(Robot):
         self.record_fields = tuple(fields)
         self._last: tuple[Any, Any, float] | None = None  # (q, v, t) of the latest element/constraint evaluation
         self.has_derivatives = self.constraints is None and not self.mimic
+        self.no_derivatives_reason = ""
+        if self.constraints is not None:
+            self.no_derivatives_reason = f"it has constraints: {', '.join(self.constraints.names)}"
+        elif self.mimic:
+            self.no_derivatives_reason = "it honours mimic joints, which Pinocchio's ABA derivatives do not support"
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, nq={self.nq}, nv={self.nv}, elements={len(self._flow_elements) - 1})"
@@ -234,7 +241,9 @@ class Scene(Robot):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Partial derivatives of the forward dynamics with the force elements (see Robot); no constraints."""
         if not self.has_derivatives:
-            raise InvalidArgumentError(f"scene '{self.name}' has no analytic dynamics derivatives ({self._why_not()})")
+            raise InvalidArgumentError(
+                f"scene '{self.name}' has no analytic dynamics derivatives ({self.no_derivatives_reason})"
+            )
         applied = self._applied(q, v, tau, t)
         da_dq, da_dv, da_dtau = pin.computeABADerivatives(self.model, self.data, q, v, applied)
         da_dq, da_dv, da_dtau = da_dq.copy(), da_dv.copy(), da_dtau.copy()
@@ -245,11 +254,6 @@ class Scene(Robot):
             da_dq += da_dtau @ df_dq
             da_dv += da_dtau @ df_dv
         return da_dq, da_dv, da_dtau
-
-    def _why_not(self) -> str:
-        if self.constraints is not None:
-            return f"it has constraints: {', '.join(self.constraints.names)}"
-        return "it honours mimic joints, which Pinocchio's ABA derivatives do not support"
 
     # ---- energy ledger -------------------------------------------------------------------------------
     @property
