@@ -35,13 +35,13 @@ from .robot import Robot, real_array
 from .simulation import (
     BLOWUP_FACTOR,
     ProgressBar,
-    _check_options,
-    _limit_violations,
-    _steps_per,
+    check_options,
+    find_limit_violations,
     positive_number,
     run_metadata,
     simulate,
     stable_implicit_integrators,
+    steps_per,
 )
 from .trajectory import ARRAYS, LedgerEntry, LimitViolations, Trajectory
 
@@ -230,7 +230,7 @@ def rollout(
             have status "interrupted"; on Ray it is None: the unfinished chunks are cancelled).
     """
     method = get_integrator(integrator)
-    _check_options(method, options)
+    check_options(method, options)
     Q0, V0 = _check_batch(system, q0s, v0s)
     B = len(Q0)
     duration = positive_number(duration, "duration")
@@ -417,7 +417,7 @@ def _control_instants(method: Integrator, duration: float, dt: float, options: d
             )
         period = positive_number(options["control_dt"], "control_dt")
         return max(1, math.ceil(duration / period - 1e-9)), period
-    every = _steps_per(options.get("control_dt"), dt, "control_dt")
+    every = steps_per(options.get("control_dt"), dt, "control_dt")
     n_steps = _n_steps(duration, dt)
     return -(-n_steps // every), every * dt
 
@@ -694,8 +694,8 @@ class _BatchedRun:
         self.system, self.method, self.control, self.options = system, method, control, options
         self.model, self.data = system.model, system.data
         self.duration, self.dt = duration, dt
-        self.output_every = _steps_per(options.get("output_dt"), dt, "output_dt")
-        self.control_every = _steps_per(options.get("control_dt"), dt, "control_dt")
+        self.output_every = steps_per(options.get("output_dt"), dt, "output_dt")
+        self.control_every = steps_per(options.get("control_dt"), dt, "control_dt")
         self.n_steps = _n_steps(duration, dt)
         self.num_threads = int(num_threads)
         self.pool = pin.ModelPool(system.model, self.num_threads)
@@ -1208,7 +1208,7 @@ def _batch_limit_violations(system: Robot, T: np.ndarray, Q: np.ndarray, n: np.n
     excess = system.limit_excess(Q.reshape(B * N, nq)).reshape(B, N, nq)
     outside = np.asarray(((excess > 0).any(axis=2) & (np.arange(N) < n[:, None])).any(axis=1), dtype=bool)
     none = LimitViolations()  # frozen: one instance serves every element without violations
-    return [_limit_violations(system, T[b, : n[b]], Q[b, : n[b]]) if outside[b] else none for b in range(B)]
+    return [find_limit_violations(system, T[b, : n[b]], Q[b, : n[b]]) if outside[b] else none for b in range(B)]
 
 
 def _pad(

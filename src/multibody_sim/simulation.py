@@ -95,7 +95,7 @@ def simulate(
         SimulationInterrupted: Ctrl-C; ``.trajectory`` holds every sample so far.
     """
     method = get_integrator(integrator)
-    _check_options(method, options)
+    check_options(method, options)
     q0 = system.check_q(q0, "q0")
     v0 = system.check_v(v0, "v0")
     duration = positive_number(duration, "duration")
@@ -211,7 +211,7 @@ class _Sink:
         self.on_sample: Callable[[float, np.ndarray, np.ndarray], None] | None = None
 
 
-def _check_options(
+def check_options(
     method: Integrator,
     options: dict[str, Any],
     fixed_step: tuple[str, ...] = _FIXED_STEP_OPTIONS,
@@ -259,7 +259,7 @@ def finite_number(value: Any, name: str) -> float:
     return float(value)
 
 
-def _steps_per(period: Any, dt: float, name: str) -> int:
+def steps_per(period: Any, dt: float, name: str) -> int:
     """How many steps of dt make `period` (None: 1), which must be a whole multiple of dt."""
     if period is None:
         return 1
@@ -524,7 +524,7 @@ class _Run:
             energy_error=error,
             ledger=ledger,
             constraints=constraints,
-            limit_violations=_limit_violations(system, t, Q),
+            limit_violations=find_limit_violations(system, t, Q),
             stats={
                 "steps": self.k,
                 "rejected_steps": self.rejected,
@@ -564,8 +564,8 @@ class _FixedStepRun(_Run):
         options: dict[str, Any],
         sink: _Sink,
     ):
-        self.output_every = _steps_per(options.get("output_dt"), dt, "output_dt")
-        self.control_every = _steps_per(options.get("control_dt"), dt, "control_dt")
+        self.output_every = steps_per(options.get("output_dt"), dt, "output_dt")
+        self.control_every = steps_per(options.get("control_dt"), dt, "control_dt")
         # Never count a last sliver of round-off as a step: 1.0 / 0.1 is 10 steps, not 11.
         self.n_steps = max(1, math.ceil(duration / dt - 1e-9))
         capacity = (self.n_steps - 1) // self.output_every + 2
@@ -754,7 +754,7 @@ def stable_implicit_integrators(system: Robot) -> list[str]:
     return names
 
 
-def _limit_violations(system: Robot, t: np.ndarray, Q: np.ndarray) -> LimitViolations:
+def find_limit_violations(system: Robot, t: np.ndarray, Q: np.ndarray) -> LimitViolations:
     if not len(t):
         return LimitViolations()
     excess = system.limit_excess(Q)

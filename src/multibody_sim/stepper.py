@@ -14,7 +14,7 @@ from .simulation import (
     BLOWUP_FACTOR,
     MIN_STEP_FRACTION,
     Controller,
-    _check_options,
+    check_options,
     finite_number,
     positive_number,
     stable_implicit_integrators,
@@ -98,7 +98,7 @@ class Stepper:
             UnknownIntegratorError: an unknown integrator name.
         """
         method = get_integrator(integrator)
-        _check_options(method, options, fixed_step=(), adaptive_only=_ADAPTIVE_OPTIONS)
+        check_options(method, options, fixed_step=(), adaptive_only=_ADAPTIVE_OPTIONS)
         self.system = system
         self.integrator = method
         self.dt = positive_number(dt, "dt")
