@@ -350,6 +350,64 @@ def test_ctrl_c_keeps_every_element_so_far(robot) -> None:
             np.testing.assert_array_equal(getattr(batch.element(b), name), getattr(traj, name))
 
 
+def test_scene_records_are_kept_per_element_also_on_ctrl_c() -> None:
+    # Scenes run element by element through simulate(): each element keeps what simulate() records besides the
+    # state, its springs' potentials (ledger) and its constraints' forces and drift, and so does a batch that a
+    # Ctrl-C cut short, whose elements not yet started hold their initial state with the records at it.
+    four_bar, springs = ms.load_scene("four_bar"), ms.load_scene("spring_chain")
+    for scene in (four_bar, springs):
+        Q0 = np.array([scene.q0] * 3)
+        V0 = np.array([scene.v0 + 0.1 * k for k in range(3)])
+        batch = ms.rollout(scene, Q0, V0, duration=0.02, dt=1e-3, output_dt=5e-3)
+        for b in range(3):
+            alone = ms.simulate(scene, Q0[b], V0[b], duration=0.02, dt=1e-3, output_dt=5e-3)
+            element = batch.element(b)
+            assert set(element.ledger) == set(alone.ledger) and set(element.constraints) == set(alone.constraints)
+            for name, entry in alone.ledger.items():
+                np.testing.assert_array_equal(element.ledger[name].energy, entry.energy)
+            for name, record in alone.constraints.items():
+                for part in ("force", "drift", "velocity_drift"):
+                    np.testing.assert_array_equal(getattr(element.constraints[name], part), getattr(record, part))
+        if scene is four_bar:  # one loop-closure constraint of 3 rows: force (B, N, 3), drift (B, N)
+            assert batch.constraints["loop"].force.shape == (*batch.t.shape, 3)
+            assert batch.constraints["loop"].drift.shape == batch.t.shape
+        else:  # springs only: their potentials in the ledger, no constraint
+            assert not batch.constraints and any(entry.kind == "potential" for entry in batch.ledger.values())
+
+    for scene in (four_bar, springs):
+
+        def interrupting(t: float, q: np.ndarray, v: np.ndarray, nv: int = scene.nv) -> np.ndarray:
+            if t >= 0.0095:
+                raise KeyboardInterrupt
+            return np.zeros(nv)
+
+        Q0, V0 = np.array([scene.q0] * 3), np.array([scene.v0] * 3)
+        with pytest.raises(ms.SimulationInterrupted) as caught:
+            ms.rollout(scene, Q0, V0, duration=0.05, dt=1e-3, controller=interrupting)
+        batch = caught.value.trajectory
+        assert batch.status.tolist() == ["interrupted"] * 3 and batch.n_samples.tolist()[1:] == [1, 1]
+        start = ms.simulate(scene, Q0[1], V0[1], duration=1e-3, dt=1e-3)  # its first sample: the same records
+        untouched = batch.element(1)
+        for name, entry in start.ledger.items():
+            if entry.kind == "potential":
+                assert untouched.ledger[name].energy.tolist() == entry.energy[:1].tolist()
+        for name, record in start.constraints.items():
+            np.testing.assert_array_equal(untouched.constraints[name].drift, record.drift[:1])
+
+
+def test_batches_joined_along_the_batch_axis_keep_constraint_records() -> None:
+    # Ray's chunks are joined by rollout._concatenate: constraint records included, padded like the samples.
+    scene = ms.load_scene("four_bar")
+    Q0, V0 = np.array([scene.q0] * 3), np.array([scene.v0 + 0.1 * k for k in range(3)])
+    whole = ms.rollout(scene, Q0, V0, duration=0.02, dt=1e-3, output_dt=5e-3)
+    parts = [ms.rollout(scene, Q0[rows], V0[rows], duration=0.02, dt=1e-3, output_dt=5e-3) for rows in ([0], [1, 2])]
+    joined = rollout_module._concatenate(parts)
+    for part in ("force", "drift", "velocity_drift"):
+        np.testing.assert_array_equal(
+            getattr(joined.constraints["loop"], part), getattr(whole.constraints["loop"], part)
+        )
+
+
 # ---- physics, independently of simulate() --------------------------------------------------------------------------
 def test_small_swings_of_a_batch_follow_the_linearised_pendulum(robot) -> None:
     # Small swings about the hanging equilibrium obey M x'' + K x = 0 with M from CRBA and K the gravity

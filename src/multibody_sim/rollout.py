@@ -40,11 +40,13 @@ from .simulation import (
     positive_number,
     run_metadata,
     simulate,
+    split_records,
     stable_implicit_integrators,
     steps_per,
 )
-from .trajectory import ARRAYS, LedgerEntry, LimitViolations, Trajectory
+from .trajectory import ARRAYS, ConstraintRecord, LedgerEntry, LimitViolations, Trajectory
 
+_RECORD_PARTS = ("force", "drift", "velocity_drift")  # a ConstraintRecord's arrays
 _COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls")
 _BACKENDS = ("local", "ray")
 # numpy >= 2 has vecdot, which calls the same BLAS dot as `x @ y` on 1-D arrays (so the ledger's powers match
@@ -83,7 +85,10 @@ class BatchTrajectory:
         n_samples: number of real samples of each element, shape (B,).
         status: "completed" or why each element stopped ("diverged", ...), shape (B,).
         messages: why each element stopped, as simulate()'s SimulationError would say ("" when completed).
-        ledger: per-element breakdown of work and dissipated, each LedgerEntry's energy of shape (B, N).
+        ledger: per-element breakdown of work and dissipated (and a scene's spring potentials), each
+            LedgerEntry's energy of shape (B, N).
+        constraints: a scene's holonomic constraints, as in Trajectory: each ConstraintRecord's force of shape
+            (B, N, rows), drift and velocity_drift of shape (B, N) (empty for a robot alone).
         limit_violations: position-limit violations of each element, length B.
         stats: per-element counts as arrays of shape (B,): steps, rejected_steps, evaluations,
             controller_calls, saturated_controls; saturated_dofs, shape (B, nv); and wall_time [s] of the
@@ -108,6 +113,7 @@ class BatchTrajectory:
     limit_violations: list[LimitViolations] = field(default_factory=list)
     stats: dict[str, Any] = field(default_factory=dict)
     metadata: dict[str, Any] = field(default_factory=dict)
+    constraints: dict[str, ConstraintRecord] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.n_samples)
@@ -141,6 +147,10 @@ class BatchTrajectory:
         return Trajectory(
             **arrays,
             ledger={name: LedgerEntry(e.kind, e.energy[b, :n].copy()) for name, e in self.ledger.items()},
+            constraints={
+                name: ConstraintRecord(*(getattr(r, part)[b, :n].copy() for part in _RECORD_PARTS))
+                for name, r in self.constraints.items()
+            },
             limit_violations=self.limit_violations[b],
             stats=stats,
             status=str(self.status[b]),
@@ -1299,6 +1309,9 @@ def _element_by_element(
 def _initial_only(system: Robot, q0: np.ndarray, v0: np.ndarray) -> Trajectory:
     T, V = system.unchecked_energies(q0, v0)
     zero = np.zeros(1)
+    extra = np.zeros((1, sum(width for _, _, width in system.record_fields)))
+    system.unchecked_record(q0, v0, np.zeros(system.nv), 0.0, extra[0])  # a scene's springs and constraints
+    potentials, constraints = split_records(system.record_fields, extra)
     return Trajectory(
         t=zero.copy(),
         q=q0[None, :].copy(),
@@ -1310,7 +1323,8 @@ def _initial_only(system: Robot, q0: np.ndarray, v0: np.ndarray) -> Trajectory:
         work=zero.copy(),
         dissipated=zero.copy(),
         energy_error=zero.copy(),
-        ledger={name: LedgerEntry(kind, zero.copy()) for name, kind in system.ledger_elements},
+        ledger={**{name: LedgerEntry(kind, zero.copy()) for name, kind in system.ledger_elements}, **potentials},
+        constraints=constraints,
         stats={"steps": 0, "rejected_steps": 0, "evaluations": 0, "controller_calls": 0, "saturated_controls": 0},
         status="interrupted",
     )
@@ -1337,7 +1351,18 @@ def _stack(
         for b, tr in enumerate(trajectories):
             energy[b, : n[b]] = tr.ledger[name].energy
         ledger[name] = LedgerEntry(entry.kind, energy)
-    _pad(arrays, ledger, n, Q0, V0)
+    # Each constraint's record: force (B, N, rows), drift and velocity drift (B, N), padded as the arrays are
+    constraints = {}
+    for name, record in first.constraints.items():
+        parts = []
+        for part in _RECORD_PARTS:
+            arr = np.zeros((B, N, *getattr(record, part).shape[1:]))
+            for b, tr in enumerate(trajectories):
+                arr[b, : n[b]] = getattr(tr.constraints[name], part)
+            parts.append(arr)
+        constraints[name] = ConstraintRecord(*parts)
+    records = {f"{name}.{part}": getattr(r, part) for name, r in constraints.items() for part in _RECORD_PARTS}
+    _pad({**arrays, **records}, ledger, n, Q0, V0)  # (records keyed apart from the field names)
     nv = first.v.shape[1]
     dof_index = {name: i for i, name in enumerate(first.metadata.get("robot", {}).get("dof_names", []))}
     saturated = np.zeros((B, nv), dtype=int)
@@ -1355,6 +1380,7 @@ def _stack(
         status=np.array([tr.status for tr in trajectories]),
         messages=messages,
         ledger=ledger,
+        constraints=constraints,
         limit_violations=[tr.limit_violations for tr in trajectories],
         stats=stats,
     )
@@ -1376,6 +1402,12 @@ def _concatenate(batches: list[BatchTrajectory], wall_time: float | None = None)
         name: LedgerEntry(entry.kind, np.concatenate([widen(bt.ledger[name].energy) for bt in batches]))
         for name, entry in batches[0].ledger.items()
     }
+    constraints = {
+        name: ConstraintRecord(
+            *(np.concatenate([widen(getattr(bt.constraints[name], part)) for bt in batches]) for part in _RECORD_PARTS)
+        )
+        for name in batches[0].constraints
+    }
     stats: dict[str, Any] = {name: np.concatenate([bt.stats[name] for bt in batches]) for name in _COUNTS}
     stats["saturated_dofs"] = np.concatenate([bt.stats["saturated_dofs"] for bt in batches])
     stats["wall_time"] = wall_time if wall_time is not None else sum(bt.stats["wall_time"] for bt in batches)
@@ -1385,6 +1417,7 @@ def _concatenate(batches: list[BatchTrajectory], wall_time: float | None = None)
         status=np.concatenate([bt.status for bt in batches]),
         messages=[m for bt in batches for m in bt.messages],
         ledger=ledger,
+        constraints=constraints,
         limit_violations=[lv for bt in batches for lv in bt.limit_violations],
         stats=stats,
         metadata=dict(batches[0].metadata),

@@ -498,15 +498,8 @@ class _Run:
         t, Q = s.T[:n].copy(), s.Q[:n].copy()
         kinetic, potential, flows = s.KIN[:n].copy(), s.POT[:n].copy(), s.FLOWS[:n]
         ledger = {name: LedgerEntry(kind, flows[:, j].copy()) for j, (name, kind) in enumerate(self.elements)}
-        constraints = {}
-        column = 0
-        for category, name, width in self.record_fields:
-            block = s.EXTRA[:n, column : column + width]
-            column += width
-            if category == "potential":
-                ledger[name] = LedgerEntry("potential", block[:, 0].copy())
-            else:  # "constraint": the forces, then the drift and the velocity drift
-                constraints[name] = ConstraintRecord(block[:, :-2].copy(), block[:, -2].copy(), block[:, -1].copy())
+        potentials, constraints = split_records(self.record_fields, s.EXTRA[:n])
+        ledger.update(potentials)
         work = flows[:, self.is_work].sum(axis=1)
         dissipated = flows[:, ~self.is_work].sum(axis=1)
         total = kinetic + potential
@@ -752,6 +745,23 @@ def stable_implicit_integrators(system: Robot) -> list[str]:
                 continue
             names.append(name)
     return names
+
+
+def split_records(
+    record_fields: tuple[tuple[str, str, int], ...], extra: np.ndarray
+) -> tuple[dict[str, LedgerEntry], dict[str, ConstraintRecord]]:
+    """A system's per-sample records (columns of `extra`, shape (n, Σ widths), as Robot.unchecked_record writes
+    them) as the Trajectory's ledger potentials and constraint records (copies)."""
+    potentials, constraints = {}, {}
+    column = 0
+    for category, name, width in record_fields:
+        block = extra[:, column : column + width]
+        column += width
+        if category == "potential":
+            potentials[name] = LedgerEntry("potential", block[:, 0].copy())
+        else:  # "constraint": the forces, then the drift and the velocity drift
+            constraints[name] = ConstraintRecord(block[:, :-2].copy(), block[:, -2].copy(), block[:, -1].copy())
+    return potentials, constraints
 
 
 def find_limit_violations(system: Robot, t: np.ndarray, Q: np.ndarray) -> LimitViolations:
