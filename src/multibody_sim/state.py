@@ -5,7 +5,6 @@ Every integrator moves configurations through this module, so nobody writes ``q 
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 
 import numpy as np
@@ -60,15 +59,18 @@ class ConfigurationSpace:
         self.nv = model.nv
         self.curved_blocks = _curved_blocks(model)
         # Per curved block, A's generators G (d, d·d): A(xi) = (xi_block @ G).reshape(d, d). Every entry of A is
-        # one coordinate of xi times 0 or ±1, so H = A / 2 is exact either way it is built: by indexing,
-        # H = xi_block[index] * sign / 2 (one row: the cheaper), or as the product xi_block @ (G / 2) (a stack
-        # of rows: one BLAS call instead of a gather over strided rows).
+        # one coordinate of xi times 0 or ±1, so H = A / 2 is built by indexing: H = xi_block[index] * sign / 2.
         self.chart_generators = [_chart_generators(model, start, stop) for start, stop in self.curved_blocks]
         self._chart_entries = [
             (np.argmax(G != 0.0, axis=0).reshape(stop - start, -1), 0.5 * G.sum(axis=0).reshape(stop - start, -1))
             for (start, stop), G in zip(self.curved_blocks, self.chart_generators, strict=True)
         ]
-        self._half_generators = [0.5 * G for G in self.chart_generators]
+        # For a stack of rows, H y without per-row matrices: H's non-zero entries (i, j), each ±xi_k / 2, give
+        # the products xi_k y_j (18 on se(3)), which one matrix S (terms, d) of ±1/2 sums into their outputs i.
+        self._chart_products = [
+            _chart_products(G, stop - start)
+            for (start, stop), G in zip(self.curved_blocks, self.chart_generators, strict=True)
+        ]
         self.neutral = pin.neutral(model)
 
     @property
@@ -99,18 +101,19 @@ class ConfigurationSpace:
         return out
 
     def chart_rates(self, XI: np.ndarray, V: np.ndarray, terms: int, out: np.ndarray) -> np.ndarray:
-        """chart_velocity of n rows at once, shapes (n, nv) × 3; returns out. The same operations as
-        chart_velocity but the matrix products, made as a stack (per-row BLAS calls whose rounding can differ from
-        chart_velocity's by an ulp); no row's result depends on the batch."""
+        """chart_velocity of n rows at once, shapes (n, nv) × 3; returns out. The same series as chart_velocity,
+        but each H y is summed from its non-zero products by one matrix product over all rows (an order of
+        additions that can differ from chart_velocity's by an ulp); no row's result depends on the batch."""
         np.copyto(out, V)
         if terms == 0:
             return out
-        n = len(V)
-        for (start, stop), half in zip(self.curved_blocks, self._half_generators, strict=True):
-            d = stop - start
-            H = np.matmul(XI[:, start:stop], half).reshape(n, d, d)
-            v = np.ascontiguousarray(V[:, start:stop]).reshape(n, d, 1)
-            out[:, start:stop] = _chart_series(functools.partial(np.matmul, H), v, terms).reshape(n, d)
+        for (start, stop), (k, j, S) in zip(self.curved_blocks, self._chart_products, strict=True):
+            xi = XI[:, start:stop][:, k]  # (n, terms): the coordinate of xi in each product
+
+            def apply_h(y: np.ndarray, xi: np.ndarray = xi, j: np.ndarray = j, S: np.ndarray = S) -> np.ndarray:
+                return np.multiply(xi, y[:, j]) @ S
+
+            out[:, start:stop] = _chart_series(apply_h, np.ascontiguousarray(V[:, start:stop]), terms)
         return out
 
     def chart_matrix(self, xi: np.ndarray, terms: int) -> list[np.ndarray]:
@@ -137,6 +140,16 @@ def _chart_series(apply_h: Callable[[np.ndarray], np.ndarray], v: np.ndarray, te
         elif _HALF_SERIES[k]:
             y += v * _HALF_SERIES[k]
     return y
+
+
+def _chart_products(G: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(k, j, S) with H(xi) y = (xi[k] * y[j]) @ S for H = A / 2 and A(xi) = (xi @ G).reshape(d, d): one term per
+    non-zero entry G[k, i·d + j] of the generators, which S (terms, d) adds, times G's ±1 / 2, into output i."""
+    k, column = np.nonzero(G)
+    i, j = np.divmod(column, d)
+    S = np.zeros((len(k), d))
+    S[np.arange(len(k)), i] = 0.5 * G[k, column]
+    return k, j, S
 
 
 def _curved_blocks(model: pin.Model) -> list[tuple[int, int]]:
