@@ -688,9 +688,10 @@ def reading(
             para(f"""Floating bases: {parts}. The free-flyer's configuration update is one Pinocchio integrate call
             over copies of its joint per stage, and its chart map (which keeps RK4 fourth-order) the series of
             the inverse chart Jacobian to ad² (simulate()'s series, each product ad(xi) y summed from its non-zero
-            terms over the whole batch): about a dozen numpy operations on small arrays per stage. With the base welded the same robots run
-            at {welded} times their floor: that is what moving the free-flyer's update and chart map into C++
-            (a batched integrate and inverse-Jacobian product in Pinocchio) would give at most. Against MuJoCo
+            terms over the whole batch): about a dozen numpy operations on small arrays per stage. With the base
+            welded the same robots run at {welded} times their floor: that is what moving the free-flyer's update
+            and chart map into C++ (a batched integrate and inverse-Jacobian product in Pinocchio) would give at
+            most. Against MuJoCo
             that would make {verdicts}. Where four ABA passes cost more than MuJoCo's step, being ahead would take
             cheaper or fewer dynamics evaluations per step (an articulated-body pass that reuses the joint kinematics
             between stages, or a method with fewer stages at the same accuracy), not less overhead."""),
