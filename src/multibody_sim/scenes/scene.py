@@ -158,12 +158,12 @@ class Scene(Robot):
             ]
         self.record_fields = tuple(fields)
         self._last: tuple[Any, Any, float] | None = None  # (q, v, t) of the latest element/constraint evaluation
-        self.has_derivatives = self.constraints is None and not self.mimic
         self.no_derivatives_reason = ""
         if self.constraints is not None:
             self.no_derivatives_reason = f"it has constraints: {', '.join(self.constraints.names)}"
         elif self.mimic:
             self.no_derivatives_reason = "it honours mimic joints, which Pinocchio's ABA derivatives do not support"
+        self.has_derivatives = not self.no_derivatives_reason
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, nq={self.nq}, nv={self.nv}, elements={len(self._flow_elements) - 1})"
