@@ -526,8 +526,8 @@ class _BatchSpace:
         # Whether every vector coordinate sits nq - nv columns after its velocity (the other joints come first,
         # as a floating base does): then q's vector coordinates and v line up with the stage rates' row under
         # one offset, as on a vector space (see _rk_step).
-        self.extra = model.nq - model.nv
-        self.aligned = not self.per_element and all(q - v == self.extra for q, v, _ in self.runs)
+        extra = model.nq - model.nv
+        self.aligned = not self.per_element and all(q - v == extra for q, v, _ in self.runs)
 
     def _check_integrate(self) -> bool:
         """Whether the vectorised integrate gives pin.integrate's results bit for bit on this model (a few random
@@ -874,6 +874,9 @@ class _BatchedRun:
     def _rk_step(self, cur: _Views, nxt: _Views, h: float) -> None:
         """ExplicitRungeKutta.step on every row: stages into cur's buffer, the new state and flows into nxt's."""
         evaluate = self._evaluate
+        if self.chart_map:  # at the step's start xi = 0, where the chart Jacobian is the identity
+            np.copyto(cur.XI_DOT[0], cur.V)
+        evaluate(cur, 0)
         if self.shifted_stages is not None:
             # Vector coordinates and stage sums of one exact product: [q | v] + c h [xi'_j | v'_j] for all rows in
             # two contiguous operations. On flat views a vector coordinate's rate in K_j sits `shift` entries after
@@ -882,9 +885,6 @@ class _BatchedRun:
             # integrate overwrite, or which nothing reads).
             head0, shifted, space = cur.head[0], self.shifted, self.space
             q_lie = space.lie_coordinates(cur.Q) if space.lie_joints else None  # the stages' common base
-            if self.chart_map:  # at the step's start xi = 0, where the chart Jacobian is the identity
-                np.copyto(cur.XI_DOT[0], cur.V)
-            evaluate(cur, 0)
             for i, j, coefficient in self.shifted_stages:
                 np.add(head0, np.multiply(cur.tail[j], coefficient * h, out=shifted), out=cur.head[i])
                 if q_lie is not None:  # xi = c h xi'_j: the product's own columns
@@ -904,9 +904,6 @@ class _BatchedRun:
             return
         nv, K, space, k = self.nv, cur.K, self.space, self.layout.k
         system_space = self.system.space
-        if self.chart_map:  # at the step's start xi = 0, where the chart Jacobian is the identity
-            np.copyto(cur.XI_DOT[0], cur.V)
-        evaluate(cur, 0)
         for i, rule in enumerate(self.stage_rules, start=1):
             if isinstance(rule, tuple):
                 j, coefficient = rule
