@@ -536,7 +536,7 @@ def write_report(
                 its configuration update is one vectorised addition and its chart map the identity, so the
                 difference between the two overheads is the free-flyer's: Pinocchio's integrate over copies of
                 the free-flyer joint (one call per stage) and the chart map over the batch (its series to ad²:
-                two stacks of 6 × 6 products per stage)."""),
+                two products ad(xi) y per stage, each summed from its non-zero terms over the whole batch)."""),
         ]
     lines += [
         "",

@@ -278,8 +278,9 @@ def test_every_joint_kind_integrates_as_pinocchio_and_the_batch_follows_simulate
     options = dict(duration=0.02, dt=1e-3, output_dt=5e-3)
     Q0, V0 = random_states(mixed, 3, seed=15, v_scale=0.1)
     # The chart map (free-flyer, spherical, planar): the same series for both, ConfigurationSpace.chart_rates over
-    # the batch and chart_velocity per element, whose matrix products (stacked, or one) may round differently by
-    # an ulp: the batch equals simulate() to round-off, with RK4 (series truncated after A²) and midpoint (after A).
+    # the batch and chart_velocity per element, whose products are summed in another order and may round
+    # differently by an ulp: the batch equals simulate() to round-off, with RK4 (series truncated after A²) and
+    # midpoint (after A).
     for integrator in ("rk4", "midpoint", "euler"):
         reference = looped(mixed, Q0, V0, integrator=integrator, **options)
         assert_close(ms.rollout(mixed, Q0, V0, integrator=integrator, **options), reference, atol=1e-13)

@@ -7,8 +7,8 @@ joints by one Pinocchio ``integrate`` call over copies of them). Per element the
 the same BLAS calls (multi-term stage sums, the step's combination, the ledger's dot products), exact products
 where a stage sum has one power-of-two coefficient (RK4's), the same Pinocchio calls; so a batch gives
 ``simulate()``'s samples bit for bit. One exception: the chart map of free-flyer, spherical and planar joints
-(in the Runge–Kutta stages after the first) is the same series as simulate()'s but its small matrix products are
-made as a stack over the batch (ConfigurationSpace.chart_rates), which can round differently by an ulp: there
+(in the Runge–Kutta stages after the first) is the same series as simulate()'s but its products are summed over
+the whole batch in another order (ConfigurationSpace.chart_rates), which can round differently by an ulp: there
 the batch equals simulate() to round-off. Adaptive and implicit methods run element by element through
 ``simulate()``.
 """
@@ -200,8 +200,8 @@ def rollout(
 
     Each element gets the samples ``simulate(system, q0s[b], v0s[b], ...)`` would return: bit for bit on the
     local backend, but to round-off on free-flyer, spherical and planar joints with multi-stage methods (their
-    chart map's products are stacked over the batch); an element that stops early keeps its samples and its
-    status, and never stops the others.
+    chart map's products are summed over the batch in another order); an element that stops early keeps its
+    samples and its status, and never stops the others.
 
     Args:
         system: the robot (or scene).

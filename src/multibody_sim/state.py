@@ -131,7 +131,7 @@ class ConfigurationSpace:
 
 def _chart_series(apply_h: Callable[[np.ndarray], np.ndarray], v: np.ndarray, terms: int) -> np.ndarray:
     """Σ_{n≤terms} c_n Hⁿ v by Horner's rule, with H = A / 2 applied by `apply_h` (c_n: _HALF_SERIES). v is a
-    vector, a stack of column vectors or a matrix (then the result is the truncated J⁻¹ itself when v = I)."""
+    vector, rows of vectors (chart_rates) or a matrix (then the result is the truncated J⁻¹ itself when v = I)."""
     y = v * _HALF_SERIES[terms]
     for k in range(terms - 1, -1, -1):  # y = H y + c_k v
         y = apply_h(y)
