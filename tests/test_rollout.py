@@ -266,7 +266,7 @@ def test_every_joint_kind_integrates_as_pinocchio_and_the_batch_follows_simulate
     # joints go through one pin.integrate call on a model of copies of just those joints: bit for bit as
     # pin.integrate on each element, for increments from round-off to several radians.
     mixed = chain("free_flyer", "spherical", "planar", "continuous", "prismatic", "revolute")
-    space = rollout_module._BatchSpace(mixed)
+    space = mixed.space.batch
     assert not space.per_element and not space.vector_space
     assert space.aligned  # non-vector joints first: the stage sums take the shifted path
     rng = np.random.default_rng(14)
@@ -287,7 +287,7 @@ def test_every_joint_kind_integrates_as_pinocchio_and_the_batch_follows_simulate
     # A vector joint before the others: q's vector coordinates no longer line up with their rates under one
     # offset, so the stages take the general path, with the same results.
     interleaved = chain("revolute", "spherical", "prismatic", "free_flyer", "continuous")
-    assert not rollout_module._BatchSpace(interleaved).aligned
+    assert not interleaved.space.batch.aligned
     Q0, V0 = random_states(interleaved, 3, seed=17, v_scale=0.1)
     for integrator in ("rk4", "euler"):
         reference = looped(interleaved, Q0, V0, integrator=integrator, **options)
@@ -352,9 +352,10 @@ def test_ctrl_c_keeps_every_element_so_far(robot) -> None:
 
 
 def test_scene_records_are_kept_per_element_also_on_ctrl_c() -> None:
-    # Scenes run element by element through simulate(): each element keeps what simulate() records besides the
-    # state, its springs' potentials (ledger) and its constraints' forces and drift, and so does a batch that a
-    # Ctrl-C cut short, whose elements not yet started hold their initial state with the records at it.
+    # Each element keeps what simulate() records besides the state, its springs' potentials (ledger) and its
+    # constraints' forces and drift, and so does a batch that a Ctrl-C cut short. Scenes step all their elements
+    # together (the spring chain in the batch kernel, the four-bar's constraint in the row kernel over the rows),
+    # so a Ctrl-C interrupts every element at the same instant, each with simulate()'s samples up to it.
     four_bar, springs = ms.load_scene("four_bar"), ms.load_scene("spring_chain")
     for scene in (four_bar, springs):
         Q0 = np.array([scene.q0] * 3)
@@ -386,14 +387,14 @@ def test_scene_records_are_kept_per_element_also_on_ctrl_c() -> None:
         with pytest.raises(ms.SimulationInterrupted) as caught:
             ms.rollout(scene, Q0, V0, duration=0.05, dt=1e-3, controller=interrupting)
         batch = caught.value.trajectory
-        assert batch.status.tolist() == ["interrupted"] * 3 and batch.n_samples.tolist()[1:] == [1, 1]
-        start = ms.simulate(scene, Q0[1], V0[1], duration=1e-3, dt=1e-3)  # its first sample: the same records
-        untouched = batch.element(1)
-        for name, entry in start.ledger.items():
-            if entry.kind == "potential":
-                assert untouched.ledger[name].energy.tolist() == entry.energy[:1].tolist()
-        for name, record in start.constraints.items():
-            np.testing.assert_array_equal(untouched.constraints[name].drift, record.drift[:1])
+        # samples at 0, 1, ..., 9 ms, and the state at 10 ms, where the controller was interrupted
+        assert batch.status.tolist() == ["interrupted"] * 3 and batch.n_samples.tolist() == [11, 11, 11]
+        before = ms.simulate(scene, Q0[1], V0[1], duration=0.01, dt=1e-3)  # the same steps, the same records
+        cut = batch.element(1)
+        for name, entry in before.ledger.items():
+            np.testing.assert_array_equal(cut.ledger[name].energy, entry.energy)
+        for name, record in before.constraints.items():
+            np.testing.assert_array_equal(cut.constraints[name].drift, record.drift)
 
 
 def test_batches_joined_along_the_batch_axis_keep_constraint_records() -> None:
@@ -504,19 +505,27 @@ def test_bad_arguments_are_refused_with_messages_that_name_them(robot) -> None:
         def __call__(self, t: float, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
             return np.zeros(2)
 
-    refused("batched controller output at t = 0 s must have shape (2, 2), got (2,)", controller=Wrong())
+    # A controller output that is not a torque stops its element (status "failed", the message that used to stop
+    # the whole rollout) and spares the others.
+    def failed(messages: list[str], controller: Any) -> None:
+        batch = ms.rollout(dp, Q0, V0, duration=0.01, dt=1e-3, controller=controller)
+        assert batch.messages == messages
+        assert batch.status.tolist() == ["failed" if m else "completed" for m in messages]
+        assert batch.n_samples.tolist() == [1 if m else 11 for m in messages]  # the state at t = 0 is kept
+
+    failed(["batched controller output at t = 0 s must have shape (2, 2), got (2,)"] * 2, Wrong())
 
     class Diverging:
         batched = True
 
         def __call__(self, t: float, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
-            return np.array([[0.0, 0.0], [np.nan, 0.0]])
+            return np.array([[0.0, 0.0], [np.nan, 0.0]])[: len(Q)]
 
-    refused(
-        "batched controller output at t = 0 s, element 1: tau must be finite, got non-finite entries at indices [0]",
-        controller=Diverging(),
+    failed(
+        ["", "batched controller output at t = 0 s, element 1: tau must be finite, got non-finite entries at indices [0]"],
+        Diverging(),
     )
-    refused("controller output at t = 0 s: tau must have shape (2,), got (3,)", controller=lambda t, q, v: np.zeros(3))
+    failed(["controller output at t = 0 s: tau must have shape (2,), got (3,)"] * 2, lambda t, q, v: np.zeros(3))
 
 
 # ---- progress bars -------------------------------------------------------------------------------------------------

@@ -26,6 +26,7 @@ from .controllers import (
 )
 from .derivatives import StepJacobians, linearize
 from .exceptions import (
+    ControllerOutputError,
     InvalidArgumentError,
     MissingDependencyError,
     ModelError,
@@ -50,6 +51,7 @@ from .trajectory import ConstraintRecord, LedgerEntry, LimitViolations, Trajecto
 __version__ = "0.1.0"
 
 __all__ = [
+    "ControllerOutputError",
     "CATALOG",
     "CONTROLLERS",
     "INTEGRATORS",

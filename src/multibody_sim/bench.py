@@ -37,7 +37,9 @@ import numpy as np
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
 from .integrators import INTEGRATORS, Integrator, get_integrator
 from .robot import Robot
-from .simulation import _versions, positive_number, simulate
+from .metadata import versions
+from .simulation import simulate
+from .validation import positive_number
 from .trajectory import Trajectory, write_atomically
 
 FORMAT = "multibody-sim work-precision"
@@ -572,7 +574,7 @@ def work_precision(
             "prune": bool(prune),
             "cost": "cpu_time: process CPU time of the simulate() call, median over repeats",
         },
-        metadata={"versions": dict(_versions()), "source": getattr(system, "source", {})},
+        metadata={"versions": dict(versions()), "source": getattr(system, "source", {})},
         complete=False,
     )
     study = _Study(system, q0, v0, duration, grid, result, say, int(repeats), max_run_time)
@@ -996,7 +998,7 @@ def _cache_key(system: Robot, q0: np.ndarray, v0: np.ndarray, horizon: float, na
         "v0": [repr(float(x)) for x in v0],
         "horizon": repr(horizon),
         "integrators": "all" if names is None else sorted(names),
-        "versions": dict(_versions()),
+        "versions": dict(versions()),
         "study": [OUTPUT_DT, STEP_LADDER, TOLERANCE_LADDER, REFERENCE_TOLERANCE, REFINEMENT, PILOT_MAX_RUN_TIME],
     }
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()

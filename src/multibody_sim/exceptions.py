@@ -70,3 +70,9 @@ class SimulationInterrupted(KeyboardInterrupt):
         self.status = "interrupted"
         self.trajectory = trajectory
         self.signal_name = signal_name
+
+
+class ControllerOutputError(SimulationError, InvalidArgumentError):
+    """A controller returned something that is not a torque (wrong shape, not finite, a push on an unactuated
+    floating base): the run stopped with status "failed" and `.trajectory` holds the samples so far. It is also an
+    InvalidArgumentError, as this mistake was before runs kept their samples."""

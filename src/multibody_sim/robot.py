@@ -211,6 +211,27 @@ class Robot:
             pin.computePotentialEnergy(self.model, self.data)
         )
 
+    # ---- many rows at once (the batch kernel) ------------------------------------------------------
+    def rows_dynamics(self, num_threads: int = 1) -> RowsDynamics | None:
+        """Forward dynamics and ledger powers of many states at once, with this robot's arithmetic per row (None
+        when the system has no batched form)."""
+        return RowsDynamics(self, num_threads)
+
+    def rows_applied(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> np.ndarray:
+        """The generalized forces ABA is given for each row, tau - D v (see unchecked_forward_dynamics), into out."""
+        if self._damped:
+            return np.subtract(TAU, self.damping * V, out=out)
+        out[...] = TAU
+        return out
+
+    def rows_ledger_power(
+        self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray, *, fresh: bool = True
+    ) -> None:
+        """ledger_power of each row into out (n, n_elements); `fresh`: rows_applied was just called at (Q, V, t)."""
+        rowdot(TAU, V, out=out[:, 0])
+        if self._damped:
+            rowdot(V, self.damping * V, out=out[:, 1])
+
     # What a system records at each sample besides the state and energies: (category, name, width) with category
     # "potential" (a spring's stored energy) or "constraint" (forces, then drift and velocity drift). A robot alone
     # records nothing; scenes do.
@@ -265,6 +286,51 @@ class Robot:
                 f"{name}[0:6] acts on the unactuated floating base and must be zero, got {tau[:6].tolist()}"
             )
         return tau
+
+
+class RowsDynamics:
+    """Forward dynamics of many rows at once: the system's applied forces per row, then one Pinocchio
+    ``abaInParallel`` call (WORLD convention, as unchecked_forward_dynamics' ``aba``, so each row equals it bit for
+    bit) over a ModelPool of `num_threads` threads."""
+
+    def __init__(self, system: Robot, num_threads: int):
+        self.system = system
+        self.num_threads = num_threads
+        self.pool = pin.ModelPool(system.model, num_threads)
+        self._applied: dict[int, np.ndarray] = {}
+
+    def accelerations(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> None:
+        """out (n, nv) = forward dynamics of the rows (Q (n, nq), V (n, nv), TAU (n, nv)) at time t [s]."""
+        n = len(Q)
+        applied = self._applied.get(n)
+        if applied is None:
+            applied = self._applied[n] = np.empty((n, self.system.nv))
+        self.system.rows_applied(Q, V, TAU, t, applied)
+        # Column-major (nq, n) views of the row-major arrays: abaInParallel reads and writes them in place.
+        pin.abaInParallel(self.num_threads, self.pool, Q.T, V.T, applied.T, out.T)
+
+    def ledger_power(
+        self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray, *, fresh: bool = True
+    ) -> None:
+        """Power of each ledger element per row [W], out (n, m); `fresh`: accelerations() was just called at these
+        rows (a scene's wrenches then need no new kinematics)."""
+        self.system.rows_ledger_power(Q, V, TAU, t, out, fresh=fresh)
+
+
+# numpy >= 2 has vecdot, which calls the same BLAS dot as `x @ y` on 1-D arrays (so a row's power matches
+# ledger_power's bit for bit); the stacked matmul does the same on older numpy.
+_vecdot = getattr(np, "vecdot", None)
+
+
+def rowdot(x: np.ndarray, y: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Row-wise dot products, each computed exactly as ``x[i] @ y[i]``; written into `out` when given."""
+    if _vecdot is not None:
+        return _vecdot(x, y, out=out)
+    dots = np.matmul(x[:, None, :], y[:, :, None])[:, 0, 0]
+    if out is None:
+        return dots
+    out[...] = dots
+    return out
 
 
 def real_array(value: Any, name: str, expected: str) -> np.ndarray:

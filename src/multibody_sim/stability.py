@@ -13,7 +13,8 @@ import pinocchio as pin
 from .exceptions import InvalidArgumentError, SimulationError
 from .integrators import Integrator, get_integrator
 from .robot import Robot
-from .simulation import positive_number, simulate
+from .simulation import simulate
+from .validation import positive_number
 from .trajectory import Trajectory
 
 # A mode decays when Re λ < -DECAY_TOLERANCE · max|λ|. The undamped modes of an equilibrium come out of LAPACK

@@ -6,10 +6,12 @@ Every integrator moves configurations through this module, so nobody writes ``q 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
 
+_ARG_Q = pin.ArgumentPosition.ARG0
 _ARG_V = pin.ArgumentPosition.ARG1
 
 # Taylor coefficients b_n of x / (1 - e^-x) = Σ b_n xⁿ (b_n = |B_n| / n! but b_1 = +½): the chart map's series,
@@ -72,6 +74,7 @@ class ConfigurationSpace:
             for (start, stop), G in zip(self.curved_blocks, self.chart_generators, strict=True)
         ]
         self.neutral = pin.neutral(model)
+        self._batch: BatchSpace | None = None
 
     @property
     def is_flat(self) -> bool:
@@ -124,6 +127,30 @@ class ConfigurationSpace:
             out.append(_chart_series(H.dot, np.eye(stop - start), terms))
         return out
 
+    def d_integrate(self, q: np.ndarray, xi: np.ndarray, d_q: np.ndarray, d_xi: np.ndarray) -> np.ndarray:
+        """Derivative of (q ⊕ δq) ⊕ ξ in the tangent space at q ⊕ ξ: D_q d_q + D_ξ d_xi, where d_q and d_xi
+        (each (nv, k)) are the derivatives of δq and ξ with respect to k variables (identities on flat models)."""
+        if self.is_flat:
+            return d_q + d_xi
+        D_q = pin.dIntegrate(self.model, q, xi, _ARG_Q)
+        D_xi = pin.dIntegrate(self.model, q, xi, _ARG_V)
+        return D_q @ d_q + D_xi @ d_xi
+
+    def add_chart_curvature(
+        self, d_rate: np.ndarray, xi: np.ndarray, v: np.ndarray, d_xi: np.ndarray, terms: int
+    ) -> None:
+        """Add ∂(chart_velocity(ξ, v, terms))/∂ξ · d_xi to d_rate (nv, k) on each curved block (in place)."""
+        for (start, stop), G in zip(self.curved_blocks, self.chart_generators, strict=True):
+            N = _chart_velocity_derivative(G, xi[start:stop], v[start:stop], terms)
+            d_rate[start:stop] += N @ d_xi[start:stop]
+
+    @property
+    def batch(self) -> BatchSpace:
+        """The same manifold over many rows at once (made on first use, then kept with this space)."""
+        if self._batch is None:
+            self._batch = BatchSpace(self.model)
+        return self._batch
+
     def is_normalized(self, q: np.ndarray, tolerance: float = 1e-6) -> bool:
         """Whether the unit-quaternion and unit-complex entries of q have unit norm."""
         return bool(pin.isNormalized(self.model, q, tolerance))
@@ -140,6 +167,26 @@ def _chart_series(apply_h: Callable[[np.ndarray], np.ndarray], v: np.ndarray, te
         elif _HALF_SERIES[k]:
             y += v * _HALF_SERIES[k]
     return y
+
+
+def _chart_velocity_derivative(G: np.ndarray, xi: np.ndarray, V: np.ndarray, terms: int) -> np.ndarray:
+    """∂/∂ξ of Σ_{n≤terms} b_n A(ξ)ⁿ V (ConfigurationSpace.chart_velocity) on one block, A(x) = (x @ G).reshape(d, d).
+
+    The derivative of Aⁿ V along η is Σ_k A^k A(η) A^(n-1-k) V, and A(η) w = -A(w) η (A is ± the Lie algebra's ad,
+    antisymmetric in its two arguments). With w_m = Aᵐ V and T_n = Σ_{k<n} A^k A(w_{n-1-k}) = A(w_{n-1}) + A T_{n-1}
+    the derivative is -Σ b_n T_n.
+    """
+    d = len(V)
+    A = (xi @ G).reshape(d, d)
+    w = V.copy()
+    T = np.zeros((d, d))
+    N = np.zeros((d, d))
+    for n in range(1, terms + 1):
+        T = (w @ G).reshape(d, d) + A @ T
+        if CHART_SERIES[n]:
+            N -= CHART_SERIES[n] * T
+        w = A @ w
+    return N
 
 
 def _chart_products(G: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -190,3 +237,107 @@ def _chart_generators(model: pin.Model, start: int, stop: int) -> np.ndarray:
     if np.abs(G.reshape(d, d * d) - rounded).max() > 1e-6 or (np.count_nonzero(rounded, axis=0) > 1).any():
         raise ValueError("a joint's Lie algebra is not one this chart map supports")  # pragma: no cover
     return rounded
+
+
+class BatchSpace:
+    """The configuration manifold over a batch: q ⊕ dv for n rows at once.
+
+    Coordinates of joints whose configuration is a vector (revolute, prismatic: Pinocchio's integrate is
+    q + dv there, checked) are added in one numpy operation per run of them; the other joints (free-flyer,
+    spherical, continuous, planar) go through one ``pin.integrate`` call on a model made of n copies of just
+    those joints: Pinocchio's own per-joint code, so its results bit for bit, in one C++ loop. (The chart map needs no
+    batch version: ConfigurationSpace.chart_rates takes many rows.)
+    """
+
+    def __init__(self, model: pin.Model):
+        self.model = model
+        self.nq, self.nv = model.nq, model.nv
+        runs: list[list[int]] = []  # [q start, v start, length] of consecutive vector-coordinate joints
+        lie: list[Any] = []
+        lie_q: list[int] = []
+        lie_v: list[int] = []
+        for joint in model.joints[1:]:
+            if joint.nq == joint.nv:
+                if joint.nq == 0:
+                    continue
+                last = runs[-1] if runs else None
+                if last is not None and last[0] + last[2] == joint.idx_q and last[1] + last[2] == joint.idx_v:
+                    last[2] += joint.nq
+                else:
+                    runs.append([joint.idx_q, joint.idx_v, joint.nq])
+            else:
+                lie.append(joint)
+                lie_q += range(joint.idx_q, joint.idx_q + joint.nq)
+                lie_v += range(joint.idx_v, joint.idx_v + joint.nv)
+        self.runs = [(q, v, n) for q, v, n in runs]
+        self.lie_joints = lie
+        self.lie_q, self.lie_v = _indexer(lie_q), _indexer(lie_v)
+        self._lie_models: dict[int, pin.Model] = {}
+        self.per_element = not self._check_integrate()
+        self.vector_space = not lie and self.runs == [(0, 0, model.nq)] and not self.per_element
+        # Whether every vector coordinate sits nq - nv columns after its velocity (the other joints come first,
+        # as a floating base does): then q's vector coordinates and v line up with the stage rates' row under
+        # one offset, as on a vector space (see _rk_step).
+        extra = model.nq - model.nv
+        self.aligned = not self.per_element and all(q - v == extra for q, v, _ in self.runs)
+
+    def _check_integrate(self) -> bool:
+        """Whether the vectorised integrate gives pin.integrate's results bit for bit on this model (a few random
+        rows): vector coordinates must really be q + dv, and the copies-of-joints model must act as the original."""
+        model = self.model
+        rng = np.random.default_rng(0)
+        rows = 3
+        Q = np.array([pin.integrate(model, pin.neutral(model), rng.uniform(-3.0, 3.0, model.nv)) for _ in range(rows)])
+        DV = rng.normal(size=(rows, model.nv)) * 10.0 ** rng.uniform(-8, 1, (rows, model.nv))
+        out = np.empty_like(Q)
+        self._vectorised_integrate(Q, DV, out)
+        return all(np.array_equal(out[b], pin.integrate(model, Q[b], DV[b])) for b in range(rows))
+
+    def _lie_model(self, n: int) -> pin.Model:
+        model = self._lie_models.get(n)
+        if model is None:
+            if len(self._lie_models) >= _LIE_MODELS_KEPT:  # batches shrink as elements stop: keep the latest
+                del self._lie_models[next(iter(self._lie_models))]
+            model = pin.Model()
+            for b in range(n):
+                for j, joint in enumerate(self.lie_joints):
+                    model.addJoint(0, joint, pin.SE3.Identity(), f"element{b}_joint{j}")
+            self._lie_models[n] = model
+        return model
+
+    def integrate(self, Q: np.ndarray, DV: np.ndarray, out: np.ndarray) -> None:
+        """out = Q ⊕ DV row by row, as pin.integrate; shapes (n, nq), (n, nv), (n, nq)."""
+        if self.vector_space:
+            np.add(Q, DV, out=out)
+        elif self.per_element:
+            model = self.model
+            for j in range(len(Q)):
+                out[j] = pin.integrate(model, Q[j], DV[j])
+        else:
+            self._vectorised_integrate(Q, DV, out)
+
+    def _vectorised_integrate(self, Q: np.ndarray, DV: np.ndarray, out: np.ndarray) -> None:
+        for q, v, n in self.runs:
+            np.add(Q[:, q : q + n], DV[:, v : v + n], out=out[:, q : q + n])
+        if self.lie_joints:
+            self.integrate_lie(self.lie_coordinates(Q), DV, out)
+
+    def lie_coordinates(self, Q: np.ndarray) -> np.ndarray:
+        """The coordinates of Q's non-vector joints, flat and contiguous: integrate_lie's argument."""
+        return np.ascontiguousarray(Q[:, self.lie_q]).reshape(-1)
+
+    def integrate_lie(self, q_lie: np.ndarray, DV: np.ndarray, out: np.ndarray) -> None:
+        """The non-vector joints' columns of out = Q ⊕ DV, from q_lie = lie_coordinates(Q); DV (n, nv)."""
+        n = len(DV)
+        dv = np.ascontiguousarray(DV[:, self.lie_v]).reshape(-1)
+        out[:, self.lie_q] = pin.integrate(self._lie_model(n), q_lie, dv).reshape(n, -1)
+
+
+_LIE_MODELS_KEPT = 8  # copies-of-joints models kept per space, one per batch size
+
+
+def _indexer(indices: list[int]) -> slice | np.ndarray:
+    """Column indices as a slice when they are consecutive (a view and a fast copy), else as an index array."""
+    if indices and indices == list(range(indices[0], indices[-1] + 1)):
+        return slice(indices[0], indices[-1] + 1)
+    return np.array(indices, dtype=int)

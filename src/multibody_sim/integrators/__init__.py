@@ -5,7 +5,7 @@ from __future__ import annotations
 import difflib
 
 from ..exceptions import InvalidArgumentError, UnknownIntegratorError
-from .base import Integrator, StepFailure, System
+from .base import OK, Attempt, Integrator, StepFailure, System
 from .explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
 from .implicit import ImplicitEuler, ImplicitMidpoint
 from .partitioned import SemiImplicitEuler
@@ -48,6 +48,8 @@ def get_integrator(integrator: str | Integrator) -> Integrator:
 
 __all__ = [
     "INTEGRATORS",
+    "OK",
+    "Attempt",
     "ButcherTableau",
     "EmbeddedRungeKutta",
     "EmbeddedTableau",

@@ -1,20 +1,28 @@
-"""The integrator contract: one step of a method on a system, plus the flags users choose by."""
+"""The integrator contract: one attempted step of a method on a system, with its own solver state and status.
+
+An integrator is stateless itself; what one step hands to the next (a first-same-as-last stage, a Newton warm
+start, a contact solver's last impulses) is its *solver state*, threaded by the stepping core: ``init`` makes one,
+``attempt`` takes one and returns the next, as diffrax's ``init``/``step`` and scipy's ``OdeSolver.step`` do. A step
+that fails returns a status; it does not raise.
+"""
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
-from typing import Protocol
+import functools
+from abc import ABC
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 
 from ..exceptions import InvalidArgumentError
 from ..state import ConfigurationSpace
 
+OK = "ok"  # the status of a step that succeeded
+
 
 class StepFailure(Exception):
-    """An integrator could not complete a step (e.g. Newton did not converge); never a silently wrong state.
-
-    The stepping loop ends the run with ``status`` (fixed-step) or retries a shorter step (adaptive).
+    """A step that could not be completed, raised by the convenience call ``Integrator.step`` (never by the core).
 
     Attributes:
         status: the run status this failure maps to, e.g. "newton_failed".
@@ -54,18 +62,58 @@ class System(Protocol):
         ...
 
 
+@dataclass(slots=True)
+class Attempt:
+    """The result of one attempted step from (q, v) at time t over h with the torque held.
+
+    Attributes:
+        q, v: the proposed new state (None when the step failed).
+        flows: energy [J] through each ledger element over the step, shape (n_elements,).
+        error: scaled error norm (the step is acceptable when ≤ 1), or None for methods without an estimate.
+        state: the solver state for the next step, if this one is accepted.
+        evaluations: forward-dynamics evaluations this attempt cost (failed attempts included).
+        status: OK, or why the step failed ("newton_failed", ...).
+        message: what went wrong ("" when status is OK).
+        retry_state: the solver state to retry from this step's start after a rejection (None: the state the
+            attempt was given).
+        detail: method-specific data for dense output (stages, torque, start time).
+    """
+
+    q: Any
+    v: Any
+    flows: Any
+    error: float | None
+    state: Any
+    evaluations: int
+    status: str = OK
+    message: str = ""
+    retry_state: Any = None
+    detail: Any = None
+
+
+def failed(status: str, message: str, evaluations: int, state: Any = None) -> Attempt:
+    """An Attempt that did not produce a state."""
+    return Attempt(None, None, None, None, state, evaluations, status, message)
+
+
 class Integrator(ABC):
     """One method of advancing (q, v) by a step, with the torque held constant over the step.
+
+    Subclasses implement ``attempt`` (and ``init`` when they carry solver state, ``dense_output`` when they have
+    dense output, ``jacobians`` when ``linearize`` can differentiate their step). A subclass written against the
+    first contract, which implements ``step(system, q, v, tau, dt, t)`` only, keeps working: ``attempt`` then
+    calls it (fixed-step methods only).
 
     Attributes:
         name: registry name.
         order: classical order of convergence of the state.
         description: one line for `multibody-sim integrators`.
-        evaluations_per_step: forward-dynamics evaluations per step (fixed-step methods).
-        adaptive: chooses its own steps under error control.
+        evaluations_per_step: forward-dynamics evaluations per step (typical for implicit methods).
+        adaptive: chooses its own steps under error control (attempt returns an error norm).
         implicit: solves equations at each step.
         symplectic: preserves the symplectic form for general M(q).
         a_stable: stable on every decaying linear mode at any step.
+        has_dense_output: dense_output() interpolates within an accepted step.
         notes: what users should know that the flags do not say.
     """
 
@@ -77,27 +125,75 @@ class Integrator(ABC):
     implicit: bool = False
     symplectic: bool = False
     a_stable: bool = False
+    has_dense_output: bool = False
     notes: str = ""
-    last_evaluations: int = 0  # implicit methods: dynamics evaluations of the latest step (Newton varies)
+    last_evaluations: int = 0  # dynamics evaluations of the latest step() call (the convenience API)
 
-    @abstractmethod
-    def step(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Advance one step.
+    def init(self, system: System, q: np.ndarray, v: np.ndarray) -> Any:
+        """The solver state for a run (or after a jump: a new torque, a state set by hand) starting at (q, v)."""
+        return None
+
+    def attempt(
+        self,
+        system: System,
+        q: np.ndarray,
+        v: np.ndarray,
+        tau: np.ndarray,
+        h: float,
+        t: float = 0.0,
+        state: Any = None,
+        *,
+        rtol: float | None = None,
+        atol: float | None = None,
+    ) -> Attempt:
+        """Attempt one step of h [s] from (q, v) at time t [s] with tau held; never raises for a failed step.
 
         Args:
             system: the robot or scene.
             q: configuration at the step's start, shape (nq,).
             v: velocity at the step's start, shape (nv,).
             tau: torque held over the step [N·m, N], shape (nv,).
-            dt: step [s].
+            h: step [s].
             t: the step's start time [s] (time-dependent scene forces are evaluated at the stages' times).
-
-        Returns:
-            (q_next, v_next, flows): the new state and the energy [J] that went through each ledger element
-            over the step, integrated with the method's own quadrature.
+            state: the solver state (from init() or the previous accepted attempt).
+            rtol, atol: error tolerances of adaptive methods (the error norm's scale).
         """
+        if type(self).step is Integrator.step:
+            raise InvalidArgumentError(_CONTRACT.format(name=type(self).__qualname__))
+        try:  # the first contract: step() raises StepFailure
+            q_next, v_next, flows = self.step(system, q, v, tau, h, t)
+        except StepFailure as exc:
+            return failed(exc.status, str(exc), self.last_evaluations or self.evaluations_per_step)
+        evaluations = self.last_evaluations if self.implicit else self.evaluations_per_step
+        return Attempt(q_next, v_next, flows, None, None, evaluations)
+
+    def step(
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One step from a fresh solver state, for scripts and tests: (q_next, v_next, flows).
+
+        Raises:
+            StepFailure: the step failed (its status says why).
+        """
+        if type(self).attempt is Integrator.attempt:
+            raise InvalidArgumentError(_CONTRACT.format(name=type(self).__qualname__))
+        result = self.attempt(system, q, v, tau, dt, t, self.init(system, q, v))
+        self.last_evaluations = result.evaluations
+        if result.status != OK:
+            raise StepFailure(result.message, status=result.status)
+        return result.q, result.v, result.flows
+
+    def dense_output(
+        self, system: System, q: np.ndarray, v: np.ndarray, attempt: Attempt, h: float, theta: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(q, v, ledger flows since the step's start) at t + θh, 0 ≤ θ ≤ 1, from an accepted attempt."""
+        raise NotImplementedError(f"integrator '{self.name}' has no dense output")
+
+    def jacobians(
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, t: float
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """(A, B): the derivatives of this method's step (see multibody_sim.linearize), or None if not available."""
+        return None
 
     def check_system(self, system: System) -> None:
         """Refuse, before any step, a system this method cannot integrate (raise InvalidArgumentError).
@@ -115,5 +211,43 @@ class Integrator(ABC):
                 f"'{getattr(system, 'name', '?')}' does not provide ({why}); use one of: {', '.join(able)}"
             )
 
+    def check_contract(self) -> None:
+        """Refuse an integrator class that implements neither attempt() nor step() (InvalidArgumentError)."""
+        cls = type(self)
+        if cls.attempt is Integrator.attempt and cls.step is Integrator.step:
+            raise InvalidArgumentError(_CONTRACT.format(name=cls.__qualname__))
+        if self.adaptive and cls.attempt is Integrator.attempt:
+            raise InvalidArgumentError(
+                f"integrator {cls.__qualname__} is adaptive, so it must implement attempt(system, q, v, tau, h, t, "
+                "state, *, rtol, atol) returning an Attempt with its error norm (step() alone has no error estimate)"
+            )
+
     def __repr__(self) -> str:
         return f"<integrator {self.name}: order {self.order}>"
+
+
+_CONTRACT = (
+    "integrator {name} implements neither attempt(system, q, v, tau, h, t, state) -> Attempt (the contract) nor "
+    "step(system, q, v, tau, dt, t) -> (q, v, flows) (the first contract, still accepted for fixed-step methods): "
+    "implement one of them"
+)
+
+
+def tangent_selectors(nv: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """[I 0 0], [0 I 0], [0 0 I] (read-only): the derivatives of δq, δv and δtau with respect to y = (δq, δv, δtau),
+    the variables a step's Jacobians (``Integrator.jacobians``) are taken against."""
+    return _tangent_selectors(nv)
+
+
+@functools.cache
+def _tangent_selectors(nv: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    eye, zero = np.eye(nv), np.zeros((nv, nv))
+    blocks = (np.hstack((eye, zero, zero)), np.hstack((zero, eye, zero)), np.hstack((zero, zero, eye)))
+    for block in blocks:
+        block.setflags(write=False)
+    return blocks
+
+
+def split_jacobian(jacobian: np.ndarray, nv: int) -> tuple[np.ndarray, np.ndarray]:
+    """(A, B) from the derivative of the step's (δq, δv) with respect to y = (δq, δv, δtau), shape (2 nv, 3 nv)."""
+    return jacobian[:, : 2 * nv].copy(), jacobian[:, 2 * nv :].copy()

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from ..exceptions import InvalidArgumentError
 from ..state import chart_terms
-from .base import Integrator, System
+from .base import Attempt, Integrator, System, split_jacobian, tangent_selectors
 from .tableau import ButcherTableau, EmbeddedTableau
 
 
@@ -30,17 +32,28 @@ class ExplicitRungeKutta(Integrator):
         self.description = description
         self.notes = notes
         self.evaluations_per_step = tableau.stages
-        self._a = np.array(tableau.a, dtype=float)
-        self._b = np.array(tableau.b, dtype=float)
-        self._c = np.array(tableau.c, dtype=float)
+        self.a = np.array(tableau.a, dtype=float)
+        self.b = np.array(tableau.b, dtype=float)
+        self.c = np.array(tableau.c, dtype=float)
 
-    def step(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        K, _, _ = self._stages(system, q, v, tau, dt, t)
+    def attempt(
+        self,
+        system: System,
+        q: np.ndarray,
+        v: np.ndarray,
+        tau: np.ndarray,
+        h: float,
+        t: float = 0.0,
+        state: Any = None,
+        *,
+        rtol: float | None = None,
+        atol: float | None = None,
+    ) -> Attempt:
+        K, _, _ = self._stages(system, q, v, tau, h, t, None)
         nv = len(v)
-        increment = (self._b @ K) * dt
-        return system.space.integrate(q, increment[:nv]), v + increment[nv : 2 * nv], increment[2 * nv :]
+        increment = (self.b @ K) * h
+        q_next, v_next = system.space.integrate(q, increment[:nv]), v + increment[nv : 2 * nv]
+        return Attempt(q_next, v_next, increment[2 * nv :], None, None, len(K))
 
     def _stages(
         self,
@@ -55,33 +68,85 @@ class ExplicitRungeKutta(Integrator):
         """Stage derivatives K, shape (s, 2 nv + n_ledger), rows (xi', v', ledger power), for the step from time t;
         and the last stage's (q, v). `first_row` is a known first row (FSAL reuse)."""
         nv = len(v)
-        K = np.empty((len(self._a), 2 * nv + len(system.ledger_elements)))
+        K = np.empty((len(self.a), 2 * nv + len(system.ledger_elements)))
         K[0, :nv] = v  # at the step's start: xi = 0, where the chart Jacobian is the identity
         if first_row is not None:  # its chart rate was taken in the previous step's chart: not reused
             K[0, nv:] = first_row[nv:]
         else:
             K[0, nv : 2 * nv] = system.unchecked_forward_dynamics(q, v, tau, t)
             system.ledger_power(q, v, tau, K[0, 2 * nv :], t)
-        q_stage, v_stage = _fill_stages(system, q, v, tau, h, t, K, self._a, self._c, 1, len(self._a), self.chart_terms)
+        q_stage, v_stage = _fill_stages(
+            K, 1, len(self.a), system=system, q=q, v=v, tau=tau, h=h, t=t, a=self.a, c=self.c, terms=self.chart_terms
+        )
         return K, q_stage, v_stage
+
+    def jacobians(
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, t: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Forward-mode chain rule through the stages of attempt() (see multibody_sim.linearize).
+
+        Stage i: ξ_i = h Σ_j a_ij ξ'_j, V_i = v + h Σ_j a_ij v'_j, Q_i = q ⊕ ξ_i, ξ'_i = J(ξ_i)⁻¹ V_i,
+        v'_i = a(Q_i, V_i, tau). Every quantity carries its derivative with respect to y = (δq, δv, δtau), a
+        (·, 3 nv) matrix; Q_i's is in the tangent space at Q_i: dQ_i = D_q(q, ξ_i) δq + D_ξ(q, ξ_i) dξ_i.
+        """
+        a, b, c = self.a, self.b, self.c
+        nv = system.nv
+        space = system.space
+        curved = space.curved_blocks
+        terms = self.chart_terms
+        stages = len(b)
+        xi_rate = np.zeros((stages, nv))  # ξ'_i
+        acc = np.zeros((stages, nv))  # v'_i
+        d_xi_rate = np.zeros((stages, nv, 3 * nv))
+        d_acc = np.zeros((stages, nv, 3 * nv))
+        select_q, select_v, _ = tangent_selectors(nv)
+        for i in range(stages):
+            weights = a[i, :i] * h
+            xi = weights @ xi_rate[:i]
+            V = v + weights @ acc[:i]
+            d_xi = np.tensordot(weights, d_xi_rate[:i], axes=1) if i else np.zeros((nv, 3 * nv))
+            d_V = select_v + (np.tensordot(weights, d_acc[:i], axes=1) if i else 0.0)
+            Q = space.integrate(q, xi)
+            d_Q = space.d_integrate(q, xi, select_q, d_xi)
+            da_dq, da_dv, da_dtau = system.unchecked_dynamics_derivatives(Q, V, tau, t + c[i] * h)
+            acc[i] = system.unchecked_forward_dynamics(Q, V, tau, t + c[i] * h)
+            d_acc[i] = da_dq @ d_Q + da_dv @ d_V
+            d_acc[i][:, 2 * nv :] += da_dtau
+            if not curved or i == 0:  # the first stage has ξ = 0 whatever y: there the chart map is the identity
+                xi_rate[i] = V
+                d_xi_rate[i] = d_V
+            else:
+                xi_rate[i] = space.chart_velocity(xi, V, terms)
+                d_xi_rate[i] = d_V
+                for (start, stop), P in zip(curved, space.chart_matrix(xi, terms), strict=True):
+                    d_xi_rate[i][start:stop] = P @ d_V[start:stop]
+                space.add_chart_curvature(d_xi_rate[i], xi, V, d_xi, terms)
+        weights = b * h
+        xi_end = weights @ xi_rate
+        d_xi_end = np.tensordot(weights, d_xi_rate, axes=1)
+        d_q_end = space.d_integrate(q, xi_end, select_q, d_xi_end)
+        d_v_end = select_v + np.tensordot(weights, d_acc, axes=1)
+        return split_jacobian(np.vstack((d_q_end, d_v_end)), nv)
 
 
 def _fill_stages(
+    K: np.ndarray,
+    start: int,
+    stop: int,
+    *,
     system: System,
     q: np.ndarray,
     v: np.ndarray,
     tau: np.ndarray,
     h: float,
     t: float,
-    K: np.ndarray,
     a: np.ndarray,
     c: np.ndarray,
-    start: int,
-    stop: int,
     terms: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Fill rows start..stop-1 of K, each stage built from the rows before it with coefficients a[i, :i] at time
-    t + c[i] h, the chart map's series truncated after A^terms; returns the last stage's (q, v)."""
+    """Fill rows start..stop-1 of K for the step of h from (q, v) at time t with tau held: each stage built from
+    the rows before it with coefficients a[i, :i] at time t + c[i] h, the chart map's series truncated after
+    A^terms; returns the last stage's (q, v)."""
     space = system.space
     flat = space.is_flat
     nv = len(v)
@@ -99,16 +164,11 @@ def _fill_stages(
     return q_stage, v_stage
 
 
-@dataclass
-class Attempt:
-    """One trial step of an adaptive method (accepted or not by the step-size controller)."""
+@dataclass(slots=True)
+class StagesDetail:
+    """What dense output needs of an accepted Runge–Kutta attempt (Attempt.detail)."""
 
-    q: np.ndarray
-    v: np.ndarray
-    flows: np.ndarray
-    error: float  # scaled error norm: accept when ≤ 1
     stages: np.ndarray  # K: the stage derivatives (xi', v', ledger power), one row per stage
-    evaluations: int
     tau: np.ndarray  # the torque held over the step (dense output may need more stages)
     t: float  # the step's start time [s]
     dense: np.ndarray | None = None  # interpolation data, built on the first dense_output call
@@ -122,10 +182,15 @@ class AdaptiveRungeKutta(ExplicitRungeKutta):
     The error is estimated on the chart coordinates and velocities (the tangent space, so floating bases
     work) and scaled by ``atol + rtol · max(|y_n|, |y_n+1|)``, where a configuration's magnitude is its
     distance from the neutral configuration in the tangent space.
+
+    Solver state: the first stage row of the next step when it is already known (an FSAL tableau's last stage, at
+    the new state with the same torque), else None; a rejected attempt's retry state is its own first row.
     """
 
     adaptive = True
+    has_dense_output = True
     fsal: bool  # the last stage is at the new state (and is the next step's first)
+    embedded_order: int
 
     def attempt(
         self,
@@ -134,17 +199,18 @@ class AdaptiveRungeKutta(ExplicitRungeKutta):
         v: np.ndarray,
         tau: np.ndarray,
         h: float,
-        *,
-        rtol: float,
-        atol: float,
-        first_stage: np.ndarray | None = None,
         t: float = 0.0,
+        state: Any = None,
+        *,
+        rtol: float | None = None,
+        atol: float | None = None,
     ) -> Attempt:
-        """Try a step of h [s]. `first_stage`: the first row of K at (q, v, tau) if already known (the last stage
-        of the previous accepted step with an FSAL tableau, or the first of a rejected attempt)."""
-        K, q_last, v_last = self._stages(system, q, v, tau, h, t, first_stage)
+        """Try a step of h [s] (see Integrator.attempt); rtol and atol scale the error norm (required)."""
+        if rtol is None or atol is None:
+            raise InvalidArgumentError(f"integrator '{self.name}' is adaptive: its attempt() needs rtol and atol")
+        K, q_last, v_last = self._stages(system, q, v, tau, h, t, state)
         nv = len(v)
-        increment = (self._b @ K) * h
+        increment = (self.b @ K) * h
         if self.fsal:  # the last stage is the new state
             q_next, v_next = q_last, v_last
         else:
@@ -153,8 +219,17 @@ class AdaptiveRungeKutta(ExplicitRungeKutta):
         norm = self._error_norm(K[:, : 2 * nv], h, scale)
         if not math.isfinite(norm) or not math.isfinite(q_next @ q_next + v_next @ v_next):
             norm = math.inf
-        evaluations = len(K) - (first_stage is not None)
-        return Attempt(q_next, v_next, increment[2 * nv :], norm, K, evaluations, tau, t)
+        evaluations = len(K) - (state is not None)
+        return Attempt(
+            q_next,
+            v_next,
+            increment[2 * nv :],
+            norm,
+            K[-1] if self.fsal else None,
+            evaluations,
+            retry_state=K[0],  # same start state, same torque
+            detail=StagesDetail(K, tau, t),
+        )
 
     def _error_norm(self, K: np.ndarray, h: float, scale: np.ndarray) -> float:
         """The scaled error norm (accept when ≤ 1) from the stages' (xi', v') rows K, shape (s, 2 nv)."""
@@ -170,7 +245,7 @@ class EmbeddedRungeKutta(AdaptiveRungeKutta):
         self.tableau: EmbeddedTableau = tableau
         self.embedded_order = tableau.embedded_order  # the order the step-size controller assumes of the error
         self.fsal = tableau.fsal
-        self._e = self._b - np.array(tableau.b_hat, dtype=float)
+        self._e = self.b - np.array(tableau.b_hat, dtype=float)
         self._d = np.array(tableau.dense, dtype=float) if tableau.dense else None
 
     def _error_norm(self, K: np.ndarray, h: float, scale: np.ndarray) -> float:
@@ -185,9 +260,9 @@ class EmbeddedRungeKutta(AdaptiveRungeKutta):
         The continuous extension h θ (r1 + (1-θ)(r2 + θ(r3 + (1-θ) r4))) with r1 = Σ b_i k_i,
         r2 = k_1 - r1, r3 = 2 r1 - k_1 - k_s, r4 = Σ d_i k_i, applied to the extended chart state.
         """
-        K = attempt.stages
+        K = attempt.detail.stages
         nv = len(v)
-        r1 = self._b @ K
+        r1 = self.b @ K
         r2 = K[0] - r1
         r3 = 2.0 * r1 - K[0] - K[-1]
         if self._d is not None and self._d.any():
@@ -255,33 +330,35 @@ class DormandPrince853(AdaptiveRungeKutta):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(q, v, ledger flows since the step's start) at t_n + θh from an accepted attempt."""
         nv = len(v)
-        if attempt.dense is None:  # three more stages, once per step, then the interpolation polynomial's data
-            K = np.empty((len(self._a_extended), attempt.stages.shape[1]))
-            K[: len(attempt.stages)] = attempt.stages
+        detail = attempt.detail
+        if detail.dense is None:  # three more stages, once per step, then the interpolation polynomial's data
+            stages = detail.stages
+            K = np.empty((len(self._a_extended), stages.shape[1]))
+            K[: len(stages)] = stages
             _fill_stages(
-                system,
-                q,
-                v,
-                attempt.tau,
-                h,
-                attempt.t,
                 K,
-                self._a_extended,
-                self._c_extended,
-                len(attempt.stages),
+                len(stages),
                 len(K),
-                self.chart_terms,
+                system=system,
+                q=q,
+                v=v,
+                tau=detail.tau,
+                h=h,
+                t=detail.t,
+                a=self._a_extended,
+                c=self._c_extended,
+                terms=self.chart_terms,
             )
-            attempt.extra_evaluations = len(K) - len(attempt.stages)
-            delta = (self._b @ attempt.stages) * h
+            detail.extra_evaluations = len(K) - len(stages)
+            delta = (self.b @ stages) * h
             F = np.empty((7, K.shape[1]))
             F[0] = delta
             F[1] = h * K[0] - delta
-            F[2] = 2.0 * delta - h * (attempt.stages[-1] + K[0])
+            F[2] = 2.0 * delta - h * (stages[-1] + K[0])
             F[3:] = h * (self._dense_weights @ K)
-            attempt.dense = F
-        y = np.zeros(attempt.dense.shape[1])
-        for i, f in enumerate(attempt.dense[::-1]):  # nested form: alternate factors θ and (1 - θ)
+            detail.dense = F
+        y = np.zeros(detail.dense.shape[1])
+        for i, f in enumerate(detail.dense[::-1]):  # nested form: alternate factors θ and (1 - θ)
             y += f
             y *= theta if i % 2 == 0 else 1.0 - theta
         return system.space.integrate(q, y[:nv]), v + y[nv : 2 * nv], y[2 * nv :]

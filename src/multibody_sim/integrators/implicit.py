@@ -7,7 +7,7 @@ Both methods solve for one velocity ``x`` at which the step is taken along the g
 with ``s = h`` for backward Euler (``x = v_{n+1}``) and ``s = h/2`` for implicit midpoint (``x`` is the
 midpoint velocity). Newton's method uses the analytic Jacobian of R from Pinocchio's ABA derivatives (damping
 included), chained through the configuration manifold with ``dIntegrate``; a step that Newton cannot solve
-raises StepFailure, never a silently wrong state.
+fails the attempt (status "newton_failed"), never a silently wrong state.
 """
 
 from __future__ import annotations
@@ -15,12 +15,13 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
 import scipy.linalg
 
-from .base import Integrator, StepFailure, System
+from .base import Attempt, Integrator, StepFailure, System, failed, split_jacobian, tangent_selectors
 
 _ARG_V = pin.ArgumentPosition.ARG1
 _EPS = float(np.finfo(float).eps)
@@ -237,6 +238,58 @@ class _ImplicitOneStage(Integrator):
         self.last_jacobian_evaluations = 0
         self.last_iterations = 0
 
+    def attempt(
+        self,
+        system: System,
+        q: np.ndarray,
+        v: np.ndarray,
+        tau: np.ndarray,
+        h: float,
+        t: float = 0.0,
+        state: Any = None,
+        *,
+        rtol: float | None = None,
+        atol: float | None = None,
+    ) -> Attempt:
+        try:
+            q_next, v_next, flows = self._step(system, q, v, tau, h, t)
+        except StepFailure as failure:
+            return failed(failure.status, str(failure), self.last_evaluations)
+        return Attempt(q_next, v_next, flows, None, None, self.last_evaluations)
+
+    def _step(
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, t: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(q_next, v_next, flows); raises StepFailure when Newton fails."""
+        raise NotImplementedError
+
+    def jacobians(
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, t: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The implicit function theorem on R(x; q, v, tau) = x - v - s a(q ⊕ s x, x, tau) = 0.
+
+        dx/dy = (∂R/∂x)⁻¹ (δv + s (da/dq D_q(q, s x) δq + M⁻¹ δtau)), with ∂R/∂x = I - s (s da/dq D_ξ(q, s x) + da/dv).
+        Backward Euler (s = h): v' = x, q' = q ⊕ h x. Implicit midpoint (s = h/2): v' = 2x - v, q' = q ⊕ h x.
+        Raises StepFailure when the step itself fails.
+        """
+        nv = system.nv
+        space = system.space
+        midpoint = self._fraction == 0.5
+        s = self._fraction * h
+        _, v_next, _ = self._step(system, q, v, tau, h, t)
+        x = 0.5 * (v_next + v) if midpoint else v_next  # the converged unknown (to round-off)
+        q_x = space.integrate(q, s * x)
+        da_dq, da_dv, da_dtau = system.unchecked_dynamics_derivatives(q_x, x, tau, t + s)
+        D_q = pin.dIntegrate(space.model, q, s * x, pin.ArgumentPosition.ARG0)
+        D_xi = pin.dIntegrate(space.model, q, s * x, _ARG_V)
+        dR_dx = np.eye(nv) - s * (s * da_dq @ D_xi + da_dv)
+        rhs = np.hstack((s * da_dq @ D_q, np.eye(nv), s * da_dtau))
+        d_x = np.linalg.solve(dR_dx, rhs)
+        select_q, select_v, _ = tangent_selectors(nv)
+        d_q = space.d_integrate(q, h * x, select_q, h * d_x)
+        d_v = 2.0 * d_x - select_v if midpoint else d_x
+        return split_jacobian(np.vstack((d_q, d_v)), nv)
+
     def _newton(self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, s: float, t: float) -> np.ndarray:
         counts = _Counts()
         try:
@@ -271,7 +324,9 @@ class ImplicitEuler(_ImplicitOneStage):
     description = "implicit (backward) Euler, Newton with analytic ABA derivatives"
     notes = "A- and L-stable, for stiff systems; damps oscillations (energy × 1/(1 + (ωh)²) per step at frequency ω)"
 
-    def step(
+    _fraction = 1.0  # the unknown x acts at s = h
+
+    def _step(
         self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         v_next = self._newton(system, q, v, tau, dt, t)
@@ -299,7 +354,9 @@ class ImplicitMidpoint(_ImplicitOneStage):
         "oscillators' amplitude; symplectic only where M is constant, not for general M(q)"
     )
 
-    def step(
+    _fraction = 0.5  # the unknown u acts at s = h / 2
+
+    def _step(
         self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         half = 0.5 * dt

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
-from .base import Integrator, System
+from .base import Attempt, Integrator, System, split_jacobian, tangent_selectors
 
 
 class SemiImplicitEuler(Integrator):
@@ -21,10 +23,32 @@ class SemiImplicitEuler(Integrator):
     evaluations_per_step = 1
     notes = "symplectic only where M is constant (e.g. a single pendulum), not for general M(q)"
 
-    def step(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        v_next = v + dt * system.unchecked_forward_dynamics(q, v, tau, t)
-        q_next = system.space.integrate(q, dt * v_next)
+    def attempt(
+        self,
+        system: System,
+        q: np.ndarray,
+        v: np.ndarray,
+        tau: np.ndarray,
+        h: float,
+        t: float = 0.0,
+        state: Any = None,
+        *,
+        rtol: float | None = None,
+        atol: float | None = None,
+    ) -> Attempt:
+        v_next = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
+        q_next = system.space.integrate(q, h * v_next)
         # The configuration moved along v_next, so that is the velocity the torques and dampers work against.
-        return q_next, v_next, dt * system.ledger_power(q_next, v_next, tau, None, t + dt)
+        return Attempt(q_next, v_next, h * system.ledger_power(q_next, v_next, tau, None, t + h), None, None, 1)
+
+    def jacobians(
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, t: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """v' = v + h a(q, v, tau), q' = q ⊕ h v' (see multibody_sim.linearize)."""
+        nv = system.nv
+        select_q, select_v, _ = tangent_selectors(nv)
+        da_dq, da_dv, da_dtau = system.unchecked_dynamics_derivatives(q, v, tau, t)
+        v_next = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
+        d_v = select_v + h * np.hstack((da_dq, da_dv, da_dtau))
+        d_q = system.space.d_integrate(q, h * v_next, select_q, h * d_v)
+        return split_jacobian(np.vstack((d_q, d_v)), nv)

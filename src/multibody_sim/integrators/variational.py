@@ -38,7 +38,7 @@ import pinocchio as pin
 from scipy.linalg.lapack import dgesv
 
 from ..exceptions import InvalidArgumentError
-from .base import Integrator, StepFailure, System
+from .base import Attempt, Integrator, StepFailure, System, failed
 
 _LEDGER = ("joint_torques", "joint_damping")
 _ALTERNATIVES = "use rk4, dp54 or another explicit integrator"
@@ -180,9 +180,29 @@ class VariationalIntegrator(Integrator):
                 f"'{name}' also has: {', '.join(others)}; {_ALTERNATIVES}"
             )
 
-    def step(
-        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float, t: float = 0.0
+    def attempt(
+        self,
+        system: System,
+        q: np.ndarray,
+        v: np.ndarray,
+        tau: np.ndarray,
+        h: float,
+        t: float = 0.0,
+        state: Any = None,
+        *,
+        rtol: float | None = None,
+        atol: float | None = None,
+    ) -> Attempt:
+        try:
+            q_next, v_next, flows = self._step(system, q, v, tau, h)
+        except StepFailure as failure:
+            return failed(failure.status, str(failure), self.last_evaluations)
+        return Attempt(q_next, v_next, flows, None, None, self.last_evaluations)
+
+    def _step(
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, dt: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(q_next, v_next, flows); raises StepFailure when Newton fails."""
         if not system.space.is_flat:  # a cheap guard in case a caller skipped check_system
             self.check_system(system)
         robot: Any = system

@@ -57,6 +57,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..exceptions import InvalidArgumentError
+from ..robot import rowdot
 
 _REFERENCES = {"world": pin.LOCAL_WORLD_ALIGNED, "local": pin.LOCAL}
 
@@ -202,11 +203,11 @@ class ForceElements:
             W[n_circ + row, i], W[n_circ + row, i + 1] = c_r, s_r  # cos of the difference
         self._W = W
 
-        # Every element as one product f = zᵀ H over a feature vector z = [q | v | tanh(v / v_s) | wrapped angles |
-        # 1 | wrench scales], blocks present only when used. H's rows are constant except the wrenches' (Jᵀw, rewritten
-        # by each evaluate()). One BLAS call over a few dozen entries beats several scattered numpy operations.
+        # The joint elements as one product f = zᵀ H over a feature vector z = [q | v | tanh(v / v_s) | wrapped
+        # angles | 1], blocks present only when used (one BLAS call over a few dozen entries beats several scattered
+        # numpy operations); each wrench adds scale(t) · Jᵀw. Rows of states go through the same operations (one
+        # feature row per state), so a row's force is the same whether it is evaluated alone or in a batch.
         self._wrenches = list(wrenches)
-        n_w = len(self._wrenches)
         blocks: list[tuple[str, int]] = []
         if plain.size:
             blocks.append(("q", nq))
@@ -218,42 +219,30 @@ class ForceElements:
             blocks.append(("angle", n_circ))
         if plain.size:
             blocks.append(("one", 1))
-        if n_w:
-            blocks.append(("wrench", n_w))
         width = sum(size for _, size in blocks)
-        self._z = np.zeros(width)
         H = np.zeros((width, nv))
-        self._zq = self._zv = self._zt = self._za = self._zw = None
-        self._Hw = H[:0]
+        self._slices: dict[str, slice] = {}
         start = 0
         for name, size in blocks:
-            view = self._z[start : start + size]
+            self._slices[name] = slice(start, start + size)
             if name == "q":
-                self._zq = view
                 H[start + idx_q[plain], plain] = -stiffness[plain]
             elif name == "v":
-                self._zv = view
                 H[start + self._damped, self._damped] = -self._d
             elif name == "tanh":
-                self._zt = view
                 H[start + self._rough, self._rough] = -self._fc
             elif name == "angle":
-                self._za = view
                 H[start + np.arange(n_circ), circular] = -stiffness[circular]
-            elif name == "one":
-                view[0] = 1.0
+            else:  # "one"
                 H[start, plain] = stiffness[plain] * rest[idx_q[plain]]
-            else:
-                view[:] = 1.0
-                self._zw = view
-                self._Hw = H[start : start + size]
             start += size
+        self._width = width
         self._H = H
+        self._W_T = np.ascontiguousarray(W.T)
+        self._n_circ = n_circ
         self._inv_vs = np.full(nv, 1.0 / self.friction_velocity)
-        self._sc = np.zeros(2 * n_circ)  # (sin, cos) of the continuous springs' angle differences
-        self._sin, self._cos = self._sc[:n_circ], self._sc[n_circ:]
 
-        # Wrenches: 6-vectors (force, torque); the row Jᵀw of each (unscaled) lives in H.
+        # Wrenches: 6-vectors (force, torque).
         for w in self._wrenches:
             if not 0 <= w.frame_id < model.nframes:
                 raise InvalidArgumentError(
@@ -261,18 +250,25 @@ class ForceElements:
                 )
         self._w6 = [np.concatenate([w.force, w.torque]) for w in self._wrenches]
         self._refs = [_REFERENCES[w.reference] for w in self._wrenches]
-        self._wrench_rows = list(self._Hw)  # views, made once
-        # Constant wrenches keep scale 1 in z: no call per evaluation.
+        # Constant wrenches keep scale 1: no call per evaluation.
         self._scaled = [(k, w.scale) for k, w in enumerate(self._wrenches) if w.scale is not _unit_scale]
+        self._scales = np.ones(len(self._wrenches))  # scale(t) of each wrench at the latest evaluation
         nd, nf = self._damped.size, self._rough.size
         self._n_flow_joint = nd + nf
-        self._y = np.zeros((nv if nd else 0) + (nv if nf else 0))  # features of powers()
-        self._yv = self._y[:nv] if nd else None
-        self._yt = self._y[-nv:] if nf else None
-        self._P = np.zeros((self._y.size, nd + nf))
+        self._y_width = (nv if nd else 0) + (nv if nf else 0)  # features of powers(): [v² | v tanh(v / v_s)]
+        self._P = np.zeros((self._y_width, nd + nf))
         self._P[self._damped, np.arange(nd)] = self._d
-        self._P[self._y.size - nv + self._rough, nd + np.arange(nf)] = self._fc
+        self._P[self._y_width - nv + self._rough, nd + np.arange(nf)] = self._fc
+        self._buffers: dict[int, _RowBuffers] = {}  # per number of rows
         self._model_g0: pin.Model | None = None  # built on the first jacobians() call with wrenches
+
+    def _rows(self, n: int) -> _RowBuffers:
+        buffers = self._buffers.get(n)
+        if buffers is None:
+            if len(self._buffers) >= 8:  # batches shrink as elements stop: keep the latest sizes
+                del self._buffers[next(iter(self._buffers))]
+            buffers = self._buffers[n] = _RowBuffers(n, self)
+        return buffers
 
     # ---- the hot path ---------------------------------------------------------------------------------
     def evaluate(self, q: np.ndarray, v: np.ndarray, t: float = 0.0, out: np.ndarray | None = None) -> np.ndarray:
@@ -281,38 +277,61 @@ class ForceElements:
         Written into `out` (shape (nv,), float) and returned when given, so that the stepping loop allocates
         nothing; otherwise a new array. The wrenches' parts are remembered for powers().
         """
+        rows = self.evaluate_rows(q[None, :], v[None, :], t)
         if out is None:
-            out = np.empty(self.nv)
-        if self._zq is not None:
-            self._zq[...] = q
-        if self._zv is not None:
-            self._zv[...] = v
-        if self._zt is not None:
-            np.multiply(v, self._inv_vs, out=self._zt)
-            np.tanh(self._zt, out=self._zt)
-        if self._za is not None:
-            np.dot(self._W, q, out=self._sc)
-            np.arctan2(self._sin, self._cos, out=self._za)
-        if self._zw is not None:
-            self._wrench_jacobians(q, t)
-        np.dot(self._z, self._H, out=out)
+            return rows[0].copy()
+        out[...] = rows[0]
         return out
 
-    def _wrench_jacobians(self, q: np.ndarray, t: float) -> None:
-        """Write each wrench's unscaled Jᵀw into its row of H and its scale at t into z."""
-        model, data = self._model, self._data
-        if len(self._wrenches) == 1:  # kinematics along the frame's support only: cheaper than all joints
-            J = pin.computeFrameJacobian(model, data, q, self._wrenches[0].frame_id, self._refs[0])
-            # (6, nv), but Pinocchio returns a flat (6,) when nv = 1
-            np.dot(self._w6[0], J.reshape(6, -1), out=self._wrench_rows[0])
+    def evaluate_rows(self, Q: np.ndarray, V: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """evaluate() of n states at once: Q (n, nq), V (n, nv) -> (n, nv), each row exactly as evaluate() gives it.
+
+        The result is a buffer that the next call with as many rows overwrites; the wrenches' parts are remembered
+        for powers_rows().
+        """
+        buf = self._rows(len(Q))
+        Z, slices = buf.Z, self._slices
+        if "q" in slices:
+            Z[:, slices["q"]] = Q
+        if "v" in slices:
+            Z[:, slices["v"]] = V
+        if "tanh" in slices:
+            zt = Z[:, slices["tanh"]]
+            np.multiply(V, self._inv_vs, out=zt)
+            np.tanh(zt, out=zt)
+        if "angle" in slices:
+            n_circ = self._n_circ
+            np.matmul(Q[:, None, :], self._W_T, out=buf.SC[:, None, :])  # the same gemv per row at any n
+            np.arctan2(buf.SC[:, :n_circ], buf.SC[:, n_circ:], out=Z[:, slices["angle"]])
+        out = buf.F
+        if self._width:
+            np.matmul(Z[:, None, :], self._H, out=out[:, None, :])
         else:
+            out[...] = 0.0
+        if self._wrenches:
+            self._wrench_forces(Q, t, buf)
+            for k in range(len(self._wrenches)):
+                force = buf.JW[k]
+                if self._scales[k] != 1.0:
+                    force = force * self._scales[k]
+                np.add(out, force, out=out)
+        return out
+
+    def _wrench_forces(self, Q: np.ndarray, t: float, buf: _RowBuffers) -> None:
+        """Each wrench's unscaled Jᵀw for every row into buf.JW (n_wrenches, n, nv), and its scale at t."""
+        model, data = self._model, self._data
+        one = len(self._wrenches) == 1
+        for b, q in enumerate(Q):
+            if one:  # kinematics along the frame's support only: cheaper than all joints
+                J = pin.computeFrameJacobian(model, data, q, self._wrenches[0].frame_id, self._refs[0])
+                # (6, nv), but Pinocchio returns a flat (6,) when nv = 1
+                np.dot(self._w6[0], J.reshape(6, -1), out=buf.JW[0, b])
+                continue
             pin.computeJointJacobians(model, data, q)  # one kinematics pass for every wrench
-            for wrench, ref, w6, row in zip(self._wrenches, self._refs, self._w6, self._wrench_rows, strict=True):
-                np.dot(w6, pin.getFrameJacobian(model, data, wrench.frame_id, ref).reshape(6, -1), out=row)
-        zw = self._zw
-        assert zw is not None
+            for k, (wrench, ref, w6) in enumerate(zip(self._wrenches, self._refs, self._w6, strict=True)):
+                np.dot(w6, pin.getFrameJacobian(model, data, wrench.frame_id, ref).reshape(6, -1), out=buf.JW[k, b])
         for k, scale in self._scaled:
-            zw[k] = scale(t)
+            self._scales[k] = scale(t)
 
     def powers(self, v: np.ndarray, out: np.ndarray) -> None:
         """Power of each ledger element [W], written into out (shape (len(ledger),)), in ledger order.
@@ -321,21 +340,30 @@ class ForceElements:
         from this v; work elements are positive when they put energy in: ``(Jᵀ w) · v`` with ``Jᵀ w`` from the
         latest evaluate(), so call it at the state (q, t) of interest first.
         """
-        if self._n_flow_joint:
+        self.powers_rows(v[None, :], out[None, :])
+
+    def powers_rows(self, V: np.ndarray, out: np.ndarray) -> None:
+        """powers() of n rows, V (n, nv), into out (n, len(ledger)), with the wrench parts of the latest
+        evaluate_rows() call with as many rows."""
+        buf = self._rows(len(V))
+        nf = self._n_flow_joint
+        if nf:
             # One product again: powers = [v² | v tanh(v / v_s)] · P, P holding d and F_c in the ledger's columns.
-            if self._yv is not None:
-                np.multiply(v, v, out=self._yv)
-            if self._yt is not None:
-                yt = self._yt
-                np.multiply(v, self._inv_vs, out=yt)
+            Y, nv = buf.Y, self.nv
+            if self._damped.size:
+                np.multiply(V, V, out=Y[:, :nv])
+            if self._rough.size:
+                yt = Y[:, self._y_width - nv :]
+                np.multiply(V, self._inv_vs, out=yt)
                 np.tanh(yt, out=yt)
-                np.multiply(yt, v, out=yt)
-            np.dot(self._y, self._P, out=out[: self._n_flow_joint])
-        if self._zw is not None:
-            work = out[self._n_flow_joint :]
-            np.dot(self._Hw, v, out=work)
-            if self._scaled:  # otherwise every scale is 1
-                np.multiply(work, self._zw, out=work)
+                np.multiply(yt, V, out=yt)
+            np.matmul(Y[:, None, :], self._P, out=buf.flows[:, None, :])
+            out[:, :nf] = buf.flows
+        for k in range(len(self._wrenches)):
+            work = out[:, nf + k]
+            rowdot(buf.JW[k], V, out=work)
+            if self._scales[k] != 1.0:
+                np.multiply(work, self._scales[k], out=work)
 
     # ---- energies and derivatives -------------------------------------------------------------------
     def spring_displacements(self, q: np.ndarray) -> np.ndarray:
@@ -420,6 +448,21 @@ class ForceElements:
         dtau_dq, _, _ = pin.computeRNEADerivatives(self._model_g0, self._data_g0, q, zeros, zeros, fext)
         # RNEA returns tau = ... - Σ J_iᵀ f_i: the generalized force of the wrenches is its negative.
         return turning - dtau_dq
+
+
+class _RowBuffers:
+    """Work arrays of ForceElements for n rows: features Z, forces F, wrench forces JW, powers' features Y."""
+
+    def __init__(self, n: int, elements: ForceElements):
+        nv = elements.nv
+        self.Z = np.zeros((n, elements._width))
+        if "one" in elements._slices:
+            self.Z[:, elements._slices["one"]] = 1.0
+        self.SC = np.zeros((n, 2 * elements._n_circ))  # (sin, cos) of the continuous springs' angle differences
+        self.F = np.zeros((n, nv))
+        self.JW = np.zeros((len(elements._wrenches), n, nv))
+        self.Y = np.zeros((n, elements._y_width))
+        self.flows = np.zeros((n, elements._n_flow_joint))
 
 
 def _skew(a: np.ndarray) -> np.ndarray:

@@ -255,6 +255,34 @@ class Scene(Robot):
             da_dv += da_dtau @ df_dv
         return da_dq, da_dv, da_dtau
 
+    # ---- many rows at once (the batch kernel) ------------------------------------------------------
+    def rows_dynamics(self, num_threads: int = 1) -> Any:
+        """Batched forward dynamics (see Robot), or None: constraints and mimic joints have no batched form."""
+        if self.constraints is not None or self.mimic:
+            return None
+        return super().rows_dynamics(num_threads)
+
+    def rows_applied(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> np.ndarray:
+        """tau plus the force elements minus damping for each row, as _applied computes it, into out."""
+        if self.elements is not None:
+            np.add(TAU, self.elements.evaluate_rows(Q, V, t), out=out)
+        else:
+            out[...] = TAU
+        if self._damped:
+            np.subtract(out, self.damping * V, out=out)
+        return out
+
+    def rows_ledger_power(
+        self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray, *, fresh: bool = True
+    ) -> None:
+        """ledger_power of each row into out (n, n_elements); `fresh`: rows_applied was just called at (Q, V, t)."""
+        n = self._n_robot_flows
+        super().rows_ledger_power(Q, V, TAU, t, out[:, :n])
+        if self.elements is not None:
+            if not fresh and self.elements.time_dependent:  # the wrenches' parts at this very point
+                self.elements.evaluate_rows(Q, V, t)
+            self.elements.powers_rows(V, out[:, n : n + len(self.elements.ledger)])
+
     # ---- energy ledger -------------------------------------------------------------------------------
     @property
     def ledger_elements(self) -> list[tuple[str, str]]:

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from ..robot import Robot
-from ..simulation import positive_number
+from ..validation import positive_number
 from ..trajectory import Trajectory
 from ._deps import check_viewer_dependencies
 from .frames import DEFAULT_FPS, resample

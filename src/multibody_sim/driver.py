@@ -1,0 +1,698 @@
+"""The driver of a run: control instants, torques, sampling, the energy monitor, recording, interrupts and early
+stops, for one row (simulate, Stepper) or many (rollout). It knows nothing of Runge–Kutta: the stepping core
+(core.py) advances the rows between its events.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .core import EMPTY, FULL, REACHED, Core, RowKernel, RowStop, Sampler, cure_for_dt
+from .exceptions import ControllerOutputError, InvalidArgumentError, MultibodySimError
+from .integrators import Integrator
+from .integrators.batch import BatchRungeKutta, batch_kernel_supported
+from .metadata import run_metadata
+from .recording import COUNTERS, SampleStore, check_memory, samples_needed
+from .step_control import SLIVER, ConstantStep, PIController
+from .trajectory import LimitViolations, Trajectory, chunk_path, combine_limit_violations, merge_parts
+from .validation import positive_number, steps_per
+
+# Energy blow-up: |energy_error| beyond this many times the run's energy scale is divergence, not error.
+BLOWUP_FACTOR = 1e3
+# The core returns to the driver at least every this many steps (progress, interrupts, the monitor).
+BLOCK_STEPS = 2048
+# ... and whenever the store holds this many more samples (in-memory runs).
+BLOCK_SAMPLES = 1024
+
+
+# ---- torques -----------------------------------------------------------------------------------------------------
+def check_torque(system: Any, tau: Any, t: float | None, what: str = "controller output") -> np.ndarray:
+    """tau as a float array (nv,) if it is a valid torque, else InvalidArgumentError naming the time and reason."""
+    fast = type(tau) is np.ndarray and tau.dtype == np.float64 and tau.shape == (system.nv,)
+    if fast and math.isfinite(tau @ tau) and not (system.floating_base and tau[:6].any()):
+        return tau
+    try:  # the full check, with the precise reason
+        return system.check_tau(tau)
+    except InvalidArgumentError as exc:
+        if t is None:
+            raise
+        raise InvalidArgumentError(f"{what} at t = {t:.6g} s: {exc}") from None
+
+
+class Saturation:
+    """Actuators saturate at the URDF's effort limits: torques are clipped, and the calls and dofs counted.
+
+    Attributes:
+        effort: |tau| bounds, shape (nv,), or None when the URDF gives none.
+        calls: per row, how many control instants clipped something, shape (B,).
+        dofs: per row and dof, how many times it was clipped, shape (B, nv).
+    """
+
+    def __init__(self, system: Any, B: int):
+        limited = np.isfinite(system.effort_limit)
+        self.effort = system.effort_limit if limited.any() else None
+        self.calls = np.zeros(B, dtype=np.int64)
+        self.dofs = np.zeros((B, system.nv), dtype=np.int64)
+
+    def apply(self, TAU: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """TAU (n, nv) of `rows`, clipped (a new array where anything was clipped)."""
+        if self.effort is None:
+            return TAU
+        over = np.abs(TAU) > self.effort
+        if not over.any():
+            return TAU
+        self.calls[rows] += over.any(axis=1)
+        self.dofs[rows] += over
+        return np.clip(TAU, -self.effort, self.effort)
+
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.calls.copy(), self.dofs.copy()
+
+    def restore(self, snapshot: tuple[np.ndarray, np.ndarray]) -> None:
+        self.calls, self.dofs = snapshot[0].copy(), snapshot[1].copy()
+
+
+class Torques:
+    """Where the rows' torques come from: nothing, one callable per row, a batched callable, or open-loop sequences.
+
+    Attributes:
+        kind: "none", "callables", "batched" or "taus".
+        label: the controller's name for the metadata.
+    """
+
+    def __init__(
+        self,
+        kind: str,
+        *,
+        callables: list[Any] | None = None,
+        batched: Any = None,
+        taus: np.ndarray | None = None,
+        label: str | None = None,
+    ):
+        self.kind, self.callables, self.batched, self.taus, self.label = kind, callables, batched, taus, label
+
+    @classmethod
+    def single(cls, controller: Any) -> Torques:
+        """simulate()'s and Stepper's: one callable or None."""
+        if controller is None:
+            return cls("none")
+        return cls("callables", callables=[controller], label=controller_name(controller))
+
+    def subset(self, rows: np.ndarray) -> Torques:
+        """The same torques for the rows `rows` only (Ray chunks, element-by-element runs)."""
+        return Torques(
+            self.kind,
+            callables=[self.callables[b] for b in rows] if self.callables is not None else None,
+            batched=self.batched,
+            taus=self.taus[rows] if self.taus is not None else None,
+            label=self.label,
+        )
+
+    def compute(
+        self, system: Any, t: float, instant: int, rows: np.ndarray, states: Callable[[], tuple[list, list]]
+    ) -> tuple[np.ndarray, list[tuple[int, BaseException, bool]]]:
+        """The torques of the running rows at time t (control instant number `instant`), shape (n, nv), and the
+        rows whose controller failed: (position, exception, is_bad_output)."""
+        n, nv = len(rows), system.nv
+        failures: list[tuple[int, BaseException, bool]] = []
+        if self.kind == "taus":
+            assert self.taus is not None
+            return self.taus[rows, min(instant, self.taus.shape[1] - 1)], failures
+        Qs, Vs = states()
+        if self.kind == "batched":
+            Q, V = np.array(Qs), np.array(Vs)
+            Q.setflags(write=False)  # the controller sees the state; it must not edit it
+            V.setflags(write=False)
+            try:
+                out = self.batched(t, Q, V)
+            except Exception as exc:  # user code: every row fails with it
+                return np.zeros((n, nv)), [(j, exc, False) for j in range(n)]
+            shape = np.shape(out)
+            if shape != (n, nv):
+                error = InvalidArgumentError(
+                    f"batched controller output at t = {t:.6g} s must have shape ({n}, {nv}), got {shape}"
+                )
+                return np.zeros((n, nv)), [(j, error, True) for j in range(n)]
+            TAU = np.array(out, dtype=float)
+            suspect = ~np.isfinite(TAU).all(axis=1) | (system.floating_base and TAU[:, :6].any(axis=1))
+            for j in np.flatnonzero(suspect).tolist():
+                try:  # the full check, with the precise reason
+                    system.check_tau(TAU[j])
+                except InvalidArgumentError as exc:
+                    failures.append(
+                        (j, InvalidArgumentError(f"batched controller output at t = {t:.6g} s, element {rows[j]}: {exc}"), True)
+                    )
+            return TAU, failures
+        assert self.callables is not None
+        TAU = np.empty((n, nv))
+        for j, b in enumerate(rows.tolist()):
+            q, v = Qs[j], Vs[j]
+            q.setflags(write=False)  # the controller sees the state; it must not edit it
+            v.setflags(write=False)
+            try:
+                out = self.callables[b](t, q, v)
+            except Exception as exc:  # user code: this row fails with it
+                failures.append((j, exc, False))
+                TAU[j] = 0.0
+                continue
+            try:
+                TAU[j] = check_torque(system, out, t)
+            except InvalidArgumentError as exc:
+                failures.append((j, exc, True))
+                TAU[j] = 0.0
+        return TAU, failures
+
+
+def controller_name(controller: Any) -> str:
+    return str(getattr(controller, "__qualname__", type(controller).__qualname__))
+
+
+# ---- the energy monitor --------------------------------------------------------------------------------------------
+class Monitor:
+    """Energy blow-up detection at the samples: a run whose energy becomes non-finite, or whose energy error or
+    dissipated energy exceeds BLOWUP_FACTOR times its energy scale, has diverged.
+
+    The scale of a row is T0 + |V0| + the system's natural energy unit (lifting it by one metre); dissipation is
+    left out of the bound (a diverging damped mode inflates it without bound, while a real run can only dissipate
+    what it had or was given: the scale and the work).
+    """
+
+    def __init__(self, system: Any, B: int):
+        self.system = system
+        elements = system.ledger_elements
+        self.is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
+        self.initial = np.zeros(B)  # H at the start [J]
+        self.scale = np.zeros(B)
+        self.started = np.zeros(B, dtype=bool)
+
+    def start(self, rows: np.ndarray, energies: np.ndarray) -> None:
+        """The rows' initial (T, V), shape (n, 2)."""
+        self.initial[rows] = energies.sum(axis=1)
+        self.scale[rows] = energies[:, 0] + np.abs(energies[:, 1]) + self.system.energy_scale
+        self.started[rows] = True
+
+    def first_problem(self, store: SampleStore, b: int, start: int, stop: int) -> tuple[int, str, bool] | None:
+        """(sample index, what, whether the sample is kept) of row b's first problem among samples start..stop-1,
+        or None."""
+        if stop <= start:
+            return None
+        E = store.ENERGY[start:stop, b]
+        total = E[:, 0] + E[:, 1]
+        flows = store.FLOWS[start:stop, b]
+        work = flows[:, self.is_work].sum(axis=1)
+        dissipated = flows[:, ~self.is_work].sum(axis=1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            error = total - self.initial[b] - work + dissipated
+            bound = BLOWUP_FACTOR * (self.scale[b] + np.abs(work))
+        nonfinite = ~np.isfinite(total)
+        blown = (np.abs(error) > bound) | (dissipated > bound)
+        bad = nonfinite | blown
+        if not bad.any():
+            return None
+        i = int(np.argmax(bad))
+        V = store.V[start + i, b]
+        fastest = int(np.argmax(np.abs(V)))
+        where = f"fastest in '{self.system.dof_names[fastest]}' ({V[fastest]:.3g})"
+        if nonfinite[i]:
+            return start + i, f"the energy became non-finite, {where}", False
+        what = (
+            f"the energy error {error[i]:.3g} J"
+            if abs(error[i]) > bound[i]
+            else f"the dissipated energy {dissipated[i]:.3g} J"
+        )
+        scale = bound[i] / BLOWUP_FACTOR
+        return start + i, f"{what} exceeds {BLOWUP_FACTOR:g} times the run's energy scale ({scale:.3g} J), {where}", True
+
+
+# ---- kernels ------------------------------------------------------------------------------------------------------
+def choose_kernel(
+    system: Any,
+    method: Integrator,
+    Q0: np.ndarray,
+    V0: np.ndarray,
+    *,
+    rtol: float | None = None,
+    atol: float | None = None,
+    num_threads: int = 1,
+    torque_free: bool = False,
+) -> RowKernel | BatchRungeKutta:
+    """The kernel a run of these rows takes: the batch kernel for several rows when it renders the method on the
+    system, the row kernel otherwise (simulate(), Stepper and rollout() share this rule)."""
+    if len(Q0) > 1 and batch_kernel_supported(system, method) and system.rows_dynamics() is not None:
+        return BatchRungeKutta(system, method, Q0, V0, num_threads=num_threads, torque_free=torque_free)
+    return RowKernel(system, method, Q0, V0, rtol=rtol, atol=atol)
+
+
+# ---- a run ---------------------------------------------------------------------------------------------------------
+@dataclass
+class Sink:
+    """Where samples go besides memory: nowhere, one file at the end, or chunk files merged at the end.
+
+    Attributes:
+        out: the trajectory file, or None.
+        chunk: samples per chunk file (out.npz.parts/), or None (one file at the end).
+        written: chunk files written so far.
+    """
+
+    out: Path | None = None
+    chunk: int | None = None
+    written: int = 0
+    violations: list[LimitViolations] = field(default_factory=list)
+
+
+@dataclass
+class RowOutcome:
+    """How one row of a run ended: status, message, the user's exception, and its counts."""
+
+    status: str = "running"
+    message: str = ""
+    cause: BaseException | None = None
+    counts: dict[str, int] = field(default_factory=dict)
+    bad_output: bool = False  # failed on a controller output that is not a torque
+
+
+@dataclass
+class RunSettings:
+    """A run's settings, checked: the step, the sampling and the control timing.
+
+    Attributes:
+        duration, dt: [s].
+        adaptive: the method chooses its steps (rtol, atol, max_step apply).
+        output_every: fixed-step: sample every this many steps.
+        control_every: fixed-step: control every this many steps.
+        output_dt, control_dt: adaptive: the sampling and control periods [s] (None: every step).
+        n_steps: fixed-step: the number of steps (the last one shortened to land on the duration).
+    """
+
+    duration: float
+    dt: float
+    adaptive: bool
+    rtol: float | None = None
+    atol: float | None = None
+    max_step: float = math.inf
+    output_every: int = 1
+    control_every: int = 1
+    output_dt: float | None = None
+    control_dt: float | None = None
+    n_steps: int = 0
+
+    @classmethod
+    def check(cls, method: Integrator, duration: float, dt: float, options: dict[str, Any]) -> RunSettings:
+        if method.adaptive:
+            max_step = options.get("max_step")
+            output_dt, control_dt = options.get("output_dt"), options.get("control_dt")
+            return cls(
+                duration,
+                dt,
+                True,
+                rtol=positive_number(options["rtol"], "rtol", "units"),
+                atol=positive_number(options["atol"], "atol", "units"),
+                max_step=positive_number(max_step, "max_step") if max_step is not None else math.inf,
+                output_dt=positive_number(output_dt, "output_dt") if output_dt is not None else None,
+                control_dt=positive_number(control_dt, "control_dt") if control_dt is not None else None,
+            )
+        return cls(
+            duration,
+            dt,
+            False,
+            output_every=steps_per(options.get("output_dt"), dt, "output_dt"),
+            control_every=steps_per(options.get("control_dt"), dt, "control_dt"),
+            n_steps=n_steps(duration, dt),
+        )
+
+    @property
+    def capacity(self) -> int:
+        """Samples a row can take (adaptive methods without output_dt: a first guess, the store grows)."""
+        if not self.adaptive:
+            return (self.n_steps - 1) // self.output_every + 2
+        return samples_needed(self.duration, self.output_dt) if self.output_dt else 1024
+
+    def control_instant(self, j: int) -> float:
+        """The time of control instant j [s] (the duration once it is past the last one)."""
+        if self.adaptive:
+            assert self.control_dt is not None
+            return min(self.duration, j * self.control_dt)
+        k = j * self.control_every
+        return k * self.dt if k < self.n_steps else self.duration
+
+    def n_control(self) -> int:
+        """How many control instants the run has (fixed-step methods, or adaptive ones with control_dt)."""
+        if self.adaptive:
+            assert self.control_dt is not None
+            return max(1, math.ceil(self.duration / self.control_dt - SLIVER))
+        return -(-self.n_steps // self.control_every)
+
+
+def n_steps(duration: float, dt: float) -> int:
+    """Fixed steps of dt in a run of `duration`, the last one shortened (a sliver of round-off is no step)."""
+    return max(1, math.ceil(duration / dt - SLIVER))
+
+
+class Run:
+    """One run of the driver over B rows from (Q0, V0) at t = 0 to the duration.
+
+    Results: `outcomes` (one RowOutcome per row) and the store's samples; `trajectory(b)` and the batch arrays are
+    built from them. Early stops never raise here: the callers (simulate, rollout) decide what to raise.
+    """
+
+    def __init__(
+        self,
+        *,
+        system: Any,
+        method: Integrator,
+        Q0: np.ndarray,
+        V0: np.ndarray,
+        settings: RunSettings,
+        torques: Torques,
+        sink: Sink | None = None,
+        on_sample: Callable[[float, np.ndarray, np.ndarray], None] | None = None,
+        num_threads: int = 1,
+        progress: Any = None,
+        options: dict[str, Any] | None = None,
+    ):
+        self.system, self.method, self.settings, self.torques = system, method, settings, torques
+        self.options = dict(options or {})
+        self.sink = sink or Sink()
+        self.on_sample = on_sample
+        self.progress = progress
+        B = len(Q0)
+        self.B = B
+        self.Q0, self.V0 = Q0, V0
+        chunk = self.sink.chunk
+        if chunk is None:
+            check_memory(settings.capacity, system, B)
+        capacity = chunk if chunk is not None else min(settings.capacity, 1 << 20)
+        record_width = sum(width for _, _, width in system.record_fields)
+        self.store = SampleStore(B, system.nq, system.nv, len(system.ledger_elements), record_width, capacity)
+        self.store.make_room(chunk if chunk is not None else min(capacity, BLOCK_SAMPLES))
+        if settings.adaptive:
+            control: ConstantStep | PIController = PIController(
+                method.embedded_order, max_step=settings.max_step, first_step=settings.dt  # type: ignore[attr-defined]
+            )
+            sampler = Sampler(period=settings.output_dt)
+        else:
+            control = ConstantStep(settings.dt)
+            sampler = Sampler(every=settings.output_every)
+        kernel = choose_kernel(
+            system,
+            method,
+            Q0,
+            V0,
+            rtol=settings.rtol,
+            atol=settings.atol,
+            num_threads=num_threads,
+            torque_free=torques.kind == "none",
+        )
+        self.kernel_name = "python (batch)" if isinstance(kernel, BatchRungeKutta) else "python (row)"
+        self.core = Core(system=system, method=method, kernel=kernel, control=control, sampler=sampler, store=self.store, B=B)
+        self.monitor = Monitor(system, B)
+        self.saturation = Saturation(system, B)
+        self.controller_calls = np.zeros(B, dtype=np.int64)
+        self.outcomes = [RowOutcome() for _ in range(B)]
+        self.checked = 0  # samples of the running rows the monitor has seen
+        self.wall_time = 0.0
+
+    # ---- the loop ------------------------------------------------------------------------------------------------
+    def execute(self) -> None:
+        """Run to the end; early stops are recorded in `outcomes`. Raises KeyboardInterrupt (after keeping the
+        samples and marking the running rows "interrupted") and OSError-like failures of the sink."""
+        start = time.perf_counter()
+        try:
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # divergence is reported, not warned
+                self._loop()
+        except KeyboardInterrupt:
+            self._stop_running("interrupted")
+            raise
+        finally:
+            self.wall_time = time.perf_counter() - start
+
+    def _loop(self) -> None:
+        settings, core, torques = self.settings, self.core, self.torques
+        controlled = torques.kind != "none"
+        every_step = controlled and settings.adaptive and settings.control_dt is None
+        instant = 0  # the next control instant's number
+        target = settings.duration if not controlled or every_step else settings.control_instant(0)
+        controlled_at = math.nan  # the time of the latest control instant
+        while True:
+            t = core.t
+            due = controlled and (every_step or t == settings.control_instant(instant))
+            if due and t != controlled_at and t < settings.duration:
+                controlled_at = t
+                self._control(t, instant)
+                if not every_step:
+                    instant += 1
+                    target = settings.control_instant(instant)
+            reason = core.advance(target, max_steps=1 if every_step else BLOCK_STEPS)
+            self._take_samples()
+            if reason == EMPTY or not len(core.rows):
+                return
+            if reason == REACHED and core.t >= settings.duration:
+                core.record()  # the final sample, with the torque of the last step
+                self._take_samples()
+                self._stop_running("completed")
+                return
+            if reason == FULL:
+                self._make_room()
+            # REACHED a control instant, STEPPED (a block of steps, or one step between controls): carry on
+
+    def _control(self, t: float, instant: int) -> None:
+        core = self.core
+        rows = core.rows
+        TAU, failures = self.torques.compute(self.system, t, instant, rows, core.kernel.states)
+        self.controller_calls[rows] += 1
+        if failures:
+            js = [j for j, _, _ in failures]
+            for j, exc, bad_output in failures:
+                outcome = self.outcomes[int(rows[j])]
+                outcome.bad_output = bad_output
+                outcome.cause = exc
+                outcome.message = (
+                    str(exc)
+                    if bad_output
+                    else f"failed at t = {t:.6g} s: the controller raised {type(exc).__name__}: {exc}"
+                )
+            self._stop_positions(np.array(js, dtype=int), "failed", record=True)
+            keep = np.ones(len(rows), dtype=bool)
+            keep[js] = False
+            TAU = TAU[keep]
+            rows = core.rows
+            if not len(rows):
+                return
+        core.set_torques(self.saturation.apply(TAU, rows))
+
+    # ---- samples -------------------------------------------------------------------------------------------------
+    def _take_samples(self) -> None:
+        """Check the samples taken since the last call (the energy monitor), show them (on_sample, progress) and
+        stop the rows the core or the monitor stopped."""
+        store, core, monitor = self.store, self.core, self.monitor
+        stops = {stop.row: stop for stop in core.take_stops()}
+        rows = list(core.rows.tolist()) + list(stops)
+        if not monitor.started.all():
+            fresh = [b for b in rows if not monitor.started[b] and store.n_samples[b]]
+            if fresh:
+                monitor.start(np.array(fresh), store.ENERGY[0, fresh])
+        for b in rows:
+            stop = stops.get(b)
+            end = int(store.n_samples[b])
+            limit = end if stop is None or not stop.added else stop.sample  # a stop's own last sample is not judged
+            problem = monitor.first_problem(store, b, self.checked, limit)
+            if problem is not None:
+                i, what, keep = problem
+                t = store.T[i, b]
+                steps = int(store.COUNTS[i, b, 0])
+                store.truncate(b, i + 1 if keep else i)  # a sample whose energy is not finite is not kept
+                message = f"diverged at t = {t:.6g} s (step {steps}): {what}; {cure_for_dt(self.system, self._dt_hint)}"
+                self._end(b, "diverged", message, counts_at=i)
+                if stop is None:
+                    self.core.stop(np.flatnonzero(core.rows == b))
+                continue
+            if stop is not None:
+                outcome = self.outcomes[b]
+                outcome.status, outcome.message, outcome.cause = stop.status, stop.message, stop.cause
+                outcome.counts = self._core_counts(b)
+                if stop.added and not np.isfinite(store.ENERGY[stop.sample, b]).all():
+                    store.truncate(b, stop.sample)  # only finite samples are kept; the stop's reason stands
+        self._show(rows)
+        self.checked = int(store.n_samples[core.rows[0]]) if len(core.rows) else store.count
+
+    def _show(self, rows: list[int]) -> None:
+        """on_sample and progress for the new samples (one-row runs)."""
+        if self.on_sample is None and self.progress is None:
+            return
+        store = self.store
+        b = 0
+        if self.B != 1 or not rows:
+            if self.progress is not None:
+                self.progress.update_to(int(self.core.steps.sum()))  # element-steps
+            return
+        start, end = self.checked, int(store.n_samples[b])
+        for i in range(start, end):
+            if self.on_sample is not None:
+                q, v = store.Q[i, b], store.V[i, b]
+                try:
+                    self.on_sample(float(store.T[i, b]), q, v)
+                except Exception as exc:  # user code: the run stops with what it has
+                    store.truncate(b, i + 1)
+                    outcome = self.outcomes[b]
+                    outcome.cause = exc
+                    message = f"failed at t = {store.T[i, b]:.6g} s: on_sample raised {type(exc).__name__}: {exc}"
+                    self._end(b, "failed", message, counts_at=i)
+                    if len(self.core.rows):
+                        self.core.stop(np.array([0]))
+                    break
+        if self.progress is not None:
+            self.progress.update_to(float(store.T[max(end - 1, 0), b]))
+
+    def _make_room(self) -> None:
+        """The store reached its soft capacity: write a chunk file, or let it grow."""
+        store = self.store
+        if self.sink.chunk is not None:
+            self._flush()
+        else:
+            store.make_room(store.count + BLOCK_SAMPLES)
+
+    def _flush(self) -> None:
+        """Write the samples in memory as the next chunk file and empty the store (one-row runs)."""
+        sink = self.sink
+        assert sink.out is not None
+        traj = self.trajectory(0, status="running")
+        sink.violations.append(traj.limit_violations)
+        traj.save(chunk_path(sink.out, sink.written))
+        sink.written += 1
+        self.store.clear()
+        self.checked = 0
+
+    # ---- stopping rows -------------------------------------------------------------------------------------------
+    def _stop_positions(self, js: np.ndarray, status: str, *, record: bool) -> None:
+        """Stop the running rows at positions js with `status`, their current state kept as a last sample."""
+        core = self.core
+        rows = core.rows[js]
+        if record and core.recorded != core.t:
+            core.record(js)
+        for b in rows.tolist():
+            outcome = self.outcomes[b]
+            outcome.status = status
+            outcome.counts = self._core_counts(b)
+        core.stop(js)
+
+    def _stop_running(self, status: str) -> None:
+        """Every running row ends with `status` (completed, interrupted), its current state its last sample."""
+        core = self.core
+        if not len(core.rows):
+            return
+        if status == "interrupted":
+            try:
+                self._take_samples()
+            except Exception:  # pragma: no cover - keep the samples whatever the monitor does
+                pass
+            if not len(core.rows):
+                return
+            core.record()
+        for b in core.rows.tolist():
+            outcome = self.outcomes[b]
+            outcome.status = status
+            outcome.counts = self._core_counts(b)
+        core.stop(np.arange(len(core.rows)))
+
+    def _end(self, b: int, status: str, message: str, *, counts_at: int) -> None:
+        outcome = self.outcomes[b]
+        outcome.status, outcome.message = status, message
+        counts = self.store.COUNTS[counts_at, b]
+        outcome.counts = {name: int(counts[i]) for i, name in enumerate(COUNTERS)}
+
+    def _core_counts(self, b: int) -> dict[str, int]:
+        core = self.core
+        return {
+            "steps": int(core.steps[b]),
+            "rejected_steps": int(core.rejected[b]),
+            "evaluations": int(core.evaluations[b]),
+        }
+
+    @property
+    def _dt_hint(self) -> float:
+        return self.settings.dt
+
+    # ---- results -------------------------------------------------------------------------------------------------
+    def stats(self, b: int) -> dict[str, Any]:
+        """Row b's stats, as Trajectory.stats holds them."""
+        outcome = self.outcomes[b]
+        counts = outcome.counts or self._core_counts(b)
+        dofs = self.system.dof_names
+        return {
+            **counts,
+            "controller_calls": int(self.controller_calls[b]),
+            "saturated_controls": int(self.saturation.calls[b]),
+            "saturated_dofs": {dofs[i]: int(n) for i, n in enumerate(self.saturation.dofs[b]) if n},
+            "wall_time": self.wall_time,
+        }
+
+    def metadata(self) -> dict[str, Any]:
+        return {
+            **run_metadata(self.system),
+            "integrator": self.method.name,
+            "options": {"dt": self.settings.dt, "duration": self.settings.duration, **self.options},
+            "controller": self.torques.label,
+            "kernel": self.kernel_name,
+        }
+
+    def trajectory(self, b: int, *, status: str | None = None) -> Trajectory:
+        """Row b's samples in memory as a Trajectory."""
+        return self.store.trajectory(
+            b,
+            system=self.system,
+            initial_energy=float(self.monitor.initial[b]),
+            status=status or self.outcomes[b].status,
+            stats=self.stats(b),
+            metadata=self.metadata(),
+        )
+
+    def finish(self, b: int = 0) -> Trajectory:
+        """Row b's whole trajectory, also written to the sink's file (merging its chunks) when there is one."""
+        out, status = self.sink.out, self.outcomes[b].status
+        if self.sink.chunk is None:
+            traj = self.trajectory(b)
+            if out is not None:
+                traj.save(out)
+            return traj
+        assert out is not None
+        if self.store.count or not self.sink.written:
+            self._flush()
+        merge_parts(
+            out,
+            status=status,
+            stats=self.stats(b),
+            limit_violations=combine_limit_violations(self.sink.violations),
+        )
+        return Trajectory.load(out, mmap=True)
+
+
+def stop_error(outcome: RowOutcome, trajectory: Any) -> MultibodySimError:
+    """The error an early stop raises: SimulationError (ControllerOutputError for a controller output that is not a
+    torque), its trajectory attached, the user's exception as its cause."""
+    from .exceptions import SimulationError
+
+    if outcome.bad_output:
+        error: SimulationError = ControllerOutputError(outcome.message, status="failed", trajectory=trajectory)
+    else:
+        error = SimulationError(outcome.message, status=outcome.status, trajectory=trajectory)
+    return error
+
+
+def fresh_copies(controller: Any, n: int, shared: dict[int, Any]) -> list[Any]:
+    """n deep copies of a stateful controller (the objects in `shared` stay shared), each reset."""
+    copies = [copy.deepcopy(controller, dict(shared)) for _ in range(n)]
+    for c in copies:
+        c.reset()
+    return copies
+
+
+def is_sequence_of_callables(value: Any) -> bool:
+    return isinstance(value, Sequence) and not isinstance(value, (str, bytes))

@@ -1,0 +1,36 @@
+"""What every trajectory's metadata starts with: package versions and how its robot (or scene) was made."""
+
+from __future__ import annotations
+
+import functools
+import importlib.metadata
+from typing import Any
+
+
+def run_metadata(system: Any) -> dict[str, Any]:
+    """Package versions and the robot's description (its load_robot arguments, URDF SHA-256, a scene's TOML)."""
+    return {
+        "versions": dict(versions()),
+        "robot": {
+            "name": system.name,
+            "nq": system.nq,
+            "nv": system.nv,
+            "floating_base": system.floating_base,
+            "damping": bool(system.source.get("load_robot", {}).get("damping", True)),
+            "joint_names": system.joint_names,
+            "dof_names": system.dof_names,
+            **system.source,  # load_robot (the full arguments), urdf_path, urdf_sha256; a scene's TOML
+        },
+    }
+
+
+@functools.cache
+def versions() -> dict[str, str]:
+    """Versions of the packages a result depends on ("not installed" where missing)."""
+    found = {}
+    for dist in ("multibody-sim", "pin", "example-robot-data", "numpy", "yourdfpy"):
+        try:
+            found[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            found[dist] = "not installed"
+    return found

@@ -1,0 +1,221 @@
+"""Where a run's samples go: the sample store the stepping core writes, and the trajectory built from it.
+
+Rows of a run share their sample times (they step together), so the store is sample-major: ``Q[i, b]`` is row b's
+configuration at sample i. A row that stopped early simply has fewer samples (``n_samples[b]``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any
+
+import numpy as np
+
+from .exceptions import InvalidArgumentError
+from .trajectory import ConstraintRecord, LedgerEntry, LimitViolations, Trajectory
+
+# Counters kept per sample and row, so that a run truncated at a sample reports the counts it had there.
+COUNTERS = ("steps", "rejected_steps", "evaluations")
+
+
+class SampleStore:
+    """Growable per-sample arrays for B rows.
+
+    Running rows record together, so they hold the same number of samples; a row that stops may take one last
+    sample of its own (its state before a failed step) and then keeps what it has.
+
+    Attributes:
+        n_samples: samples held per row, shape (B,); row b's are the first n_samples[b].
+        count: the most samples any row holds.
+        soft_capacity: when running rows hold that many samples the stepping core returns, so that the driver can
+            check, flush or grow the store (the store itself grows past it if a step needs room for more samples).
+        T: sample times [s], shape (capacity, B); Q, V, TAU: (capacity, B, nq / nv / nv); ENERGY: (capacity, B, 2)
+            kinetic and potential energy [J]; FLOWS: (capacity, B, n_elements) cumulative ledger flows [J]; EXTRA:
+            (capacity, B, extra_width) what the system records per sample; COUNTS: (capacity, B, 3) steps, rejected
+            steps and evaluations when the sample was taken.
+    """
+
+    def __init__(self, B: int, nq: int, nv: int, n_elements: int, extra_width: int, capacity: int):
+        self.B, self._shapes = B, (nq, nv, n_elements, extra_width)
+        self.n_samples = np.zeros(B, dtype=int)
+        self.soft_capacity = capacity
+        self.full = False  # whether the running rows reached soft_capacity
+        self._allocate(capacity)
+
+    def _allocate(self, capacity: int) -> None:
+        nq, nv, m, e = self._shapes
+        B = self.B
+        self.T = np.zeros((capacity, B))
+        self.Q = np.empty((capacity, B, nq))
+        self.V = np.empty((capacity, B, nv))
+        self.TAU = np.empty((capacity, B, nv))
+        self.ENERGY = np.zeros((capacity, B, 2))
+        self.FLOWS = np.zeros((capacity, B, m))
+        self.EXTRA = np.zeros((capacity, B, e))
+        self.COUNTS = np.zeros((capacity, B, len(COUNTERS)), dtype=np.int64)
+
+    @property
+    def capacity(self) -> int:
+        return len(self.T)
+
+    @property
+    def count(self) -> int:
+        return int(self.n_samples.max(initial=0))
+
+    def slot(self, rows: np.ndarray) -> int:
+        """The index of the next sample of `rows` (running rows, which hold as many samples each), growing the
+        arrays when they are full."""
+        i = int(self.n_samples[rows[0]]) if len(rows) else 0
+        if i == self.capacity:
+            old = {name: getattr(self, name) for name in ("T", "Q", "V", "TAU", "ENERGY", "FLOWS", "EXTRA", "COUNTS")}
+            self._allocate(2 * i + 16)
+            for name, array in old.items():
+                getattr(self, name)[:i] = array
+        return i
+
+    def commit(self, i: int, rows: np.ndarray) -> None:
+        """Sample i of `rows` is written: count it."""
+        self.n_samples[rows] = i + 1
+        if i + 1 >= self.soft_capacity:
+            self.full = True
+
+    def clear(self) -> None:
+        """Forget every sample (after they were written to a chunk file)."""
+        self.n_samples[:] = 0
+        self.full = False
+
+    def make_room(self, capacity: int) -> None:
+        """Let the running rows take samples up to `capacity` before the core returns FULL again."""
+        self.soft_capacity = capacity
+        self.full = False
+
+    def truncate(self, b: int, n: int) -> None:
+        """Row b keeps its first n samples."""
+        self.n_samples[b] = min(int(self.n_samples[b]), n)
+
+    def trajectory(
+        self,
+        b: int,
+        *,
+        system: Any,
+        initial_energy: float,
+        status: str,
+        stats: dict[str, Any],
+        metadata: dict[str, Any],
+    ) -> Trajectory:
+        """Row b's samples as a Trajectory (copies), with the ledger, records and limit violations.
+
+        Args:
+            initial_energy: H at the run's start [J] (the reference of energy_error; chunks after the first lack it).
+        """
+        n = int(self.n_samples[b])
+        elements = system.ledger_elements
+        is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
+        t = self.T[:n, b].copy()
+        Q = self.Q[:n, b].copy()
+        kinetic, potential = self.ENERGY[:n, b, 0].copy(), self.ENERGY[:n, b, 1].copy()
+        flows = self.FLOWS[:n, b]
+        ledger = {name: LedgerEntry(kind, flows[:, j].copy()) for j, (name, kind) in enumerate(elements)}
+        potentials, constraints = split_records(system.record_fields, self.EXTRA[:n, b])
+        ledger.update(potentials)
+        work = flows[:, is_work].sum(axis=1)
+        dissipated = flows[:, ~is_work].sum(axis=1)
+        total = kinetic + potential
+        return Trajectory(
+            t=t,
+            q=Q,
+            v=self.V[:n, b].copy(),
+            tau=self.TAU[:n, b].copy(),
+            kinetic_energy=kinetic,
+            potential_energy=potential,
+            total_energy=total,
+            work=work,
+            dissipated=dissipated,
+            energy_error=total - initial_energy - work + dissipated,
+            ledger=ledger,
+            constraints=constraints,
+            limit_violations=find_limit_violations(system, t, Q),
+            stats=stats,
+            status=status,
+            metadata=metadata,
+        )
+
+
+def split_records(
+    record_fields: tuple[tuple[str, str, int], ...], extra: np.ndarray
+) -> tuple[dict[str, LedgerEntry], dict[str, ConstraintRecord]]:
+    """A system's per-sample records (the last axis of `extra`, shape (..., Σ widths), as Robot.unchecked_record
+    writes them) as the Trajectory's ledger potentials and constraint records (copies, with extra's leading axes)."""
+    potentials, constraints = {}, {}
+    column = 0
+    for category, name, width in record_fields:
+        block = extra[..., column : column + width]
+        column += width
+        if category == "potential":
+            potentials[name] = LedgerEntry("potential", block[..., 0].copy())
+        else:  # "constraint": the forces, then the drift and the velocity drift
+            constraints[name] = ConstraintRecord(block[..., :-2].copy(), block[..., -2].copy(), block[..., -1].copy())
+    return potentials, constraints
+
+
+def find_limit_violations(system: Any, t: np.ndarray, Q: np.ndarray) -> LimitViolations:
+    """The position-limit report of samples (t, Q): count, worst joint, worst excess and its time."""
+    if not len(t):
+        return LimitViolations()
+    excess = system.limit_excess(Q)
+    outside = excess > 0
+    if not outside.any():
+        return LimitViolations()
+    i, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
+    model = system.model
+    joint = next(
+        model.names[jid]
+        for jid in range(1, model.njoints)
+        if model.joints[jid].idx_q <= j < model.joints[jid].idx_q + model.joints[jid].nq
+    )
+    return LimitViolations(
+        count=int(outside.sum()),
+        samples=int(outside.any(axis=1).sum()),
+        worst_joint=joint,
+        worst_excess=float(excess[i, j]),
+        worst_time=float(t[i]),
+    )
+
+
+def sample_bytes(system: Any, rows: int = 1) -> int:
+    """Memory a sample of `rows` rows takes in the store and in the result [bytes]."""
+    widths = 12 + system.nq + 3 * system.nv + 2 * len(system.ledger_elements)
+    widths += sum(width for _, _, width in system.record_fields)
+    return 8 * widths * rows
+
+
+def check_memory(n_samples: int, system: Any, rows: int = 1) -> None:
+    """Refuse a run whose samples cannot fit in memory, before allocating them (a MemoryError helps no one)."""
+    needed = n_samples * sample_bytes(system, rows)
+    available = usable_memory()
+    if needed > available:
+        raise InvalidArgumentError(
+            f"this run would keep {n_samples:.3g} samples ({needed / 2**30:.3g} GiB) in memory, more than the "
+            f"{available / 2**30:.3g} GiB available: sample less often (output_dt) or stream to disk (out= and "
+            "chunk=; --chunk in the CLI)"
+        )
+
+
+def usable_memory() -> int:
+    """Memory this process may still allocate [bytes]."""
+    try:
+        from .safety import usable_memory as limited  # the process's own limits (rlimits, cgroup), where known
+    except ImportError:
+        limited = None
+    if limited is not None:
+        return int(limited())
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # not on Linux: assume a generous machine
+        return 1 << 40
+
+
+def samples_needed(duration: float, period: float) -> int:
+    """Samples of a run sampled every `period` over `duration`, plus the first and the last."""
+    return math.ceil(duration / period) + 2
