@@ -12,7 +12,7 @@ class ProgressBar:
 
     def __init__(self, progress: bool | None, total: float, unit: str, desc: str, *, seconds: bool = False):
         self.bar = None
-        self.done = 0.0
+        self.done: float = 0
         if progress is False or (progress is None and not is_terminal(sys.stderr)):
             return  # nothing to show: not even tqdm's import on the way into a run
         from tqdm.auto import tqdm
@@ -40,7 +40,7 @@ class ProgressBar:
         if self.bar is not None:
             self.bar.unit = unit
             self.bar.reset(total=total)
-            self.done = 0.0
+            self.done: float = 0
 
     def update(self, n: float) -> None:
         if self.bar is not None and n:

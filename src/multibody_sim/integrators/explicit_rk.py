@@ -8,7 +8,6 @@ from typing import Any
 
 import numpy as np
 
-from ..exceptions import InvalidArgumentError
 from ..state import chart_terms
 from .base import Attempt, Integrator, System, split_jacobian, tangent_selectors
 from .tableau import ButcherTableau, EmbeddedTableau
@@ -205,9 +204,8 @@ class AdaptiveRungeKutta(ExplicitRungeKutta):
         rtol: float | None = None,
         atol: float | None = None,
     ) -> Attempt:
-        """Try a step of h [s] (see Integrator.attempt); rtol and atol scale the error norm (required)."""
-        if rtol is None or atol is None:
-            raise InvalidArgumentError(f"integrator '{self.name}' is adaptive: its attempt() needs rtol and atol")
+        """Try a step of h [s] (see Integrator.attempt); rtol and atol scale the error norm (without them the attempt
+        has no error estimate: error None, the step as the method takes it)."""
         K, q_last, v_last = self._stages(system, q, v, tau, h, t, state)
         nv = len(v)
         increment = (self.b @ K) * h
@@ -215,10 +213,12 @@ class AdaptiveRungeKutta(ExplicitRungeKutta):
             q_next, v_next = q_last, v_last
         else:
             q_next, v_next = system.space.integrate(q, increment[:nv]), v + increment[nv : 2 * nv]
-        scale = _error_scale(system, q, v, q_next, v_next, rtol, atol)
-        norm = self._error_norm(K[:, : 2 * nv], h, scale)
-        if not math.isfinite(norm) or not math.isfinite(q_next @ q_next + v_next @ v_next):
-            norm = math.inf
+        norm = None
+        if rtol is not None and atol is not None:
+            scale = _error_scale(system, q, v, q_next, v_next, rtol, atol)
+            norm = self._error_norm(K[:, : 2 * nv], h, scale)
+            if not math.isfinite(norm) or not math.isfinite(q_next @ q_next + v_next @ v_next):
+                norm = math.inf
         evaluations = len(K) - (state is not None)
         return Attempt(
             q_next,
