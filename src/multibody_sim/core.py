@@ -18,7 +18,7 @@ import numpy as np
 from .exceptions import InvalidArgumentError
 from .integrators import INTEGRATORS, Integrator
 from .integrators.base import OK, Attempt
-from .recording import SampleStore
+from .recording import COUNTERS, SampleStore
 from .step_control import LANDING_FRACTION, ConstantStep, PIController
 
 # Why advance() returned.
@@ -131,6 +131,10 @@ class Sampler:
 class Core:
     """Advances the running rows to stop times (see the module docstring).
 
+    Running rows step together, so they share their step counts (steps, rejected steps); their evaluation counts
+    differ only where Newton iterations do (implicit methods). Counts of rows that stopped are frozen in
+    `stopped_counts`.
+
     Attributes:
         system, method: what is integrated, and how.
         kernel: the arithmetic of a step (row or batch).
@@ -138,7 +142,6 @@ class Core:
         sampler: when states are recorded (None: only when the driver asks, record()).
         store: where the samples go.
         rows: the running rows' indices in the run, shape (n,).
-        steps, rejected, evaluations: per-row counts, shape (B,).
         stops: rows that stopped inside the core since the driver last took them (take_stops()).
         recorded: the time of the latest sample of the running rows.
     """
@@ -158,17 +161,32 @@ class Core:
             raise InvalidArgumentError("an adaptive step-size controller steps one row at a time")
         self.system, self.method, self.kernel = system, method, kernel
         self.control, self.sampler, self.store = control, sampler, store
-        self.rows = np.arange(B)
-        self.steps = np.zeros(B, dtype=np.int64)
-        self.rejected = np.zeros(B, dtype=np.int64)
-        self.evaluations = np.zeros(B, dtype=np.int64)
+        self._set_rows(np.arange(B))
+        self.steps = 0  # accepted steps of the running rows
+        self.rejected = 0  # rejected attempts of the running rows
+        self.evaluations = 0  # evaluations every running row made
+        self.extra_evaluations = np.zeros(B, dtype=np.int64)  # per position: evaluations beyond `evaluations`
+        self.stopped_counts = np.zeros((B, len(COUNTERS)), dtype=np.int64)
         self.stops: list[RowStop] = []
         self.recorded = -math.inf
+
+    def _set_rows(self, rows: np.ndarray) -> None:
+        self.rows = rows
+        # How the running rows index the store: an int for one row, a slice for all of them (cheap), else the rows.
+        self._index: Any = int(rows[0]) if len(rows) == 1 else (slice(None) if len(rows) == self.store.B else rows)
 
     @property
     def t(self) -> float:
         """The time of the running rows' current state [s]."""
         return self.kernel.t
+
+    def counts(self, b: int) -> tuple[int, int, int]:
+        """Row b's (steps, rejected steps, evaluations) so far."""
+        position = np.flatnonzero(self.rows == b)
+        if len(position):
+            return self.steps, self.rejected, self.evaluations + int(self.extra_evaluations[position[0]])
+        steps, rejected, evaluations = self.stopped_counts[b]
+        return int(steps), int(rejected), int(evaluations)
 
     # ---- the loop ------------------------------------------------------------------------------------------------
     def advance(self, t_stop: float, *, max_steps: int | None = None) -> str:
@@ -183,7 +201,7 @@ class Core:
             t = kernel.t
             if t >= t_stop:  # a sample due here is taken by the next call, after the driver's control
                 return REACHED
-            if sampler is not None and self.recorded != t and sampler.due(t, kernel.k, tolerance):
+            if sampler is not None and self.recorded != t and sampler.due(t, self.steps, tolerance):
                 self.record()
             if not kernel.n:
                 return EMPTY
@@ -193,15 +211,23 @@ class Core:
                 return FULL
             t_next = control.propose(t_stop)
             h = control.step_size(t_next)
-            result = kernel.attempt(h)
-            self.evaluations[self.rows] += result.evaluations
+            try:
+                result = kernel.attempt(h)
+            except Exception as exc:  # user code in the system (a scene's force): every running row fails with it
+                self._user_failure(exc, t)
+                return EMPTY
+            evaluations = result.evaluations
+            if type(evaluations) is int:
+                self.evaluations += evaluations
+            else:
+                self.extra_evaluations[: len(evaluations)] += evaluations
             if result.failures:
-                self._fail_rows(result.failures, t, h)
+                self._fail_rows(result.failures, t)
                 if not kernel.n:
                     return EMPTY
             if adaptive:
                 if not control.judge(h, result.error):
-                    self.rejected[self.rows] += 1
+                    self.rejected += 1
                     kernel.reject()
                     if control.h < tolerance:
                         self._collapse(t, control.h, tolerance, result.error)
@@ -214,19 +240,15 @@ class Core:
                     self._dense_samples(t, t_next, h, tolerance)
             bad = kernel.nonfinite()
             if len(bad):  # their last sample is the state before this step; they leave once it is accepted
-                self._note_stops(bad.tolist(), ["diverged"] * len(bad), self._diverged_messages(bad, t_next), t_next)
+                added = self._note_stops(bad, ["diverged"] * len(bad), self._diverged_messages(bad, t_next), t_next)
             kernel.accept(t_next)
             control.commit(t_next)
+            self.steps += 1
+            steps += 1
             if len(bad):
-                good = np.ones(len(self.rows), dtype=bool)
-                good[bad] = False
-                self.steps[self.rows[good]] += 1
-                self.stop(bad)
+                self.stop(bad, counted=True, with_last=added)
                 if not kernel.n:
                     return EMPTY
-            else:
-                self.steps[self.rows] += 1
-            steps += 1
 
     def _dense_samples(self, t: float, t_next: float, h: float, tolerance: float) -> None:
         """Samples at the output instants strictly inside the accepted step (t, t_next), by dense output."""
@@ -235,37 +257,49 @@ class Core:
         extra = 0
         while sampler.next_output * sampler.period < t_next - tolerance:
             t_out = sampler.next_output * sampler.period
-            i = store.slot(self.rows)
-            store.T[i, self.rows] = t_out
-            extra = self.kernel.write_dense(store, i, self.rows, (t_out - t) / h, h, t_out)
-            self._count(i)
-            store.commit(i, self.rows)
+            i = store.room()
+            store.T[i, self._index] = t_out
+            extra = self.kernel.write_dense(store, i, self._index, (t_out - t) / h, h, t_out)
+            self._count(i, self._index)
+            store.advance()
             sampler.next_output += 1
-        self.evaluations[self.rows] += extra  # DOP853's extra stages, once per step
+        self.evaluations += extra  # DOP853's extra stages, once per step
 
     # ---- samples -------------------------------------------------------------------------------------------------
-    def record(self, js: np.ndarray | None = None) -> None:
-        """Record the current state of the running rows (or of those at positions js only, which then stop) as a
-        sample, unless it is one already."""
+    def record(self) -> None:
+        """Record the running rows' current state as a sample, unless it is one already."""
         t = self.kernel.t
         if self.recorded == t or not self.kernel.n:
             return
         store = self.store
-        i = store.slot(self.rows)
-        rows = self.rows if js is None else self.rows[js]
-        store.T[i, rows] = t
-        self.kernel.write_sample(store, i, self.rows if js is None else rows, js)
-        self._count(i, rows)
-        store.commit(i, rows)
-        if js is None:
-            self.recorded = t
+        i = store.room()
+        index = self._index
+        store.T[i, index] = t
+        self.kernel.write_sample(store, i, index)
+        self._count(i, index)
+        store.advance()
+        self.recorded = t
 
-    def _count(self, i: int, rows: np.ndarray | None = None) -> None:
-        counts = self.store.COUNTS[i]
-        rows = self.rows if rows is None else rows
-        counts[rows, 0] = self.steps[rows]
-        counts[rows, 1] = self.rejected[rows]
-        counts[rows, 2] = self.evaluations[rows]
+    def _record_stopping(self, js: np.ndarray) -> bool:
+        """Record the current state of the running rows at positions js as their last sample (at index count),
+        unless it is a sample already; returns whether it was recorded."""
+        if self.recorded == self.kernel.t:
+            return False
+        store = self.store
+        i = store.room()
+        rows = self.rows[js]
+        store.T[i, rows] = self.kernel.t
+        self.kernel.write_sample(store, i, rows, js)
+        self._count(i, rows, js)
+        return True
+
+    def _count(self, i: int, index: Any, js: np.ndarray | None = None) -> None:
+        """Write the counts of the rows at `index` (positions js, default all running rows) into sample i."""
+        counts = self.store.COUNTS
+        counts[i, index, 0] = self.steps
+        counts[i, index, 1] = self.rejected
+        extra = self.extra_evaluations[: len(self.rows)] if js is None else self.extra_evaluations[js]
+        counts[i, index, 2] = self.evaluations + (int(extra[0]) if type(index) is int else extra)
 
     # ---- the driver's interface ----------------------------------------------------------------------------------
     def set_torques(self, TAU: np.ndarray, jump: bool = True) -> None:
@@ -273,49 +307,65 @@ class Core:
         solver state restarts (e.g. an FSAL stage, taken with the previous torque, is not reused)."""
         self.kernel.set_torques(TAU, jump)
 
-    def stop(self, js: np.ndarray) -> None:
-        """Stop the running rows at positions `js` (the driver stopped them)."""
+    def stop(self, js: np.ndarray, *, counted: bool = False, with_last: bool = False) -> None:
+        """Stop the running rows at positions js (their counts frozen as they are now; `counted`: the latest step,
+        which they did not take, is not theirs; `with_last`: they hold a last sample at the store's index count)."""
+        rows = self.rows[js]
+        counts = self.stopped_counts[rows]
+        counts[:, 0] = self.steps - counted
+        counts[:, 1] = self.rejected
+        counts[:, 2] = self.evaluations + self.extra_evaluations[js]
+        self.stopped_counts[rows] = counts
+        self.store.stop(rows, with_last)
         keep = np.ones(self.kernel.n, dtype=bool)
         keep[js] = False
         self.kernel.keep(keep)
-        self.rows = self.rows[keep]
+        n = int(keep.sum())
+        self.extra_evaluations[:n] = self.extra_evaluations[: len(keep)][keep]
+        self._set_rows(self.rows[keep])
 
     def take_stops(self) -> list[RowStop]:
         stops, self.stops = self.stops, []
         return stops
 
     # ---- rows that stop inside the core --------------------------------------------------------------------------
-    def _stop_rows(self, js: list[int], statuses: list[str], messages: list[str], time: float) -> None:
+    def _stop_rows(self, js: np.ndarray, statuses: list[str], messages: list[str], time: float) -> None:
         """Record the current state of rows js as their last sample (unless it is one already) and stop them."""
-        self._note_stops(js, statuses, messages, time)
-        self.stop(np.array(js, dtype=int))
+        added = self._note_stops(js, statuses, messages, time)
+        self.stop(js, with_last=added)
 
-    def _note_stops(self, js: list[int], statuses: list[str], messages: list[str], time: float) -> None:
+    def _note_stops(self, js: np.ndarray, statuses: list[str], messages: list[str], time: float) -> bool:
         """Record the current state of rows js as their last sample (unless it is one already) and note why they
-        stop (stop() removes them)."""
-        positions = np.array(js, dtype=int)
-        added = self.recorded != self.kernel.t
-        self.record(positions)
-        for j, status, message in zip(js, statuses, messages, strict=True):
-            b = int(self.rows[j])
-            self.stops.append(RowStop(b, status, message, time, int(self.store.n_samples[b]) - 1, added))
+        stop (stop() removes them); returns whether a sample was added for them."""
+        added = self._record_stopping(js)
+        i = self.store.count + added - 1
+        for j, status, message in zip(js.tolist(), statuses, messages, strict=True):
+            self.stops.append(RowStop(int(self.rows[j]), status, message, time, i, added))
+        return added
 
-    def _fail_rows(self, failures: list[tuple[int, str, str]], t: float, h: float) -> None:
-        steps = self.steps[self.rows]
-        js = [j for j, _, _ in failures]
+    def _fail_rows(self, failures: list[tuple[int, str, str]], t: float) -> None:
         messages = [
-            f"{status} at t = {t:.6g} s (step {steps[j] + 1}): {message}; try a smaller dt (now {self.dt_hint:g} s)"
-            for j, status, message in failures
+            f"{status} at t = {t:.6g} s (step {self.steps + 1}): {message}; try a smaller dt (now {self.dt_hint:g} s)"
+            for _, status, message in failures
         ]
+        js = np.array([j for j, _, _ in failures], dtype=int)
         self._stop_rows(js, [status for _, status, _ in failures], messages, t)
 
+    def _user_failure(self, exc: Exception, t: float) -> None:
+        message = f"failed at t = {t:.6g} s (step {self.steps + 1}): {type(exc).__name__} raised in the dynamics: {exc}"
+        js = np.arange(self.kernel.n)
+        added = self._record_stopping(js)
+        i = self.store.count + added - 1
+        for j in js.tolist():
+            self.stops.append(RowStop(int(self.rows[j]), "failed", message, t, i, added, exc))
+        self.stop(js, with_last=added)
+
     def _diverged_messages(self, bad: np.ndarray, t_next: float) -> list[str]:
-        steps = self.steps[self.rows]
         messages = []
         for j in bad.tolist():
             dof = self.kernel.nonfinite_dof(j)
             messages.append(
-                f"diverged at t = {t_next:.6g} s (step {steps[j] + 1}): the state became non-finite in "
+                f"diverged at t = {t_next:.6g} s (step {self.steps + 1}): the state became non-finite in "
                 f"'{self.system.dof_names[dof]}'; {cure_for_dt(self.system, self.dt_hint)}"
             )
         return messages
@@ -323,11 +373,11 @@ class Core:
     def _collapse(self, t: float, h: float, minimum: float, error: float | None) -> None:
         norm = f" (error norm {error:.3g})" if error is not None else ""
         message = (
-            f"step_collapsed at t = {t:.6g} s (step {int(self.steps[self.rows[0]]) + 1}): the step fell to "
+            f"step_collapsed at t = {t:.6g} s (step {self.steps + 1}): the step fell to "
             f"{h:.3g} s, below the {minimum:.3g} s minimum{norm}; the problem may be stiff or singular here: "
             f"{cure_for_stiffness(self.system)}"
         )
-        self._stop_rows([0], ["step_collapsed"], [message], t)
+        self._stop_rows(np.array([0]), ["step_collapsed"], [message], t)
 
     @property
     def dt_hint(self) -> float:
@@ -392,17 +442,26 @@ class RowKernel:
     def attempt(self, h: float) -> KernelAttempt:
         q, v, _, states, t, _ = self.now
         method, system, rtol, atol = self.method, self.system, self.rtol, self.atol
+        if len(q) == 1:  # simulate() and Stepper: one row
+            a = method.attempt(system, q[0], v[0], self.tau[0], h, t, states[0], rtol=rtol, atol=atol)
+            self.pending = [a]
+            return KernelAttempt(a.error, a.evaluations, [] if a.status == OK else [(0, a.status, a.message)])
         self.pending = pending = [
             method.attempt(system, q[j], v[j], self.tau[j], h, t, states[j], rtol=rtol, atol=atol)
             for j in range(len(q))
         ]
         failures = [(j, a.status, a.message) for j, a in enumerate(pending) if a.status != OK]
-        error = pending[0].error if len(pending) == 1 else None
-        return KernelAttempt(error, [a.evaluations for a in pending], failures)
+        evaluations = np.array([a.evaluations for a in pending])
+        return KernelAttempt(None, int(evaluations[0]) if (evaluations == evaluations[0]).all() else evaluations, failures)
 
     def nonfinite(self) -> np.ndarray:
         # NaN or inf anywhere makes the sum non-finite (so can a huge but finite state, whose squares overflow: the
         # exact check tells them apart).
+        if len(self.pending) == 1:
+            a = self.pending[0]
+            if math.isfinite(a.q @ a.q + a.v @ a.v) or (np.isfinite(a.q).all() and np.isfinite(a.v).all()):
+                return _NONE
+            return _FIRST
         bad = [
             j
             for j, a in enumerate(self.pending)
@@ -423,6 +482,10 @@ class RowKernel:
     def accept(self, t_next: float) -> None:
         _, _, flows, _, _, k = self.now
         pending = self.pending
+        if len(pending) == 1:
+            a = pending[0]
+            self.now = ([a.q], [a.v], [flows[0] + a.flows], [a.state], t_next, k + 1)
+            return
         self.now = (
             [a.q for a in pending],
             [a.v for a in pending],
@@ -450,16 +513,22 @@ class RowKernel:
     def states(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
         return self.now[0], self.now[1]  # never modified in place: a step makes new arrays
 
-    def write_sample(self, store: SampleStore, i: int, rows: np.ndarray, js: np.ndarray | None = None) -> None:
+    def write_sample(self, store: SampleStore, i: int, index: Any, js: np.ndarray | None = None) -> None:
         q, v, flows, _, t, _ = self.now
+        if type(index) is int:  # one row
+            j = 0 if js is None else int(js[0])
+            self._write(store, i, index, q[j], v[j], flows[j], self.tau[j], t)
+            return
+        rows = np.arange(store.B)[index] if isinstance(index, slice) else index
         positions = range(len(q)) if js is None else js.tolist()
         for j, b in zip(positions, rows.tolist(), strict=True):
             self._write(store, i, b, q[j], v[j], flows[j], self.tau[j], t)
 
-    def write_dense(self, store: SampleStore, i: int, rows: np.ndarray, theta: float, h: float, t_out: float) -> int:
+    def write_dense(self, store: SampleStore, i: int, index: Any, theta: float, h: float, t_out: float) -> int:
         q, v, flows, _, _, _ = self.now
         extra = 0
-        for j, b in enumerate(rows.tolist()):
+        rows = [index] if type(index) is int else (np.arange(store.B)[index] if isinstance(index, slice) else index)
+        for j, b in enumerate(list(rows)):
             attempt = self.pending[j]
             q_out, v_out, flows_out = self.method.dense_output(self.system, q[j], v[j], attempt, h, theta)
             self._write(store, i, b, q_out, v_out, flows[j] + flows_out, self.tau[j], t_out)
@@ -492,6 +561,10 @@ class RowKernel:
     def restore(self, snapshot: tuple[Any, ...]) -> None:
         self.now, self.tau = snapshot[0], list(snapshot[1])
         self.pending = []
+
+
+_NONE = np.zeros(0, dtype=int)
+_FIRST = np.zeros(1, dtype=int)
 
 
 # ---- cures named in messages -------------------------------------------------------------------------------------

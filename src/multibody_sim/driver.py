@@ -479,7 +479,7 @@ class Run:
                     if bad_output
                     else f"failed at t = {t:.6g} s: the controller raised {type(exc).__name__}: {exc}"
                 )
-            self._stop_positions(np.array(js, dtype=int), "failed", record=True)
+            self._stop_positions(np.array(js, dtype=int), "failed")
             keep = np.ones(len(rows), dtype=bool)
             keep[js] = False
             TAU = TAU[keep]
@@ -496,23 +496,23 @@ class Run:
         stops = {stop.row: stop for stop in core.take_stops()}
         rows = list(core.rows.tolist()) + list(stops)
         if not monitor.started.all():
-            fresh = [b for b in rows if not monitor.started[b] and store.n_samples[b]]
+            fresh = [b for b in rows if not monitor.started[b] and store.samples_of(b)]
             if fresh:
                 monitor.start(np.array(fresh), store.ENERGY[0, fresh])
         for b in rows:
             stop = stops.get(b)
-            end = int(store.n_samples[b])
+            end = store.samples_of(b)
             limit = end if stop is None or not stop.added else stop.sample  # a stop's own last sample is not judged
             problem = monitor.first_problem(store, b, self.checked, limit)
             if problem is not None:
                 i, what, keep = problem
                 t = store.T[i, b]
                 steps = int(store.COUNTS[i, b, 0])
+                if stop is None:
+                    self.core.stop(np.flatnonzero(core.rows == b))
                 store.truncate(b, i + 1 if keep else i)  # a sample whose energy is not finite is not kept
                 message = f"diverged at t = {t:.6g} s (step {steps}): {what}; {cure_for_dt(self.system, self._dt_hint)}"
                 self._end(b, "diverged", message, counts_at=i)
-                if stop is None:
-                    self.core.stop(np.flatnonzero(core.rows == b))
                 continue
             if stop is not None:
                 outcome = self.outcomes[b]
@@ -521,7 +521,7 @@ class Run:
                 if stop.added and not np.isfinite(store.ENERGY[stop.sample, b]).all():
                     store.truncate(b, stop.sample)  # only finite samples are kept; the stop's reason stands
         self._show(rows)
-        self.checked = int(store.n_samples[core.rows[0]]) if len(core.rows) else store.count
+        self.checked = store.count
 
     def _show(self, rows: list[int]) -> None:
         """on_sample and progress for the new samples (one-row runs)."""
@@ -531,22 +531,23 @@ class Run:
         b = 0
         if self.B != 1 or not rows:
             if self.progress is not None:
-                self.progress.update_to(int(self.core.steps.sum()))  # element-steps
+                core = self.core  # element-steps: the stopped rows' and the running rows'
+                self.progress.update_to(int(core.stopped_counts[:, 0].sum()) + core.steps * len(core.rows))
             return
-        start, end = self.checked, int(store.n_samples[b])
+        start, end = self.checked, store.samples_of(b)
         for i in range(start, end):
             if self.on_sample is not None:
                 q, v = store.Q[i, b], store.V[i, b]
                 try:
                     self.on_sample(float(store.T[i, b]), q, v)
                 except Exception as exc:  # user code: the run stops with what it has
+                    if len(self.core.rows):
+                        self.core.stop(np.array([0]))
                     store.truncate(b, i + 1)
                     outcome = self.outcomes[b]
                     outcome.cause = exc
                     message = f"failed at t = {store.T[i, b]:.6g} s: on_sample raised {type(exc).__name__}: {exc}"
                     self._end(b, "failed", message, counts_at=i)
-                    if len(self.core.rows):
-                        self.core.stop(np.array([0]))
                     break
         if self.progress is not None:
             self.progress.update_to(float(store.T[max(end - 1, 0), b]))
@@ -571,17 +572,16 @@ class Run:
         self.checked = 0
 
     # ---- stopping rows -------------------------------------------------------------------------------------------
-    def _stop_positions(self, js: np.ndarray, status: str, *, record: bool) -> None:
+    def _stop_positions(self, js: np.ndarray, status: str) -> None:
         """Stop the running rows at positions js with `status`, their current state kept as a last sample."""
         core = self.core
         rows = core.rows[js]
-        if record and core.recorded != core.t:
-            core.record(js)
+        added = core._record_stopping(js)
+        core.stop(js, with_last=added)
         for b in rows.tolist():
             outcome = self.outcomes[b]
             outcome.status = status
             outcome.counts = self._core_counts(b)
-        core.stop(js)
 
     def _stop_running(self, status: str) -> None:
         """Every running row ends with `status` (completed, interrupted), its current state its last sample."""
@@ -596,11 +596,12 @@ class Run:
             if not len(core.rows):
                 return
             core.record()
-        for b in core.rows.tolist():
+        rows = core.rows.tolist()
+        core.stop(np.arange(len(rows)))
+        for b in rows:
             outcome = self.outcomes[b]
             outcome.status = status
             outcome.counts = self._core_counts(b)
-        core.stop(np.arange(len(core.rows)))
 
     def _end(self, b: int, status: str, message: str, *, counts_at: int) -> None:
         outcome = self.outcomes[b]
@@ -609,12 +610,7 @@ class Run:
         outcome.counts = {name: int(counts[i]) for i, name in enumerate(COUNTERS)}
 
     def _core_counts(self, b: int) -> dict[str, int]:
-        core = self.core
-        return {
-            "steps": int(core.steps[b]),
-            "rejected_steps": int(core.rejected[b]),
-            "evaluations": int(core.evaluations[b]),
-        }
+        return dict(zip(COUNTERS, self.core.counts(b), strict=True))
 
     @property
     def _dt_hint(self) -> float:

@@ -22,14 +22,13 @@ COUNTERS = ("steps", "rejected_steps", "evaluations")
 class SampleStore:
     """Growable per-sample arrays for B rows.
 
-    Running rows record together, so they hold the same number of samples; a row that stops may take one last
-    sample of its own (its state before a failed step) and then keeps what it has.
+    Running rows record together, so they hold the same number of samples, `count`; a row that stops keeps what
+    it has (and may take one last sample of its own at index `count`: its state before a failed step).
 
     Attributes:
-        n_samples: samples held per row, shape (B,); row b's are the first n_samples[b].
-        count: the most samples any row holds.
-        soft_capacity: when running rows hold that many samples the stepping core returns, so that the driver can
-            check, flush or grow the store (the store itself grows past it if a step needs room for more samples).
+        count: samples held by each running row (the next sample goes to index count).
+        soft_capacity: when count reaches it the stepping core returns (`full`), so that the driver can check, flush
+            or grow the store (the store itself grows past it if a step needs room for more samples).
         T: sample times [s], shape (capacity, B); Q, V, TAU: (capacity, B, nq / nv / nv); ENERGY: (capacity, B, 2)
             kinetic and potential energy [J]; FLOWS: (capacity, B, n_elements) cumulative ledger flows [J]; EXTRA:
             (capacity, B, extra_width) what the system records per sample; COUNTS: (capacity, B, 3) steps, rejected
@@ -38,9 +37,11 @@ class SampleStore:
 
     def __init__(self, B: int, nq: int, nv: int, n_elements: int, extra_width: int, capacity: int):
         self.B, self._shapes = B, (nq, nv, n_elements, extra_width)
-        self.n_samples = np.zeros(B, dtype=int)
+        self.count = 0
+        self._stopped_samples = np.zeros(B, dtype=int)  # samples of the rows that stopped
+        self.running = np.ones(B, dtype=bool)
         self.soft_capacity = capacity
-        self.full = False  # whether the running rows reached soft_capacity
+        self.full = False
         self._allocate(capacity)
 
     def _allocate(self, capacity: int) -> None:
@@ -60,39 +61,49 @@ class SampleStore:
         return len(self.T)
 
     @property
-    def count(self) -> int:
-        return int(self.n_samples.max(initial=0))
+    def n_samples(self) -> np.ndarray:
+        """Samples held per row, shape (B,); row b's are the first n_samples[b]."""
+        return np.where(self.running, self.count, self._stopped_samples)
 
-    def slot(self, rows: np.ndarray) -> int:
-        """The index of the next sample of `rows` (running rows, which hold as many samples each), growing the
-        arrays when they are full."""
-        i = int(self.n_samples[rows[0]]) if len(rows) else 0
-        if i == self.capacity:
+    def samples_of(self, b: int) -> int:
+        return self.count if self.running[b] else int(self._stopped_samples[b])
+
+    def room(self, extra: int = 1) -> int:
+        """The index of the next sample of the running rows, growing the arrays if `extra` samples do not fit."""
+        i = self.count
+        if i + extra > self.capacity:
             old = {name: getattr(self, name) for name in ("T", "Q", "V", "TAU", "ENERGY", "FLOWS", "EXTRA", "COUNTS")}
-            self._allocate(2 * i + 16)
+            self._allocate(2 * i + 16 + extra)
+            n = min(i + 1, len(old["T"]))  # stopped rows may hold a last sample at index i
             for name, array in old.items():
-                getattr(self, name)[:i] = array
+                getattr(self, name)[:n] = array[:n]
         return i
 
-    def commit(self, i: int, rows: np.ndarray) -> None:
-        """Sample i of `rows` is written: count it."""
-        self.n_samples[rows] = i + 1
-        if i + 1 >= self.soft_capacity:
+    def advance(self) -> None:
+        """The running rows' sample at index count is written: count it."""
+        self.count += 1
+        if self.count >= self.soft_capacity:
             self.full = True
+
+    def stop(self, rows: np.ndarray, with_last: bool) -> None:
+        """Rows stop with the samples the running rows hold (and the one at index count too, `with_last`)."""
+        self._stopped_samples[rows] = self.count + with_last
+        self.running[rows] = False
 
     def clear(self) -> None:
         """Forget every sample (after they were written to a chunk file)."""
-        self.n_samples[:] = 0
+        self.count = 0
+        self._stopped_samples[:] = 0
         self.full = False
 
-    def make_room(self, capacity: int) -> None:
+    def make_room(self, capacity: float) -> None:
         """Let the running rows take samples up to `capacity` before the core returns FULL again."""
         self.soft_capacity = capacity
-        self.full = False
+        self.full = self.count >= capacity
 
     def truncate(self, b: int, n: int) -> None:
-        """Row b keeps its first n samples."""
-        self.n_samples[b] = min(int(self.n_samples[b]), n)
+        """Row b (stopped) keeps its first n samples."""
+        self._stopped_samples[b] = min(int(self._stopped_samples[b]), n)
 
     def trajectory(
         self,
@@ -109,7 +120,7 @@ class SampleStore:
         Args:
             initial_energy: H at the run's start [J] (the reference of energy_error; chunks after the first lack it).
         """
-        n = int(self.n_samples[b])
+        n = self.samples_of(b)
         elements = system.ledger_elements
         is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
         t = self.T[:n, b].copy()

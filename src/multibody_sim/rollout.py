@@ -272,7 +272,7 @@ def _local(
         batch = _from_run(run, time.perf_counter() - start)
         stopped = int(np.sum(batch.status == "interrupted"))
         raise SimulationInterrupted(
-            f"interrupted at t = {run.core.t:.6g} s (step {int(run.core.steps.max(initial=0))}); {stopped} of "
+            f"interrupted at t = {run.core.t:.6g} s (step {run.core.steps}); {stopped} of "
             f"{len(Q0)} elements were running",
             trajectory=batch,  # type: ignore[arg-type]
         ) from None

@@ -275,11 +275,12 @@ class Stepper:
     def stats(self) -> dict[str, Any]:
         """Counts since the reset: steps, rejected_steps, evaluations, controller_calls, saturated_controls,
         saturated_dofs."""
-        core, saturation, dofs = self._core, self._saturation, self.system.dof_names
+        saturation, dofs = self._saturation, self.system.dof_names
+        steps, rejected, evaluations = self._core.counts(0)
         return {
-            "steps": int(core.steps[0]),
-            "rejected_steps": int(core.rejected[0]),
-            "evaluations": int(core.evaluations[0]),
+            "steps": steps,
+            "rejected_steps": rejected,
+            "evaluations": evaluations,
             "controller_calls": self._controller_calls,
             "saturated_controls": int(saturation.calls[0]),
             "saturated_dofs": {dofs[i]: int(n) for i, n in enumerate(saturation.dofs[0]) if n},
@@ -371,13 +372,13 @@ class Stepper:
             raise SimulationError(stop.message, status=stop.status, trajectory=self._one_sample(stop.status))
         if self.check_energy:
             store = self._store
-            store.clear()
+            store.clear()  # it holds the state of the latest call only
             core.recorded = math.nan
             core.record()
             problem = self._monitor.first_problem(store, 0, 0, 1)
             if problem is not None:
                 _, what, _ = problem
-                step = int(core.steps[0])
+                step = core.steps
                 self._restore(snapshot)
                 raise SimulationError(
                     f"diverged at t = {t_next:.6g} s (step {step}): {what}; {cure_for_dt(self.system, self.dt)}",
@@ -393,9 +394,7 @@ class Stepper:
         return (
             core.kernel.snapshot(),
             core.control.snapshot(),
-            core.steps.copy(),
-            core.rejected.copy(),
-            core.evaluations.copy(),
+            (core.steps, core.rejected, core.evaluations, core.extra_evaluations.copy()),
             self._saturation.snapshot(),
             self._controller_calls,
             self._tau,
@@ -404,11 +403,12 @@ class Stepper:
 
     def _restore(self, snapshot: tuple[Any, ...]) -> None:
         core = self._core
-        kernel, control, steps, rejected, evaluations, saturation, calls, tau, grid = snapshot
+        kernel, control, counts, saturation, calls, tau, grid = snapshot
         core.kernel.restore(kernel)
         core.control.restore(control)
-        core.rows = np.arange(1)
-        core.steps[:], core.rejected[:], core.evaluations[:] = steps, rejected, evaluations
+        core._set_rows(np.arange(1))
+        core.store.running[0] = True
+        core.steps, core.rejected, core.evaluations, core.extra_evaluations = counts[:3] + (counts[3].copy(),)
         self._saturation.restore(saturation)
         self._controller_calls, self._tau, self._grid = calls, tau, grid
 

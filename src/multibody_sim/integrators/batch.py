@@ -254,10 +254,9 @@ class BatchRungeKutta:
         cur = self.current
         return list(cur.Q.copy()), list(cur.V.copy())
 
-    def write_sample(self, store: SampleStore, i: int, rows: np.ndarray, js: np.ndarray | None = None) -> None:
+    def write_sample(self, store: SampleStore, i: int, index: Any, js: np.ndarray | None = None) -> None:
         cur = self.current
-        all_rows = js is None and len(rows) == store.B
-        at: Any = slice(None) if all_rows else rows  # every row of the run: basic slicing, no gathers
+        at = np.array([index]) if type(index) is int else index
         Q, V, flows, TAU = (cur.Q, cur.V, cur.flows, self.TAU) if js is None else (
             cur.Q[js], cur.V[js], cur.flows[js], self.TAU[js]
         )  # fmt: skip
