@@ -13,8 +13,8 @@ import pytest
 import scipy.linalg
 
 import multibody_sim as ms
-from multibody_sim.state import ConfigurationSpace
 from multibody_sim.integrators.implicit import ImplicitEuler
+from multibody_sim.state import ConfigurationSpace
 
 # Every registry method but the variational integrator, which linearize refuses (tested below): a new method is
 # checked against finite differences for free.

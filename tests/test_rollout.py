@@ -522,7 +522,11 @@ def test_bad_arguments_are_refused_with_messages_that_name_them(robot) -> None:
             return np.array([[0.0, 0.0], [np.nan, 0.0]])[: len(Q)]
 
     failed(
-        ["", "batched controller output at t = 0 s, element 1: tau must be finite, got non-finite entries at indices [0]"],
+        [
+            "",
+            "batched controller output at t = 0 s, element 1: "
+            "tau must be finite, got non-finite entries at indices [0]",
+        ],
         Diverging(),
     )
     failed(["controller output at t = 0 s: tau must have shape (2,), got (3,)"] * 2, lambda t, q, v: np.zeros(3))

@@ -36,11 +36,11 @@ import numpy as np
 
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
 from .integrators import INTEGRATORS, Integrator, get_integrator
-from .robot import Robot
 from .metadata import versions
+from .robot import Robot
 from .simulation import simulate
-from .validation import positive_number
 from .trajectory import Trajectory, write_atomically
+from .validation import positive_number
 
 FORMAT = "multibody-sim work-precision"
 FORMAT_VERSION = 1

@@ -54,9 +54,17 @@ class RowStop:
 class Kernel(Protocol):
     """The arithmetic of one step for the running rows (see RowKernel, integrators/batch.py)."""
 
-    n: int  # running rows
-    t: float  # the time of the current state [s]
-    k: int  # accepted steps so far
+    @property
+    def n(self) -> int:
+        """Running rows."""
+
+    @property
+    def t(self) -> float:
+        """The time of the current state [s]."""
+
+    @property
+    def k(self) -> int:
+        """Accepted steps so far."""
 
     def set_torques(self, TAU: np.ndarray, jump: bool) -> None:
         """Hold TAU (n, nv) from now on; with `jump`, every row restarts its solver state (a new torque)."""
@@ -452,7 +460,9 @@ class RowKernel:
         ]
         failures = [(j, a.status, a.message) for j, a in enumerate(pending) if a.status != OK]
         evaluations = np.array([a.evaluations for a in pending])
-        return KernelAttempt(None, int(evaluations[0]) if (evaluations == evaluations[0]).all() else evaluations, failures)
+        return KernelAttempt(
+            None, int(evaluations[0]) if (evaluations == evaluations[0]).all() else evaluations, failures
+        )
 
     def nonfinite(self) -> np.ndarray:
         # NaN or inf anywhere makes the sum non-finite (so can a huge but finite state, whose squares overflow: the

@@ -89,7 +89,9 @@ def linearize(
     if failure is not None:  # raised outside the except block: the failure is the cause, not a context
         raise SimulationError(f"linearize: {failure}; try a smaller dt (now {dt:g} s)", status=failure.status)
     if jacobians is None:
-        raise InvalidArgumentError(f"linearize does not support integrator '{method.name}' yet (supported: {_SUPPORTED})")
+        raise InvalidArgumentError(
+            f"linearize does not support integrator '{method.name}' yet (supported: {_SUPPORTED})"
+        )
     A, B = jacobians
     if not (np.isfinite(A).all() and np.isfinite(B).all()):
         raise SimulationError(

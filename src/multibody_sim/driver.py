@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .core import EMPTY, FULL, REACHED, Core, RowKernel, RowStop, Sampler, cure_for_dt
+from .core import EMPTY, FULL, REACHED, Core, RowKernel, Sampler, cure_for_dt
 from .exceptions import ControllerOutputError, InvalidArgumentError, MultibodySimError
 from .integrators import Integrator
 from .integrators.batch import BatchRungeKutta, batch_kernel_supported
@@ -148,7 +148,13 @@ class Torques:
                     system.check_tau(TAU[j])
                 except InvalidArgumentError as exc:
                     failures.append(
-                        (j, InvalidArgumentError(f"batched controller output at t = {t:.6g} s, element {rows[j]}: {exc}"), True)
+                        (
+                            j,
+                            InvalidArgumentError(
+                                f"batched controller output at t = {t:.6g} s, element {rows[j]}: {exc}"
+                            ),
+                            True,
+                        )
                     )
             return TAU, failures
         assert self.callables is not None
@@ -229,7 +235,11 @@ class Monitor:
             else f"the dissipated energy {dissipated[i]:.3g} J"
         )
         scale = bound[i] / BLOWUP_FACTOR
-        return start + i, f"{what} exceeds {BLOWUP_FACTOR:g} times the run's energy scale ({scale:.3g} J), {where}", True
+        return (
+            start + i,
+            f"{what} exceeds {BLOWUP_FACTOR:g} times the run's energy scale ({scale:.3g} J), {where}",
+            True,
+        )
 
 
 # ---- kernels ------------------------------------------------------------------------------------------------------
@@ -395,7 +405,9 @@ class Run:
         self.store.make_room(chunk if chunk is not None else min(capacity, BLOCK_SAMPLES))
         if settings.adaptive:
             control: ConstantStep | PIController = PIController(
-                method.embedded_order, max_step=settings.max_step, first_step=settings.dt  # type: ignore[attr-defined]
+                method.embedded_order,
+                max_step=settings.max_step,
+                first_step=settings.dt,
             )
             sampler = Sampler(period=settings.output_dt)
         else:
@@ -412,7 +424,9 @@ class Run:
             torque_free=torques.kind == "none",
         )
         self.kernel_name = "python (batch)" if isinstance(kernel, BatchRungeKutta) else "python (row)"
-        self.core = Core(system=system, method=method, kernel=kernel, control=control, sampler=sampler, store=self.store, B=B)
+        self.core = Core(
+            system=system, method=method, kernel=kernel, control=control, sampler=sampler, store=self.store, B=B
+        )
         self.monitor = Monitor(system, B)
         self.saturation = Saturation(system, B)
         self.controller_calls = np.zeros(B, dtype=np.int64)
@@ -589,10 +603,7 @@ class Run:
         if not len(core.rows):
             return
         if status == "interrupted":
-            try:
-                self._take_samples()
-            except Exception:  # pragma: no cover - keep the samples whatever the monitor does
-                pass
+            self._take_samples()  # what the monitor finds before the interrupt stands
             if not len(core.rows):
                 return
             core.record()

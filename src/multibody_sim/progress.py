@@ -40,7 +40,7 @@ class ProgressBar:
         if self.bar is not None:
             self.bar.unit = unit
             self.bar.reset(total=total)
-            self.done: float = 0
+            self.done = 0
 
     def update(self, n: float) -> None:
         if self.bar is not None and n:

@@ -40,7 +40,7 @@ class SampleStore:
         self.count = 0
         self._stopped_samples = np.zeros(B, dtype=int)  # samples of the rows that stopped
         self.running = np.ones(B, dtype=bool)
-        self.soft_capacity = capacity
+        self.soft_capacity: float = capacity
         self.full = False
         self._allocate(capacity)
 
@@ -214,13 +214,7 @@ def check_memory(n_samples: int, system: Any, rows: int = 1) -> None:
 
 
 def usable_memory() -> int:
-    """Memory this process may still allocate [bytes]."""
-    try:
-        from .safety import usable_memory as limited  # the process's own limits (rlimits, cgroup), where known
-    except ImportError:
-        limited = None
-    if limited is not None:
-        return int(limited())
+    """Memory this process may still allocate [bytes]: the machine's free memory."""
     try:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):  # not on Linux: assume a generous machine

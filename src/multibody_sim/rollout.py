@@ -11,6 +11,7 @@ message.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
@@ -227,45 +228,65 @@ def rollout(
         raise InvalidArgumentError(f"progress must be True, False or None, got {progress!r}")
     method.check_system(system)
     settings = RunSettings.check(method, duration, dt, options)
-    torques = _torques(system, method, settings, controller, taus, B)
+    job = _Job(system, method, Q0, V0, settings, _torques(system, method, settings, controller, taus, B), options)
     if backend == "ray":
-        return _ray_rollout(system, Q0, V0, method, settings, torques, options, progress, chunk_size)
+        return _ray_rollout(job, progress=progress, chunk_size=chunk_size)
     if settings.adaptive:
         bar = ProgressBar(progress, B, "element", "rollout")
     else:
         bar = ProgressBar(progress, settings.n_steps * B, "element-step", "rollout")
     try:
-        return _local(system, method, Q0, V0, settings, torques, options, num_threads, bar)
+        return _local(job, num_threads=num_threads, bar=bar)
     finally:
         bar.close()
 
 
-def _local(
-    system: Robot,
-    method: Integrator,
-    Q0: np.ndarray,
-    V0: np.ndarray,
-    settings: RunSettings,
-    torques: Torques,
-    options: dict[str, Any],
-    num_threads: int,
-    bar: ProgressBar,
-) -> BatchTrajectory:
+@dataclass(frozen=True)
+class _Job:
+    """A batch to run: the system and method, the initial states (B, nq) and (B, nv), the checked settings, the
+    torques and the options as given (for the metadata)."""
+
+    system: Robot
+    method: Integrator
+    Q0: np.ndarray
+    V0: np.ndarray
+    settings: RunSettings
+    torques: Torques
+    options: dict[str, Any]
+
+    def subset(self, rows: np.ndarray) -> _Job:
+        """The same job for the elements `rows` only."""
+        return _Job(
+            self.system,
+            self.method,
+            self.Q0[rows],
+            self.V0[rows],
+            self.settings,
+            self.torques.subset(rows),
+            self.options,
+        )
+
+    def run(self, **kwargs: Any) -> Run:
+        """A run of the driver over these elements."""
+        return Run(
+            system=self.system,
+            method=self.method,
+            Q0=self.Q0,
+            V0=self.V0,
+            settings=self.settings,
+            torques=self.torques,
+            options=self.options,
+            **kwargs,
+        )
+
+
+def _local(job: _Job, *, num_threads: int, bar: ProgressBar) -> BatchTrajectory:
     """The batch in this process: one run over every row (fixed steps), or one run per row (adaptive methods)."""
     start = time.perf_counter()
-    if settings.adaptive:
-        return _row_by_row(system, method, Q0, V0, settings, torques, options, bar, start)
-    run = Run(
-        system=system,
-        method=method,
-        Q0=Q0,
-        V0=V0,
-        settings=settings,
-        torques=torques,
-        num_threads=num_threads,
-        progress=bar if bar.active else None,
-        options=options,
-    )
+    Q0 = job.Q0
+    if job.settings.adaptive:
+        return _row_by_row(job, bar=bar, start=start)
+    run = job.run(num_threads=num_threads, progress=bar if bar.active else None)
     try:
         run.execute()
     except KeyboardInterrupt:
@@ -333,31 +354,14 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
     )
 
 
-def _row_by_row(
-    system: Robot,
-    method: Integrator,
-    Q0: np.ndarray,
-    V0: np.ndarray,
-    settings: RunSettings,
-    torques: Torques,
-    options: dict[str, Any],
-    bar: ProgressBar,
-    start: float,
-) -> BatchTrajectory:
+def _row_by_row(job: _Job, *, bar: ProgressBar, start: float) -> BatchTrajectory:
     """Adaptive methods: each row chooses its own steps, so each is a run of its own (the same driver)."""
+    system, Q0, V0 = job.system, job.Q0, job.V0
     trajectories: list[Trajectory] = []
     messages: list[str] = []
     metadata: dict[str, Any] = {}
     for b in range(len(Q0)):
-        run = Run(
-            system=system,
-            method=method,
-            Q0=Q0[b : b + 1],
-            V0=V0[b : b + 1],
-            settings=settings,
-            torques=torques.subset(np.array([b])),
-            options=options,
-        )
+        run = job.subset(np.array([b])).run()
         try:
             run.execute()
         except KeyboardInterrupt:
@@ -407,9 +411,7 @@ def _as_batch(value: Any, size: int, name: str) -> np.ndarray:
 
 
 # ---- controllers and open-loop torques ---------------------------------------------------------------------------
-def _torques(
-    system: Robot, method: Integrator, settings: RunSettings, controller: Any, taus: Any, B: int
-) -> Torques:
+def _torques(system: Robot, method: Integrator, settings: RunSettings, controller: Any, taus: Any, B: int) -> Torques:
     """Where each element's torque comes from, checked; stateful controllers copied per element and reset."""
     if controller is not None and taus is not None:
         raise InvalidArgumentError("controller and taus are exclusive: pass one of them")
@@ -630,33 +632,17 @@ def _concatenate(batches: list[BatchTrajectory], wall_time: float | None = None)
 
 
 # ---- Ray -----------------------------------------------------------------------------------------------------------
-def _run_chunk(
-    system: Robot,
-    Q0: np.ndarray,
-    V0: np.ndarray,
-    method: Integrator,
-    settings: RunSettings,
-    torques: Torques,
-    options: dict[str, Any],
-) -> BatchTrajectory:
-    """One Ray task: a local rollout of a chunk of the batch, with one thread."""
-    return _local(system, method, Q0, V0, settings, torques, options, 1, ProgressBar(False, 1, "element", "rollout"))
+def _run_chunk(system: Robot, job: _Job) -> BatchTrajectory:
+    """One Ray task: a local rollout of a chunk of the batch (its system shipped apart), with one thread."""
+    return _local(
+        dataclasses.replace(job, system=system), num_threads=1, bar=ProgressBar(False, 1, "element", "rollout")
+    )
 
 
 _REMOTE: dict[str, Any] = {}
 
 
-def _ray_rollout(
-    system: Robot,
-    Q0: np.ndarray,
-    V0: np.ndarray,
-    method: Integrator,
-    settings: RunSettings,
-    torques: Torques,
-    options: dict[str, Any],
-    progress: bool | None,
-    chunk_size: int | None,
-) -> BatchTrajectory:
+def _ray_rollout(job: _Job, *, progress: bool | None, chunk_size: int | None) -> BatchTrajectory:
     try:
         import ray
     except ImportError:
@@ -666,7 +652,7 @@ def _ray_rollout(
     start = time.perf_counter()
     if not ray.is_initialized():  # what Ray would do on the first task anyway: a local instance
         ray.init()
-    B = len(Q0)
+    B = len(job.Q0)
     if chunk_size is None:
         cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
         chunk_size = max(1, -(-B // (2 * cpus)))
@@ -674,13 +660,9 @@ def _ray_rollout(
     remote = _REMOTE.get("chunk")
     if remote is None:
         remote = _REMOTE["chunk"] = ray.remote(num_cpus=1)(_run_chunk)
-    system_ref = ray.put(system)  # shipped once, shared by every task
-    pending = {
-        remote.remote(
-            system_ref, Q0[lo:hi], V0[lo:hi], method, settings, torques.subset(np.arange(lo, hi)), options
-        ): i
-        for i, (lo, hi) in enumerate(bounds)
-    }
+    system_ref = ray.put(job.system)  # shipped once, shared by every task
+    shell = dataclasses.replace(job, system=None)  # type: ignore[arg-type]
+    pending = {remote.remote(system_ref, shell.subset(np.arange(lo, hi))): i for i, (lo, hi) in enumerate(bounds)}
     results: list[BatchTrajectory | None] = [None] * len(bounds)
     bar = ProgressBar(progress, B, "element", "rollout")
     try:

@@ -46,6 +46,15 @@ class ConstantStep:
         grid = self._t0 + (self._k + 1) * self.dt
         return self.dt if t_next == grid else t_next - self.time
 
+    @property
+    def h(self) -> float:
+        """The next step [s]."""
+        return self.dt
+
+    def scale(self, t_stop: float) -> float:
+        """The time scale [s] of the landing rule (as PIController's): max(dt, |t_stop|)."""
+        return max(self.dt, abs(t_stop))
+
     def judge(self, h: float, error: float | None) -> bool:
         """Every step is accepted."""
         return True

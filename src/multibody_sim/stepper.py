@@ -159,10 +159,13 @@ class Stepper:
             system, method, q[None, :], v[None, :], rtol=getattr(self, "_rtol", None), atol=getattr(self, "_atol", None)
         )
         kernel.start_at(t)
+        self._kernel = kernel
         record_width = sum(width for _, _, width in system.record_fields)
         self._store = SampleStore(1, system.nq, system.nv, len(system.ledger_elements), record_width, 1)
         self._store.make_room(math.inf)  # it holds the state of the latest call only: the core never waits for room
-        self._core = Core(system=system, method=method, kernel=kernel, control=control, sampler=None, store=self._store, B=1)
+        self._core = Core(
+            system=system, method=method, kernel=kernel, control=control, sampler=None, store=self._store, B=1
+        )
         self._grid = (t, 0)  # control instants t0 + k · control interval, k counted
         self._monitor = Monitor(system, 1)
         self._monitor.start(np.array([0]), np.array([system.unchecked_energies(q, v)]))
@@ -185,14 +188,14 @@ class Stepper:
     @t.setter
     def t(self, value: float) -> None:
         t = finite_number(value, "t")
-        self._core.kernel.start_at(t)
+        self._kernel.start_at(t)
         self._core.control.restart(t)
         self._grid = (t, 0)
 
     @property
     def q(self) -> np.ndarray:
         """Configuration, shape (nq,) (read-only; assign a new one to change it, checked like Robot's)."""
-        return self._core.kernel.now[0][0]
+        return self._kernel.now[0][0]
 
     @q.setter
     def q(self, value: Any) -> None:
@@ -201,7 +204,7 @@ class Stepper:
     @property
     def v(self) -> np.ndarray:
         """Velocity, shape (nv,) (read-only; assign a new one to change it, checked like Robot's)."""
-        return self._core.kernel.now[1][0]
+        return self._kernel.now[1][0]
 
     @v.setter
     def v(self, value: Any) -> None:
@@ -220,7 +223,7 @@ class Stepper:
         kinetic, potential = system.unchecked_energies(q, v)
         monitor.initial[0] += kinetic + potential - before
         monitor.scale[0] = max(monitor.scale[0], kinetic + abs(potential) + system.energy_scale)
-        kernel = self._core.kernel
+        kernel = self._kernel
         _, _, flows, _, t, k = kernel.now
         kernel.now = ([q], [v], flows, [self.integrator.init(system, q, v)], t, k)
         self._freeze()
@@ -233,7 +236,7 @@ class Stepper:
     # ---- energy ledger -------------------------------------------------------------------------------
     @property
     def _flows(self) -> np.ndarray:
-        return self._core.kernel.now[2][0]
+        return self._kernel.now[2][0]
 
     @property
     def work(self) -> float:
@@ -392,7 +395,7 @@ class Stepper:
     def _snapshot(self) -> tuple[Any, ...]:
         core = self._core
         return (
-            core.kernel.snapshot(),
+            self._kernel.snapshot(),
             core.control.snapshot(),
             (core.steps, core.rejected, core.evaluations, core.extra_evaluations.copy()),
             self._saturation.snapshot(),
@@ -404,7 +407,7 @@ class Stepper:
     def _restore(self, snapshot: tuple[Any, ...]) -> None:
         core = self._core
         kernel, control, counts, saturation, calls, tau, grid = snapshot
-        core.kernel.restore(kernel)
+        self._kernel.restore(kernel)
         core.control.restore(control)
         core._set_rows(np.arange(1))
         core.store.running[0] = True

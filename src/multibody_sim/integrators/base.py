@@ -114,6 +114,7 @@ class Integrator(ABC):
         symplectic: preserves the symplectic form for general M(q).
         a_stable: stable on every decaying linear mode at any step.
         has_dense_output: dense_output() interpolates within an accepted step.
+        embedded_order: adaptive methods: the order of the embedded solution their error estimate assumes.
         notes: what users should know that the flags do not say.
     """
 
@@ -126,6 +127,7 @@ class Integrator(ABC):
     symplectic: bool = False
     a_stable: bool = False
     has_dense_output: bool = False
+    embedded_order: int = 0
     notes: str = ""
     last_evaluations: int = 0  # dynamics evaluations of the latest step() call (the convenience API)
 

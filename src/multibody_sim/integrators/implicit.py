@@ -213,6 +213,7 @@ class _ImplicitOneStage(Integrator):
 
     implicit = True
     a_stable = True
+    _fraction: float  # the unknown acts at s = _fraction · h
     # Typical on catalog robots at dt = 1 ms (2 to 4 residuals, 1 Jacobian); last_evaluations is exact.
     evaluations_per_step = 3
     max_iterations = 20

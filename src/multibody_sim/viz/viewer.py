@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 
 from ..robot import Robot
-from ..validation import positive_number
 from ..trajectory import Trajectory
+from ..validation import positive_number
 from ._deps import check_viewer_dependencies
 from .frames import DEFAULT_FPS, resample
 from .scene import RobotScene, frame_marker
