@@ -256,8 +256,10 @@ def choose_kernel(
 ) -> RowKernel | BatchRungeKutta:
     """The kernel a run of these rows takes: the batch kernel for several rows when it renders the method on the
     system, the row kernel otherwise (simulate(), Stepper and rollout() share this rule)."""
-    if len(Q0) > 1 and batch_kernel_supported(system, method) and system.rows_dynamics() is not None:
-        return BatchRungeKutta(system, method, Q0, V0, num_threads=num_threads, torque_free=torque_free)
+    if len(Q0) > 1 and batch_kernel_supported(system, method):
+        dynamics = system.rows_dynamics(num_threads)
+        if dynamics is not None:
+            return BatchRungeKutta(system, method, Q0, V0, dynamics=dynamics, torque_free=torque_free)
     return RowKernel(system, method, Q0, V0, rtol=rtol, atol=atol)
 
 
@@ -452,16 +454,22 @@ class Run:
         settings, core, torques = self.settings, self.core, self.torques
         controlled = torques.kind != "none"
         every_step = controlled and settings.adaptive and settings.control_dt is None
+        # Control instants: where a controller is called, and where adaptive steps land (given control_dt) even
+        # without one.
+        instants = not every_step and (controlled or (settings.adaptive and settings.control_dt is not None))
         instant = 0  # the next control instant's number
-        target = settings.duration if not controlled or every_step else settings.control_instant(0)
-        controlled_at = math.nan  # the time of the latest control instant
+        target = settings.control_instant(0) if instants else settings.duration
+        passed = math.nan  # the time of the latest control instant
         while True:
             t = core.t
-            due = controlled and (every_step or t == settings.control_instant(instant))
-            if due and t != controlled_at and t < settings.duration:
-                controlled_at = t
-                self._control(t, instant)
-                if not every_step:
+            if t < settings.duration and t != passed:
+                if every_step:
+                    passed = t
+                    self._control(t, instant)
+                elif instants and t == settings.control_instant(instant):
+                    passed = t
+                    if controlled:
+                        self._control(t, instant)
                     instant += 1
                     target = settings.control_instant(instant)
             reason = core.advance(target, max_steps=1 if every_step else BLOCK_STEPS)

@@ -100,7 +100,7 @@ class BatchRungeKutta:
         system: a robot or scene with batched dynamics (rows_dynamics).
         method: an explicit Runge–Kutta tableau or semi-implicit Euler (batch_kernel_supported).
         Q0, V0: the rows' initial states, shapes (n, nq), (n, nv).
-        num_threads: threads of Pinocchio's abaInParallel.
+        dynamics: the system's batched dynamics (System.rows_dynamics).
         torque_free: no torque is ever applied (no controller): the ledger is skipped when it has only the
             torques' element (every flow is zero then).
     """
@@ -112,11 +112,11 @@ class BatchRungeKutta:
         Q0: np.ndarray,
         V0: np.ndarray,
         *,
-        num_threads: int = 1,
+        dynamics: Any,
         torque_free: bool = False,
     ):
         self.system, self.method = system, method
-        self.dynamics = system.rows_dynamics(num_threads)
+        self.dynamics = dynamics
         self.space = system.space.batch
         self.chart_map = not system.space.is_flat
         self.sie = isinstance(method, SemiImplicitEuler)
