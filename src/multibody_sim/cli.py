@@ -7,6 +7,7 @@ import contextlib
 import difflib
 import importlib.metadata
 import io
+import json
 import math
 import os
 import signal
@@ -21,6 +22,8 @@ from typing import Any, NoReturn
 
 import multibody_sim as ms
 from multibody_sim.safety import printable
+from multibody_sim.simulation import check_options, positive_number, steps_per
+from multibody_sim.trajectory import plain_data
 
 PROG = "multibody-sim"
 COMMANDS = ("run", "models", "inspect", "integrators", "bench", "play", "plot")
@@ -247,6 +250,11 @@ def _build_parser() -> _Parser:
         "early stop: memory stays bounded on long runs",
     )
     run.add_argument(
+        "--json",
+        action="store_true",
+        help="print the run's summary as one JSON document on stdout (the header and notes go to stderr)",
+    )
+    run.add_argument(
         "--tolerance",
         metavar="TOL",
         type=float,
@@ -376,9 +384,24 @@ def _version() -> str:
 
 # ---- commands ----------------------------------------------------------------------------------------
 def _is_scene(source: str) -> bool:
-    from .scenes import shipped_scenes
+    """Whether a command's ROBOT_OR_URDF names a scene: a .toml file, a shipped scene's name or scene:NAME.
 
-    return source.endswith(".toml") or source in shipped_scenes()
+    A name that is both a shipped scene and a catalog robot (four_bar, spring_chain) takes the scene, with a
+    one-line note on stderr; robot:NAME takes the robot.
+    """
+    from .catalog import ROBOT_PREFIX
+    from .scenes import SCENE_PREFIX, shipped_scenes
+
+    if source.startswith((SCENE_PREFIX, ROBOT_PREFIX)):
+        return source.startswith(SCENE_PREFIX)
+    scene = source.endswith(".toml") or source in shipped_scenes()
+    if scene and source in ms.CATALOG:
+        print(
+            f"{PROG}: note: '{source}' names both a shipped scene and a catalog robot: taking the scene "
+            f"({ROBOT_PREFIX}{source} for the robot alone)",
+            file=sys.stderr,
+        )
+    return scene
 
 
 def _load(args: argparse.Namespace) -> Any:
@@ -408,6 +431,19 @@ def _load(args: argparse.Namespace) -> Any:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    """`run`; with --json, everything it says goes to stderr and stdout gets one JSON document (the summary)."""
+    if not args.json:
+        return _run(args, None)
+    document: dict[str, Any] = {}
+    with contextlib.redirect_stdout(sys.stderr):
+        code = _run(args, document)
+    if document:  # none when the arguments were refused: the error line says why
+        _print_json(document)
+    return code
+
+
+def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
+    """The run command; fills `document` (when given) with the run's description and summary as data."""
     out = _check_out(args.out) if args.out else None
     robot = _load(args)
     scene = robot if isinstance(robot, ms.Scene) else None
@@ -437,6 +473,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         controller = declared.get("controller")
         if controller is not None:
             args.controller = scene.spec.controller.name  # type: ignore[union-attr]
+    _check_run_arguments(robot, method, args.duration, args.dt if args.tolerance is None else None, options)
     if controller is not None:
         options["controller"] = controller
     if scene is not None:
@@ -455,6 +492,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         options.setdefault("rtol", ADAPTIVE_RTOL)
         options.setdefault("atol", ADAPTIVE_ATOL)
         tolerances = f", rtol {options['rtol']:g}, atol {options['atol']:g}"
+    _check_run_arguments(robot, method, args.duration, args.dt, {k: v for k, v in options.items() if k != "controller"})
     base = "floating" if robot.floating_base else "fixed"
     viewer = _open_viewer(robot, args.view_host, args.view_port, args.view_speed, q0) if args.view else None
     with _SigtermAsInterrupt() as signals:
@@ -481,10 +519,30 @@ def _cmd_run(args: argparse.Namespace) -> int:
         else:
             failure = None
     streamed = args.chunk is not None
+
+    def describe(trajectory: Any, report: str, error: str | None) -> None:
+        if document is not None:
+            document.update(
+                robot={"name": robot.name, "source": args.robot, "base": base, "nq": robot.nq, "nv": robot.nv},
+                scene=scene is not None,
+                integrator=method.name,
+                dt=args.dt,
+                duration=args.duration,
+                options={k: v for k, v in options.items() if isinstance(v, (int, float))},
+                controller=args.controller if controller is not None else None,
+                q0=q0,
+                v0=v0,
+                out=str(out) if out is not None else None,
+                summary=trajectory.summary_data(),
+                controller_report=report or None,
+                error=error,
+            )
+
     if failure is None:
         if out is not None and not streamed:
             _save(trajectory, out)
         said = getattr(controller, "summary", lambda: "")()  # what the controller saw (tracking error, minima)
+        describe(trajectory, said, None)
         _say(trajectory.summary() + (f"\n{said}" if said else "") + (f"\nwrote {out}" if out is not None else ""))
         if viewer is not None:
             _watch(viewer, trajectory, args)
@@ -492,6 +550,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     partial = getattr(failure, "trajectory", None)
     kept = _save_partial(partial, out, already_written=streamed)
     if partial is not None and len(partial):
+        describe(partial, "", f"{failure}; {kept}")
         _say(partial.summary())
     if viewer is not None:  # a failed run's samples are worth watching; an interrupted one's user wants out
         if isinstance(failure, ms.SimulationError) and partial is not None and len(partial):
@@ -505,6 +564,31 @@ def _cmd_run(args: argparse.Namespace) -> int:
     where = str(failure) or "interrupted before the first step"
     print(f"{PROG}: {name}: {where}; {kept}", file=sys.stderr)
     return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
+
+
+def _check_run_arguments(robot: Any, method: Any, duration: Any, dt: Any, options: dict[str, Any]) -> None:
+    """What simulate() would refuse, checked before the header is printed (dt None: chosen later, by a pilot).
+
+    The same checks, with the same messages, as simulate()'s: bad input prints one line and nothing else.
+    """
+    positive_number(duration, "duration")
+    if dt is None:
+        return
+    positive_number(dt, "dt")
+    check_options(method, options)
+    if method.adaptive:
+        for name in ("rtol", "atol", "max_step", "output_dt", "control_dt"):
+            if options.get(name) is not None:
+                positive_number(options[name], name, "units" if name in ("rtol", "atol") else "seconds")
+    else:
+        for name in ("output_dt", "control_dt"):
+            steps_per(options.get(name), dt, name)
+    method.check_system(robot)
+
+
+def _print_json(document: dict[str, Any]) -> None:
+    """One JSON document on stdout (no NaN or Infinity: JSON has none; they are null)."""
+    _say(json.dumps(plain_data(document), allow_nan=False))
 
 
 def _controller(args: argparse.Namespace, robot: Any) -> Any:
@@ -623,6 +707,12 @@ def _cmd_models(args: argparse.Namespace) -> int:
         print(f"\nscenes (run one with `{PROG} run NAME`; the files are in {next(iter(scenes.values())).parent}):")
         scene_rows = [[name, read_scene_file(path).description] for name, path in scenes.items()]
         print(_table(["name", "description"], scene_rows, indent=2))
+    both = sorted(set(scenes) & set(ms.CATALOG))
+    if both:
+        print(
+            f"\n{', '.join(both)}: both a robot and a scene; run, inspect and bench take the scene "
+            f"(robot:{both[0]} for the robot alone)"
+        )
     return EXIT_OK
 
 
