@@ -360,6 +360,11 @@ def _add_view_commands(commands: Any) -> None:
     )
     plot.add_argument("trajectory", metavar="TRAJ.npz", help="a trajectory written by `run --out`")
     plot.add_argument("--out", metavar="PLOT.png", help="the PNG to write (default: TRAJ.png beside the trajectory)")
+    plot.add_argument(
+        "--joints",
+        metavar="NAMES",
+        help="plot only these joints, comma-separated (a floating base's root joint is the base panel)",
+    )
     plot.set_defaults(handler=_cmd_plot)
 
 
@@ -845,11 +850,18 @@ def _cmd_play(args: argparse.Namespace) -> int:
 def _cmd_plot(args: argparse.Namespace) -> int:
     viz = _viz()
     out = _check_output(args.out or str(Path(args.trajectory).with_suffix(".png")), "--out", "plot.png")
+    joints = [name.strip() for name in args.joints.split(",") if name.strip()] if args.joints is not None else None
+    if joints is not None and not joints:
+        raise _UsageError(
+            "--joints: no joint names given (comma-separated names, e.g. --joints elbow_joint,wrist_1_joint)"
+        )
     trajectory = ms.Trajectory.load(args.trajectory)
     try:
-        viz.plot_trajectory(trajectory, out)
+        viz.plot_trajectory(trajectory, out, joints=joints)
     except viz.MissingDependencyError as exc:
         raise _UsageError(str(exc)) from None
+    except ms.UnknownNameError as exc:
+        raise _UsageError(f"--joints: {exc}") from None
     except OSError as exc:
         raise _UsageError(f"--out {out}: cannot write the plot ({exc.strerror or exc})") from None
     _say(f"wrote {out}")
