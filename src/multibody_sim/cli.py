@@ -26,7 +26,7 @@ from multibody_sim.simulation import check_options, positive_number, steps_per
 from multibody_sim.trajectory import plain_data
 
 PROG = "multibody-sim"
-COMMANDS = ("run", "models", "inspect", "integrators", "bench", "play", "plot")
+COMMANDS = ("run", "models", "inspect", "integrators", "bench", "play", "plot", "export")
 
 # Exit codes (CONTRACTS.md).
 EXIT_OK = 0
@@ -366,6 +366,21 @@ def _add_view_commands(commands: Any) -> None:
         help="plot only these joints, comma-separated (a floating base's root joint is the base panel)",
     )
     plot.set_defaults(handler=_cmd_plot)
+
+    export = commands.add_parser(
+        "export",
+        help="write a saved trajectory as a table (CSV, Parquet) for pandas, spreadsheets and others",
+        description="Write TRAJ.npz as a table, one row per sample, with named columns: t, q.<coordinate> (a "
+        "floating base's root_joint.x .y .z .qx .qy .qz .qw), v.<dof>, tau.<dof>, kinetic_energy, potential_energy, "
+        "total_energy, work, dissipated, energy_error, ledger.<element> and a scene's constraint records. Needs "
+        "pandas, and pyarrow for Parquet (pip install 'multibody-sim[dataframe]').",
+    )
+    export.add_argument(
+        "trajectory", metavar="TRAJ.npz", help="a trajectory written by `run --out` (or a chunked run's parts)"
+    )
+    export.add_argument("--csv", metavar="OUT.csv", help="write a CSV file (a header line of column names)")
+    export.add_argument("--parquet", metavar="OUT.parquet", help="write a Parquet file (float64 columns)")
+    export.set_defaults(handler=_cmd_export)
 
 
 def _add_server_options(group: Any, prefix: str) -> None:
@@ -865,6 +880,32 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise _UsageError(f"--out {out}: cannot write the plot ({exc.strerror or exc})") from None
     _say(f"wrote {out}")
+    return EXIT_OK
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from . import tables
+
+    outputs = [
+        (option, name, kind)
+        for option, name, kind in (("--csv", args.csv, "csv"), ("--parquet", args.parquet, "parquet"))
+        if name
+    ]
+    if not outputs:
+        raise _UsageError("export: nothing to write (give --csv OUT.csv and/or --parquet OUT.parquet)")
+    targets = []
+    for option, name, kind in outputs:
+        path = _check_output(name, option, f"table.{kind}")
+        tables.check_table_format(path, kind)
+        targets.append((option, path, kind))
+    trajectory = ms.Trajectory.load(args.trajectory, mmap=True)  # a long run's arrays stay on disk
+    for option, path, kind in targets:
+        try:
+            tables.write_table(trajectory, path, format=kind)
+        except OSError as exc:
+            raise _UsageError(f"{option} {path}: cannot write the table ({exc.strerror or exc})") from None
+        columns = len(tables.column_names(trajectory))
+        _say(f"wrote {path} ({len(trajectory)} rows x {columns} columns, {path.stat().st_size / 1e6:.1f} MB)")
     return EXIT_OK
 
 

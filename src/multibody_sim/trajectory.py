@@ -231,6 +231,21 @@ class Trajectory:
             }
         return plain_data(data)
 
+    # ---- tables (their code lives in tables.py) -------------------------------------------------------------
+    def to_dataframe(self, *, robot: Any = None) -> Any:
+        """The samples as a pandas DataFrame, one row per sample, with named columns (pandas: the dataframe extra).
+
+        Columns: t; q.<coordinate> (a free-flyer's <joint>.x .y .z .qx .qy .qz .qw); v.<dof> and tau.<dof> per
+        dof name; kinetic_energy, potential_energy, total_energy, work, dissipated, energy_error;
+        ledger.<element>; constraint.<name>.force[k], .drift, .velocity_drift. See multibody_sim.tables.
+
+        Args:
+            robot: its Robot, for the coordinate names; None reads them from the metadata.
+        """
+        from .tables import to_dataframe
+
+        return to_dataframe(self, robot)
+
     # ---- files ---------------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write an .npz of plain arrays plus JSON metadata, atomically (temporary file, then rename)."""
