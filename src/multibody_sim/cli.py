@@ -350,6 +350,32 @@ def _add_view_commands(commands: Any) -> None:
     )
     play.add_argument("--plot", action="store_true", help="show the energy and joint-position plot beside the view")
     _add_server_options(play, prefix="--")
+    video = play.add_argument_group(
+        "video (rendered headless in Chromium or Chrome from the same page; --fps and --speed apply)"
+    )
+    video.add_argument(
+        "--video",
+        metavar="OUT.mp4",
+        help="write a video instead of serving: .mp4 (H.264) or .gif, frames at --fps, lasting duration / --speed",
+    )
+    video.add_argument("--width", metavar="PX", type=int, default=1280, help="frame width in pixels (default: 1280)")
+    video.add_argument("--height", metavar="PX", type=int, default=720, help="frame height in pixels (default: 720)")
+    video.add_argument(
+        "--camera",
+        metavar="VIEW",
+        default="default",
+        help="the direction the camera looks from: default, front, back, left, right, top (x forward, z up)",
+    )
+    video.add_argument(
+        "--camera-position", metavar="M", type=float, nargs=3, help="the camera's position x y z [m] (world frame)"
+    )
+    video.add_argument(
+        "--camera-target",
+        metavar="M",
+        type=float,
+        nargs=3,
+        help="the point the camera looks at, x y z [m] (default: the centre of the space the motion sweeps)",
+    )
     play.set_defaults(handler=_cmd_play)
 
     plot = commands.add_parser(
@@ -834,9 +860,12 @@ def _cmd_play(args: argparse.Namespace) -> int:
     for option, value in (("--fps", args.fps), ("--speed", args.speed)):
         if not (math.isfinite(value) and value > 0):
             raise _UsageError(f"{option} must be a positive number, got {value:g}")
+    video = _check_video(args) if args.video else None
     trajectory = ms.Trajectory.load(args.trajectory)
     try:
         robot = viz.robot_from_trajectory(trajectory)
+        if video is not None:
+            _write_video(viz, trajectory, robot, video, args)
         if html is not None:
             started = time.perf_counter()
             try:
@@ -846,6 +875,7 @@ def _cmd_play(args: argparse.Namespace) -> int:
                 raise _UsageError(f"--html {html}: cannot write the page ({exc.strerror or exc})") from None
             size = html.stat().st_size / 1e6
             _say(f"wrote {html} ({size:.1f} MB in {time.perf_counter() - started:.1f} s): opens from disk, offline")
+        if video is not None or html is not None:
             return EXIT_OK
         viewer = _open_viewer(robot, args.host, args.port, args.speed)
         try:
@@ -860,6 +890,44 @@ def _cmd_play(args: argparse.Namespace) -> int:
     except viz.MissingDependencyError as exc:
         raise _UsageError(str(exc)) from None
     return EXIT_OK
+
+
+def _check_video(args: argparse.Namespace) -> Path:
+    """play --video: the file name, options and browser are checked before the trajectory is read."""
+    from .viz import video
+
+    path = _check_output(args.video, "--video", "motion.mp4")
+    video.check_video_options(path, fps=args.fps, speed=args.speed, width=args.width, height=args.height, prefix="--")
+    if args.camera not in video.CAMERA_VIEWS:
+        raise _UsageError(f"--camera: unknown view '{args.camera}' (choose from: {', '.join(video.CAMERA_VIEWS)})")
+    video.find_browser()
+    return path
+
+
+def _write_video(viz: Any, trajectory: Any, robot: Any, path: Path, args: argparse.Namespace) -> None:
+    started = time.perf_counter()
+    try:
+        with _viewer_warnings(viz):
+            viz.export_video(
+                trajectory,
+                path,
+                robot=robot,
+                fps=args.fps,
+                speed=args.speed,
+                width=args.width,
+                height=args.height,
+                camera=args.camera,
+                camera_position=args.camera_position,
+                camera_target=args.camera_target,
+            )
+    except OSError as exc:
+        raise _UsageError(f"--video {path}: cannot write the video ({exc.strerror or exc})") from None
+    frames = viz.video.frame_count(trajectory, fps=args.fps, speed=args.speed)
+    size = path.stat().st_size / 1e6
+    _say(
+        f"wrote {path} ({frames} frames at {args.fps:g} fps, {frames / args.fps:.2f} s; {size:.1f} MB in "
+        f"{time.perf_counter() - started:.1f} s)"
+    )
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:

@@ -10,9 +10,11 @@ from .frames import frame_times, resample, robot_from_trajectory
 from .plot import plot_command, plot_png, plot_trajectory
 from .scene import MissingVisualsWarning, RobotScene
 from .server import ExposedServerWarning, MeshcatServer
+from .video import EmptyFrameError, export_video
 from .viewer import Viewer
 
 __all__ = [
+    "EmptyFrameError",
     "ExposedServerWarning",
     "MeshcatServer",
     "MissingDependencyError",
@@ -21,6 +23,7 @@ __all__ = [
     "Viewer",
     "ViewerWarning",
     "export_html",
+    "export_video",
     "frame_times",
     "plot_command",
     "plot_png",
