@@ -231,7 +231,7 @@ class Trajectory:
             }
         return plain_data(data)
 
-    # ---- tables (their code lives in tables.py) -------------------------------------------------------------
+    # ---- tables and notebooks (their code lives in tables.py and viz/notebook.py) -----------------------
     def to_dataframe(self, *, robot: Any = None) -> Any:
         """The samples as a pandas DataFrame, one row per sample, with named columns (pandas: the dataframe extra).
 
@@ -245,6 +245,19 @@ class Trajectory:
         from .tables import to_dataframe
 
         return to_dataframe(self, robot)
+
+    def show(
+        self, *, robot: Any = None, fps: float = 30.0, speed: float = 1.0, height: int = 480, plot: bool = False
+    ) -> None:
+        """Display the motion inline in a Jupyter notebook, offline: the HTML export's page in the cell's output.
+
+        Needs the viz extra; see multibody_sim.viz.inline_view for the arguments (robot: its Robot, None loads
+        it from the metadata; fps: keyframes per second; speed: initial playback speed; height [px]; plot: the
+        energy plot beside the view).
+        """
+        from .viz.notebook import display, inline_view
+
+        display(inline_view(self, robot=robot, fps=fps, speed=speed, height=height, plot=plot))
 
     # ---- files ---------------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike[str]) -> Path:
