@@ -217,12 +217,7 @@ def _film(
         from playwright.sync_api import sync_playwright
         from tqdm import tqdm
 
-        with (
-            sync_playwright() as playwright,
-            tqdm(
-                total=len(offsets), unit="frame", desc="video", disable=not progress, leave=False, file=sys.stderr
-            ) as bar,
-        ):
+        with sync_playwright() as playwright:
             browser = playwright.chromium.launch(
                 executable_path=executable, args=list(BROWSER_ARGS), timeout=TIMEOUT_MS
             )
@@ -241,19 +236,21 @@ def _film(
                 page.evaluate("viewer.scene_tree.find(['meshcat', 'robot']).object.visible = false")
                 empty = _decode(page.evaluate(_RENDER, offsets[0]), size)
                 page.evaluate("viewer.scene_tree.find(['meshcat', 'robot']).object.visible = true")
-                bar = tqdm(total=len(offsets), unit="frame", desc="video", disable=not progress, leave=False)
-                for k, offset in enumerate(offsets):
-                    frame = _decode(page.evaluate(_RENDER, offset), size)
-                    shown = int((np.abs(frame.astype(np.int16) - empty).max(axis=2) > ROBOT_STEP).sum())
-                    if shown < ROBOT_PIXELS:
-                        raise EmptyFrameError(
-                            f"frame {k} (t = {times[k]:.6g} s) shows no robot ({shown} pixels differ from the empty "
-                            "scene): the camera does not see it (check the camera position and target) or its "
-                            "meshes were not drawn; no video written"
-                        )
-                    write(frame)
-                    bar.update(1)
-                bar.close()
+                bar = tqdm(
+                    total=len(offsets), unit="frame", desc="video", disable=not progress, leave=False, file=sys.stderr
+                )
+                with bar:
+                    for k, offset in enumerate(offsets):
+                        frame = _decode(page.evaluate(_RENDER, offset), size)
+                        shown = int((np.abs(frame.astype(np.int16) - empty).max(axis=2) > ROBOT_STEP).sum())
+                        if shown < ROBOT_PIXELS:
+                            raise EmptyFrameError(
+                                f"frame {k} (t = {times[k]:.6g} s) shows no robot ({shown} pixels differ from the "
+                                "empty scene): the camera does not see it (check the camera position and target) "
+                                "or its meshes were not drawn; no video written"
+                            )
+                        write(frame)
+                        bar.update(1)
             finally:
                 browser.close()
 
