@@ -517,12 +517,15 @@ def test_a_notebook_shows_a_recording_offline_and_the_live_viewer(browser: Any, 
     import nbformat
 
     notebook = nbformat.v4.new_notebook()
-    notebook.cells = [nbformat.v4.new_code_cell(source) for source in NOTEBOOK_CELLS]
+    film = tmp_path / "from_the_kernel.gif"  # Playwright's synchronous API inside the kernel's event loop
+    video = f"viz.export_video(traj, {str(film)!r}, fps=10, width=160, height=120)"
+    notebook.cells = [nbformat.v4.new_code_cell(source) for source in (*NOTEBOOK_CELLS, video)]
     client = nbclient.NotebookClient(notebook, timeout=120, kernel_name="python3")
     with client.setup_kernel():  # the kernel, and the viewer's server in it, live until the checks are done
         for index, cell in enumerate(notebook.cells):
             client.execute_cell(cell, index)
         recording, live = (notebook.cells[k].outputs for k in (1, 2))
+        assert Image.open(film).n_frames == 2  # 0.2 s at 10 fps: two frames, the box moving between them
         assert [o["output_type"] for o in recording] == ["display_data"] == [o["output_type"] for o in live]
         inline, served = recording[0]["data"]["text/html"], live[0]["data"]["text/html"]
         assert inline.startswith('<iframe srcdoc="&lt;!DOCTYPE html&gt;') and "<script" not in inline
