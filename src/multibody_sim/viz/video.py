@@ -30,8 +30,9 @@ from .export import page_title, recording_page
 from .frames import resample, robot_from_trajectory
 from .scene import CAMERA_VIEWS, RobotScene
 
-VIDEO_FORMATS = (".gif", ".mp4")
 __all__ = ["CAMERA_VIEWS", "EmptyFrameError", "check_video_options", "export_video", "find_browser", "frame_count"]
+
+VIDEO_FORMATS = (".gif", ".mp4")
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 FPS_RANGE = {".mp4": (1.0, 120.0), ".gif": (1.0, 50.0)}  # browsers play GIF delays under 20 ms as 100 ms
 SIZE_RANGE = (64, 3840)
@@ -39,7 +40,8 @@ SIZE_RANGE = (64, 3840)
 # than this; a frame needs at least ROBOT_PIXELS such pixels.
 ROBOT_STEP = 24
 ROBOT_PIXELS = 12
-# The flags for a headless chromium without a GPU (FIELD_NOTES: WebGL through SwiftShader).
+# The flags for a headless chromium without a GPU (FIELD_NOTES: WebGL through SwiftShader). No sandbox: root (as in
+# containers and CI) cannot start chromium with one, and the page is our own file, with every other request refused.
 BROWSER_ARGS = (
     "--no-sandbox",
     "--disable-gpu",
@@ -51,7 +53,7 @@ BROWSER_ARGS = (
 )
 TIMEOUT_MS = 120_000  # a hung page fails instead of waiting forever
 _RENDER = """(t) => {
-  if (t !== null) window.multibodySim.seek(t);
+  window.multibodySim.seek(t);
   viewer.render();  // synchronous: the drawing buffer holds this frame until the task ends
   return viewer.renderer.domElement.toDataURL("image/png");
 }"""
