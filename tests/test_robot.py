@@ -500,3 +500,40 @@ def test_limit_excess_ignores_unlimited_coordinates(robot: Callable[..., ms.Robo
 def test_limit_excess_of_one_configuration_has_its_shape(robot: Callable[..., ms.Robot]) -> None:
     ur5 = robot("ur5")
     assert ur5.limit_excess(np.zeros(6)).shape == (6,)
+
+
+def test_limit_excess_ignores_round_off_at_a_limit(robot: Callable[..., ms.Robot]) -> None:
+    """A coordinate a few ulps past its limit is round-off, not a violation; a real excess still is."""
+    panda = robot("panda")
+    finger = panda.joint_names.index("panda_finger_joint1")
+    elbow = panda.joint_names.index("panda_joint4")
+    lower, upper = panda.lower_limit, panda.upper_limit
+    q = (lower + upper) / 2
+    Q = np.tile(q, (6, 1))
+    Q[0, finger] = -2.6e-19  # what a run resting on the finger's 0 m limit reports without the tolerance
+    Q[1, finger] = np.nextafter(np.nextafter(lower[finger], -1.0), -1.0)  # two ulps below 0
+    Q[2, elbow] = upper[elbow] + 2 * np.spacing(upper[elbow])  # two ulps above -0.0698 rad
+    Q[3, elbow] = lower[elbow] - 4 * np.finfo(float).eps * abs(lower[elbow])  # a few ulps of a -3.07 rad limit
+    Q[4, finger] = -1e-9  # a real excess, however small
+    Q[5, elbow] = upper[elbow] + 1e-12
+    excess = panda.limit_excess(Q)
+    assert not excess[:4].any()
+    assert excess[4, finger] == 1e-9 and np.count_nonzero(excess[4]) == 1
+    assert excess[5, elbow] == pytest.approx(1e-12, rel=1e-3) and np.count_nonzero(excess[5]) == 1
+    # The tolerance scales with the limit: 8 eps of max(|lower|, |upper|, 1).
+    assert panda.limit_tolerance[finger] == 8 * np.finfo(float).eps
+    assert panda.limit_tolerance[elbow] == 8 * np.finfo(float).eps * abs(lower[elbow])
+
+
+def test_panda_resting_on_its_finger_limits_reports_no_violation(robot: Callable[..., ms.Robot]) -> None:
+    """Held still at q = 0 (fingers closed on their 0 m limit), panda's fingers drift by round-off only."""
+    panda = robot("panda")
+    q = np.zeros(panda.nq)
+    hold = ms.GravityCompensation(panda)
+    traj = ms.simulate(panda, q, np.zeros(panda.nv), duration=0.05, dt=1e-3, controller=hold)
+    fingers = [panda.joint_names.index(n) for n in ("panda_finger_joint1", "panda_finger_joint2")]
+    drift = np.abs(traj.q[:, fingers]).max()
+    assert 0 < drift < 1e-15  # the fingers do move, by round-off
+    # Joint 4 at 0 is outside its range [-3.07, -0.07] rad on every sample: those are the only violations.
+    assert traj.limit_violations.count == len(traj.t)
+    assert traj.limit_violations.worst_joint == "panda_joint4"

@@ -482,6 +482,104 @@ def test_live_server_page_draws_and_moves(browser: Any, robot: Callable[..., ms.
             page.close()
 
 
+# ---- notebooks ---------------------------------------------------------------------------------------------
+NOTEBOOK_CELLS = (
+    "import numpy as np\nimport multibody_sim as ms\nfrom multibody_sim import viz\n"
+    "robot = ms.load_robot('free_body')\nv0 = np.array([0.0, 0.0, 1.0, 3.0, 1.0, 0.0])\n"
+    "traj = ms.simulate(robot, robot.neutral(), v0, duration=0.2, dt=1e-3, output_dt=0.01)",
+    "traj.show(height=400)",
+    "viewer = viz.Viewer(robot, port=0, announce=False)\nviewer.show(height=400)",
+)
+
+
+def _notebook_frame(page: Any, index: int, tmp_path: Path) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """The index-th iframe of the page once its viewer has drawn everything: (screenshot, whole-image region)."""
+    handle = page.locator("iframe").nth(index)
+    frame = handle.element_handle().content_frame()
+    frame.wait_for_function("window.multibodySim && window.multibodySim.loaded", timeout=TIMEOUT_MS)
+    assert frame.evaluate("window.multibodySim.errors") == []
+    frame.evaluate("window.multibodySim.seek(0.1)")  # a recording stops playing (and drawing every frame)
+    frame.evaluate(HIDE_DECORATIONS)
+    frame.evaluate("window.multibodySim.rendered()")
+    path = tmp_path / f"cell{index}.png"
+    handle.screenshot(path=str(path), timeout=TIMEOUT_MS)
+    image = np.asarray(Image.open(path).convert("RGB"), dtype=int)
+    return image, (0, 0, image.shape[1], image.shape[0])
+
+
+def test_a_notebook_shows_a_recording_offline_and_the_live_viewer(browser: Any, tmp_path: Path) -> None:
+    """A real notebook executed headless by nbclient in an ipykernel; its outputs, put in a page as a notebook
+    front end does, open in chromium: the recording with no network at all, the live viewer from its server."""
+    missing = [m for m in ("nbformat", "nbclient", "ipykernel") if importlib.util.find_spec(m) is None]
+    if missing:
+        _unavailable(f"the notebook test needs {', '.join(missing)} (pip install -e '.[test]')")
+    import nbclient
+    import nbformat
+
+    notebook = nbformat.v4.new_notebook()
+    film = tmp_path / "from_the_kernel.gif"  # Playwright's synchronous API inside the kernel's event loop
+    video = f"viz.export_video(traj, {str(film)!r}, fps=10, width=160, height=120)"
+    notebook.cells = [nbformat.v4.new_code_cell(source) for source in (*NOTEBOOK_CELLS, video)]
+    client = nbclient.NotebookClient(notebook, timeout=120, kernel_name="python3")
+    with client.setup_kernel():  # the kernel, and the viewer's server in it, live until the checks are done
+        for index, cell in enumerate(notebook.cells):
+            client.execute_cell(cell, index)
+        recording, live = (notebook.cells[k].outputs for k in (1, 2))
+        assert Image.open(film).n_frames == 2  # 0.2 s at 10 fps: two frames, the box moving between them
+        assert [o["output_type"] for o in recording] == ["display_data"] == [o["output_type"] for o in live]
+        inline, served = recording[0]["data"]["text/html"], live[0]["data"]["text/html"]
+        assert inline.startswith('<iframe srcdoc="&lt;!DOCTYPE html&gt;') and "<script" not in inline
+        assert recording[0]["data"]["text/plain"].startswith("<InlineView free_body, t = 0..0.2 s, ")
+        url = re.search(r'src="(http://127\.0\.0\.1:\d+/)"', served).group(1)  # type: ignore[union-attr]
+        front_end = tmp_path / "notebook.html"
+        front_end.write_text(f"<!DOCTYPE html><html><body>{inline}<hr>{served}</body></html>")
+        page = browser.new_page(viewport={"width": 900, "height": 900})
+        page.set_default_timeout(TIMEOUT_MS)
+        requests: list[str] = []
+
+        def route(r: Any) -> None:
+            requests.append(r.request.url)
+            r.continue_() if r.request.url.startswith((front_end.as_uri(), url)) else r.abort()
+
+        page.route("**/*", route)
+        try:
+            page.goto(front_end.as_uri())
+            shots = [_notebook_frame(page, index, tmp_path) for index in (0, 1)]
+            offline = [r for r in requests if not r.startswith(url)]
+            assert offline == [front_end.as_uri()]  # the recording fetched nothing: it is all in the srcdoc
+            for image, region in shots:
+                assert drawn(image, region) > DRAWN_MIN, drawn(image, region)
+            for index in (0, 1):  # the same check on the same frames with the robot hidden: it can fail
+                page.locator("iframe").nth(index).element_handle().content_frame().evaluate(HIDE_ROBOT)
+                image, region = _notebook_frame(page, index, tmp_path)
+                assert drawn(image, region) < EMPTY_MAX
+        finally:
+            page.close()
+
+
+def test_show_outside_a_notebook_says_where_it_works(robot: Callable[..., ms.Robot]) -> None:
+    pendulum = robot("pendulum")
+    trajectory = ms.simulate(pendulum, [0.5], [0.0], duration=0.1, dt=0.01)
+    message = (
+        "show() displays inline in a Jupyter notebook, and none is running; elsewhere write a page with "
+        "multibody_sim.viz.export_html(trajectory, 'motion.html') or run `multibody-sim play`"
+    )
+    with pytest.raises(ms.MissingDependencyError) as caught:
+        trajectory.show()
+    assert str(caught.value) == message
+    with pytest.raises(
+        ms.InvalidArgumentError, match=re.escape("height must be a number of pixels of at least 100, got 20")
+    ):
+        viz.inline_view(trajectory, robot=pendulum, height=20)
+    view = viz.inline_view(trajectory, robot=pendulum, height=250)
+    assert view._repr_html_().endswith('style="width: 100%; height: 250px; border: 0" allowfullscreen></iframe>')
+    with viz.Viewer(pendulum, port=0, announce=False) as viewer:
+        assert viewer._repr_html_() == (
+            f'<iframe src="{viewer.url}" title="multibody-sim viewer" style="width: 100%; height: 480px; border: 0" '
+            "allowfullscreen></iframe>"
+        )
+
+
 def test_run_view_streams_the_run_in_real_time(
     browser: Any, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:

@@ -38,6 +38,9 @@ MAX_JOINTS = 1000
 # out of memory near 1000. The largest example-robot-data model has 107 (tiago_dual on a free-flyer).
 MAX_DOFS = 128
 _ERD = "example-robot-data"
+# Where one name is both a catalog robot and a shipped scene (four_bar, spring_chain), commands that take either
+# take the scene; "robot:NAME" names the robot and "scene:NAME" the scene explicitly (load_scene strips it).
+ROBOT_PREFIX = "robot:"
 
 
 @dataclass(frozen=True)
@@ -172,7 +175,8 @@ def load_robot(
     followed) inside the allowed folders: the URDF's folder, package_dirs and allowed_roots.
 
     Args:
-        source: a catalog name (`multibody-sim models` lists them) or a path to a URDF file.
+        source: a catalog name (`multibody-sim models` lists them) or a path to a URDF file; a leading
+            "robot:" is allowed (the CLI needs it for names that are also scenes: robot:four_bar).
         floating_base: True adds a free-flyer root joint, False welds the root to the world; None takes the
             catalog entry's natural base (fixed for URDF paths).
         damping: apply the URDF's joint viscous damping (tau = -D v); False ignores it.
@@ -202,7 +206,8 @@ def load_robot(
     }
     if allowed_roots:  # only when given: metadata written before the option existed stays comparable
         arguments["allowed_roots"] = [os.fspath(p) for p in allowed_roots]
-    name = os.fspath(source)
+    name = os.fspath(source).removeprefix(ROBOT_PREFIX)
+    arguments["source"] = name  # the prefix only says "the robot, not the scene of that name"
     if name in CATALOG:
         entry = CATALOG[name]
         path, extra_dirs = catalog_urdf(entry)

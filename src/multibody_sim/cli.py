@@ -7,6 +7,7 @@ import contextlib
 import difflib
 import importlib.metadata
 import io
+import json
 import math
 import os
 import signal
@@ -21,9 +22,11 @@ from typing import Any, NoReturn
 
 import multibody_sim as ms
 from multibody_sim.safety import printable
+from multibody_sim.simulation import check_options, positive_number, steps_per
+from multibody_sim.trajectory import plain_data
 
 PROG = "multibody-sim"
-COMMANDS = ("run", "models", "inspect", "integrators", "bench", "play", "plot")
+COMMANDS = ("run", "models", "inspect", "integrators", "bench", "play", "plot", "export")
 
 # Exit codes (CONTRACTS.md).
 EXIT_OK = 0
@@ -247,6 +250,11 @@ def _build_parser() -> _Parser:
         "early stop: memory stays bounded on long runs",
     )
     run.add_argument(
+        "--json",
+        action="store_true",
+        help="print the run's summary as one JSON document on stdout (the header and notes go to stderr)",
+    )
+    run.add_argument(
         "--tolerance",
         metavar="TOL",
         type=float,
@@ -342,6 +350,32 @@ def _add_view_commands(commands: Any) -> None:
     )
     play.add_argument("--plot", action="store_true", help="show the energy and joint-position plot beside the view")
     _add_server_options(play, prefix="--")
+    video = play.add_argument_group(
+        "video (rendered headless in Chromium or Chrome from the same page; --fps and --speed apply)"
+    )
+    video.add_argument(
+        "--video",
+        metavar="OUT.mp4",
+        help="write a video instead of serving: .mp4 (H.264) or .gif, frames at --fps, lasting duration / --speed",
+    )
+    video.add_argument("--width", metavar="PX", type=int, default=1280, help="frame width in pixels (default: 1280)")
+    video.add_argument("--height", metavar="PX", type=int, default=720, help="frame height in pixels (default: 720)")
+    video.add_argument(
+        "--camera",
+        metavar="VIEW",
+        default="default",
+        help="the direction the camera looks from: default, front, back, left, right, top (x forward, z up)",
+    )
+    video.add_argument(
+        "--camera-position", metavar="M", type=float, nargs=3, help="the camera's position x y z [m] (world frame)"
+    )
+    video.add_argument(
+        "--camera-target",
+        metavar="M",
+        type=float,
+        nargs=3,
+        help="the point the camera looks at, x y z [m] (default: the centre of the space the motion sweeps)",
+    )
     play.set_defaults(handler=_cmd_play)
 
     plot = commands.add_parser(
@@ -352,7 +386,27 @@ def _add_view_commands(commands: Any) -> None:
     )
     plot.add_argument("trajectory", metavar="TRAJ.npz", help="a trajectory written by `run --out`")
     plot.add_argument("--out", metavar="PLOT.png", help="the PNG to write (default: TRAJ.png beside the trajectory)")
+    plot.add_argument(
+        "--joints",
+        metavar="NAMES",
+        help="plot only these joints, comma-separated (a floating base's root joint is the base panel)",
+    )
     plot.set_defaults(handler=_cmd_plot)
+
+    export = commands.add_parser(
+        "export",
+        help="write a saved trajectory as a table (CSV, Parquet) for pandas, spreadsheets and others",
+        description="Write TRAJ.npz as a table, one row per sample, with named columns: t, q.<coordinate> (a "
+        "floating base's root_joint.x .y .z .qx .qy .qz .qw), v.<dof>, tau.<dof>, kinetic_energy, potential_energy, "
+        "total_energy, work, dissipated, energy_error, ledger.<element> and a scene's constraint records. Needs "
+        "pandas, and pyarrow for Parquet (pip install 'multibody-sim[dataframe]').",
+    )
+    export.add_argument(
+        "trajectory", metavar="TRAJ.npz", help="a trajectory written by `run --out` (or a chunked run's parts)"
+    )
+    export.add_argument("--csv", metavar="OUT.csv", help="write a CSV file (a header line of column names)")
+    export.add_argument("--parquet", metavar="OUT.parquet", help="write a Parquet file (float64 columns)")
+    export.set_defaults(handler=_cmd_export)
 
 
 def _add_server_options(group: Any, prefix: str) -> None:
@@ -376,9 +430,24 @@ def _version() -> str:
 
 # ---- commands ----------------------------------------------------------------------------------------
 def _is_scene(source: str) -> bool:
-    from .scenes import shipped_scenes
+    """Whether a command's ROBOT_OR_URDF names a scene: a .toml file, a shipped scene's name or scene:NAME.
 
-    return source.endswith(".toml") or source in shipped_scenes()
+    A name that is both a shipped scene and a catalog robot (four_bar, spring_chain) takes the scene, with a
+    one-line note on stderr; robot:NAME takes the robot.
+    """
+    from .catalog import ROBOT_PREFIX
+    from .scenes import SCENE_PREFIX, shipped_scenes
+
+    if source.startswith((SCENE_PREFIX, ROBOT_PREFIX)):
+        return source.startswith(SCENE_PREFIX)
+    scene = source.endswith(".toml") or source in shipped_scenes()
+    if scene and source in ms.CATALOG:
+        print(
+            f"{PROG}: note: '{source}' names both a shipped scene and a catalog robot: taking the scene "
+            f"({ROBOT_PREFIX}{source} for the robot alone)",
+            file=sys.stderr,
+        )
+    return scene
 
 
 def _load(args: argparse.Namespace) -> Any:
@@ -408,6 +477,19 @@ def _load(args: argparse.Namespace) -> Any:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    """`run`; with --json, everything it says goes to stderr and stdout gets one JSON document (the summary)."""
+    if not args.json:
+        return _run(args, None)
+    document: dict[str, Any] = {}
+    with contextlib.redirect_stdout(sys.stderr):
+        code = _run(args, document)
+    if document:  # none when the arguments were refused: the error line says why
+        _print_json(document)
+    return code
+
+
+def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
+    """The run command; fills `document` (when given) with the run's description and summary as data."""
     out = _check_out(args.out) if args.out else None
     robot = _load(args)
     scene = robot if isinstance(robot, ms.Scene) else None
@@ -437,6 +519,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         controller = declared.get("controller")
         if controller is not None:
             args.controller = scene.spec.controller.name  # type: ignore[union-attr]
+    _check_run_arguments(robot, method, args.duration, args.dt if args.tolerance is None else None, options)
     if controller is not None:
         options["controller"] = controller
     if scene is not None:
@@ -455,6 +538,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         options.setdefault("rtol", ADAPTIVE_RTOL)
         options.setdefault("atol", ADAPTIVE_ATOL)
         tolerances = f", rtol {options['rtol']:g}, atol {options['atol']:g}"
+    _check_run_arguments(robot, method, args.duration, args.dt, {k: v for k, v in options.items() if k != "controller"})
     base = "floating" if robot.floating_base else "fixed"
     viewer = _open_viewer(robot, args.view_host, args.view_port, args.view_speed, q0) if args.view else None
     with _SigtermAsInterrupt() as signals:
@@ -481,10 +565,30 @@ def _cmd_run(args: argparse.Namespace) -> int:
         else:
             failure = None
     streamed = args.chunk is not None
+
+    def describe(trajectory: Any, report: str, error: str | None) -> None:
+        if document is not None:
+            document.update(
+                robot={"name": robot.name, "source": args.robot, "base": base, "nq": robot.nq, "nv": robot.nv},
+                scene=scene is not None,
+                integrator=method.name,
+                dt=args.dt,
+                duration=args.duration,
+                options={k: v for k, v in options.items() if isinstance(v, (int, float))},
+                controller=args.controller if controller is not None else None,
+                q0=q0,
+                v0=v0,
+                out=str(out) if out is not None else None,
+                summary=trajectory.summary_data(),
+                controller_report=report or None,
+                error=error,
+            )
+
     if failure is None:
         if out is not None and not streamed:
             _save(trajectory, out)
         said = getattr(controller, "summary", lambda: "")()  # what the controller saw (tracking error, minima)
+        describe(trajectory, said, None)
         _say(trajectory.summary() + (f"\n{said}" if said else "") + (f"\nwrote {out}" if out is not None else ""))
         if viewer is not None:
             _watch(viewer, trajectory, args)
@@ -492,6 +596,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     partial = getattr(failure, "trajectory", None)
     kept = _save_partial(partial, out, already_written=streamed)
     if partial is not None and len(partial):
+        describe(partial, "", f"{failure}; {kept}")
         _say(partial.summary())
     if viewer is not None:  # a failed run's samples are worth watching; an interrupted one's user wants out
         if isinstance(failure, ms.SimulationError) and partial is not None and len(partial):
@@ -505,6 +610,31 @@ def _cmd_run(args: argparse.Namespace) -> int:
     where = str(failure) or "interrupted before the first step"
     print(f"{PROG}: {name}: {where}; {kept}", file=sys.stderr)
     return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
+
+
+def _check_run_arguments(robot: Any, method: Any, duration: Any, dt: Any, options: dict[str, Any]) -> None:
+    """What simulate() would refuse, checked before the header is printed (dt None: chosen later, by a pilot).
+
+    The same checks, with the same messages, as simulate()'s: bad input prints one line and nothing else.
+    """
+    positive_number(duration, "duration")
+    if dt is None:
+        return
+    positive_number(dt, "dt")
+    check_options(method, options)
+    if method.adaptive:
+        for name in ("rtol", "atol", "max_step", "output_dt", "control_dt"):
+            if options.get(name) is not None:
+                positive_number(options[name], name, "units" if name in ("rtol", "atol") else "seconds")
+    else:
+        for name in ("output_dt", "control_dt"):
+            steps_per(options.get(name), dt, name)
+    method.check_system(robot)
+
+
+def _print_json(document: dict[str, Any]) -> None:
+    """One JSON document on stdout (no NaN or Infinity: JSON has none; they are null)."""
+    _say(json.dumps(plain_data(document), allow_nan=False))
 
 
 def _controller(args: argparse.Namespace, robot: Any) -> Any:
@@ -623,6 +753,12 @@ def _cmd_models(args: argparse.Namespace) -> int:
         print(f"\nscenes (run one with `{PROG} run NAME`; the files are in {next(iter(scenes.values())).parent}):")
         scene_rows = [[name, read_scene_file(path).description] for name, path in scenes.items()]
         print(_table(["name", "description"], scene_rows, indent=2))
+    both = sorted(set(scenes) & set(ms.CATALOG))
+    if both:
+        print(
+            f"\n{', '.join(both)}: both a robot and a scene; run, inspect and bench take the scene "
+            f"(robot:{both[0]} for the robot alone)"
+        )
     return EXIT_OK
 
 
@@ -724,9 +860,12 @@ def _cmd_play(args: argparse.Namespace) -> int:
     for option, value in (("--fps", args.fps), ("--speed", args.speed)):
         if not (math.isfinite(value) and value > 0):
             raise _UsageError(f"{option} must be a positive number, got {value:g}")
+    video = _check_video(args) if args.video else None
     trajectory = ms.Trajectory.load(args.trajectory)
     try:
         robot = viz.robot_from_trajectory(trajectory)
+        if video is not None:
+            _write_video(viz, trajectory, robot, video, args)
         if html is not None:
             started = time.perf_counter()
             try:
@@ -736,6 +875,7 @@ def _cmd_play(args: argparse.Namespace) -> int:
                 raise _UsageError(f"--html {html}: cannot write the page ({exc.strerror or exc})") from None
             size = html.stat().st_size / 1e6
             _say(f"wrote {html} ({size:.1f} MB in {time.perf_counter() - started:.1f} s): opens from disk, offline")
+        if video is not None or html is not None:
             return EXIT_OK
         viewer = _open_viewer(robot, args.host, args.port, args.speed)
         try:
@@ -752,17 +892,88 @@ def _cmd_play(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _check_video(args: argparse.Namespace) -> Path:
+    """play --video: the file name, options and browser are checked before the trajectory is read."""
+    from .viz import video
+
+    path = _check_output(args.video, "--video", "motion.mp4")
+    video.check_video_options(path, fps=args.fps, speed=args.speed, width=args.width, height=args.height, prefix="--")
+    if args.camera not in video.CAMERA_VIEWS:
+        raise _UsageError(f"--camera: unknown view '{args.camera}' (choose from: {', '.join(video.CAMERA_VIEWS)})")
+    video.find_browser()
+    return path
+
+
+def _write_video(viz: Any, trajectory: Any, robot: Any, path: Path, args: argparse.Namespace) -> None:
+    started = time.perf_counter()
+    try:
+        with _viewer_warnings(viz):
+            viz.export_video(
+                trajectory,
+                path,
+                robot=robot,
+                fps=args.fps,
+                speed=args.speed,
+                width=args.width,
+                height=args.height,
+                camera=args.camera,
+                camera_position=args.camera_position,
+                camera_target=args.camera_target,
+            )
+    except OSError as exc:
+        raise _UsageError(f"--video {path}: cannot write the video ({exc.strerror or exc})") from None
+    frames = viz.video.frame_count(trajectory, fps=args.fps, speed=args.speed)
+    size = path.stat().st_size / 1e6
+    _say(
+        f"wrote {path} ({frames} frames at {args.fps:g} fps, {frames / args.fps:.2f} s; {size:.1f} MB in "
+        f"{time.perf_counter() - started:.1f} s)"
+    )
+
+
 def _cmd_plot(args: argparse.Namespace) -> int:
     viz = _viz()
     out = _check_output(args.out or str(Path(args.trajectory).with_suffix(".png")), "--out", "plot.png")
+    joints = [name.strip() for name in args.joints.split(",") if name.strip()] if args.joints is not None else None
+    if joints is not None and not joints:
+        raise _UsageError(
+            "--joints: no joint names given (comma-separated names, e.g. --joints elbow_joint,wrist_1_joint)"
+        )
     trajectory = ms.Trajectory.load(args.trajectory)
     try:
-        viz.plot_trajectory(trajectory, out)
+        viz.plot_trajectory(trajectory, out, joints=joints)
     except viz.MissingDependencyError as exc:
         raise _UsageError(str(exc)) from None
+    except ms.UnknownNameError as exc:
+        raise _UsageError(f"--joints: {exc}") from None
     except OSError as exc:
         raise _UsageError(f"--out {out}: cannot write the plot ({exc.strerror or exc})") from None
     _say(f"wrote {out}")
+    return EXIT_OK
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from . import tables
+
+    outputs = [
+        (option, name, kind)
+        for option, name, kind in (("--csv", args.csv, "csv"), ("--parquet", args.parquet, "parquet"))
+        if name
+    ]
+    if not outputs:
+        raise _UsageError("export: nothing to write (give --csv OUT.csv and/or --parquet OUT.parquet)")
+    targets = []
+    for option, name, kind in outputs:
+        path = _check_output(name, option, f"table.{kind}")
+        tables.check_table_format(path, kind)
+        targets.append((option, path, kind))
+    trajectory = ms.Trajectory.load(args.trajectory, mmap=True)  # a long run's arrays stay on disk
+    for option, path, kind in targets:
+        try:
+            tables.write_table(trajectory, path, format=kind)
+        except OSError as exc:
+            raise _UsageError(f"{option} {path}: cannot write the table ({exc.strerror or exc})") from None
+        columns = len(tables.column_names(trajectory))
+        _say(f"wrote {path} ({len(trajectory)} rows x {columns} columns, {path.stat().st_size / 1e6:.1f} MB)")
     return EXIT_OK
 
 

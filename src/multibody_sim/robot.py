@@ -12,6 +12,10 @@ from .state import ConfigurationSpace
 
 _WORLD = pin.Convention.WORLD
 _UNBOUNDED = 1e300  # Pinocchio writes ±DBL_MAX for "no limit"
+# A coordinate counts as outside its limits only beyond LIMIT_TOLERANCE_ULPS machine epsilons (a few units in the
+# last place) of the limit's scale max(|lower|, |upper|, 1): round-off in the dynamics moves a coordinate resting
+# on a limit by ~1e-19 (panda's fingers at 0 m), which is no violation. 8 eps is 1.8e-15 rad or m.
+LIMIT_TOLERANCE_ULPS = 8
 
 
 class Robot:
@@ -34,6 +38,8 @@ class Robot:
         damping: joint viscous damping coefficients D [N·m·s/rad or N·s/m], shape (nv,).
         effort_limit: |tau| bounds [N·m or N], shape (nv,); inf where the URDF gives none (or 0).
         lower_limit, upper_limit: position limits, shape (nq,); ±inf where there is none.
+        limit_tolerance: how far past a limit a coordinate may lie before it counts as a violation (round-off),
+            shape (nq,): LIMIT_TOLERANCE_ULPS x machine epsilon x max(|lower|, |upper|, 1); inf where there is no limit.
         space: the configuration manifold (integrate, difference).
         source: how the robot was loaded (the full load_robot arguments, URDF path and SHA-256).
     """
@@ -64,6 +70,8 @@ class Robot:
         self.effort_limit = _effort_limits(model, floating_base)
         self.lower_limit, self.upper_limit = _position_limits(model)
         self._limited = np.isfinite(self.lower_limit)
+        scale = np.maximum(np.maximum(np.abs(self.lower_limit), np.abs(self.upper_limit)), 1.0)
+        self.limit_tolerance = np.where(self._limited, LIMIT_TOLERANCE_ULPS * np.finfo(float).eps * scale, np.inf)
         self._n_base = 6 if floating_base else 0
         self.total_mass = float(pin.computeTotalMass(model))
 
@@ -249,6 +257,10 @@ class Robot:
     def limit_excess(self, Q: np.ndarray) -> np.ndarray:
         """How far each configuration coordinate is outside its position limits, shape like Q (0 inside).
 
+        Round-off is not a violation: an excess counts (and is returned as it is) only when it exceeds
+        `limit_tolerance`: LIMIT_TOLERANCE_ULPS (8) machine epsilons times max(|lower|, |upper|, 1) for that
+        coordinate, a few units in the last place (1.8e-15 rad or m for limits within ±1).
+
         Args:
             Q: one configuration (nq,) or a stack of them (n, nq).
         """
@@ -259,9 +271,10 @@ class Robot:
         excess = np.zeros_like(Q)
         if self._limited.any():
             lim = self._limited
-            excess[:, lim] = np.maximum(self.lower_limit[lim] - Q[:, lim], 0.0) + np.maximum(
+            outside = np.maximum(self.lower_limit[lim] - Q[:, lim], 0.0) + np.maximum(
                 Q[:, lim] - self.upper_limit[lim], 0.0
             )
+            excess[:, lim] = np.where(outside > self.limit_tolerance[lim], outside, 0.0)
         return excess[0] if single else excess
 
     # ---- argument checks ----------------------------------------------------------------------------

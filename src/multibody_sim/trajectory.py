@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -180,6 +181,83 @@ class Trajectory:
                 )
         lines.append(self.limit_violations.describe())
         return "\n".join(lines)
+
+    def summary_data(self) -> dict[str, Any]:
+        """summary() as data, for programs (`run --json` prints it): plain numbers, strings, lists and dicts.
+
+        Keys: status, samples, t_end [s], stats (steps, evaluations, wall_time [s], ...), real_time_factor,
+        energy ({kinetic, potential, total}: [first, last] [J]), work, dissipated, max_abs_energy_error [J],
+        ledger ({name: {kind, final [J]}}), constraints ({name: {max_drift, max_velocity_drift, max_force}}),
+        limit_violations (count, samples, worst_joint, worst_excess, worst_time). Numbers that are not finite
+        (an infinite real-time factor) are None, since JSON has no infinity.
+        """
+        n = len(self.t)
+        wall = self.stats.get("wall_time")
+        sim_time = float(self.t[-1] - self.t[0]) if n else 0.0
+        data: dict[str, Any] = {
+            "status": self.status,
+            "samples": n,
+            "t_end": float(self.t[-1]) if n else None,
+            "stats": self.stats,
+            "real_time_factor": sim_time / wall if wall else None,
+            "energy": None,
+            "work": None,
+            "dissipated": None,
+            "max_abs_energy_error": None,
+            "ledger": {},
+            "constraints": {},
+            "limit_violations": asdict(self.limit_violations),
+        }
+        if n:
+            data["energy"] = {
+                name: [float(values[0]), float(values[-1])]
+                for name, values in (
+                    ("kinetic", self.kinetic_energy),
+                    ("potential", self.potential_energy),
+                    ("total", self.total_energy),
+                )
+            }
+            data["work"], data["dissipated"] = float(self.work[-1]), float(self.dissipated[-1])
+            data["max_abs_energy_error"] = self.max_abs_energy_error
+            data["ledger"] = {name: {"kind": e.kind, "final": float(e.energy[-1])} for name, e in self.ledger.items()}
+            data["constraints"] = {
+                name: {
+                    "max_drift": _max_abs(record.drift),
+                    "max_velocity_drift": _max_abs(record.velocity_drift),
+                    "max_force": _max_abs(record.force),
+                }
+                for name, record in self.constraints.items()
+                if len(record.drift)
+            }
+        return plain_data(data)
+
+    # ---- tables and notebooks (their code lives in tables.py and viz/notebook.py) -----------------------
+    def to_dataframe(self, *, robot: Any = None) -> Any:
+        """The samples as a pandas DataFrame, one row per sample, with named columns (pandas: the dataframe extra).
+
+        Columns: t; q.<coordinate> (a free-flyer's <joint>.x .y .z .qx .qy .qz .qw); v.<dof> and tau.<dof> per
+        dof name; kinetic_energy, potential_energy, total_energy, work, dissipated, energy_error;
+        ledger.<element>; constraint.<name>.force[k], .drift, .velocity_drift. See multibody_sim.tables.
+
+        Args:
+            robot: its Robot, for the coordinate names; None reads them from the metadata.
+        """
+        from .tables import to_dataframe
+
+        return to_dataframe(self, robot)
+
+    def show(
+        self, *, robot: Any = None, fps: float = 30.0, speed: float = 1.0, height: int = 480, plot: bool = False
+    ) -> None:
+        """Display the motion inline in a Jupyter notebook, offline: the HTML export's page in the cell's output.
+
+        Needs the viz extra; see multibody_sim.viz.inline_view for the arguments (robot: its Robot, None loads
+        it from the metadata; fps: keyframes per second; speed: initial playback speed; height [px]; plot: the
+        energy plot beside the view).
+        """
+        from .viz.notebook import display, inline_view
+
+        display(inline_view(self, robot=robot, fps=fps, speed=speed, height=height, plot=plot))
 
     # ---- files ---------------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike[str]) -> Path:
@@ -469,3 +547,21 @@ def _json_default(value: Any) -> Any:
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
+
+
+def plain_data(value: Any) -> Any:
+    """value with numpy scalars and arrays as Python numbers and lists, tuples as lists, and non-finite floats as
+    None: what json.dumps(..., allow_nan=False) accepts."""
+    if isinstance(value, dict):
+        return {str(k): plain_data(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain_data(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return plain_data(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return value

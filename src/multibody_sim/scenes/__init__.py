@@ -16,7 +16,7 @@ from ..exceptions import SceneError
 from .scene import Scene
 from .spec import SceneSpec, parse_scene, read_scene_file
 
-__all__ = ["Scene", "SceneSpec", "load_scene", "make_scene", "scene_from_metadata", "shipped_scenes"]
+__all__ = ["SCENE_PREFIX", "Scene", "SceneSpec", "load_scene", "make_scene", "scene_from_metadata", "shipped_scenes"]
 
 
 def shipped_scenes() -> dict[str, Path]:
@@ -25,12 +25,15 @@ def shipped_scenes() -> dict[str, Path]:
     return {path.stem: path for path in sorted(folder.glob("*.toml"))}
 
 
+SCENE_PREFIX = "scene:"
+
+
 def load_scene(path: str | os.PathLike[str]) -> Scene:
     """Read a scene file (TOML), or a shipped scene by name, and build its Scene.
 
     Args:
         path: a scene file, or the name of a shipped scene (`multibody-sim models` lists them), with or
-            without ".toml".
+            without ".toml"; a leading "scene:" is allowed (the CLI's way to name a scene explicitly).
 
     Scene files are untrusted input like URDFs: size-limited, parsed without executing anything, and every key
     checked before anything is built.
@@ -40,11 +43,19 @@ def load_scene(path: str | os.PathLike[str]) -> Scene:
             one-line message names the file, the key and the valid options).
         RobotNotFoundError, ModelError: the robot it names cannot be loaded.
     """
+    prefixed = isinstance(path, str) and path.startswith(SCENE_PREFIX)
+    if isinstance(path, str):
+        path = path.removeprefix(SCENE_PREFIX)
     if isinstance(path, str) and not Path(path).exists():
         shipped = shipped_scenes()
         name = path.removesuffix(".toml")
         if name in shipped:
             return Scene(read_scene_file(shipped[name]))
+        if prefixed:
+            listed = ", ".join(shipped)
+            raise SceneError(
+                f"unknown scene '{path}': not a shipped scene nor an existing scene file (shipped: {listed})"
+            )
     return Scene(read_scene_file(path))
 
 

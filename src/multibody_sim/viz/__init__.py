@@ -7,13 +7,17 @@ meshcat, trimesh or matplotlib, which come with the `viz` extra (`pip install 'm
 from ._deps import MissingDependencyError, ViewerWarning
 from .export import export_html
 from .frames import frame_times, resample, robot_from_trajectory
+from .notebook import InlineView, inline_view
 from .plot import plot_command, plot_png, plot_trajectory
 from .scene import MissingVisualsWarning, RobotScene
 from .server import ExposedServerWarning, MeshcatServer
+from .video import EmptyFrameError, export_video
 from .viewer import Viewer
 
 __all__ = [
+    "EmptyFrameError",
     "ExposedServerWarning",
+    "InlineView",
     "MeshcatServer",
     "MissingDependencyError",
     "MissingVisualsWarning",
@@ -21,7 +25,9 @@ __all__ = [
     "Viewer",
     "ViewerWarning",
     "export_html",
+    "export_video",
     "frame_times",
+    "inline_view",
     "plot_command",
     "plot_png",
     "plot_trajectory",

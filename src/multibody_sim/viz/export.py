@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from ..robot import Robot
 from ..trajectory import Trajectory, write_atomically
@@ -49,19 +52,55 @@ def export_html(
     check_viewer_dependencies()
     robot = robot_from_trajectory(trajectory) if robot is None else robot
     times, Q = resample(robot, trajectory, fps)
-    scene = RobotScene(robot)
-    commands: list[dict[str, Any]] = scene.setup_commands()
-    commands.append(scene.camera_command(Q))
-    commands += scene.pose_commands(Q[0])
-    commands.append(scene.animation_command(times, Q, play=True, loop=loop, speed=speed))
+    extra: list[dict[str, Any]] = []
     if plot:
         from .plot import plot_command
 
-        commands.append(plot_command(trajectory, robot=robot))
-    commands.append({"type": "multibody_sim_ready", "path": ""})
-    integrator = trajectory.metadata.get("integrator")
-    title = title or f"{robot.name}" + (f" ({integrator})" if integrator else "") + " - multibody-sim"
-    page = standalone_page(title, meshcat_viewer_js().read_text(encoding="utf-8"), [pack(c) for c in commands])
+        extra.append(plot_command(trajectory, robot=robot))
+    page = recording_page(
+        robot, times, Q, title=title or page_title(trajectory, robot), loop=loop, speed=speed, extra=extra
+    )
     target = Path(path)
     write_atomically(target, lambda f: f.write(page.encode("utf-8")))
     return target
+
+
+def recording_page(
+    robot: Robot,
+    times: np.ndarray,
+    Q: np.ndarray,
+    *,
+    title: str,
+    play: bool = True,
+    loop: bool = True,
+    speed: float = 1.0,
+    seek: float | None = None,
+    camera: dict[str, Any] | None = None,
+    extra: Sequence[dict[str, Any]] = (),
+    scene: RobotScene | None = None,
+) -> str:
+    """The self-contained page of a recording (what export_html writes, notebooks embed and videos film).
+
+    Args:
+        robot: the robot shown.
+        times: keyframe times [s], shape (n,); Q: the configurations there, shape (n, nq).
+        title: the page title.
+        play, loop, speed, seek: the animation's start (see RobotScene.animation_command).
+        camera: a camera command (RobotScene.camera_command); None frames the whole motion.
+        extra: commands applied after the animation (the plot beside the view).
+        scene: the robot's RobotScene if already built (it loads the meshes).
+    """
+    scene = RobotScene(robot) if scene is None else scene
+    commands: list[dict[str, Any]] = scene.setup_commands()
+    commands.append(scene.camera_command(Q) if camera is None else camera)
+    commands += scene.pose_commands(Q[0])
+    commands.append(scene.animation_command(times, Q, play=play, loop=loop, speed=speed, seek=seek))
+    commands += extra
+    commands.append({"type": "multibody_sim_ready", "path": ""})
+    return standalone_page(title, meshcat_viewer_js().read_text(encoding="utf-8"), [pack(c) for c in commands])
+
+
+def page_title(trajectory: Trajectory, robot: Robot) -> str:
+    """The robot's name and the integrator: "panda (rk4) - multibody-sim"."""
+    integrator = trajectory.metadata.get("integrator")
+    return f"{robot.name}" + (f" ({integrator})" if integrator else "") + " - multibody-sim"

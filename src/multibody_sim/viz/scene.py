@@ -18,7 +18,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..catalog import CATALOG, catalog_urdf
-from ..exceptions import InvalidArgumentError, ModelError
+from ..exceptions import InvalidArgumentError, ModelError, UnknownNameError
 from ..robot import Robot
 from ._deps import ViewerWarning, require
 from .meshes import MeshPart, geometry_parts, skeleton_parts
@@ -29,9 +29,17 @@ _SKELETON_COLOR = (0.85, 0.55, 0.2, 1.0)
 _EXT = {np.dtype(np.int8): (0x11, "Int8Array"), np.dtype(np.int16): (0x13, "Int16Array")}
 _EXT[np.dtype(np.uint16)] = (0x14, "Uint16Array")
 _EXT.update({np.dtype(np.uint32): (0x16, "Uint32Array"), np.dtype(np.float32): (0x17, "Float32Array")})
-# Camera: a three-quarter view from the front right, slightly above; meshcat's default field of view is 75 deg.
-_CAMERA_AZIMUTH = np.radians(40.0)
-_CAMERA_ELEVATION = np.radians(22.0)
+# Camera views: (azimuth, elevation) [deg] of the direction from the target to the camera, x forward and z up
+# (REP 103). The default is a three-quarter view from the front left, slightly above; "top" stops short of the
+# vertical, where the camera's up direction (z) would be undefined. meshcat's field of view is 75 deg.
+CAMERA_VIEWS = {
+    "default": (40.0, 22.0),
+    "front": (0.0, 12.0),
+    "back": (180.0, 12.0),
+    "left": (90.0, 12.0),
+    "right": (-90.0, 12.0),
+    "top": (0.0, 89.0),
+}
 _CAMERA_DISTANCE = 1.7  # in bounding-sphere radii: the sphere overestimates the robot, which still fits
 _CAMERA_SAMPLES = 60  # frames sampled to frame the whole motion
 _REACH_FACTOR = 1.5
@@ -197,8 +205,30 @@ class RobotScene:
             options["multibody_sim_seek"] = float(seek)
         return {"type": "set_animation", "path": "", "animations": animations, "options": options}
 
-    def camera_command(self, Q: np.ndarray) -> dict[str, Any]:
-        """Aim the camera at the box swept by the robot over the configurations Q (shape (n, nq))."""
+    def camera_command(
+        self,
+        Q: np.ndarray,
+        *,
+        view: str = "default",
+        position: Any = None,
+        target: Any = None,
+    ) -> dict[str, Any]:
+        """Aim the camera at the box swept by the robot over the configurations Q (shape (n, nq)).
+
+        Args:
+            Q: configurations to frame, shape (n, nq).
+            view: a name of CAMERA_VIEWS: the direction the camera looks from, at a distance that fits the box.
+            position: the camera's position [m], world frame (3,); None places it by `view`.
+            target: the point it looks at [m], world frame (3,); None takes the box's centre.
+
+        Raises:
+            UnknownNameError: `view` is not a camera view.
+            InvalidArgumentError: position or target is not 3 finite numbers, or they coincide.
+        """
+        if view not in CAMERA_VIEWS:
+            raise UnknownNameError(f"unknown camera view '{view}' (choose from: {', '.join(CAMERA_VIEWS)})")
+        fixed_position = None if position is None else _point(position, "camera position")
+        fixed_target = None if target is None else _point(target, "camera target")
         Q = np.atleast_2d(np.asarray(Q, dtype=float))
         picks = np.unique(np.linspace(0, len(Q) - 1, min(len(Q), _CAMERA_SAMPLES)).round().astype(int))
         corners_by_joint: dict[int, list[np.ndarray]] = {j: [] for j in self.joints}
@@ -223,20 +253,21 @@ class RobotScene:
             points += [w for b, w in enumerate(world) if self.joints[b] == 0 or spread[b] <= _REACH_FACTOR * reach]
         cloud = np.vstack(points)
         lo, hi = cloud.min(axis=0), cloud.max(axis=0)
-        target = (lo + hi) / 2
+        centre = (lo + hi) / 2 if fixed_target is None else fixed_target
         radius = max(float(np.linalg.norm(hi - lo)) / 2, 0.05)
-        direction = np.array(
-            [
-                np.cos(_CAMERA_ELEVATION) * np.cos(_CAMERA_AZIMUTH),
-                np.cos(_CAMERA_ELEVATION) * np.sin(_CAMERA_AZIMUTH),
-                np.sin(_CAMERA_ELEVATION),
-            ]
-        )
-        distance = _CAMERA_DISTANCE * radius
+        if fixed_position is None:
+            azimuth, elevation = np.radians(CAMERA_VIEWS[view])
+            direction = np.array(
+                [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)]
+            )
+            fixed_position = centre + _CAMERA_DISTANCE * radius * direction
+        distance = float(np.linalg.norm(fixed_position - centre))
+        if distance < 1e-6:
+            raise InvalidArgumentError("the camera position and target coincide: the camera would look nowhere")
         return {
             "type": "multibody_sim_camera",
-            "target": target.tolist(),
-            "position": (target + distance * direction).tolist(),
+            "target": centre.tolist(),
+            "position": fixed_position.tolist(),
             "near": distance / 100,
             "far": 20 * distance + radius,
         }
@@ -292,6 +323,17 @@ def check_configurations(robot: Robot, Q: np.ndarray, name: str) -> np.ndarray:
     if not np.all(np.isfinite(Q)):
         raise InvalidArgumentError(f"{name} must be finite")
     return Q
+
+
+def _point(value: Any, name: str) -> np.ndarray:
+    """A point in space: 3 finite numbers [m]."""
+    try:
+        point = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        point = np.array([np.nan])
+    if point.shape != (3,) or not np.all(np.isfinite(point)):
+        raise InvalidArgumentError(f"the {name} must be 3 finite numbers (x y z in metres), got {value!r}")
+    return point
 
 
 def _keys(times: list[float], values: np.ndarray) -> list[dict[str, Any]]:

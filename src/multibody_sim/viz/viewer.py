@@ -58,6 +58,25 @@ class Viewer:
     def __repr__(self) -> str:
         return f"<Viewer {self.robot.name} at {self.url}>"
 
+    def _repr_html_(self) -> str:
+        """In Jupyter, a viewer as a cell's value shows its page (an iframe on its URL)."""
+        from .notebook import url_view
+
+        return url_view(self.url).html
+
+    def show(self, *, height: int = 480) -> None:
+        """Show this viewer's page as the output of the running Jupyter cell: an iframe on its URL.
+
+        The page is served by this process on 127.0.0.1: the browser showing the notebook must run on the same
+        machine (for a notebook on a remote host, show recordings with Trajectory.show(), which needs no server).
+
+        Args:
+            height: the output's height [px]; it spans the cell's width.
+        """
+        from .notebook import display, url_view
+
+        display(url_view(self.url, height=height))
+
     # ---- showing ----------------------------------------------------------------------------------------
     def display(self, q: Any) -> None:
         """Show the robot at configuration q (shape (nq,))."""
