@@ -22,7 +22,7 @@ from typing import Any, NoReturn
 
 import multibody_sim as ms
 from multibody_sim.safety import printable
-from multibody_sim.simulation import check_options, positive_number, steps_per
+from multibody_sim.validation import check_options, positive_number, steps_per
 from multibody_sim.trajectory import plain_data
 
 PROG = "multibody-sim"
