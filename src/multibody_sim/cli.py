@@ -22,8 +22,8 @@ from typing import Any, NoReturn
 
 import multibody_sim as ms
 from multibody_sim.safety import printable
-from multibody_sim.validation import check_options, positive_number, steps_per
 from multibody_sim.trajectory import plain_data
+from multibody_sim.validation import check_options, positive_number, steps_per
 
 PROG = "multibody-sim"
 COMMANDS = ("run", "models", "inspect", "integrators", "bench", "play", "plot", "export")

@@ -233,12 +233,39 @@ class Robot:
         return out
 
     def rows_ledger_power(
-        self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray, *, fresh: bool = True
+        self,
+        Q: np.ndarray,
+        V: np.ndarray,
+        TAU: np.ndarray,
+        t: float,
+        out: np.ndarray,
+        *,
+        fresh: bool = True,
+        torques: bool = True,
     ) -> None:
-        """ledger_power of each row into out (n, n_elements); `fresh`: rows_applied was just called at (Q, V, t)."""
-        rowdot(TAU, V, out=out[:, 0])
+        """ledger_power of each row into out (n, n_elements); `fresh`: rows_applied was just called at (Q, V, t);
+        not `torques`: TAU is zero (no controller), so is the torques' power (tau · v = 0 for finite v)."""
+        if torques:
+            rowdot(TAU, V, out=out[:, 0])
+        else:
+            out[:, 0] = 0.0
         if self._damped:
             rowdot(V, self.damping * V, out=out[:, 1])
+
+    def rows_energies(self, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
+        """(T, V) [J] of each row, shape (n, 2), each as unchecked_energies computes it."""
+        model, data = self.model, self.data
+        kinetic, potential = pin.computeKineticEnergy, pin.computePotentialEnergy
+        out = np.empty((len(Q), 2))
+        # computeKineticEnergy(model, data, q, v) is forwardKinematics then the data-only call: the same arithmetic
+        # in two Python calls instead of three.
+        out.reshape(-1)[:] = [
+            e for q, v in zip(Q, V, strict=True) for e in (kinetic(model, data, q, v), potential(model, data))
+        ]
+        return out
+
+    def rows_record(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> None:
+        """unchecked_record of each row into out (n, Σ widths) (a robot records nothing)."""
 
     # What a system records at each sample besides the state and energies: (category, name, width) with category
     # "potential" (a spring's stored energy) or "constraint" (forces, then drift and velocity drift). A robot alone
@@ -323,11 +350,19 @@ class RowsDynamics:
         pin.abaInParallel(self.num_threads, self.pool, Q.T, V.T, applied.T, out.T)
 
     def ledger_power(
-        self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray, *, fresh: bool = True
+        self,
+        Q: np.ndarray,
+        V: np.ndarray,
+        TAU: np.ndarray,
+        t: float,
+        out: np.ndarray,
+        *,
+        fresh: bool = True,
+        torques: bool = True,
     ) -> None:
         """Power of each ledger element per row [W], out (n, m); `fresh`: accelerations() was just called at these
-        rows (a scene's wrenches then need no new kinematics)."""
-        self.system.rows_ledger_power(Q, V, TAU, t, out, fresh=fresh)
+        rows (a scene's wrenches then need no new kinematics); not `torques`: TAU is zero."""
+        self.system.rows_ledger_power(Q, V, TAU, t, out, fresh=fresh, torques=torques)
 
 
 # numpy >= 2 has vecdot, which calls the same BLAS dot as `x @ y` on 1-D arrays (so a row's power matches

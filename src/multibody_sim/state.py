@@ -271,7 +271,7 @@ class BatchSpace:
                 lie_v += range(joint.idx_v, joint.idx_v + joint.nv)
         self.runs = [(q, v, n) for q, v, n in runs]
         self.lie_joints = lie
-        self.lie_q, self.lie_v = _indexer(lie_q), _indexer(lie_v)
+        self.lie_q, self.lie_v = indexer(lie_q), indexer(lie_v)
         self._lie_models: dict[int, pin.Model] = {}
         self.per_element = not self._check_integrate()
         self.vector_space = not lie and self.runs == [(0, 0, model.nq)] and not self.per_element
@@ -336,7 +336,7 @@ class BatchSpace:
 _LIE_MODELS_KEPT = 8  # copies-of-joints models kept per space, one per batch size
 
 
-def _indexer(indices: list[int]) -> slice | np.ndarray:
+def indexer(indices: list[int]) -> slice | np.ndarray:
     """Column indices as a slice when they are consecutive (a view and a fast copy), else as an index array."""
     if indices and indices == list(range(indices[0], indices[-1] + 1)):
         return slice(indices[0], indices[-1] + 1)

@@ -124,6 +124,7 @@ class BatchRungeKutta:
         self.nq, self.nv = nq, nv
         n_ledger = len(system.ledger_elements)
         self.ledger_needed = not (torque_free and n_ledger == 1)
+        self.torques = not torque_free
         self.record_width = sum(width for _, _, width in system.record_fields)
         if self.sie:
             stages = 1
@@ -264,22 +265,14 @@ class BatchRungeKutta:
         store.V[i, at] = V
         store.TAU[i, at] = TAU
         store.FLOWS[i, at] = flows
-        store.ENERGY[i, at] = self._energies(Q, V)
+        store.ENERGY[i, at] = self.system.rows_energies(Q, V)
         if self.record_width:
-            system, t = self.system, self.t
-            for j, b in enumerate(np.arange(store.B)[at].tolist()):
-                system.unchecked_record(Q[j], V[j], TAU[j], t, store.EXTRA[i, b])
+            extra = np.empty((len(Q), self.record_width))
+            self.system.rows_record(Q, V, TAU, self.t, extra)
+            store.EXTRA[i, at] = extra
 
     def write_dense(self, store: SampleStore, i: int, rows: np.ndarray, theta: float, h: float, t_out: float) -> int:
         raise AssertionError("the batch kernel has no dense output")  # pragma: no cover
-
-    def _energies(self, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
-        """(T, V) of every row as Robot.unchecked_energies computes them, (n, 2)."""
-        system = self.system
-        out = np.empty((len(Q), 2))
-        energies = system.unchecked_energies
-        out.reshape(-1)[:] = [e for q, v in zip(Q, V, strict=True) for e in energies(q, v)]
-        return out
 
     # ---- the steps -----------------------------------------------------------------------------------------------
     def _rk_step(self, cur: _Views, nxt: _Views, h: float) -> None:
@@ -352,11 +345,11 @@ class BatchRungeKutta:
         self.space.integrate(cur.Q, np.multiply(nxt.V, h, out=self.Y[:, :nv]), nxt.Q)
         if self.ledger_needed:
             power = cur.P[0]
-            self.dynamics.ledger_power(nxt.Q, nxt.V, self.TAU, t + h, power, fresh=False)
+            self.dynamics.ledger_power(nxt.Q, nxt.V, self.TAU, t + h, power, fresh=False, torques=self.torques)
             np.add(cur.flows, np.multiply(power, h, out=power), out=nxt.flows)
 
     def _evaluate(self, cur: _Views, i: int, t_stage: float) -> None:
         """Stage i's accelerations and ledger power (System.unchecked_forward_dynamics and ledger_power)."""
         self.dynamics.accelerations(cur.Qs[i], cur.Vs[i], self.TAU, t_stage, cur.A[i])
         if self.ledger_needed:
-            self.dynamics.ledger_power(cur.Qs[i], cur.Vs[i], self.TAU, t_stage, cur.P[i])
+            self.dynamics.ledger_power(cur.Qs[i], cur.Vs[i], self.TAU, t_stage, cur.P[i], torques=self.torques)

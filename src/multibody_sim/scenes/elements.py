@@ -58,6 +58,7 @@ import pinocchio as pin
 
 from ..exceptions import InvalidArgumentError
 from ..robot import rowdot
+from ..state import indexer
 
 _REFERENCES = {"world": pin.LOCAL_WORLD_ALIGNED, "local": pin.LOCAL}
 
@@ -188,61 +189,24 @@ class ForceElements:
         self.empty = not (self._damped.size or self._rough.size or self._sprung.size or wrenches)
 
         # Springs: plain joints (nq 1) are linear in q; continuous ones need the wrapped angle
-        # atan2(c_r s - s_r c, c_r c + s_r s), whose two arguments are again linear in q (matrix W).
+        # atan2(c_r s - s_r c, c_r c + s_r s) of the difference with the rest angle (c_r, s_r).
         plain = self._sprung[nq_of[self._sprung] == 1]
         circular = self._sprung[nq_of[self._sprung] == 2]
-        self._plain_q, self._plain_rest = idx_q[plain], rest[idx_q[plain]]
+        self._plain, self._plain_q, self._plain_rest = plain, idx_q[plain], rest[idx_q[plain]]
+        # Column selections as slices where they are consecutive (a view, no gather): the hot path's indices.
+        self._plain_at, self._plain_q_at = indexer(plain.tolist()), indexer(idx_q[plain].tolist())
+        self._damped_at, self._rough_at = indexer(self._damped.tolist()), indexer(self._rough.tolist())
+        self._plain_k = stiffness[plain]
+        self._circular, self._circular_k = circular, stiffness[circular]
+        self._cos_q, self._sin_q = idx_q[circular], idx_q[circular] + 1
+        self._cos_rest, self._sin_rest = rest[self._cos_q], rest[self._sin_q]
         self._circular_pos = np.flatnonzero(nq_of[self._sprung] == 2)  # their places among the springs
         self._plain_pos = np.flatnonzero(nq_of[self._sprung] == 1)
-        n_circ = circular.size
-        W = np.zeros((2 * n_circ, nq))
-        for row, dof in enumerate(circular):
-            i = idx_q[dof]
-            c_r, s_r = rest[i], rest[i + 1]
-            W[row, i], W[row, i + 1] = -s_r, c_r  # sin of the difference
-            W[n_circ + row, i], W[n_circ + row, i + 1] = c_r, s_r  # cos of the difference
-        self._W = W
 
-        # The joint elements as one product f = zᵀ H over a feature vector z = [q | v | tanh(v / v_s) | wrapped
-        # angles | 1], blocks present only when used (one BLAS call over a few dozen entries beats several scattered
-        # numpy operations); each wrench adds scale(t) · Jᵀw. Rows of states go through the same operations (one
-        # feature row per state), so a row's force is the same whether it is evaluated alone or in a batch.
+        # Every element acts on rows of states with elementwise operations only (no per-row product), so a row's
+        # force is the same whether it is evaluated alone or in a batch, and a batch costs a few array operations.
         self._wrenches = list(wrenches)
-        blocks: list[tuple[str, int]] = []
-        if plain.size:
-            blocks.append(("q", nq))
-        if self._damped.size:
-            blocks.append(("v", nv))
-        if self._rough.size:
-            blocks.append(("tanh", nv))
-        if n_circ:
-            blocks.append(("angle", n_circ))
-        if plain.size:
-            blocks.append(("one", 1))
-        width = sum(size for _, size in blocks)
-        H = np.zeros((width, nv))
-        self._slices: dict[str, slice] = {}
-        start = 0
-        for name, size in blocks:
-            self._slices[name] = slice(start, start + size)
-            if name == "q":
-                H[start + idx_q[plain], plain] = -stiffness[plain]
-            elif name == "v":
-                H[start + self._damped, self._damped] = -self._d
-            elif name == "tanh":
-                H[start + self._rough, self._rough] = -self._fc
-            elif name == "angle":
-                H[start + np.arange(n_circ), circular] = -stiffness[circular]
-            else:  # "one"
-                H[start, plain] = stiffness[plain] * rest[idx_q[plain]]
-            start += size
-        self._width = width
-        self._H = H
-        self._W_T = np.ascontiguousarray(W.T)
-        self._n_circ = n_circ
-        self._inv_vs = np.full(nv, 1.0 / self.friction_velocity)
-
-        # Wrenches: 6-vectors (force, torque).
+        self._inv_vs = 1.0 / self.friction_velocity
         for w in self._wrenches:
             if not 0 <= w.frame_id < model.nframes:
                 raise InvalidArgumentError(
@@ -253,22 +217,17 @@ class ForceElements:
         # Constant wrenches keep scale 1: no call per evaluation.
         self._scaled = [(k, w.scale) for k, w in enumerate(self._wrenches) if w.scale is not _unit_scale]
         self._scales = np.ones(len(self._wrenches))  # scale(t) of each wrench at the latest evaluation
-        nd, nf = self._damped.size, self._rough.size
-        self._n_flow_joint = nd + nf
-        self._y_width = (nv if nd else 0) + (nv if nf else 0)  # features of powers(): [v² | v tanh(v / v_s)]
-        self._P = np.zeros((self._y_width, nd + nf))
-        self._P[self._damped, np.arange(nd)] = self._d
-        self._P[self._y_width - nv + self._rough, nd + np.arange(nf)] = self._fc
-        self._buffers: dict[int, _RowBuffers] = {}  # per number of rows
+        self._n_flow_joint = self._damped.size + self._rough.size
+        # A world-fixed force at a frame's origin (no torque) is batched as the gravity of a point mass (_Push);
+        # the other wrenches take a frame Jacobian per row.
+        self._pushes = {
+            k: _Push(model, w.frame_id, w.force)
+            for k, w in enumerate(self._wrenches)
+            if w.reference == "world" and not w.torque.any()
+        }
+        self._other_wrenches = [k for k in range(len(self._wrenches)) if k not in self._pushes]
+        self._wrench_forces_of: dict[int, np.ndarray] = {}  # per number of rows: each wrench's unscaled Jᵀw
         self._model_g0: pin.Model | None = None  # built on the first jacobians() call with wrenches
-
-    def _rows(self, n: int) -> _RowBuffers:
-        buffers = self._buffers.get(n)
-        if buffers is None:
-            if len(self._buffers) >= 8:  # batches shrink as elements stop: keep the latest sizes
-                del self._buffers[next(iter(self._buffers))]
-            buffers = self._buffers[n] = _RowBuffers(n, self)
-        return buffers
 
     # ---- the hot path ---------------------------------------------------------------------------------
     def evaluate(self, q: np.ndarray, v: np.ndarray, t: float = 0.0, out: np.ndarray | None = None) -> np.ndarray:
@@ -277,61 +236,62 @@ class ForceElements:
         Written into `out` (shape (nv,), float) and returned when given, so that the stepping loop allocates
         nothing; otherwise a new array. The wrenches' parts are remembered for powers().
         """
-        rows = self.evaluate_rows(q[None, :], v[None, :], t)
         if out is None:
-            return rows[0].copy()
-        out[...] = rows[0]
+            out = np.empty(self.nv)
+        self.evaluate_rows(q[None, :], v[None, :], t, out[None, :])
         return out
 
-    def evaluate_rows(self, Q: np.ndarray, V: np.ndarray, t: float = 0.0) -> np.ndarray:
-        """evaluate() of n states at once: Q (n, nq), V (n, nv) -> (n, nv), each row exactly as evaluate() gives it.
-
-        The result is a buffer that the next call with as many rows overwrites; the wrenches' parts are remembered
-        for powers_rows().
-        """
-        buf = self._rows(len(Q))
-        Z, slices = buf.Z, self._slices
-        if "q" in slices:
-            Z[:, slices["q"]] = Q
-        if "v" in slices:
-            Z[:, slices["v"]] = V
-        if "tanh" in slices:
-            zt = Z[:, slices["tanh"]]
-            np.multiply(V, self._inv_vs, out=zt)
-            np.tanh(zt, out=zt)
-        if "angle" in slices:
-            n_circ = self._n_circ
-            np.matmul(Q[:, None, :], self._W_T, out=buf.SC[:, None, :])  # the same gemv per row at any n
-            np.arctan2(buf.SC[:, :n_circ], buf.SC[:, n_circ:], out=Z[:, slices["angle"]])
-        out = buf.F
-        if self._width:
-            np.matmul(Z[:, None, :], self._H, out=out[:, None, :])
-        else:
-            out[...] = 0.0
+    def evaluate_rows(self, Q: np.ndarray, V: np.ndarray, t: float = 0.0, out: np.ndarray | None = None) -> np.ndarray:
+        """evaluate() of n states at once: Q (n, nq), V (n, nv) -> (n, nv), each row exactly as evaluate() gives it
+        (into out when given). The wrenches' parts are remembered for powers_rows()."""
+        if out is None:
+            out = np.empty((len(Q), self.nv))
+        out[...] = 0.0
+        if self._plain.size:  # -k (q - rest)
+            out[:, self._plain_at] = (Q[:, self._plain_q_at] - self._plain_rest) * -self._plain_k
+        if self._circular.size:  # -k · wrapped angle from the rest angle
+            c, s = Q[:, self._cos_q], Q[:, self._sin_q]
+            angle = np.arctan2(self._cos_rest * s - self._sin_rest * c, self._cos_rest * c + self._sin_rest * s)
+            out[:, self._circular] = angle * -self._circular_k
+        if self._damped.size:  # -d v
+            out[:, self._damped_at] -= V[:, self._damped_at] * self._d
+        if self._rough.size:  # -F_c tanh(v / v_s)
+            out[:, self._rough_at] -= np.tanh(V[:, self._rough_at] * self._inv_vs) * self._fc
         if self._wrenches:
-            self._wrench_forces(Q, t, buf)
+            forces = self._wrench_forces(Q, t)
             for k in range(len(self._wrenches)):
-                force = buf.JW[k]
-                if self._scales[k] != 1.0:
-                    force = force * self._scales[k]
+                force = forces[k] if self._scales[k] == 1.0 else forces[k] * self._scales[k]
                 np.add(out, force, out=out)
         return out
 
-    def _wrench_forces(self, Q: np.ndarray, t: float, buf: _RowBuffers) -> None:
-        """Each wrench's unscaled Jᵀw for every row into buf.JW (n_wrenches, n, nv), and its scale at t."""
-        model, data = self._model, self._data
-        one = len(self._wrenches) == 1
-        for b, q in enumerate(Q):
-            if one:  # kinematics along the frame's support only: cheaper than all joints
-                J = pin.computeFrameJacobian(model, data, q, self._wrenches[0].frame_id, self._refs[0])
-                # (6, nv), but Pinocchio returns a flat (6,) when nv = 1
-                np.dot(self._w6[0], J.reshape(6, -1), out=buf.JW[0, b])
-                continue
-            pin.computeJointJacobians(model, data, q)  # one kinematics pass for every wrench
-            for k, (wrench, ref, w6) in enumerate(zip(self._wrenches, self._refs, self._w6, strict=True)):
-                np.dot(w6, pin.getFrameJacobian(model, data, wrench.frame_id, ref).reshape(6, -1), out=buf.JW[k, b])
+    def _wrench_forces(self, Q: np.ndarray, t: float) -> np.ndarray:
+        """Each wrench's unscaled Jᵀw for every row, shape (n_wrenches, n, nv) (kept for powers_rows()), and each
+        wrench's scale at t."""
+        n = len(Q)
+        forces = self._wrench_forces_of.get(n)
+        if forces is None:
+            if len(self._wrench_forces_of) >= 8:  # batches shrink as elements stop: keep the latest sizes
+                del self._wrench_forces_of[next(iter(self._wrench_forces_of))]
+            forces = self._wrench_forces_of[n] = np.zeros((len(self._wrenches), n, self.nv))
+        for k, push in self._pushes.items():
+            push.forces(Q, forces[k])
+        others = self._other_wrenches
+        if others:
+            model, data = self._model, self._data
+            for b, q in enumerate(Q):
+                if len(others) == 1:  # kinematics along the frame's support only: cheaper than all joints
+                    k = others[0]
+                    J = pin.computeFrameJacobian(model, data, q, self._wrenches[k].frame_id, self._refs[k])
+                    # (6, nv), but Pinocchio returns a flat (6,) when nv = 1
+                    np.dot(self._w6[k], J.reshape(6, -1), out=forces[k, b])
+                    continue
+                pin.computeJointJacobians(model, data, q)  # one kinematics pass for every wrench
+                for k in others:
+                    J = pin.getFrameJacobian(model, data, self._wrenches[k].frame_id, self._refs[k])
+                    np.dot(self._w6[k], J.reshape(6, -1), out=forces[k, b])
         for k, scale in self._scaled:
             self._scales[k] = scale(t)
+        return forces
 
     def powers(self, v: np.ndarray, out: np.ndarray) -> None:
         """Power of each ledger element [W], written into out (shape (len(ledger),)), in ledger order.
@@ -345,39 +305,35 @@ class ForceElements:
     def powers_rows(self, V: np.ndarray, out: np.ndarray) -> None:
         """powers() of n rows, V (n, nv), into out (n, len(ledger)), with the wrench parts of the latest
         evaluate_rows() call with as many rows."""
-        buf = self._rows(len(V))
-        nf = self._n_flow_joint
-        if nf:
-            # One product again: powers = [v² | v tanh(v / v_s)] · P, P holding d and F_c in the ledger's columns.
-            Y, nv = buf.Y, self.nv
-            if self._damped.size:
-                np.multiply(V, V, out=Y[:, :nv])
-            if self._rough.size:
-                yt = Y[:, self._y_width - nv :]
-                np.multiply(V, self._inv_vs, out=yt)
-                np.tanh(yt, out=yt)
-                np.multiply(yt, V, out=yt)
-            np.matmul(Y[:, None, :], self._P, out=buf.flows[:, None, :])
-            out[:, :nf] = buf.flows
-        for k in range(len(self._wrenches)):
-            work = out[:, nf + k]
-            rowdot(buf.JW[k], V, out=work)
-            if self._scales[k] != 1.0:
-                np.multiply(work, self._scales[k], out=work)
+        nd, nf = self._damped.size, self._n_flow_joint
+        if nd:
+            v = V[:, self._damped_at]
+            out[:, :nd] = v * v * self._d
+        if nf > nd:
+            v = V[:, self._rough_at]
+            out[:, nd:nf] = v * np.tanh(v * self._inv_vs) * self._fc
+        if self._wrenches:
+            forces = self._wrench_forces_of[len(V)]
+            for k in range(len(self._wrenches)):
+                work = out[:, nf + k]
+                rowdot(forces[k], V, out=work)
+                if self._scales[k] != 1.0:
+                    np.multiply(work, self._scales[k], out=work)
 
     # ---- energies and derivatives -------------------------------------------------------------------
     def spring_displacements(self, q: np.ndarray) -> np.ndarray:
-        """q ⊖ rest of each spring [rad or m], shape (len(potentials),): wrapped to (-π, π] on continuous joints."""
-        x = np.empty(self._sprung.size)
-        x[self._plain_pos] = q[self._plain_q] - self._plain_rest
+        """q ⊖ rest of each spring [rad or m], shape (..., len(potentials)) for q (..., nq): wrapped to (-π, π] on
+        continuous joints."""
+        x = np.empty((*q.shape[:-1], self._sprung.size))
+        x[..., self._plain_pos] = q[..., self._plain_q] - self._plain_rest
         if self._circular_pos.size:
-            sc = self._W @ q
-            n = self._circular_pos.size
-            x[self._circular_pos] = np.arctan2(sc[:n], sc[n:])
+            c, s = q[..., self._cos_q], q[..., self._sin_q]
+            sine = self._cos_rest * s - self._sin_rest * c
+            x[..., self._circular_pos] = np.arctan2(sine, self._cos_rest * c + self._sin_rest * s)
         return x
 
     def potential_energies(self, q: np.ndarray) -> np.ndarray:
-        """Energy stored in each spring, ½ k (q ⊖ rest)² [J], shape (len(potentials),)."""
+        """Energy stored in each spring, ½ k (q ⊖ rest)² [J], shape (..., len(potentials)) for q (..., nq)."""
         x = self.spring_displacements(q)
         return 0.5 * self._k * x * x
 
@@ -450,19 +406,32 @@ class ForceElements:
         return turning - dtau_dq
 
 
-class _RowBuffers:
-    """Work arrays of ForceElements for n rows: features Z, forces F, wrench forces JW, powers' features Y."""
+class _Push:
+    """A force f fixed in the world, applied at a frame's origin p, as a generalized force for many rows at once.
 
-    def __init__(self, n: int, elements: ForceElements):
-        nv = elements.nv
-        self.Z = np.zeros((n, elements._width))
-        if "one" in elements._slices:
-            self.Z[:, elements._slices["one"]] = 1.0
-        self.SC = np.zeros((n, 2 * elements._n_circ))  # (sin, cos) of the continuous springs' angle differences
-        self.F = np.zeros((n, nv))
-        self.JW = np.zeros((len(elements._wrenches), n, nv))
-        self.Y = np.zeros((n, elements._y_width))
-        self.flows = np.zeros((n, elements._n_flow_joint))
+    Its generalized force J_p(q)ᵀ f is minus the generalized gravity of a unit point mass at p under the gravity f
+    (the potential -fᵀ p(q)): one ``rnea(q, 0, 0)`` of a copy of the model whose only inertia is that point mass,
+    batched over the rows by Pinocchio's ``rneaInParallel`` (which equals ``rnea`` row by row).
+    """
+
+    def __init__(self, model: pin.Model, frame_id: int, force: np.ndarray):
+        frame = model.frames[frame_id]
+        self.model = pin.Model(model)
+        for i in range(self.model.njoints):
+            self.model.inertias[i] = pin.Inertia.Zero()
+        self.model.inertias[frame.parentJoint] = pin.Inertia(1.0, frame.placement.translation, np.zeros((3, 3)))
+        self.model.gravity = pin.Motion(np.asarray(force, dtype=float), np.zeros(3))
+        self.pool = pin.ModelPool(self.model, 1)
+        self._zeros: dict[int, np.ndarray] = {}
+
+    def forces(self, Q: np.ndarray, out: np.ndarray) -> None:
+        """J_p(q)ᵀ f of each row of Q (n, nq), into out (n, nv)."""
+        n = len(Q)
+        zeros = self._zeros.get(n)
+        if zeros is None:
+            zeros = self._zeros[n] = np.zeros((self.model.nv, n))
+        pin.rneaInParallel(1, self.pool, np.ascontiguousarray(Q).T, zeros, zeros, out.T)
+        np.negative(out, out=out)
 
 
 def _skew(a: np.ndarray) -> np.ndarray:

@@ -265,7 +265,7 @@ class Scene(Robot):
     def rows_applied(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> np.ndarray:
         """tau plus the force elements minus damping for each row, as _applied computes it, into out."""
         if self.elements is not None:
-            np.add(TAU, self.elements.evaluate_rows(Q, V, t), out=out)
+            np.add(TAU, self.elements.evaluate_rows(Q, V, t, out), out=out)
         else:
             out[...] = TAU
         if self._damped:
@@ -273,11 +273,19 @@ class Scene(Robot):
         return out
 
     def rows_ledger_power(
-        self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray, *, fresh: bool = True
+        self,
+        Q: np.ndarray,
+        V: np.ndarray,
+        TAU: np.ndarray,
+        t: float,
+        out: np.ndarray,
+        *,
+        fresh: bool = True,
+        torques: bool = True,
     ) -> None:
-        """ledger_power of each row into out (n, n_elements); `fresh`: rows_applied was just called at (Q, V, t)."""
+        """ledger_power of each row into out (n, n_elements) (see Robot.rows_ledger_power)."""
         n = self._n_robot_flows
-        super().rows_ledger_power(Q, V, TAU, t, out[:, :n])
+        super().rows_ledger_power(Q, V, TAU, t, out[:, :n], torques=torques)
         if self.elements is not None:
             if not fresh and self.elements.time_dependent:  # the wrenches' parts at this very point
                 self.elements.evaluate_rows(Q, V, t)
@@ -327,14 +335,34 @@ class Scene(Robot):
 
     def unchecked_energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
         """(T, V) [J]: V includes the springs' stored energy."""
-        kinetic, potential = (
-            _mimic_energies(self.model, self.data, q, v, self._clear_crba)
-            if self.mimic
-            else super().unchecked_energies(q, v)
-        )
+        if self.mimic:
+            kinetic, potential = _mimic_energies(self.model, self.data, q, v, self._clear_crba)
+        else:
+            kinetic, potential = super().unchecked_energies(q, v)
         if self.elements is not None and self.elements.potentials:
-            potential += float(self.elements.potential_energies(q).sum())
+            potential += float(self.elements.potential_energies(q[None, :]).sum(axis=1)[0])  # as rows_energies
         return kinetic, potential
+
+    def rows_energies(self, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
+        """(T, V) [J] of each row, shape (n, 2), each as unchecked_energies computes it."""
+        if self.mimic:
+            out = np.array(
+                [_mimic_energies(self.model, self.data, q, v, self._clear_crba) for q, v in zip(Q, V, strict=True)]
+            )
+        else:
+            out = super().rows_energies(Q, V)
+        if self.elements is not None and self.elements.potentials:
+            out[:, 1] += self.elements.potential_energies(Q).sum(axis=1)
+        return out
+
+    def rows_record(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> None:
+        """unchecked_record of each row into out (n, Σ widths): the springs' energies for all rows at once."""
+        n = len(self.elements.potentials) if self.elements is not None else 0
+        if n:
+            out[:, :n] = self.elements.potential_energies(Q)  # type: ignore[union-attr]
+        if self.constraints is not None:
+            for j in range(len(Q)):
+                self._record_constraints(Q[j], V[j], TAU[j], t, out[j, n:])
 
     def unchecked_record(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, out: np.ndarray) -> None:
         """Springs' stored energies, then each constraint's forces, drift and velocity drift, into `out`."""
@@ -343,6 +371,12 @@ class Scene(Robot):
             n = len(self.elements.potentials)
             out[:n] = self.elements.potential_energies(q)
             i = n
+        if self.constraints is not None:
+            self._record_constraints(q, v, tau, t, out[i:])
+
+    def _record_constraints(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, out: np.ndarray) -> None:
+        """Each constraint's forces, drift and velocity drift at (q, v, tau, t), into `out`."""
+        i = 0
         if self.constraints is not None:
             self.unchecked_forward_dynamics(q, v, tau, t)  # the multipliers in force at this sample
             forces = self.constraints.multipliers()
