@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from ..catalog import CATALOG, catalog_urdf
+from ..catalog import CATALOG, catalog_urdf, derived_urdf
 from ..exceptions import InvalidArgumentError, ModelError, UnknownNameError
 from ..robot import Robot
 from ._deps import ViewerWarning, require
@@ -101,6 +101,7 @@ class RobotScene:
         expected = source.get("urdf_sha256")
         if expected and hashlib.sha256(xml).hexdigest() != expected:
             raise ModelError(f"{path}: the URDF changed after the robot was loaded (SHA-256 differs); reload it")
+        xml = derived_urdf(xml, path, source.get("derivation"))  # an SDF's conversion, a catalog entry's pruning
         roots = allowed_roots(self.robot)
         try:
             geometry_model = pin.buildGeomFromUrdfString(
