@@ -337,31 +337,29 @@ def test_closed_stdout(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
 
 
 # ---- models, inspect, integrators --------------------------------------------------------------------
-def _expected_sizes(name: str) -> tuple[int, int]:
-    """(nq, nv) counted from the URDF: revolute/prismatic (1, 1), continuous (2, 1), free-flyer (7, 6)."""
-    joints = urdf_joints(catalog_urdf(CATALOG[name])[0])
-    nq = sum(2 if j.get("type") == "continuous" else 1 for j in joints.values())
-    nv = len(joints)
-    return (nq + 7, nv + 6) if CATALOG[name].floating_base else (nq, nv)
-
-
 def test_models_lists_the_catalog_with_sizes_from_the_urdfs(capsys: pytest.CaptureFixture[str]) -> None:
+    from test_catalog import expected_sizes  # counted from the files, pruned and locked joints taken out
+
     code, stdout, stderr = call(capsys, "models")
     assert (code, stderr) == (0, "")
     rows = table_rows(stdout, "name")
     assert [r[0] for r in rows] == list(CATALOG)
-    for name, nq, nv, base, description in rows:
-        assert (int(nq), int(nv)) == _expected_sizes(name), name
+    for name, nq, nv, base, poses, description in rows:
+        assert (int(nq), int(nv)) == expected_sizes(name, CATALOG[name].floating_base), name
         assert base == ("floating" if CATALOG[name].floating_base else "fixed")
+        robot = ms.load_robot(name)
+        assert set(poses.replace("*", "").split(",")) == (set(robot.poses) or {"-"})
         assert description == CATALOG[name].description
 
 
 def test_models_console_script(console: ConsoleRuns) -> None:
     result = console["models"]
     assert (result.returncode, result.stderr) == (0, "")
-    robots, _, scenes = result.stdout.partition("\n\n")  # the catalog, then the shipped scenes
+    robots, _, rest = result.stdout.partition("\n\n")  # the catalog, a note on its poses, the shipped scenes
+    note, _, scenes = rest.partition("\n\n")
+    assert note.startswith("poses: the SRDF's named poses")
     header, *rows = robots.splitlines()
-    assert header.split() == ["name", "nq", "nv", "base", "description"]
+    assert header.split() == ["name", "nq", "nv", "base", "poses", "description"]
     assert {r.split()[0] for r in rows} == set(CATALOG)
     assert scenes.startswith("scenes (run one with")
     ur5 = next(r for r in rows if r.split()[0] == "ur5")

@@ -159,6 +159,12 @@ def _build_parser() -> _Parser:
         help="folder that package://NAME/... URIs resolve against (repeat the option for several)",
     )
     robot_options.add_argument(
+        "--srdf",
+        metavar="FILE",
+        help="an SRDF whose <group_state>s are the robot's named poses, for --q0 NAME (catalog robots come with "
+        "example-robot-data's)",
+    )
+    robot_options.add_argument(
         "--allow-root",
         metavar="DIR",
         action="append",
@@ -193,10 +199,10 @@ def _build_parser() -> _Parser:
     run.add_argument(
         "--q0",
         metavar="V",
-        type=float,
         nargs="+",
-        help="initial configuration, nq space-separated numbers (default: the neutral "
-        "configuration; a floating base's quaternion is x y z w)",
+        help="initial configuration: a named pose (`inspect ROBOT` lists them, e.g. standing) or nq space-separated "
+        "numbers (a floating base's quaternion is x y z w); default: the robot's default pose (its SRDF's reference "
+        "pose, else the neutral configuration)",
     )
     run.add_argument(
         "--v0", metavar="V", type=float, nargs="+", help="initial velocity, nv space-separated numbers (default: zeros)"
@@ -318,9 +324,8 @@ def _build_parser() -> _Parser:
     bench.add_argument(
         "--q0",
         metavar="V",
-        type=float,
         nargs="+",
-        help="initial configuration, nq numbers (default: the neutral configuration)",
+        help="initial configuration: a named pose or nq numbers (default: the robot's default pose)",
     )
     bench.add_argument("--v0", metavar="V", type=float, nargs="+", help="initial velocity, nv numbers (default: zeros)")
     bench.add_argument(
@@ -429,29 +434,38 @@ def _version() -> str:
 
 
 # ---- commands ----------------------------------------------------------------------------------------
-def _is_scene(source: str) -> bool:
+def _is_scene(args: argparse.Namespace) -> bool:
     """Whether a command's ROBOT_OR_URDF names a scene: a .toml file, a shipped scene's name or scene:NAME.
 
-    A name that is both a shipped scene and a catalog robot (four_bar, spring_chain) takes the scene, with a
-    one-line note on stderr; robot:NAME takes the robot.
+    A name that is both a shipped scene and a catalog robot (four_bar, spring_chain) takes the scene, and leaves
+    a note (args.note) that the command prints on stderr once its arguments are accepted; robot:NAME takes the
+    robot.
     """
     from .catalog import ROBOT_PREFIX
     from .scenes import SCENE_PREFIX, shipped_scenes
 
+    source = args.robot
     if source.startswith((SCENE_PREFIX, ROBOT_PREFIX)):
-        return source.startswith(SCENE_PREFIX)
+        return bool(source.startswith(SCENE_PREFIX))
     scene = source.endswith(".toml") or source in shipped_scenes()
     if scene and source in ms.CATALOG:
-        print(
+        args.note = (
             f"{PROG}: note: '{source}' names both a shipped scene and a catalog robot: taking the scene "
-            f"({ROBOT_PREFIX}{source} for the robot alone)",
-            file=sys.stderr,
+            f"({ROBOT_PREFIX}{source} for the robot alone)"
         )
     return scene
 
 
+def _print_note(args: argparse.Namespace) -> None:
+    """The note _is_scene left, on stderr: printed once bad input can no longer be the next line."""
+    note = getattr(args, "note", None)
+    if note:
+        print(note, file=sys.stderr, flush=True)
+        args.note = None
+
+
 def _load(args: argparse.Namespace) -> Any:
-    if _is_scene(args.robot):
+    if _is_scene(args):
         given = [
             flag
             for flag, value in (
@@ -459,6 +473,7 @@ def _load(args: argparse.Namespace) -> Any:
                 ("--no-damping", args.no_damping),
                 ("--package-dir", args.package_dir),
                 ("--allow-root", args.allow_root),
+                ("--srdf", args.srdf),
             )
             if value
         ]
@@ -473,6 +488,7 @@ def _load(args: argparse.Namespace) -> Any:
         damping=not args.no_damping,
         package_dirs=args.package_dir or None,
         allowed_roots=args.allow_root or None,
+        srdf=args.srdf,
     )
 
 
@@ -502,7 +518,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     args.dt = declared.pop("dt", None) if args.dt is None else args.dt
     args.duration = declared.pop("duration", 1.0) if args.duration is None else args.duration
     # Checked before the header so that a wrong vector is the only thing printed.
-    q0 = declared.pop("q0", robot.neutral()) if args.q0 is None else robot.check_q(args.q0, "q0")
+    q0 = declared.pop("q0", robot.default_pose()) if args.q0 is None else _configuration(robot, args.q0)
     v0 = declared.pop("v0", [0.0] * robot.nv) if args.v0 is None else robot.check_v(args.v0, "v0")
     names = ("rtol", "atol", "max_step", "output_dt", "control_dt")
     options = {name: getattr(args, name) for name in names if getattr(args, name) is not None}
@@ -522,6 +538,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     _check_run_arguments(robot, method, args.duration, args.dt if args.tolerance is None else None, options)
     if controller is not None:
         options["controller"] = controller
+    _print_note(args)
     if scene is not None:
         _say(scene.describe())
         if args.report_savings:
@@ -612,6 +629,20 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
 
 
+def _configuration(robot: Any, words: list[str]) -> Any:
+    """--q0: one named pose (robot.pose) or nq numbers."""
+    numbers = []
+    for word in words:
+        try:
+            numbers.append(float(word))
+        except ValueError:
+            if len(words) == 1:
+                return robot.pose(word)  # an unknown name lists the valid ones
+            poses = f"one pose name ({', '.join(robot.poses)}) or " if robot.poses else ""
+            raise _UsageError(f"--q0: '{word}' is not a number (give {poses}{robot.nq} numbers)") from None
+    return robot.check_q(numbers, "q0")
+
+
 def _check_run_arguments(robot: Any, method: Any, duration: Any, dt: Any, options: dict[str, Any]) -> None:
     """What simulate() would refuse, checked before the header is printed (dt None: chosen later, by a pilot).
 
@@ -693,7 +724,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise _UsageError("--integrators: name at least one integrator (e.g. --integrators rk4,dp54)")
         for name in names:
             ms.get_integrator(name)  # an unknown name is bad input before any work
-    q0 = robot.neutral() if args.q0 is None else robot.check_q(args.q0, "q0")
+    q0 = robot.default_pose() if args.q0 is None else _configuration(robot, args.q0)
     v0 = [0.0] * robot.nv if args.v0 is None else robot.check_v(args.v0, "v0")
     base = "floating" if robot.floating_base else "fixed"
     started: list[bool] = []
@@ -701,6 +732,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     def progress(line: str) -> None:  # the header waits for the study's checks: bad input prints nothing else
         if not started:
             started.append(True)
+            _print_note(args)
             _say(f"bench: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), duration {args.duration:g} s")
         _say(line)
 
@@ -741,9 +773,13 @@ def _cmd_models(args: argparse.Namespace) -> int:
     rows = ms.catalog_table()
     print(
         _table(
-            ["name", "nq", "nv", "base", "description"],
-            [[r["name"], r["nq"], r["nv"], r["base"], r["description"]] for r in rows],
+            ["name", "nq", "nv", "base", "poses", "description"],
+            [[r["name"], r["nq"], r["nv"], r["base"], _poses_cell(r), r["description"]] for r in rows],
         )
+    )
+    print(
+        "\nposes: the SRDF's named poses (run ROBOT --q0 NAME); * marks the default pose, where runs start; "
+        "- none: runs start from the neutral configuration"
     )
     from .scenes import shipped_scenes
     from .scenes.spec import read_scene_file
@@ -762,6 +798,12 @@ def _cmd_models(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _poses_cell(row: dict[str, Any]) -> str:
+    """A robot's poses for `models`: the default first, starred."""
+    poses = sorted(row["poses"], key=lambda name: name != row["default_pose"])
+    return ",".join(f"{name}*" if name == row["default_pose"] else name for name in poses) or "-"
+
+
 def _savings(scene: Any) -> str:
     measured = scene.measure_savings()
     return (
@@ -772,6 +814,7 @@ def _savings(scene: Any) -> str:
 
 def _cmd_inspect(args: argparse.Namespace) -> int:
     robot = _load(args)
+    _print_note(args)
     if isinstance(robot, ms.Scene):
         print(robot.describe())
         print(_savings(robot))
@@ -780,9 +823,17 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     entry = ms.CATALOG.get(args.robot)
     lines = [f"{robot.name}" + (f": {entry.description}" if entry is not None else "")]
     source = robot.source
-    lines += [f"URDF: {source.get('urdf_path')}", f"sha256: {source.get('urdf_sha256')}"]
+    derived = {"sdf": " (SDF, converted to URDF)"}.get(source.get("derivation", ""), "")
+    if source.get("derivation", "").startswith("prune:"):
+        derived = f" (without the subtree below {source['derivation'].removeprefix('prune:')})"
+    lines += [f"URDF: {source.get('urdf_path')}{derived}", f"sha256: {source.get('urdf_sha256')}"]
     base = "floating (free-flyer root joint)" if robot.floating_base else "fixed (root link welded to the world)"
     lines += [f"base: {base}", f"nq: {robot.nq}  nv: {robot.nv}"]
+    if robot.poses:
+        named = ", ".join(f"{p} (default)" if p == robot.default_pose_name else p for p in robot.poses)
+        lines.append(f"poses: {named} (from {source.get('srdf_path')})")
+    else:
+        lines.append("poses: none (runs start from the neutral configuration)")
     welded = float(model.inertias[0].mass)
     lines.append(
         f"total mass: {robot.total_mass:.6g} kg"

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import difflib
 from typing import Any
 
 import numpy as np
 import pinocchio as pin
 
-from .exceptions import InvalidArgumentError
+from .exceptions import InvalidArgumentError, UnknownNameError
 from .state import ConfigurationSpace
 
 _WORLD = pin.Convention.WORLD
@@ -42,6 +43,8 @@ class Robot:
             shape (nq,): LIMIT_TOLERANCE_ULPS x machine epsilon x max(|lower|, |upper|, 1); inf where there is no limit.
         space: the configuration manifold (integrate, difference).
         source: how the robot was loaded (the full load_robot arguments, URDF path and SHA-256).
+        poses: names of the named poses (pose(name) gives one); default_pose_name: the one default_pose() returns,
+            or None (neutral()).
     """
 
     def __init__(
@@ -52,6 +55,8 @@ class Robot:
         floating_base: bool,
         damping: bool = True,
         source: dict[str, Any] | None = None,
+        poses: dict[str, np.ndarray] | None = None,
+        default_pose: str | None = None,
     ):
         self.model = model
         self.data = model.createData()
@@ -74,6 +79,10 @@ class Robot:
         self.limit_tolerance = np.where(self._limited, LIMIT_TOLERANCE_ULPS * np.finfo(float).eps * scale, np.inf)
         self._n_base = 6 if floating_base else 0
         self.total_mass = float(pin.computeTotalMass(model))
+        self._poses = {name: self.check_q(q, f"pose '{name}'").copy() for name, q in (poses or {}).items()}
+        if default_pose is not None and default_pose not in self._poses:
+            raise InvalidArgumentError(f"default_pose '{default_pose}' is not one of the poses ({self._valid_poses()})")
+        self.default_pose_name = default_pose
 
     def __repr__(self) -> str:
         base = "floating" if self.floating_base else "fixed"
@@ -83,6 +92,38 @@ class Robot:
     def neutral(self) -> np.ndarray:
         """The neutral configuration (zero joint angles, identity base orientation), shape (nq,)."""
         return pin.neutral(self.model)
+
+    @property
+    def poses(self) -> tuple[str, ...]:
+        """The names of the robot's named poses (its SRDF's `<group_state>`s), in file order; () without one."""
+        return tuple(self._poses)
+
+    def pose(self, name: str) -> np.ndarray:
+        """The named pose `name` (one of `poses`), shape (nq,); a fresh copy.
+
+        Raises:
+            UnknownNameError: no pose of that name (the message lists the valid ones).
+        """
+        if name not in self._poses and not self._poses:
+            raise UnknownNameError(
+                f"unknown pose '{name}': {self.name} has no named poses (they come from an SRDF: srdf=FILE in "
+                "load_robot, --srdf FILE on the command line)"
+            )
+        if name not in self._poses:
+            close = difflib.get_close_matches(str(name), self._poses, n=1, cutoff=0.6)
+            hint = f"did you mean {close[0]}? " if close else ""
+            raise UnknownNameError(f"unknown pose '{name}' for {self.name} ({hint}valid: {self._valid_poses()})")
+        return self._poses[name].copy()
+
+    def default_pose(self) -> np.ndarray:
+        """Where runs start by default, shape (nq,): the SRDF's everyday pose (`default_pose_name`: the catalog's
+        reference pose, else "default", "standing" or "half_sitting" when the SRDF has one), else neutral()."""
+        if self.default_pose_name is None:
+            return self.neutral()
+        return self._poses[self.default_pose_name].copy()
+
+    def _valid_poses(self) -> str:
+        return ", ".join(self._poses) if self._poses else "none"
 
     def random_configuration(self, rng: np.random.Generator | int | None = None) -> np.ndarray:
         """A random configuration, shape (nq,).

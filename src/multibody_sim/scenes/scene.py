@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from ..catalog import load_robot, read_urdf
+from ..catalog import load_robot, read_urdf, reduce_configuration
 from ..exceptions import InvalidArgumentError, SceneError
 from ..robot import Robot
 from ..trajectory import Trajectory
@@ -45,7 +45,8 @@ class Scene(Robot):
         mimic: whether URDF <mimic> joints are honoured (forward dynamics by CRBA, as ABA does not support them).
         has_derivatives: whether the dynamics' analytic derivatives exist (implicit methods and linearize need
             them); `no_derivatives_reason` says why not ("" when they do).
-        q0, v0: the scene's initial state ([initial], else the neutral configuration at rest).
+        q0, v0: the scene's initial state ([initial], else the robot's default_pose() at rest: its SRDF's
+            reference pose where it has one, else the neutral configuration).
     """
 
     def __init__(self, spec: SceneSpec):
@@ -105,6 +106,9 @@ class Scene(Robot):
             floating_base=robot.floating_base,
             damping=True,
             source={**robot.source, "scene": _scene_source(spec)},
+            # The robot's named poses on the scene's model (locked joints and mimic followers dropped).
+            poses={name: reduce_configuration(robot.model, model, robot.pose(name)) for name in robot.poses},
+            default_pose=robot.default_pose_name,
         )
         self.mimic = spec.robot.mimic
         self._clear_crba = self.mimic and _mimic_has_children(model)
@@ -603,7 +607,7 @@ def _wrench(model: pin.Model, force: Any, key: str) -> Any:
 
 def _initial_state(scene: Scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarray]:
     where = spec.source
-    q, v = scene.neutral(), np.zeros(scene.nv)
+    q, v = scene.default_pose(), np.zeros(scene.nv)  # the robot's SRDF pose where it has one, else neutral
     for key, given, size, target in (
         ("initial.q", spec.initial_q, scene.nq, q),
         ("initial.v", spec.initial_v, scene.nv, v),

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from ..catalog import CATALOG, catalog_urdf
+from ..catalog import CATALOG, catalog_urdf, derived_urdf
 from ..exceptions import InvalidArgumentError, ModelError, UnknownNameError
 from ..robot import Robot
 from ._deps import ViewerWarning, require
@@ -101,15 +101,20 @@ class RobotScene:
         expected = source.get("urdf_sha256")
         if expected and hashlib.sha256(xml).hexdigest() != expected:
             raise ModelError(f"{path}: the URDF changed after the robot was loaded (SHA-256 differs); reload it")
+        if source.get("format") != "mjcf":
+            xml = derived_urdf(xml, path, source.get("derivation"))  # an SDF's conversion, a catalog entry's pruning
         roots = allowed_roots(self.robot)
         try:
-            geometry_model = pin.buildGeomFromUrdfString(
-                self.model,
-                xml.decode("utf-8"),
-                pin.GeometryType.VISUAL,
-                package_dirs=[str(r) for r in roots],
-                **_cheap_mesh_loader(),
-            )
+            if source.get("format") == "mjcf":  # checked at load like a URDF; Pinocchio reads it from its path
+                geometry_model = pin.buildGeomFromMJCF(self.model, str(path), pin.GeometryType.VISUAL)
+            else:
+                geometry_model = pin.buildGeomFromUrdfString(
+                    self.model,
+                    xml.decode("utf-8"),
+                    pin.GeometryType.VISUAL,
+                    package_dirs=[str(r) for r in roots],
+                    **_cheap_mesh_loader(),
+                )
         except (RuntimeError, ValueError) as exc:  # e.g. a mesh file that is not there
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             self.notes.append(f"{path}: Pinocchio cannot build the visual model ({first}); drawing a skeleton")
