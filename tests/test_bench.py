@@ -19,6 +19,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 from conftest import joint, link, urdf
+from PIL import Image
 from scipy.integrate import solve_ivp
 
 import multibody_sim as ms
@@ -94,7 +95,7 @@ def test_observed_order_matches_theory(order_study: ms.WorkPrecision, name: str)
 
 def test_adaptive_effective_order_against_evaluations(robot: Callable[..., ms.Robot]) -> None:
     """Adaptive methods: error ∝ evaluations^-p for an order-p pair's propagated solution (bs32 3, dp54 5), up to
-    the steepening a step controller brings (bench.ADAPTIVE_ORDER_*: accepted from p - 0.6 to 1.4 p here)."""
+    the steepening a step controller brings (here from p - 0.6 to 1.4 p); an effective order is never flagged."""
     study = ms.work_precision(
         robot("double_pendulum"),
         Q0_DP,
@@ -130,11 +131,107 @@ def test_mismatch_is_flagged_on_synthetic_errors() -> None:
     assert good.observed == pytest.approx(4.0) and not good.mismatch
 
 
+def test_an_effective_order_is_reported_not_judged() -> None:
+    """An adaptive "dp54" whose errors fall as evaluations^-12 (steep, as step controllers make them) is shown in
+    the effective-order column and not flagged; a fixed-step method's is in the observed column."""
+    tolerances = [10.0**-k for k in range(2, 9)]  # evaluations over a factor 3 (less reads as flat)
+    rows = [
+        ms.Measurement("dp54", None, tol, tol, "completed", error=tol, evaluations=int(1000 * tol ** (-1 / 12)))
+        for tol in tolerances
+    ] + [
+        ms.Measurement("rk4", dt, None, None, "completed", error=1e-2 * (dt / 0.01) ** 4)
+        for dt in (0.01, 0.005, 0.0025)
+    ]
+    reference = bench.Reference("dop853", 1e-14, 1e-14, 1e-15, 1e-15, 1e-16, 100, 0.01)
+    study = ms.WorkPrecision("synthetic", 1.0, 0.02, [0.0], [0.0], reference, rows, {}, {}, {})
+    study.orders = bench.observed_orders(study)
+    fit = study.orders["dp54"]
+    assert fit.against == "evaluations" and fit.observed == pytest.approx(12.0, rel=1e-2) and not fit.mismatch
+    header, *lines = study.orders_table().splitlines()
+    assert header.split("  ")[:4] == ["integrator", "order", "observed (vs dt)", "effective (vs evaluations)"]
+    dp54 = next(line for line in lines if line.startswith("dp54"))
+    rk4 = next(line for line in lines if line.startswith("rk4"))
+    assert dp54.index("12.0") >= header.index("effective") and "MISMATCH" not in dp54
+    assert header.index("observed") <= rk4.index("4.00") < header.index("effective")
+
+
+def test_the_default_study_does_not_flag_rk4_on_the_double_pendulum(robot: Callable[..., ms.Robot]) -> None:
+    """With a dp54 reference at 1e-12 (accurate to ~1e-11 here), RK4's 1 ms run fell within 10x of the reference's
+    error, the fit moved to coarser steps and read 4.60: MISMATCH. The DOP853 reference at 1e-14 leaves the fine
+    steps usable."""
+    arm = robot("double_pendulum")
+    study = ms.work_precision(arm, arm.default_pose(), np.zeros(2), duration=1.0, integrators=["rk4"], repeats=1)
+    assert (study.reference.integrator, study.reference.rtol) == ("dop853", 1e-14)
+    assert study.reference.error < 1e-12
+    fit = study.orders["rk4"]
+    assert not fit.mismatch and fit.observed == pytest.approx(4.0, abs=bench.ORDER_MISMATCH)  # 4.29 here
+    assert 0.001 in [m.dt for m in study.for_integrator("rk4") if not m.below_reference]
+
+
+# Machado, Oliveira & Fernandes (2009): full-severity simulation matrices in linear RGB.
+COLOR_VISION = {
+    "protanopia": [[0.152286, 1.052583, -0.204868], [0.114503, 0.786281, 0.099216], [-0.003882, -0.048116, 1.051998]],
+    "deuteranopia": [[0.367322, 0.860646, -0.227968], [0.280085, 0.672501, 0.047413], [-0.011820, 0.042940, 0.968881]],
+    "tritanopia": [[1.255528, -0.076749, -0.178779], [-0.078411, 0.930809, 0.147602], [0.004733, 0.691367, 0.303900]],
+}
+
+
+def closest_pair_seen_as(colors: list[str], matrix: list[list[float]]) -> float:
+    """The smallest distance (sRGB, 0..1) between two of the colours as a viewer with that deficiency sees them."""
+
+    def linear(hex_color: str) -> np.ndarray:
+        c = np.array([int(hex_color[i : i + 2], 16) for i in (1, 3, 5)]) / 255
+        return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+    def srgb(c: np.ndarray) -> np.ndarray:
+        c = np.clip(c, 0, 1)
+        return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+
+    seen = [srgb(np.array(matrix) @ linear(c)) for c in colors]
+    return min(float(np.linalg.norm(a - b)) for i, a in enumerate(seen) for b in seen[i + 1 :])
+
+
+def test_every_integrator_has_its_own_colour_blind_safe_colour(tmp_path: Path) -> None:
+    colors = [bench.METHOD_COLORS[bench._color_index(name)] for name in ms.INTEGRATORS]
+    assert len(set(colors)) == len(ms.INTEGRATORS)
+    for matrix in COLOR_VISION.values():
+        assert closest_pair_seen_as(colors, matrix) > 0.1
+    # The check can fail: matplotlib's default cycle has two colours 0.066 apart for a deuteranope.
+    tab10 = [
+        "#1f77b4",
+        "#ff7f0e",
+        "#2ca02c",
+        "#d62728",
+        "#9467bd",
+        "#8c564b",
+        "#e377c2",
+        "#7f7f7f",
+        "#bcbd22",
+        "#17becf",
+    ]
+    assert closest_pair_seen_as(tab10, COLOR_VISION["deuteranopia"]) < 0.1
+    # The PNG draws each method in its colour (its markers' centres carry it exactly).
+    rows = [
+        ms.Measurement(name, dt, None, None, "completed", error=dt**k, cpu_time=1 / dt, evaluations=int(4 / dt))
+        for k, name in ((1, "euler"), (2, "midpoint"), (4, "rk4"))
+        for dt in (0.01, 0.005, 0.0025)
+    ]
+    reference = bench.Reference("dop853", 1e-14, 1e-14, 1e-15, 1e-15, 1e-16, 100, 0.01)
+    study = ms.WorkPrecision("synthetic", 1.0, 0.02, [0.0], [0.0], reference, rows, {}, {}, {})
+    study.orders = bench.observed_orders(study)
+    png = np.asarray(Image.open(bench.plot_work_precision(study, tmp_path / "wp.png")).convert("RGB")).reshape(-1, 3)
+    palette = {tuple(int(c[i : i + 2], 16) for i in (1, 3, 5)) for c in bench.METHOD_COLORS} - {(0, 0, 0)}
+    present = palette & set(map(tuple, png))  # black is the axes' colour too: not counted
+    drawn = {bench.METHOD_COLORS[bench._color_index(name)] for name in ("euler", "midpoint", "rk4")}
+    assert {f"#{r:02X}{g:02X}{b:02X}" for r, g, b in present} == drawn
+
+
 # ---- errors against independent computations -----------------------------------------------------------------
 @pytest.mark.parametrize("name", ["double_pendulum", "free_body"])
 def test_reported_error_is_the_contract_error(robot: Callable[..., ms.Robot], name: str) -> None:
     """The error in the table equals max over samples of ‖(q ⊖ q_ref, v − v_ref)‖∞ computed here from two
-    simulate() runs (the reference: dp54 at the default tolerance); also on a spinning floating base."""
+    simulate() runs (the reference: bench's reference integrator at its tolerance, checked 10x tighter); also on a
+    spinning floating base."""
     system = robot(name)
     rng = np.random.default_rng(7)
     q0 = system.random_configuration(rng) if name == "free_body" else np.array(Q0_DP)
@@ -142,9 +239,10 @@ def test_reported_error_is_the_contract_error(robot: Callable[..., ms.Robot], na
     study = ms.work_precision(
         system, q0, v0, duration=0.4, integrators=["rk4", "bs32"], steps=[0.02, 0.01], tolerances=[1e-5], repeats=1
     )
-    ref = ms.simulate(system, q0, v0, duration=0.4, dt=1e-3, integrator="dp54", rtol=1e-12, atol=1e-12, output_dt=0.02)
+    method, tol = bench.REFERENCE_INTEGRATOR, bench.REFERENCE_TOLERANCE
+    ref = ms.simulate(system, q0, v0, duration=0.4, dt=1e-3, integrator=method, rtol=tol, atol=tol, output_dt=0.02)
     check = ms.simulate(
-        system, q0, v0, duration=0.4, dt=1e-3, integrator="dp54", rtol=1e-13, atol=1e-13, output_dt=0.02
+        system, q0, v0, duration=0.4, dt=1e-3, integrator=method, rtol=tol / 10, atol=tol / 10, output_dt=0.02
     )
     assert study.reference.error == max_error(system.model, check.t, ref.q, ref.v, on_grid(check))
     for m in study.measurements:
@@ -413,6 +511,15 @@ def test_bench_prints_orders_and_recommendations_and_writes_files(
         name, order, observed = row.split()[:3]
         assert int(order) == ms.INTEGRATORS[name].order
     assert "recommended (least CPU time" in out
+    # The default report is concise: the header, the study's summary and the files; --verbose adds a line per run.
+    assert out.startswith("bench: double_pendulum (fixed base, nq 2, nv 2), duration 0.1 s\n\nwork-precision study")
+    assert " evals" not in out
+    code, verbose, _ = call(
+        capsys, "bench", "double_pendulum", "--q0", "2", "0.5", "--integrators", "rk4", "--duration", "0.1",
+        "--out", str(tmp_path / "v"), "--verbose",
+    )  # fmt: skip
+    runs = ms.WorkPrecision.from_json(tmp_path / "v" / "work_precision.json").for_integrator("rk4")
+    assert code == 0 and sum(line.endswith(" evals") for line in verbose.splitlines()) == len(runs)
     for tol in (1e-2, 1e-4, 1e-6, 1e-8):
         rec = ms.recommend(saved, tol)
         assert re.search(rf"^  {tol:.0e}  +{rec.integrator} +{re.escape(rec.settings())} ", out, re.M) if rec else True
@@ -468,7 +575,8 @@ def _interrupt_bench(sig: signal.Signals, out: Path) -> subprocess.CompletedProc
     script = Path(sys.executable).with_name("multibody-sim")
     # A shell may start background jobs with SIGINT ignored; restore the default as a real Ctrl-C would find it.
     reset = "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); os.execv(sys.argv[1], sys.argv[1:])"
-    args = [sys.executable, "-c", reset, str(script), "bench", "double_pendulum", "--duration", "2", "--out", str(out)]
+    args = [sys.executable, "-c", reset, str(script), "bench", "double_pendulum", "--duration", "2", "--verbose"]
+    args += ["--out", str(out)]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     watchdog = threading.Timer(90.0, proc.kill)
     watchdog.start()

@@ -4,7 +4,7 @@ A study runs each integrator over a ladder of steps (fixed-step methods) or tole
 initial state, and measures
 
 - the error: max over a common sample grid of ‖(q ⊖ q_ref, v − v_ref)‖∞ (Pinocchio's difference in the tangent
-  space, CONTRACTS.md's `--tolerance`), against a reference computed by dp54 at a tight tolerance; the reference
+  space, CONTRACTS.md's `--tolerance`), against a reference computed by DOP853 at a tight tolerance; the reference
   is checked by refining it once more (a tolerance `refinement` times tighter), and the largest difference
   between the two is its estimated error;
 - the energy error max |H − H(0) − work + dissipated| from the ledger, shown beside the error and never used as
@@ -52,8 +52,12 @@ STEP_LADDER = tuple(m * 10.0**e for e in range(-2, -7, -1) for m in (2, 1, 0.5))
 # Tolerances of adaptive methods (rtol = atol): half decades from 1e-2 to 1e-11.
 TOLERANCE_LADDER = tuple(10.0 ** (-k / 2) for k in range(4, 23))
 ADAPTIVE_FIRST_STEP = 1e-3  # [s] an adaptive run's first trial step (what `run` uses too)
-REFERENCE_INTEGRATOR = "dp54"
-REFERENCE_TOLERANCE = 1e-12  # rtol = atol of the reference; the check runs `refinement` times tighter
+# The reference: DOP853 at rtol = atol = 1e-14, checked against 1e-15. dp54 at 1e-12 (the former reference) was
+# only ~1e-11 accurate on the double pendulum: RK4's 1 ms run fell within 10x of it, was left out of the fit, and
+# the fit on coarser, pre-asymptotic steps read 4.60 (MISMATCH). DOP853 at 1e-14 is within 3e-13 of its 1e-15
+# check there, at about the cost of dp54 at 1e-12 (800 against 860 evaluations over 1 s).
+REFERENCE_INTEGRATOR = "dop853"
+REFERENCE_TOLERANCE = 1e-14  # rtol = atol of the reference; the check runs `refinement` times tighter
 REFINEMENT = 10.0
 # Errors within this factor of the reference's estimated error may be the reference's: flagged, not fitted.
 REFERENCE_MARGIN = 10.0
@@ -62,12 +66,10 @@ FIT_POINTS = 3  # fixed steps: the order is the slope over the finest usable run
 ADAPTIVE_FIT_POINTS = 9  # 4 decades of tolerance: its rungs are close in evaluations and noisy one by one
 # A fit over 3 rungs a factor 2-2.5 apart moves by ~0.1-0.3 with the error's curvature: beyond these it is off.
 ORDER_MISMATCH = 0.4
-# Effective orders (error against evaluations) come out steeper than the classical order, the more so the higher
-# it is: measured 2.6-3.1 for bs32, 5.4-6.8 for dp54 and 9-11.4 for dop853 on the double pendulum, ur5, solo12
-# and talos, as the controller's start-up and landing steps weigh more at loose tolerances. So an adaptive fit is
-# off only below order - 1 (a real loss of order) or above 1.5 x order.
-ADAPTIVE_ORDER_BELOW = 1.0
-ADAPTIVE_ORDER_ABOVE_RATIO = 1.5
+# Adaptive methods are fitted against evaluations: an effective order, which comes out steeper than the classical
+# order, the more so the higher it is (measured 2.6-3.1 for bs32, 5.4-6.8 for dp54 and 9-11.4 for dop853 on the
+# double pendulum, ur5, solo12 and talos, as the controller's start-up and landing steps weigh more at loose
+# tolerances). It is reported as what it is, never judged against the classical order.
 REPEAT_BELOW = 0.2  # [s] runs shorter than this are timed `repeats` times (median); longer ones once
 PILOT_HORIZON = 1.0  # [s] `run --tolerance` studies min(duration, this)
 PILOT_MIN_ERROR = 1e-8  # the pilot's ladders go down to min(tolerance, this), so one study serves many tolerances
@@ -179,7 +181,7 @@ class Reference:
     """The reference solution and its check.
 
     Attributes:
-        integrator: the reference's integrator (dp54).
+        integrator: the reference's integrator (dop853).
         rtol, atol: its tolerances.
         check_rtol, check_atol: the refined check's tolerances.
         error: its estimated error: max over the grid of the state difference to the refined check.
@@ -212,9 +214,8 @@ class OrderFit:
             slope of log error against log evaluations, an effective order: an order-p method with N evaluations
             reaches error ∝ N^-p).
         points: how many measurements the fit used.
-        mismatch: observed and theoretical differ by more than ORDER_MISMATCH (fixed-step), or the effective
-            order is below theoretical - ADAPTIVE_ORDER_BELOW or above ADAPTIVE_ORDER_ABOVE_RATIO x theoretical
-            (adaptive); judged on 3 points or more.
+        mismatch: fixed-step only: observed and theoretical differ by more than ORDER_MISMATCH, judged on 3
+            points or more (an adaptive method's effective order is no classical order: never flagged).
         note: why there is no fit, or what to look at.
     """
 
@@ -395,11 +396,13 @@ class WorkPrecision:
             if fit is None:
                 rows.append([name, "", "", "", "", "", ", ".join(statuses)])
                 continue
-            observed = "—" if math.isnan(fit.observed) else f"{fit.observed:.2f}"
+            value = "—" if math.isnan(fit.observed) else f"{fit.observed:.2f}"
+            observed, effective = ("", value) if fit.against == "evaluations" else (value, "")
             flag = "MISMATCH" if fit.mismatch else ""
             notes = "; ".join(filter(None, [fit.note, _stopped_note(points)]))
-            rows.append([name, str(fit.theoretical), observed, fit.against, flag, _fmt(best, ".1e"), notes])
-        return _text_table(["integrator", "order", "observed", "fitted against", "flag", "best error", "notes"], rows)
+            rows.append([name, str(fit.theoretical), observed, effective, flag, _fmt(best, ".1e"), notes])
+        headers = ["integrator", "order", "observed (vs dt)", "effective (vs evaluations)", "flag", "best error"]
+        return _text_table([*headers, "notes"], rows)
 
     def summary(self, tolerances: Sequence[float] = (1e-2, 1e-4, 1e-6, 1e-8)) -> str:
         """What the `bench` command prints: the reference, the orders and the recommendations."""
@@ -503,7 +506,7 @@ def work_precision(
         steps: fixed steps [s]; each must divide output_dt.
         tolerances: adaptive tolerances (rtol = atol).
         output_dt: the common sample grid [s] (default min(OUTPUT_DT, duration)).
-        reference_tolerance: rtol = atol of the dp54 reference.
+        reference_tolerance: rtol = atol of the DOP853 reference.
         refinement: the check runs at reference_tolerance / refinement.
         min_error: a ladder stops below this error.
         max_steps: the largest number of steps of a fixed-step run.
@@ -830,12 +833,9 @@ def observed_orders(result: WorkPrecision) -> dict[str, OrderFit]:
         y = np.log([m.error for m in usable])
         slope = float(np.polyfit(x, y, 1)[0])
         observed = -slope if adaptive else slope
-        # Two points make a slope but not a judgement: their error may still be pre-asymptotic.
-        if adaptive:
-            off = not method.order - ADAPTIVE_ORDER_BELOW <= observed <= ADAPTIVE_ORDER_ABOVE_RATIO * method.order
-        else:
-            off = abs(observed - method.order) > ORDER_MISMATCH
-        mismatch = len(usable) >= 3 and off
+        # Two points make a slope but not a judgement: their error may still be pre-asymptotic. An effective order
+        # (adaptive) is not a classical order: it is shown, not judged.
+        mismatch = not adaptive and len(usable) >= 3 and abs(observed - method.order) > ORDER_MISMATCH
         note = ""
         if mismatch:
             where = ", ".join(m.settings().removeprefix("dt ").removeprefix("rtol ").split(",")[0] for m in usable)
@@ -999,7 +999,15 @@ def _cache_key(system: Robot, q0: np.ndarray, v0: np.ndarray, horizon: float, na
         "horizon": repr(horizon),
         "integrators": "all" if names is None else sorted(names),
         "versions": dict(versions()),
-        "study": [OUTPUT_DT, STEP_LADDER, TOLERANCE_LADDER, REFERENCE_TOLERANCE, REFINEMENT, PILOT_MAX_RUN_TIME],
+        "study": [
+            OUTPUT_DT,
+            STEP_LADDER,
+            TOLERANCE_LADDER,
+            REFERENCE_INTEGRATOR,
+            REFERENCE_TOLERANCE,
+            REFINEMENT,
+            PILOT_MAX_RUN_TIME,
+        ],
     }
     return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()
 
@@ -1038,7 +1046,8 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
         ) from None
     fig, axes = plt.subplots(1, 3, figsize=(16, 5.2))
     markers = "os^vD<>ph*"
-    for k, name in enumerate(result.integrators()):
+    for name in result.integrators():
+        k = _color_index(name)
         done = [m for m in result.for_integrator(name) if m.completed and m.error > 0]
         if not done:
             continue
@@ -1046,16 +1055,23 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
         label = name
         if fit is not None:
             observed = "—" if math.isnan(fit.observed) else f"{fit.observed:.1f}"
-            label += f" (p={fit.theoretical}, obs {observed}{'!' if fit.mismatch else ''})"
-        style = {"marker": markers[k % len(markers)], "ms": 4, "lw": 1.2, "ls": "--" if done[0].adaptive else "-"}
+            kind = "effective" if fit.against == "evaluations" else "obs"
+            label += f" (p={fit.theoretical}, {kind} {observed}{'!' if fit.mismatch else ''})"
+        style = {
+            "marker": markers[k % len(markers)],
+            "color": METHOD_COLORS[k % len(METHOD_COLORS)],
+            "ms": 4,
+            "lw": 1.2,
+            "ls": "--" if done[0].adaptive else "-",
+        }
         cpu = [m.cpu_time for m in done]
         evals = [m.evaluations for m in done]
         errors = [m.error for m in done]
         (line,) = axes[0].loglog(cpu, errors, label=label, **style)
-        axes[1].loglog(evals, errors, color=line.get_color(), **style)
+        axes[1].loglog(evals, errors, **style)
         energy = [(m.cpu_time, m.energy_error) for m in done if m.energy_error > 0]
         if energy:
-            axes[2].loglog(*zip(*energy, strict=True), color=line.get_color(), **style)
+            axes[2].loglog(*zip(*energy, strict=True), **style)
         hollow = [(m.cpu_time, m.evaluations, m.error) for m in done if m.below_reference]
         if hollow:
             w, e, err = zip(*hollow, strict=True)
@@ -1080,6 +1096,28 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+# One colour per integrator, the same in every diagram: Paul Tol's "muted" scheme, whose nine colours stay apart
+# under the common colour-vision deficiencies, then black for a tenth (ten methods are registered).
+METHOD_COLORS = (
+    "#332288",
+    "#88CCEE",
+    "#44AA99",
+    "#117733",
+    "#999933",
+    "#DDCC77",
+    "#CC6677",
+    "#882255",
+    "#AA4499",
+    "#000000",
+)
+
+
+def _color_index(name: str) -> int:
+    """An integrator's place in the registry (its colour); integrators outside it follow."""
+    names = list(INTEGRATORS)
+    return names.index(name) if name in names else len(names) + sum(map(ord, name)) % len(METHOD_COLORS)
 
 
 # ---- helpers ---------------------------------------------------------------------------------------------

@@ -331,6 +331,7 @@ def _build_parser() -> _Parser:
     bench.add_argument(
         "--out", metavar="DIR", default=".", help="folder for work_precision.{csv,json,png} (default: the current one)"
     )
+    bench.add_argument("--verbose", action="store_true", help="print a line for every run as it is measured")
     bench.set_defaults(handler=_cmd_bench)
     _add_view_commands(commands)
     return parser
@@ -734,7 +735,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             started.append(True)
             _print_note(args)
             _say(f"bench: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), duration {args.duration:g} s")
-        _say(line)
+        if args.verbose:  # one line per run; the default report is the header and the summary
+            _say(line)
 
     failure: ms.BenchInterrupted | None = None
     with _SigtermAsInterrupt() as signals:
