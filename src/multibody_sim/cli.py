@@ -21,6 +21,7 @@ from types import FrameType
 from typing import Any, NoReturn
 
 import multibody_sim as ms
+from multibody_sim import native
 from multibody_sim.safety import printable
 from multibody_sim.trajectory import plain_data
 from multibody_sim.validation import check_options, positive_number, steps_per
@@ -58,6 +59,14 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         raise _UsageError(message)
+
+
+class _VersionAction(argparse.Action):
+    """--version: the package version, then the kernel line, printed as is (argparse's action rewraps lines)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: Any) -> NoReturn:
+        print(f"{PROG} {_version()}\nkernel: {native.kernel()}")
+        parser.exit()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -120,7 +129,12 @@ def _build_parser() -> _Parser:
         epilog="Exit codes: 0 success, 1 the simulation failed (partial samples written to --out), "
         "2 bad input, 130 / 143 interrupted by SIGINT / SIGTERM (partial samples written to --out).",
     )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    parser.add_argument(
+        "--version",
+        action=_VersionAction,
+        nargs=0,
+        help="show the version and which stepping kernel runs (native C++, or Python and why), then exit",
+    )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     robot_options = _Parser(add_help=False)

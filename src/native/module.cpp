@@ -19,8 +19,7 @@
 #include <pinocchio/algorithm/aba.hpp>
 #include <pinocchio/algorithm/joint-configuration.hpp>
 #include <pinocchio/config.hpp>
-#include <pinocchio/src/serialization/model.hxx>
-#include <pinocchio/serialization/archive.hpp>
+#include <pinocchio/serialization.hpp>
 
 #include "model.hpp"
 
