@@ -23,7 +23,15 @@ from typing import Any, NoReturn
 import multibody_sim as ms
 from multibody_sim.safety import printable
 from multibody_sim.trajectory import plain_data
-from multibody_sim.validation import check_options, positive_number, steps_per
+from multibody_sim.validation import (
+    check_options,
+    frame_rate,
+    playback_speed,
+    port_number,
+    positive_count,
+    positive_number,
+    run_numbers,
+)
 
 PROG = "multibody-sim"
 COMMANDS = ("run", "models", "inspect", "integrators", "bench", "play", "plot", "export")
@@ -507,6 +515,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     """The run command; fills `document` (when given) with the run's description and summary as data."""
+    playback_speed(args.view_speed, "--view-speed")
+    port_number(args.view_port, "--view-port")
     out = _check_out(args.out) if args.out else None
     robot = _load(args)
     scene = robot if isinstance(robot, ms.Scene) else None
@@ -647,20 +657,16 @@ def _configuration(robot: Any, words: list[str]) -> Any:
 def _check_run_arguments(robot: Any, method: Any, duration: Any, dt: Any, options: dict[str, Any]) -> None:
     """What simulate() would refuse, checked before the header is printed (dt None: chosen later, by a pilot).
 
-    The same checks, with the same messages, as simulate()'s: bad input prints one line and nothing else.
+    The same checks (validation.py), with the same messages, as simulate()'s: bad input prints one line and
+    nothing else.
     """
     positive_number(duration, "duration")
     if dt is None:
         return
-    positive_number(dt, "dt")
+    if method.adaptive:  # the command line's default tolerances, unless given
+        options = {"rtol": ADAPTIVE_RTOL, "atol": ADAPTIVE_ATOL, **options}
     check_options(method, options)
-    if method.adaptive:
-        for name in ("rtol", "atol", "max_step", "output_dt", "control_dt"):
-            if options.get(name) is not None:
-                positive_number(options[name], name, "units" if name in ("rtol", "atol") else "seconds")
-    else:
-        for name in ("output_dt", "control_dt"):
-            steps_per(options.get(name), dt, name)
+    run_numbers(method.adaptive, duration, dt, options)
     method.check_system(robot)
 
 
@@ -910,9 +916,10 @@ def _cmd_integrators(args: argparse.Namespace) -> int:
 def _cmd_play(args: argparse.Namespace) -> int:
     viz = _viz()
     html = _check_output(args.html, "--html", "view.html") if args.html else None
-    for option, value in (("--fps", args.fps), ("--speed", args.speed)):
-        if not (math.isfinite(value) and value > 0):
-            raise _UsageError(f"{option} must be a positive number, got {value:g}")
+    if not args.video:  # a video's frame rate has its own range per format (checked with the video's options)
+        frame_rate(args.fps, "--fps")
+    playback_speed(args.speed, "--speed")
+    port_number(args.port, "--port")
     video = _check_video(args) if args.video else None
     trajectory = ms.Trajectory.load(args.trajectory)
     try:
@@ -1041,8 +1048,6 @@ def _viz() -> Any:
 def _open_viewer(robot: Any, host: str, port: int | None, speed: float, q0: Any = None) -> Any:
     """Start the meshcat viewer before the work (bad options and missing packages fail first), showing q0."""
     viz = _viz()
-    if not (math.isfinite(speed) and speed > 0):
-        raise _UsageError(f"the playback speed must be a positive number, got {speed:g}")
     try:
         with _viewer_warnings(viz):
             viewer = viz.Viewer(robot, host=host, port=port, announce=False)
@@ -1137,12 +1142,9 @@ def _error(message: str, code: int = EXIT_BAD_INPUT) -> int:
 
 def _positive_int(text: str) -> int:
     try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive whole number, got '{text}'") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive whole number, got '{text}'")
-    return value
+        return positive_count(int(text), "N")
+    except ValueError:  # not a whole number, or out of range (InvalidArgumentError is a ValueError)
+        raise argparse.ArgumentTypeError(f"expected a whole number from 1 to 2**53, got '{text}'") from None
 
 
 def _check_out(name: str) -> Path:

@@ -23,7 +23,7 @@ from .metadata import run_metadata
 from .recording import COUNTERS, SampleStore, check_memory, samples_needed
 from .step_control import SLIVER, ConstantStep, PIController
 from .trajectory import LimitViolations, Trajectory, chunk_path, combine_limit_violations, merge_parts
-from .validation import positive_number, steps_per
+from .validation import run_numbers, step_count
 
 # Energy blow-up: |energy_error| beyond this many times the run's energy scale is divergence, not error.
 BLOWUP_FACTOR = 1e3
@@ -318,26 +318,25 @@ class RunSettings:
 
     @classmethod
     def check(cls, method: Integrator, duration: float, dt: float, options: dict[str, Any]) -> RunSettings:
+        numbers = run_numbers(method.adaptive, duration, dt, options)
         if method.adaptive:
-            max_step = options.get("max_step")
-            output_dt, control_dt = options.get("output_dt"), options.get("control_dt")
             return cls(
-                duration,
-                dt,
+                numbers["duration"],
+                numbers["dt"],
                 True,
-                rtol=positive_number(options["rtol"], "rtol", "units"),
-                atol=positive_number(options["atol"], "atol", "units"),
-                max_step=positive_number(max_step, "max_step") if max_step is not None else math.inf,
-                output_dt=positive_number(output_dt, "output_dt") if output_dt is not None else None,
-                control_dt=positive_number(control_dt, "control_dt") if control_dt is not None else None,
+                rtol=numbers["rtol"],
+                atol=numbers["atol"],
+                max_step=numbers.get("max_step", math.inf),
+                output_dt=numbers.get("output_dt"),
+                control_dt=numbers.get("control_dt"),
             )
         return cls(
-            duration,
-            dt,
+            numbers["duration"],
+            numbers["dt"],
             False,
-            output_every=steps_per(options.get("output_dt"), dt, "output_dt"),
-            control_every=steps_per(options.get("control_dt"), dt, "control_dt"),
-            n_steps=n_steps(duration, dt),
+            output_every=numbers["output_every"],
+            control_every=numbers["control_every"],
+            n_steps=numbers["n_steps"],
         )
 
     @property
@@ -365,7 +364,7 @@ class RunSettings:
 
 def n_steps(duration: float, dt: float) -> int:
     """Fixed steps of dt in a run of `duration`, the last one shortened (a sliver of round-off is no step)."""
-    return max(1, math.ceil(duration / dt - SLIVER))
+    return step_count(duration, dt, SLIVER)
 
 
 class Run:

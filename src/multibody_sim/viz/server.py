@@ -16,6 +16,8 @@ import warnings
 from collections.abc import Callable
 from typing import Any
 
+from ..exceptions import InvalidArgumentError
+from ..validation import port_number
 from ._deps import ViewerWarning, meshcat_viewer_js, require
 from .page import live_page
 from .scene import pack
@@ -44,6 +46,9 @@ class MeshcatServer:
     """
 
     def __init__(self, host: str = DEFAULT_HOST, port: int | None = None, *, title: str = "multibody-sim"):
+        if not isinstance(host, str):
+            raise InvalidArgumentError(f"host must be an address such as {DEFAULT_HOST!r}, got {type(host).__name__}")
+        port = port_number(port)
         tornado_web = require("tornado.web", "the meshcat viewer")
         tornado_websocket = require("tornado.websocket", "the meshcat viewer")
         tornado_netutil = require("tornado.netutil", "the meshcat viewer")
