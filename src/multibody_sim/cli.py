@@ -21,7 +21,7 @@ from types import FrameType
 from typing import Any, NoReturn
 
 import multibody_sim as ms
-from multibody_sim.safety import printable
+from multibody_sim.safety import printable, safe_name, terminal_text
 from multibody_sim.trajectory import plain_data
 from multibody_sim.validation import (
     check_options,
@@ -469,7 +469,7 @@ def _print_note(args: argparse.Namespace) -> None:
     """The note _is_scene left, on stderr: printed once bad input can no longer be the next line."""
     note = getattr(args, "note", None)
     if note:
-        print(note, file=sys.stderr, flush=True)
+        _print(note, sys.stderr)
         args.note = None
 
 
@@ -574,7 +574,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
             # Printed (and flushed) with the handlers in place, just before stepping: a watcher may signal
             # as soon as it reads this line.
             _say(
-                f"run: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
+                f"run: {safe_name(robot.name)} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
                 f"dt {args.dt:g} s{tolerances}, duration {args.duration:g} s"
                 + (f", controller {args.controller}" if controller is not None else "")
             )
@@ -636,7 +636,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     # The stepping loop cannot tell which signal raised the KeyboardInterrupt; our handler can.
     name = signals.received or "SIGINT"
     where = str(failure) or "interrupted before the first step"
-    print(f"{PROG}: {name}: {where}; {kept}", file=sys.stderr)
+    _print(f"{PROG}: {name}: {printable(where)}; {kept}", sys.stderr)
     return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
 
 
@@ -740,7 +740,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if not started:
             started.append(True)
             _print_note(args)
-            _say(f"bench: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), duration {args.duration:g} s")
+            _say(
+                f"bench: {safe_name(robot.name)} ({base} base, nq {robot.nq}, nv {robot.nv}), "
+                f"duration {args.duration:g} s"
+            )
         if args.verbose:  # one line per run; the default report is the header and the summary
             _say(line)
 
@@ -760,7 +763,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if failure is None:
         return EXIT_OK
     name = signals.received or "SIGINT"
-    print(f"{PROG}: {name}: {failure}; partial results written to {out}", file=sys.stderr)
+    _print(f"{PROG}: {name}: {printable(str(failure))}; partial results written to {out}", sys.stderr)
     return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
 
 
@@ -779,13 +782,13 @@ def _check_out_dir(name: str) -> Path:
 
 def _cmd_models(args: argparse.Namespace) -> int:
     rows = ms.catalog_table()
-    print(
+    _print(
         _table(
             ["name", "nq", "nv", "base", "poses", "description"],
             [[r["name"], r["nq"], r["nv"], r["base"], _poses_cell(r), r["description"]] for r in rows],
         )
     )
-    print(
+    _print(
         "\nposes: the SRDF's named poses (run ROBOT --q0 NAME); * marks the default pose, where runs start; "
         "- none: runs start from the neutral configuration"
     )
@@ -794,12 +797,12 @@ def _cmd_models(args: argparse.Namespace) -> int:
 
     scenes = shipped_scenes()
     if scenes:
-        print(f"\nscenes (run one with `{PROG} run NAME`; the files are in {next(iter(scenes.values())).parent}):")
+        _print(f"\nscenes (run one with `{PROG} run NAME`; the files are in {next(iter(scenes.values())).parent}):")
         scene_rows = [[name, read_scene_file(path).description] for name, path in scenes.items()]
-        print(_table(["name", "description"], scene_rows, indent=2))
+        _print(_table(["name", "description"], scene_rows, indent=2))
     both = sorted(set(scenes) & set(ms.CATALOG))
     if both:
-        print(
+        _print(
             f"\n{', '.join(both)}: both a robot and a scene; run, inspect and bench take the scene "
             f"(robot:{both[0]} for the robot alone)"
         )
@@ -824,22 +827,22 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     robot = _load(args)
     _print_note(args)
     if isinstance(robot, ms.Scene):
-        print(robot.describe())
-        print(_savings(robot))
-        print()
+        _print(robot.describe())
+        _print(_savings(robot))
+        _print()
     model = robot.model
     entry = ms.CATALOG.get(args.robot)
-    lines = [f"{robot.name}" + (f": {entry.description}" if entry is not None else "")]
+    lines = [safe_name(robot.name) + (f": {entry.description}" if entry is not None else "")]
     source = robot.source
     derived = {"sdf": " (SDF, converted to URDF)"}.get(source.get("derivation", ""), "")
     if source.get("derivation", "").startswith("prune:"):
-        derived = f" (without the subtree below {source['derivation'].removeprefix('prune:')})"
-    lines += [f"URDF: {source.get('urdf_path')}{derived}", f"sha256: {source.get('urdf_sha256')}"]
+        derived = f" (without the subtree below {safe_name(source['derivation'].removeprefix('prune:'))})"
+    lines += [f"URDF: {safe_name(source.get('urdf_path'))}{derived}", f"sha256: {source.get('urdf_sha256')}"]
     base = "floating (free-flyer root joint)" if robot.floating_base else "fixed (root link welded to the world)"
     lines += [f"base: {base}", f"nq: {robot.nq}  nv: {robot.nv}"]
     if robot.poses:
-        named = ", ".join(f"{p} (default)" if p == robot.default_pose_name else p for p in robot.poses)
-        lines.append(f"poses: {named} (from {source.get('srdf_path')})")
+        named = ", ".join(safe_name(p) + (" (default)" if p == robot.default_pose_name else "") for p in robot.poses)
+        lines.append(f"poses: {named} (from {safe_name(source.get('srdf_path'))})")
     else:
         lines.append("poses: none (runs start from the neutral configuration)")
     welded = float(model.inertias[0].mass)
@@ -893,7 +896,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
         "bodies (links joined by fixed joints are merged):",
         _table(["moved by joint", "mass [kg]", "links"], body_rows, indent=2),
     ]
-    print("\n".join(lines))
+    _print("\n".join(lines))
     return EXIT_OK
 
 
@@ -907,9 +910,9 @@ def _cmd_integrators(args: argparse.Namespace) -> int:
         rows.append([name, method.order, evaluations, ", ".join(flags) or "-", method.description])
         if method.notes:
             notes.append(f"  {name}: {method.notes}")
-    print(_table(["name", "order", "evaluations/step", "flags", "description"], rows))
+    _print(_table(["name", "order", "evaluations/step", "flags", "description"], rows))
     if notes:
-        print("\nnotes:\n" + "\n".join(notes))
+        _print("\nnotes:\n" + "\n".join(notes))
     return EXIT_OK
 
 
@@ -942,7 +945,10 @@ def _cmd_play(args: argparse.Namespace) -> int:
             viewer.animate(trajectory, fps=args.fps, speed=args.speed)
             if args.plot:
                 viewer.show_plot(trajectory)
-            _say(f"play: {robot.name}, {len(trajectory)} samples, t = {trajectory.t[0]:g}..{trajectory.t[-1]:g} s")
+            _say(
+                f"play: {safe_name(robot.name)}, {len(trajectory)} samples, "
+                f"t = {trajectory.t[0]:g}..{trajectory.t[-1]:g} s"
+            )
             _say(f"view: open {viewer.url} in a browser (time slider under Open Controls > Animations); Ctrl-C to quit")
             _wait_for_interrupt()
         finally:
@@ -1071,7 +1077,7 @@ def _viewer_warnings(viz: Any) -> Iterator[None]:
         finally:
             for warning in caught:
                 if issubclass(warning.category, viz.ViewerWarning):
-                    print(f"{PROG}: warning: {warning.message}", file=sys.stderr)
+                    _print(f"{PROG}: warning: {printable(str(warning.message))}", sys.stderr)
                 else:  # someone else's: shown as Python would have
                     warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
 
@@ -1135,8 +1141,8 @@ def _check_output(name: str, option: str, example: str) -> Path:
 # ---- helpers -----------------------------------------------------------------------------------------
 def _error(message: str, code: int = EXIT_BAD_INPUT) -> int:
     """Print one line on stderr and return the exit code."""
-    # Names in messages may come from untrusted files: escape control characters, keep it to one line.
-    print(f"{PROG}: error: {printable(' '.join(message.splitlines()))}", file=sys.stderr)
+    # Names in messages may come from untrusted files: control characters and line breaks escaped visibly.
+    print(f"{PROG}: error: {printable(message)}", file=sys.stderr)
     return code
 
 
@@ -1224,16 +1230,22 @@ def _joint_kind(shortname: str) -> str:
 
 def _table(headers: list[str], rows: list[list[Any]], indent: int = 0) -> str:
     """Left-aligned columns separated by two spaces."""
-    cells = [[str(c) for c in row] for row in [headers, *rows]]
+    cells = [[safe_name(c) for c in row] for row in [headers, *rows]]  # names from files: one line each
     widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
     pad = " " * indent
     return "\n".join(pad + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in cells)
 
 
+def _print(text: str = "", file: Any = None) -> None:
+    """Print the program's text: its own line breaks kept, every other unprintable character escaped (names in it
+    come from files: safe_name escapes them where they are inserted, this is the last defence)."""
+    print(terminal_text(text), file=file or sys.stdout, flush=True)
+
+
 def _say(text: str) -> None:
     """Print a run's progress; a reader that left (`| head`) must not cost the run or its file."""
     try:
-        print(text, flush=True)
+        _print(text)
     except BrokenPipeError:
         _discard_stdout()
 
