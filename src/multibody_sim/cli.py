@@ -178,7 +178,8 @@ def _build_parser() -> _Parser:
         action="append",
         default=[],
         help="a further folder mesh paths may resolve into, besides the URDF's folder and the package "
-        "folders (repeat the option for several)",
+        "folders; for a scene file, a further folder its robot file and package_dirs may lie in, besides its own "
+        "folder and the catalog's (repeat the option for several)",
     )
 
     run = commands.add_parser(
@@ -481,14 +482,14 @@ def _load(args: argparse.Namespace) -> Any:
                 ("--floating-base/--fixed-base", args.floating_base is not None),
                 ("--no-damping", args.no_damping),
                 ("--package-dir", args.package_dir),
-                ("--allow-root", args.allow_root),
                 ("--srdf", args.srdf),
             )
             if value
         ]
         if given:
             raise _UsageError(f"{', '.join(given)}: a scene declares its robot: set this in its [robot] table")
-        return ms.load_scene(args.robot)
+        # --allow-root is the user's own say: a scene from elsewhere reads only its folder and the catalog's
+        return ms.load_scene(args.robot, allowed_roots=args.allow_root or None)
     if args.report_savings:
         raise _UsageError("--report-savings applies to scene files (.toml): a robot alone has nothing to save")
     return ms.load_robot(

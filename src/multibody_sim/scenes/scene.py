@@ -489,7 +489,11 @@ def _load_robot(spec: SceneSpec) -> Robot:
     floating = None if r.base is None else r.base == "floating"
     try:
         return load_robot(
-            r.source, floating_base=floating, damping=r.damping, package_dirs=list(r.package_dirs) or None
+            r.source,
+            floating_base=floating,
+            damping=r.damping,
+            package_dirs=list(r.package_dirs) or None,
+            allowed_roots=list(spec.allowed_roots) or None,
         )
     except InvalidArgumentError as exc:
         raise SceneError(f"{spec.source}: robot.source: {exc}") from None
@@ -719,4 +723,6 @@ def _scene_source(spec: SceneSpec) -> dict[str, Any]:
         source["spec"] = repr(dataclasses.replace(spec, text=None))
     if spec.base_dir is not None:
         source["base_dir"] = os.fspath(spec.base_dir)
+    if spec.allowed_roots:  # recorded only when given (a replay needs them)
+        source["allowed_roots"] = list(spec.allowed_roots)
     return source
