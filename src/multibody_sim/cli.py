@@ -281,8 +281,9 @@ def _build_parser() -> _Parser:
     view.add_argument(
         "--view",
         action="store_true",
-        help="after the run, play it in a meshcat page served on 127.0.0.1 (the URL is printed; the playback "
-        "starts when a browser opens it)",
+        help="watch the run live in a meshcat page served on 127.0.0.1: the URL is printed and the run starts "
+        "when a browser opens it; after the run the page keeps the recording until Ctrl-C when run from a "
+        "terminal (otherwise the viewer closes at the end and says so)",
     )
     view.add_argument(
         "--view-speed", metavar="X", type=float, default=1.0, help="playback speed, 1 = real time (default: 1)"
@@ -1104,6 +1105,11 @@ def _watch(viewer: Any, trajectory: Any, args: argparse.Namespace) -> None:
         if _interactive():  # someone at a terminal may still want the page; a script wants the exit
             _say("view: played; the page keeps the recording (time slider under Open Controls); Ctrl-C to quit")
             _wait_for_interrupt()
+        else:
+            _say(
+                "view: played; the viewer closes now, as stdin is not a terminal (run from a terminal to keep the "
+                "page open until Ctrl-C)"
+            )
     except KeyboardInterrupt:
         pass  # the run is complete and saved: closing the viewer is the normal way out
     finally:
