@@ -205,6 +205,24 @@ class Monitor:
         self.scale[rows] = energies[:, 0] + np.abs(energies[:, 1]) + self.system.energy_scale
         self.started[rows] = True
 
+    def suspects(self, store: SampleStore, rows: list[int], start: int, limits: list[int]) -> list[int]:
+        """The rows among `rows` that may have a problem among their samples start..limit-1: every row that
+        first_problem() would flag, and maybe a few more (judged at half the bound, all rows at once)."""
+        stop = max(limits, default=start)
+        if stop <= start:
+            return []
+        E = store.ENERGY[start:stop, rows]
+        total = E[..., 0] + E[..., 1]
+        flows = store.FLOWS[start:stop, rows]
+        work = flows[..., self.is_work].sum(axis=-1)
+        dissipated = flows[..., ~self.is_work].sum(axis=-1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            error = total - self.initial[rows] - work + dissipated
+            bound = 0.5 * BLOWUP_FACTOR * (self.scale[rows] + np.abs(work))
+            bad = ~np.isfinite(total) | (np.abs(error) > bound) | (dissipated > bound)
+        inside = np.arange(stop - start)[:, None] < np.array(limits)[None, :] - start
+        return [rows[j] for j in np.flatnonzero((bad & inside).any(axis=0)).tolist()]
+
     def first_problem(self, store: SampleStore, b: int, start: int, stop: int) -> tuple[int, str, bool] | None:
         """(sample index, what, whether the sample is kept) of row b's first problem among samples start..stop-1,
         or None."""
@@ -520,11 +538,15 @@ class Run:
             fresh = [b for b in rows if not monitor.started[b] and store.samples_of(b)]
             if fresh:
                 monitor.start(np.array(fresh), store.ENERGY[0, fresh])
+        limits = {}
         for b in rows:
             stop = stops.get(b)
             end = store.samples_of(b)
-            limit = end if stop is None or not stop.added else stop.sample  # a stop's own last sample is not judged
-            problem = monitor.first_problem(store, b, self.checked, limit)
+            limits[b] = end if stop is None or not stop.added else stop.sample  # a stop's own last sample: not judged
+        suspects = set(monitor.suspects(store, rows, self.checked, list(limits.values())))
+        for b in rows:
+            stop = stops.get(b)
+            problem = monitor.first_problem(store, b, self.checked, limits[b]) if b in suspects else None
             if problem is not None:
                 i, what, keep = problem
                 t = store.T[i, b]

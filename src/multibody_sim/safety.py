@@ -32,6 +32,10 @@ MAX_NPZ_MEMBERS = 4096  # a trajectory has ~11 arrays plus one per ledger elemen
 MAX_EXPANSION = 100
 MIN_BUDGET_BYTES = 256 * 1024 * 1024
 MAX_HEADER_BYTES = 10_000  # np.load's own default limit on an .npy header
+# A trajectory's JSON header nests 5 deep (header > metadata > robot > load_robot > package_dirs); json.loads
+# recurses once per level and raises RecursionError near 1000, so deeper documents are refused before parsing.
+MAX_JSON_DEPTH = 64
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
 _READABLE_COMPRESSION = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
 _END_OF_DIRECTORY = b"PK\x05\x06"
 _END_RECORD_SIZE = 22  # the fixed part of zip's end-of-central-directory record; a comment (<= 64 KiB) may follow
@@ -93,6 +97,15 @@ def terminal_text(text: str) -> str:
 def _escape(char: str) -> str:
     code = ord(char)
     return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}"
+
+
+def json_depth(text: str) -> int:
+    """How deep a JSON text nests its arrays and objects, counted without parsing it (no recursion: linear time,
+    whatever the text; brackets inside strings do not count)."""
+    skeleton = _JSON_STRING.sub('""', text).encode("utf-8", "replace")
+    codes = np.frombuffer(skeleton, dtype=np.uint8)
+    steps = np.isin(codes, (ord("["), ord("{"))).astype(np.int64) - np.isin(codes, (ord("]"), ord("}")))
+    return int(np.cumsum(steps).max(initial=0))
 
 
 def npz_budget(file_size: int) -> int:
