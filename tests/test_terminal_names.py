@@ -108,6 +108,15 @@ def test_run_json_keeps_names_exact_and_escaped(hostile_urdf: Path, capfd: pytes
     ).replace("&#x202e;", "\u202e").replace("&#x2066;", "\u2066").replace("&#x200e;", "\u200e")
 
 
+@pytest.mark.filterwarnings("error:Glyph")
+def test_plot_figure_escapes_names(hostile_urdf: Path, capfd: pytest.CaptureFixture[str], tmp_path: Path):
+    out_file = tmp_path / "run.npz"
+    assert run_cli(capfd, "run", str(hostile_urdf), "--duration", "0.01", "--out", str(out_file))[0] == 0
+    code, out, err = run_cli(capfd, "plot", str(out_file), "--out", str(tmp_path / "p.png"))
+    assert code == 0, err
+    assert_escaped(out, err)
+
+
 def test_failed_run_and_errors_escape_names(hostile_urdf: Path, capfd: pytest.CaptureFixture[str], tmp_path: Path):
     code, out, err = run_cli(capfd, "run", str(hostile_urdf), "--q0", "nan")
     assert code == 2 and out == ""
@@ -121,7 +130,8 @@ def test_failed_run_and_errors_escape_names(hostile_urdf: Path, capfd: pytest.Ca
     assert JOINT_SHOWN in err  # the valid names are listed, escaped
 
 
-def test_bench_table_escapes_names(hostile_urdf: Path, capfd: pytest.CaptureFixture[str], tmp_path: Path):
+@pytest.mark.filterwarnings("error:Glyph")  # matplotlib warns (quoting the raw character) of glyphs a title lacks
+def test_bench_table_and_figure_escape_names(hostile_urdf: Path, capfd: pytest.CaptureFixture[str], tmp_path: Path):
     argv = ["bench", str(hostile_urdf), "--integrators", "euler,rk4", "--duration", "0.02", "--out", str(tmp_path)]
     code, out, err = run_cli(capfd, *argv)
     assert code == 0, err

@@ -1090,7 +1090,7 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
     for ax in axes:
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=7, loc="best")
-    fig.suptitle(title or f"{result.system}: work-precision over {result.duration:g} s (dashed: adaptive)")
+    fig.suptitle(title or f"{safe_name(result.system)}: work-precision over {result.duration:g} s (dashed: adaptive)")
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
