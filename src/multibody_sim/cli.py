@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import difflib
-import importlib.metadata
 import io
 import json
 import math
@@ -120,7 +119,7 @@ def _build_parser() -> _Parser:
         epilog="Exit codes: 0 success, 1 the simulation failed (partial samples written to --out), "
         "2 bad input, 130 / 143 interrupted by SIGINT / SIGTERM (partial samples written to --out).",
     )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    parser.add_argument("--version", action=_VersionAction)
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     robot_options = _Parser(add_help=False)
@@ -427,7 +426,20 @@ def _add_server_options(group: Any, prefix: str) -> None:
     )
 
 
+class _VersionAction(argparse.Action):
+    """argparse's "version" action, with the version looked up only when asked for (--help need not pay for it)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, **kwargs: Any):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help="show the version and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: Any, **kwargs: Any) -> NoReturn:
+        print(f"{parser.prog} {_version()}")
+        parser.exit()
+
+
 def _version() -> str:
+    import importlib.metadata  # here: `--help` and every command need not pay for it
+
     try:
         return importlib.metadata.version("multibody-sim")
     except importlib.metadata.PackageNotFoundError:
