@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import tempfile
 import zipfile
 from dataclasses import asdict, dataclass, field
@@ -13,8 +14,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .exceptions import TrajectoryFileError
-from .safety import ARCHIVE_ERRORS, check_npz, read_npz
+from .exceptions import InvalidArgumentError, TrajectoryFileError
+from .safety import ARCHIVE_ERRORS, MAX_JSON_DEPTH, check_npz, json_depth, printable, read_npz, safe_name
+from .validation import sample_times
 
 FORMAT = "multibody-sim trajectory"
 FORMAT_VERSION = 1
@@ -72,7 +74,7 @@ class LimitViolations:
         if not self.count:
             return "no position-limit violations"
         return (
-            f"{self.count} position-limit violations in {self.samples} samples; worst: '{self.worst_joint}' "
+            f"{self.count} position-limit violations in {self.samples} samples; worst: '{safe_name(self.worst_joint)}' "
             f"{self.worst_excess:.3g} outside its limit at t = {self.worst_time:.6g} s"
         )
 
@@ -171,12 +173,12 @@ class Trajectory:
             worst = max(dofs, key=dofs.get) if dofs else "?"
             lines.append(
                 f"torque saturated at the effort limits in {s['saturated_controls']} of {s.get('controller_calls', 0)} "
-                f"controller calls (most often '{worst}')"
+                f"controller calls (most often '{safe_name(worst)}')"
             )
         for name, record in self.constraints.items():
             if len(record.drift):
                 lines.append(
-                    f"constraint '{name}': max drift {_max_abs(record.drift):.3g}, max velocity drift "
+                    f"constraint '{safe_name(name)}': max drift {_max_abs(record.drift):.3g}, max velocity drift "
                     f"{_max_abs(record.velocity_drift):.3g}, max |force| {_max_abs(record.force):.3g}"
                 )
         lines.append(self.limit_violations.describe())
@@ -317,44 +319,38 @@ class Trajectory:
 
     @classmethod
     def _from_arrays(cls, contents: dict[str, np.ndarray], path: Path) -> Trajectory:
-        try:
-            header = json.loads(str(contents["header"][()]))
-        except (KeyError, ValueError, TypeError):
-            raise TrajectoryFileError(f"{path}: not a multibody-sim trajectory (no valid header)") from None
-        if not isinstance(header, dict) or header.get("format") != FORMAT:
-            raise TrajectoryFileError(f"{path}: not a multibody-sim trajectory (wrong format tag)")
-        if header.get("format_version") != FORMAT_VERSION:
-            raise TrajectoryFileError(
-                f"{path}: trajectory format version {header.get('format_version')!r} is not supported "
-                f"(this version reads {FORMAT_VERSION})"
-            )
+        header = _read_header(contents, path)
         missing = [name for name in ARRAYS if name not in contents]
         if missing:
             raise TrajectoryFileError(f"{path}: trajectory file lacks arrays: {', '.join(missing)}")
         n = contents["t"].shape[0] if contents["t"].ndim == 1 else -1
         for name in ARRAYS:
             arr = contents[name]
-            if arr.dtype.kind != "f" or arr.ndim not in (1, 2) or arr.shape[0] != n:
+            ndim = 2 if name in _PER_DOF else 1
+            if arr.dtype.kind != "f" or arr.ndim != ndim or arr.shape[0] != n:
                 raise TrajectoryFileError(
                     f"{path}: array '{name}' has shape {arr.shape} and dtype {arr.dtype}, inconsistent with {n} samples"
                 )
-        for key in ("stats", "ledger_kinds", "limit_violations", "metadata"):
-            if not isinstance(header.get(key, {}), dict):
-                raise TrajectoryFileError(f"{path}: malformed {key} in the header (expected a JSON object)")
-        kinds = header.get("ledger_kinds", {})
-        if not all(isinstance(name, str) and kind in LEDGER_KINDS for name, kind in kinds.items()):
-            raise TrajectoryFileError(
-                f"{path}: malformed ledger_kinds in the header (expected {', '.join(LEDGER_KINDS)})"
-            )
+        try:  # sample times from a file: finite and increasing (validation.py), or the file is refused
+            sample_times(contents["t"], "t")
+        except InvalidArgumentError as exc:
+            raise TrajectoryFileError(f"{path}: sample times: {exc}") from None
+        robot = header["metadata"].get("robot", {})
+        for name, size in (("q", "nq"), ("v", "nv"), ("tau", "nv")):
+            width = robot.get(size) if isinstance(robot, dict) else None
+            if width is not None and contents[name].shape[1:] != (width,):
+                raise TrajectoryFileError(
+                    f"{path}: array '{name}' has shape {contents[name].shape}, but the metadata's robot has "
+                    f"{size} = {printable(repr(width))}"
+                )
+        kinds = header["ledger_kinds"]
         ledger = {}
         for name, kind in kinds.items():
             key = _LEDGER_PREFIX + name
             if key not in contents or contents[key].shape != (n,):
-                raise TrajectoryFileError(f"{path}: ledger entry '{name}' is missing or has the wrong shape")
+                raise TrajectoryFileError(f"{path}: ledger entry '{printable(name)}' is missing or has the wrong shape")
             ledger[name] = LedgerEntry(kind=kind, energy=contents[key])
-        names = header.get("constraints", [])
-        if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
-            raise TrajectoryFileError(f"{path}: malformed constraints in the header (expected a list of names)")
+        names = header["constraints"]
         constraints = {}
         for name in names:
             parts = [
@@ -370,20 +366,18 @@ class Trajectory:
                 or drift.shape != (n,)
                 or velocity_drift.shape != (n,)
             ):
-                raise TrajectoryFileError(f"{path}: constraint record '{name}' is missing or has the wrong shape")
+                raise TrajectoryFileError(
+                    f"{path}: constraint record '{printable(name)}' is missing or has the wrong shape"
+                )
             constraints[name] = ConstraintRecord(force, drift, velocity_drift)
-        try:
-            violations = LimitViolations(**header.get("limit_violations", {}))
-        except TypeError:
-            raise TrajectoryFileError(f"{path}: malformed limit_violations in the header") from None
         return cls(
             **{name: contents[name] for name in ARRAYS},
             ledger=ledger,
             constraints=constraints,
-            limit_violations=violations,
-            stats=dict(header.get("stats", {})),
-            status=str(header.get("status", "unknown")),
-            metadata=dict(header.get("metadata", {})),
+            limit_violations=LimitViolations(**header["limit_violations"]),
+            stats=dict(header["stats"]),
+            status=header["status"],
+            metadata=dict(header["metadata"]),
         )
 
     @classmethod
@@ -414,6 +408,99 @@ class Trajectory:
             status=last.status if last.status != "running" else "incomplete",
             metadata=last.metadata,
         )
+
+
+_PER_DOF = ("q", "v", "tau")
+# What the header's fields must hold (a file from a stranger is read, not trusted): the stats' counters are whole
+# numbers, its times and errors numbers; a status is one lowercase word.
+_STATS_COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls")
+_STATS_NUMBERS = ("wall_time", "max_abs_energy_error")
+_STATUS = re.compile(r"[a-z_]{1,40}")
+_VIOLATION_FIELDS: dict[str, tuple[tuple[type, ...], str]] = {
+    "count": ((int,), "a whole number"),
+    "samples": ((int,), "a whole number"),
+    "worst_joint": ((str, type(None)), "a joint name or null"),
+    "worst_excess": ((int, float), "a number"),
+    "worst_time": ((int, float, type(None)), "a number or null"),
+}
+
+
+def _read_header(contents: dict[str, np.ndarray], path: Path) -> dict[str, Any]:
+    """The file's JSON header, every field the loader and summary() use checked for its type.
+
+    Raises:
+        TrajectoryFileError: no header, a header nested deeper than MAX_JSON_DEPTH (refused before parsing: json
+            recurses per level), or a field of the wrong type (one line naming the field).
+    """
+    try:
+        text = str(contents["header"][()])
+    except (KeyError, ValueError, TypeError, IndexError):
+        raise TrajectoryFileError(f"{path}: not a multibody-sim trajectory (no valid header)") from None
+    depth = json_depth(text)
+    if depth > MAX_JSON_DEPTH:
+        raise TrajectoryFileError(
+            f"{path}: refused: its header nests {depth} levels deep, more than the {MAX_JSON_DEPTH} a trajectory "
+            "header may"
+        )
+    try:
+        header = json.loads(text)
+    except (ValueError, RecursionError):
+        raise TrajectoryFileError(f"{path}: not a multibody-sim trajectory (no valid header)") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        raise TrajectoryFileError(f"{path}: not a multibody-sim trajectory (wrong format tag)")
+    if header.get("format_version") != FORMAT_VERSION:
+        raise TrajectoryFileError(
+            f"{path}: trajectory format version {printable(repr(header.get('format_version')))[:40]} is not "
+            f"supported (this version reads {FORMAT_VERSION})"
+        )
+
+    def malformed(key: str, expected: str) -> TrajectoryFileError:
+        return TrajectoryFileError(f"{path}: malformed {key} in the header (expected {expected})")
+
+    for key in ("stats", "ledger_kinds", "limit_violations", "metadata"):
+        header.setdefault(key, {})
+        if not isinstance(header[key], dict):
+            raise malformed(key, "a JSON object")
+    status = header.setdefault("status", "unknown")
+    if not isinstance(status, str) or not _STATUS.fullmatch(status):
+        raise malformed("status", "one lowercase word such as completed or interrupted")
+    stats = header["stats"]
+    for key in _STATS_COUNTS:
+        if key in stats and not _is_int(stats[key]):
+            raise malformed(f"stats.{key}", "a whole number")
+    for key in _STATS_NUMBERS:
+        if key in stats and not _is_number(stats[key]):
+            raise malformed(f"stats.{key}", "a number")
+    dofs = stats.get("saturated_dofs", {})
+    if not isinstance(dofs, dict) or not all(_is_int(count) for count in dofs.values()):
+        raise malformed("stats.saturated_dofs", "an object of whole numbers")
+    kinds = header["ledger_kinds"]
+    if not all(kind in LEDGER_KINDS for kind in kinds.values()):
+        raise malformed("ledger_kinds", ", ".join(LEDGER_KINDS))
+    names = header.setdefault("constraints", [])
+    if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
+        raise malformed("constraints", "a list of names")
+    violations = header["limit_violations"]
+    for key, value in violations.items():
+        if key not in _VIOLATION_FIELDS:
+            raise malformed("limit_violations", f"only the fields {', '.join(_VIOLATION_FIELDS)}")
+        types, expected = _VIOLATION_FIELDS[key]
+        if isinstance(value, bool) or not isinstance(value, types):
+            raise malformed(f"limit_violations.{key}", expected)
+    robot = header["metadata"].get("robot", {})
+    if isinstance(robot, dict):
+        for key in ("nq", "nv"):
+            if key in robot and not _is_int(robot[key]):
+                raise malformed(f"metadata.robot.{key}", "a whole number")
+    return header
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 PARTS_SUFFIX = ".parts"

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..robot import Robot
 from ..trajectory import Trajectory, write_atomically
+from ..validation import frame_rate, playback_speed
 from ._deps import check_viewer_dependencies, meshcat_viewer_js
 from .frames import DEFAULT_FPS, resample, robot_from_trajectory
 from .page import standalone_page
@@ -49,6 +50,7 @@ def export_html(
     Returns:
         The path written.
     """
+    fps, speed = frame_rate(fps), playback_speed(speed)
     check_viewer_dependencies()
     robot = robot_from_trajectory(trajectory) if robot is None else robot
     times, Q = resample(robot, trajectory, fps)
