@@ -35,11 +35,12 @@ from typing import Any
 import numpy as np
 
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
+from .files import write_atomically
 from .integrators import INTEGRATORS, Integrator, get_integrator
 from .metadata import versions
 from .robot import Robot
 from .simulation import simulate
-from .trajectory import Trajectory, write_atomically
+from .trajectory import Trajectory
 from .validation import positive_number
 
 FORMAT = "multibody-sim work-precision"

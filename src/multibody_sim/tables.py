@@ -20,8 +20,9 @@ from typing import Any
 import numpy as np
 
 from .exceptions import InvalidArgumentError, MissingDependencyError
+from .files import write_atomically
 from .robot import Robot
-from .trajectory import Trajectory, write_atomically
+from .trajectory import Trajectory
 
 TABLE_FORMATS = (".csv", ".parquet")
 ENERGY_COLUMNS = ("kinetic_energy", "potential_energy", "total_energy", "work", "dissipated", "energy_error")

@@ -9,8 +9,9 @@ from typing import Any
 
 import numpy as np
 
+from ..files import write_atomically
 from ..robot import Robot
-from ..trajectory import Trajectory, write_atomically
+from ..trajectory import Trajectory
 from ._deps import check_viewer_dependencies, meshcat_viewer_js
 from .frames import DEFAULT_FPS, resample, robot_from_trajectory
 from .page import standalone_page

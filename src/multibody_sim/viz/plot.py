@@ -14,8 +14,9 @@ from typing import Any
 import numpy as np
 
 from ..exceptions import ModelError, TrajectoryFileError, UnknownNameError
+from ..files import write_atomically
 from ..robot import Robot
-from ..trajectory import Trajectory, write_atomically
+from ..trajectory import Trajectory
 from ._deps import require
 
 PANEL_HEIGHT = 2.4  # [in]
