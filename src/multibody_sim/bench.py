@@ -1093,8 +1093,7 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
     fig.suptitle(title or f"{result.system}: work-precision over {result.duration:g} s (dashed: adaptive)")
     fig.tight_layout()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    write_atomically(path, lambda f: fig.savefig(f, dpi=110, format=path.suffix.lstrip(".") or "png"))
     plt.close(fig)
     return path
 

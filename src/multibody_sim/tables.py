@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from .exceptions import InvalidArgumentError, MissingDependencyError
-from .files import write_atomically
+from .files import check_output, write_atomically
 from .robot import Robot
 from .trajectory import Trajectory
 
@@ -109,6 +109,7 @@ def write_table(
     """
     target = Path(path)
     suffix = check_table_format(target, format)
+    check_output(target, "out", f"table{suffix}")  # before the work: only a regular file is replaced
     pandas = _require("pandas", "CSV and Parquet files")
     columns = column_names(trajectory, robot)
     frames = (

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ..files import write_atomically
+from ..files import check_output, write_atomically
 from ..robot import Robot
 from ..trajectory import Trajectory
 from ._deps import check_viewer_dependencies, meshcat_viewer_js
@@ -50,6 +50,7 @@ def export_html(
     Returns:
         The path written.
     """
+    check_output(path, "out", "view.html")  # before the work: only a regular file is replaced
     check_viewer_dependencies()
     robot = robot_from_trajectory(trajectory) if robot is None else robot
     times, Q = resample(robot, trajectory, fps)

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..exceptions import ModelError, TrajectoryFileError, UnknownNameError
-from ..files import write_atomically
+from ..files import check_output, write_atomically
 from ..robot import Robot
 from ..trajectory import Trajectory
 from ._deps import require
@@ -72,6 +72,8 @@ def plot_trajectory(
     Raises:
         UnknownNameError: a name in `joints` is not a joint of the robot (the message lists close matches).
     """
+    if path is not None:
+        check_output(path, "out", "plot.png")  # before drawing: only a regular file is replaced
     figure_module = require("matplotlib.figure", "plots")
     t = np.asarray(trajectory.t, dtype=float)
     series, base, root = _joint_series(trajectory, robot)
