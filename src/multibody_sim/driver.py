@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from .core import EMPTY, FULL, REACHED, Core, RowKernel, Sampler, cure_for_dt
-from .exceptions import ControllerOutputError, InvalidArgumentError, MultibodySimError
+from .exceptions import ControllerOutputError, InvalidArgumentError, MultibodySimError, TrajectoryFileError
 from .files import signals_held
 from .integrators import Integrator
 from .integrators.batch import BatchRungeKutta, batch_kernel_supported
@@ -763,14 +763,19 @@ class Run:
             interrupted = True
             if not sink.parts.exists():  # the merge was complete when the signal was delivered
                 return Kept(Trajectory.load(out, mmap=True), out, interrupted=True)
-        except (OSError, MemoryError) as exc:
+        except (OSError, MemoryError, TrajectoryFileError) as exc:  # TrajectoryFileError: check_parts refused
             sink.write_error = sink.write_error or exc
         return self._kept_in_parts(b, interrupted)
 
     def _kept_in_parts(self, b: int, interrupted: bool) -> Kept:
         """A chunked run whose parts could not be merged: its samples are the parts' and those still in memory."""
         sink = self.sink
-        pieces = [Trajectory.load(sink.parts)] if sink.written else []
+        pieces = []
+        if sink.written:
+            try:
+                pieces.append(Trajectory.load(sink.parts))
+            except TrajectoryFileError:  # a stranger's chunk in the folder: the message names it (write_error)
+                sink.samples = 0
         if self.store.samples_of(b):
             pieces.append(self.trajectory(b))
         traj = Trajectory.concatenate(pieces) if pieces else self.trajectory(b)
@@ -792,6 +797,8 @@ def describe_error(exc: BaseException) -> str:
     """An OSError or MemoryError in a few words: "No space left on device", "File too large", "out of memory"."""
     if isinstance(exc, MemoryError):
         return "out of memory"
+    if isinstance(exc, TrajectoryFileError):
+        return str(exc)
     if isinstance(exc, OSError) and exc.strerror:
         return exc.strerror
     return str(exc) or type(exc).__name__

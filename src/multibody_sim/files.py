@@ -136,6 +136,42 @@ def signals_held(mode: Literal["finish", "abort"]) -> Iterator[Hold]:
             signal.raise_signal(received[0])
 
 
+class SigtermAsInterrupt:
+    """While a run with an output steps, a SIGTERM that nothing handles (its default action would kill the process
+    with the samples in memory and a half-written file) raises KeyboardInterrupt instead, so that the run stops as
+    on Ctrl-C and keeps its samples; on exit, once they are written, SIGTERM is delivered again with its default
+    action: the process still terminates, and loses nothing.
+
+    Attributes:
+        received: whether SIGTERM arrived.
+    """
+
+    def __init__(self) -> None:
+        self.received = False
+        self._active = False
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        first = not self.received
+        self.received = True
+        if first:  # one interrupt; a second SIGTERM while the samples are written is the same request
+            raise KeyboardInterrupt
+
+    def __enter__(self) -> SigtermAsInterrupt:
+        if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) in (
+            signal.SIG_DFL,
+            None,
+        ):
+            signal.signal(signal.SIGTERM, self._handle)
+            self._active = True
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._active:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            if self.received:
+                signal.raise_signal(signal.SIGTERM)
+
+
 # ---- atomic writes ----------------------------------------------------------------------------------------
 @contextlib.contextmanager
 def atomic_path(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -11,7 +12,7 @@ import numpy as np
 
 from .driver import Run, RunSettings, Sink, Torques, stop_error
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
-from .files import RunLock, check_output, check_unlocked
+from .files import RunLock, SigtermAsInterrupt, check_output, check_unlocked
 from .integrators import Integrator, get_integrator
 from .progress import ProgressBar
 from .robot import Robot
@@ -95,57 +96,65 @@ def simulate(
         reset()  # a stateful controller starts every run afresh
     bar = ProgressBar(progress, duration, "s", "simulate", seconds=True)
     lock = RunLock(sink.out) if sink.out is not None else None
-    if lock is not None:
-        lock.acquire()  # two runs never write the same out; released however this run ends
-        sink.run_id = lock.run_id
-    try:
-        run = Run(
-            system=system,
-            method=method,
-            Q0=q0[None, :],
-            V0=v0[None, :],
-            settings=settings,
-            torques=Torques.single(controller),
-            sink=sink,
-            on_sample=on_sample,
-            progress=bar if bar.active else None,
-            options=options,
-        )
+    # With an output, an unhandled SIGTERM stops the run like Ctrl-C (the samples written, the lock released),
+    # then terminates the process as it would have.
+    term = SigtermAsInterrupt() if lock is not None else None
+    with term if term is not None else contextlib.nullcontext():
+        if lock is not None:
+            lock.acquire()  # two runs never write the same out; released however this run ends
+            sink.run_id = lock.run_id
         try:
-            run.execute()
-        except KeyboardInterrupt:
+            run = Run(
+                system=system,
+                method=method,
+                Q0=q0[None, :],
+                V0=v0[None, :],
+                settings=settings,
+                torques=Torques.single(controller),
+                sink=sink,
+                on_sample=on_sample,
+                progress=bar if bar.active else None,
+                options=options,
+            )
+            try:
+                run.execute()
+            except KeyboardInterrupt:
+                kept = run.finish()
+                traj = kept.trajectory
+                steps = run.stats(0)["steps"]
+                raise SimulationInterrupted(
+                    f"interrupted at t = {traj.t[-1] if len(traj) else 0.0:.6g} s (step {steps}); {len(traj)} samples "
+                    f"kept" + (f"; {kept.problem}" if kept.problem else ""),
+                    trajectory=traj,
+                    saved_to=kept.saved_to,
+                    signal_name="SIGTERM" if term is not None and term.received else "SIGINT",
+                ) from None
+            finally:
+                bar.close()
+            outcome = run.outcomes[0]
             kept = run.finish()
             traj = kept.trajectory
-            steps = run.stats(0)["steps"]
-            raise SimulationInterrupted(
-                f"interrupted at t = {traj.t[-1] if len(traj) else 0.0:.6g} s (step {steps}); {len(traj)} samples "
-                f"kept" + (f"; {kept.problem}" if kept.problem else ""),
-                trajectory=traj,
-                saved_to=kept.saved_to,
-            ) from None
+            if kept.interrupted:  # the signal came while the samples were being written: they were written first
+                raise SimulationInterrupted(
+                    f"interrupted while writing the samples, after the run {outcome.status} at t = "
+                    f"{traj.t[-1] if len(traj) else 0.0:.6g} s; {len(traj)} samples kept"
+                    + (f"; {kept.problem}" if kept.problem else ""),
+                    trajectory=traj,
+                    saved_to=kept.saved_to,
+                )
+            if outcome.status != "completed":
+                raise stop_error(outcome, traj, problem=kept.problem, saved_to=kept.saved_to) from outcome.cause
+            if kept.problem:
+                raise SimulationError(
+                    f"the run completed, but {kept.problem}",
+                    status="write_failed",
+                    trajectory=traj,
+                    saved_to=kept.saved_to,
+                )
+            return traj
         finally:
-            bar.close()
-        outcome = run.outcomes[0]
-        kept = run.finish()
-        traj = kept.trajectory
-        if kept.interrupted:  # the signal came while the samples were being written: they were written first
-            raise SimulationInterrupted(
-                f"interrupted while writing the samples, after the run {outcome.status} at t = "
-                f"{traj.t[-1] if len(traj) else 0.0:.6g} s; {len(traj)} samples kept"
-                + (f"; {kept.problem}" if kept.problem else ""),
-                trajectory=traj,
-                saved_to=kept.saved_to,
-            )
-        if outcome.status != "completed":
-            raise stop_error(outcome, traj, problem=kept.problem, saved_to=kept.saved_to) from outcome.cause
-        if kept.problem:
-            raise SimulationError(
-                f"the run completed, but {kept.problem}", status="write_failed", trajectory=traj, saved_to=kept.saved_to
-            )
-        return traj
-    finally:
-        if lock is not None:
-            lock.release()
+            if lock is not None:
+                lock.release()
 
 
 def make_sink(out: str | os.PathLike[str] | None, chunk: Any) -> Sink:
