@@ -39,6 +39,7 @@ from .files import write_atomically
 from .integrators import INTEGRATORS, Integrator, get_integrator
 from .metadata import versions
 from .robot import Robot
+from .safety import safe_name
 from .simulation import simulate
 from .trajectory import Trajectory
 from .validation import positive_number
@@ -408,7 +409,7 @@ class WorkPrecision:
     def summary(self, tolerances: Sequence[float] = (1e-2, 1e-4, 1e-6, 1e-8)) -> str:
         """What the `bench` command prints: the reference, the orders and the recommendations."""
         lines = [
-            f"work-precision study of {self.system}: {self.duration:g} s, error = max over samples every "
+            f"work-precision study of {safe_name(self.system)}: {self.duration:g} s, error = max over samples every "
             f"{self.output_dt:g} s of |(q ⊖ q_ref, v − v_ref)|∞"
             + ("" if self.complete else " (INTERRUPTED: partial results)")
         ]
@@ -1090,7 +1091,7 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
     for ax in axes:
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=7, loc="best")
-    fig.suptitle(title or f"{result.system}: work-precision over {result.duration:g} s (dashed: adaptive)")
+    fig.suptitle(title or f"{safe_name(result.system)}: work-precision over {result.duration:g} s (dashed: adaptive)")
     fig.tight_layout()
     path = Path(path)
     write_atomically(path, lambda f: fig.savefig(f, dpi=110, format=path.suffix.lstrip(".") or "png"))

@@ -587,8 +587,8 @@ def load_robot(
             raise InvalidArgumentError(f"{flag} must be {allowed or 'True or False'}, got {value!r}")
     if srdf is not None and not isinstance(srdf, (str, os.PathLike)):
         raise InvalidArgumentError(f"srdf must be a path to an SRDF file, got {type(srdf).__name__}")
-    dirs = _folders("package_dirs", package_dirs)
-    extra_roots = _folders("allowed_roots", allowed_roots)
+    dirs = folder_list("package_dirs", package_dirs)
+    extra_roots = folder_list("allowed_roots", allowed_roots)
     name = os.fspath(source).removeprefix(ROBOT_PREFIX)  # the prefix only says "the robot, not the scene"
     arguments: dict[str, Any] = {
         "source": name,
@@ -933,7 +933,7 @@ def reduce_configuration(full: pin.Model, reduced: pin.Model, q: np.ndarray) -> 
     return out
 
 
-def _folders(argument: str, folders: Any) -> list[Path]:
+def folder_list(argument: str, folders: Any) -> list[Path]:
     """The resolved folders of a package_dirs / allowed_roots argument, or InvalidArgumentError."""
     if folders is None:
         return []

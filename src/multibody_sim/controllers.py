@@ -27,6 +27,7 @@ from scipy.interpolate import CubicSpline
 
 from .exceptions import InvalidArgumentError, UnknownNameError
 from .robot import Robot
+from .safety import safe_name
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 
@@ -330,7 +331,8 @@ class ComputedTorque:
             return "computed torque: not called"
         worst = int(np.argmax(np.abs(log.position_error).max(axis=0)))
         return (
-            f"computed torque: max tracking error {log.max_position_error:.3g} (in '{self.robot.dof_names[worst]}'), "
+            f"computed torque: max tracking error {log.max_position_error:.3g} "
+            f"(in '{safe_name(self.robot.dof_names[worst])}'), "
             f"max velocity error {log.max_velocity_error:.3g}, over {len(log.t)} controller calls"
         )
 

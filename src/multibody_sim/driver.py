@@ -32,7 +32,7 @@ from .trajectory import (
     merge_parts,
     write_chunk,
 )
-from .validation import positive_number, steps_per
+from .validation import run_numbers, step_count
 
 # Energy blow-up: |energy_error| beyond this many times the run's energy scale is divergence, not error.
 BLOWUP_FACTOR = 1e3
@@ -214,6 +214,24 @@ class Monitor:
         self.scale[rows] = energies[:, 0] + np.abs(energies[:, 1]) + self.system.energy_scale
         self.started[rows] = True
 
+    def suspects(self, store: SampleStore, rows: list[int], start: int, limits: list[int]) -> list[int]:
+        """The rows among `rows` that may have a problem among their samples start..limit-1: every row that
+        first_problem() would flag, and maybe a few more (judged at half the bound, all rows at once)."""
+        stop = max(limits, default=start)
+        if stop <= start:
+            return []
+        E = store.ENERGY[start:stop, rows]
+        total = E[..., 0] + E[..., 1]
+        flows = store.FLOWS[start:stop, rows]
+        work = flows[..., self.is_work].sum(axis=-1)
+        dissipated = flows[..., ~self.is_work].sum(axis=-1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            error = total - self.initial[rows] - work + dissipated
+            bound = 0.5 * BLOWUP_FACTOR * (self.scale[rows] + np.abs(work))
+            bad = ~np.isfinite(total) | (np.abs(error) > bound) | (dissipated > bound)
+        inside = np.arange(stop - start)[:, None] < np.array(limits)[None, :] - start
+        return [rows[j] for j in np.flatnonzero((bad & inside).any(axis=0)).tolist()]
+
     def first_problem(self, store: SampleStore, b: int, start: int, stop: int) -> tuple[int, str, bool] | None:
         """(sample index, what, whether the sample is kept) of row b's first problem among samples start..stop-1,
         or None."""
@@ -356,26 +374,25 @@ class RunSettings:
 
     @classmethod
     def check(cls, method: Integrator, duration: float, dt: float, options: dict[str, Any]) -> RunSettings:
+        numbers = run_numbers(method.adaptive, duration, dt, options)
         if method.adaptive:
-            max_step = options.get("max_step")
-            output_dt, control_dt = options.get("output_dt"), options.get("control_dt")
             return cls(
-                duration,
-                dt,
+                numbers["duration"],
+                numbers["dt"],
                 True,
-                rtol=positive_number(options["rtol"], "rtol", "units"),
-                atol=positive_number(options["atol"], "atol", "units"),
-                max_step=positive_number(max_step, "max_step") if max_step is not None else math.inf,
-                output_dt=positive_number(output_dt, "output_dt") if output_dt is not None else None,
-                control_dt=positive_number(control_dt, "control_dt") if control_dt is not None else None,
+                rtol=numbers["rtol"],
+                atol=numbers["atol"],
+                max_step=numbers.get("max_step", math.inf),
+                output_dt=numbers.get("output_dt"),
+                control_dt=numbers.get("control_dt"),
             )
         return cls(
-            duration,
-            dt,
+            numbers["duration"],
+            numbers["dt"],
             False,
-            output_every=steps_per(options.get("output_dt"), dt, "output_dt"),
-            control_every=steps_per(options.get("control_dt"), dt, "control_dt"),
-            n_steps=n_steps(duration, dt),
+            output_every=numbers["output_every"],
+            control_every=numbers["control_every"],
+            n_steps=numbers["n_steps"],
         )
 
     @property
@@ -403,7 +420,7 @@ class RunSettings:
 
 def n_steps(duration: float, dt: float) -> int:
     """Fixed steps of dt in a run of `duration`, the last one shortened (a sliver of round-off is no step)."""
-    return max(1, math.ceil(duration / dt - SLIVER))
+    return step_count(duration, dt, SLIVER)
 
 
 class Run:
@@ -566,11 +583,15 @@ class Run:
             fresh = [b for b in rows if not monitor.started[b] and store.samples_of(b)]
             if fresh:
                 monitor.start(np.array(fresh), store.ENERGY[0, fresh])
+        limits = {}
         for b in rows:
             stop = stops.get(b)
             end = store.samples_of(b)
-            limit = end if stop is None or not stop.added else stop.sample  # a stop's own last sample is not judged
-            problem = monitor.first_problem(store, b, self.checked, limit)
+            limits[b] = end if stop is None or not stop.added else stop.sample  # a stop's own last sample: not judged
+        suspects = set(monitor.suspects(store, rows, self.checked, list(limits.values())))
+        for b in rows:
+            stop = stops.get(b)
+            problem = monitor.first_problem(store, b, self.checked, limits[b]) if b in suspects else None
             if problem is not None:
                 i, what, keep = problem
                 t = store.T[i, b]

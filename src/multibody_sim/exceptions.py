@@ -26,7 +26,10 @@ class UnknownNameError(MultibodySimError, LookupError):
     """A name (robot, integrator, ...) is not in its registry; the message lists close matches."""
 
     def __str__(self) -> str:  # LookupError would quote the message like a dict key
-        return str(self.args[0]) if self.args else ""
+        # The names it lists may come from a file (joints, frames, poses): escaped, one line.
+        from .safety import printable
+
+        return printable(str(self.args[0])) if self.args else ""
 
 
 class RobotNotFoundError(UnknownNameError):

@@ -27,7 +27,7 @@ from .progress import ProgressBar
 from .recording import find_limit_violations, split_records
 from .robot import Robot, real_array
 from .trajectory import ARRAYS, ConstraintRecord, LedgerEntry, LimitViolations, Trajectory
-from .validation import check_options, positive_number
+from .validation import check_options, positive_count, positive_number
 
 _RECORD_PARTS = ("force", "drift", "velocity_drift")  # a ConstraintRecord's arrays
 _COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls")
@@ -218,12 +218,9 @@ def rollout(
     dt = positive_number(dt, "dt")
     if backend not in _BACKENDS:
         raise InvalidArgumentError(f"backend must be one of {', '.join(_BACKENDS)}, got {backend!r}")
-    if isinstance(num_threads, bool) or not isinstance(num_threads, (int, np.integer)) or num_threads < 1:
-        raise InvalidArgumentError(f"num_threads must be a positive whole number, got {num_threads!r}")
-    if chunk_size is not None and (
-        isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1
-    ):
-        raise InvalidArgumentError(f"chunk_size must be a positive whole number of elements, got {chunk_size!r}")
+    num_threads = positive_count(num_threads, "num_threads")
+    if chunk_size is not None:
+        chunk_size = positive_count(chunk_size, "chunk_size", "elements")
     if progress is not None and not isinstance(progress, bool):
         raise InvalidArgumentError(f"progress must be True, False or None, got {progress!r}")
     method.check_system(system)

@@ -17,7 +17,7 @@ from .integrators import Integrator, get_integrator
 from .progress import ProgressBar
 from .robot import Robot
 from .trajectory import PARTS_SUFFIX, Trajectory
-from .validation import check_callable, check_options, positive_number
+from .validation import check_callable, check_options, positive_count, positive_number
 
 
 class Controller(Protocol):
@@ -171,8 +171,7 @@ def make_sink(out: str | os.PathLike[str] | None, chunk: Any) -> Sink:
     if chunk is not None:
         if path is None:
             raise InvalidArgumentError("chunk needs out: the chunks are streamed to out.npz.parts/ and merged")
-        if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
-            raise InvalidArgumentError(f"chunk must be a positive whole number of samples, got {chunk!r}")
+        chunk = positive_count(chunk, "chunk", "samples")
         parts = path.with_name(path.name + PARTS_SUFFIX)
         if parts.exists():
             raise InvalidArgumentError(f"{parts} already exists (a previous chunked run's parts): move it first")

@@ -17,7 +17,15 @@ from .robot import Robot
 from .simulation import Controller
 from .step_control import SLIVER, ConstantStep, PIController
 from .trajectory import LedgerEntry, Trajectory
-from .validation import check_callable, check_options, finite_number, positive_number, steps_per
+from .validation import (
+    check_callable,
+    check_options,
+    check_ratio,
+    finite_number,
+    positive_number,
+    relative_tolerance,
+    steps_per,
+)
 
 _ADAPTIVE_OPTIONS = ("atol", "max_step", "rtol")
 
@@ -109,7 +117,7 @@ class Stepper:
         self.options = dict(options)
         self._adaptive = method.adaptive
         if self._adaptive:
-            self._rtol = positive_number(options["rtol"], "rtol", "units")
+            self._rtol = relative_tolerance(options["rtol"])
             self._atol = positive_number(options["atol"], "atol", "units")
             max_step = options.get("max_step")
             self._max_step = positive_number(max_step, "max_step") if max_step is not None else math.inf
@@ -333,6 +341,8 @@ class Stepper:
         if t_end < now:
             raise InvalidArgumentError(f"t must not be before the current time {now!r} s, got {t_end!r} s")
         check_callable(controller, "controller", "controller(t, q, v)")
+        if t_end > now:  # the control instants up to t_end are counted: their number must stay exact
+            check_ratio(t_end - now, self.control_dt, "(t - current time)", "control_dt")
         while self.t < t_end:
             snapshot = self._snapshot()
             if controller is not None:

@@ -13,9 +13,10 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .exceptions import TrajectoryFileError
+from .exceptions import InvalidArgumentError, TrajectoryFileError
 from .files import write_atomically
-from .safety import ARCHIVE_ERRORS, MAX_JSON_DEPTH, check_npz, json_depth, printable, read_npz
+from .safety import ARCHIVE_ERRORS, MAX_JSON_DEPTH, check_npz, json_depth, printable, read_npz, safe_name
+from .validation import sample_times
 
 FORMAT = "multibody-sim trajectory"
 FORMAT_VERSION = 1
@@ -73,7 +74,7 @@ class LimitViolations:
         if not self.count:
             return "no position-limit violations"
         return (
-            f"{self.count} position-limit violations in {self.samples} samples; worst: '{self.worst_joint}' "
+            f"{self.count} position-limit violations in {self.samples} samples; worst: '{safe_name(self.worst_joint)}' "
             f"{self.worst_excess:.3g} outside its limit at t = {self.worst_time:.6g} s"
         )
 
@@ -172,12 +173,12 @@ class Trajectory:
             worst = max(dofs, key=dofs.get) if dofs else "?"
             lines.append(
                 f"torque saturated at the effort limits in {s['saturated_controls']} of {s.get('controller_calls', 0)} "
-                f"controller calls (most often '{worst}')"
+                f"controller calls (most often '{safe_name(worst)}')"
             )
         for name, record in self.constraints.items():
             if len(record.drift):
                 lines.append(
-                    f"constraint '{name}': max drift {_max_abs(record.drift):.3g}, max velocity drift "
+                    f"constraint '{safe_name(name)}': max drift {_max_abs(record.drift):.3g}, max velocity drift "
                     f"{_max_abs(record.velocity_drift):.3g}, max |force| {_max_abs(record.force):.3g}"
                 )
         lines.append(self.limit_violations.describe())
@@ -341,6 +342,10 @@ class Trajectory:
                 raise TrajectoryFileError(
                     f"{path}: array '{name}' has shape {arr.shape} and dtype {arr.dtype}, inconsistent with {n} samples"
                 )
+        try:  # sample times from a file: finite and increasing (validation.py), or the file is refused
+            sample_times(contents["t"], "t")
+        except InvalidArgumentError as exc:
+            raise TrajectoryFileError(f"{path}: sample times: {exc}") from None
         robot = header["metadata"].get("robot", {})
         for name, size in (("q", "nq"), ("v", "nv"), ("tau", "nv")):
             width = robot.get(size) if isinstance(robot, dict) else None

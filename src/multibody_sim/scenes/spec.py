@@ -280,6 +280,8 @@ class SceneSpec:
         source: the name used in messages (the file path as given, or "<scene>").
         text: the scene file's text (for trajectory metadata); None for a dict.
         base_dir: the folder relative paths were resolved against (the scene file's); None for a dict.
+        allowed_roots: further folders the robot's files and meshes may come from (load_scene's allowed_roots,
+            the command line's --allow-root), besides the scene's folder and the catalog.
     """
 
     robot: RobotSpec
@@ -298,6 +300,7 @@ class SceneSpec:
     source: str = "<scene>"
     text: str | None = None
     base_dir: Path | None = None
+    allowed_roots: tuple[str, ...] = ()
 
 
 # ---- reading -------------------------------------------------------------------------------------------

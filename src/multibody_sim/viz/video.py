@@ -10,7 +10,6 @@ from __future__ import annotations
 import asyncio
 import base64
 import io
-import math
 import os
 import shutil
 import sys
@@ -26,6 +25,7 @@ from ..exceptions import InvalidArgumentError, MissingDependencyError
 from ..files import atomic_path, check_output
 from ..robot import Robot
 from ..trajectory import Trajectory
+from ..validation import playback_speed
 from ._deps import check_viewer_dependencies, require
 from .export import page_title, recording_page
 from .frames import resample, robot_from_trajectory
@@ -165,8 +165,7 @@ def check_video_options(
             if isinstance(fps, (int, float))
             else f"{prefix}fps must be a number, got {fps!r}"
         )
-    if isinstance(speed, bool) or not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed > 0):
-        raise InvalidArgumentError(f"{prefix}speed must be a positive number, got {speed!r}")
+    playback_speed(speed, f"{prefix}speed")
     for name, value in (("width", width), ("height", height)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
             raise InvalidArgumentError(f"{prefix}{name} must be a whole number of pixels, got {value!r}")
