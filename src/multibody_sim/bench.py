@@ -33,12 +33,13 @@ from typing import Any
 import numpy as np
 
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
+from .files import write_atomically
 from .integrators import INTEGRATORS, Integrator, get_integrator
 from .metadata import versions
 from .robot import Robot
 from .safety import safe_name
 from .simulation import simulate
-from .trajectory import Trajectory, write_atomically
+from .trajectory import Trajectory
 from .validation import positive_number
 
 FORMAT = "multibody-sim work-precision"
@@ -1095,8 +1096,7 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
     fig.suptitle(title or f"{safe_name(result.system)}: work-precision over {result.duration:g} s (dashed: adaptive)")
     fig.tight_layout()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    write_atomically(path, lambda f: fig.savefig(f, dpi=110, format=path.suffix.lstrip(".") or "png"))
     plt.close(fig)
     return path
 
