@@ -346,7 +346,7 @@ class Scene(Robot):
         else:
             kinetic, potential = super().unchecked_energies(q, v)
         if self.elements is not None and self.elements.potentials:
-            potential += float(self.elements.potential_energies(q[None, :]).sum(axis=1)[0])  # as rows_energies
+            potential += float(self.elements.potential_energies(q).sum())  # the same sum as rows_energies' per row
         return kinetic, potential
 
     def rows_energies(self, Q: np.ndarray, V: np.ndarray) -> np.ndarray:

@@ -14,9 +14,10 @@ from typing import Any
 import numpy as np
 
 from ..exceptions import ModelError, TrajectoryFileError, UnknownNameError
+from ..files import check_output, write_atomically
 from ..robot import Robot
 from ..safety import safe_name
-from ..trajectory import Trajectory, write_atomically
+from ..trajectory import Trajectory
 from ._deps import require
 
 PANEL_HEIGHT = 2.4  # [in]
@@ -72,6 +73,8 @@ def plot_trajectory(
     Raises:
         UnknownNameError: a name in `joints` is not a joint of the robot (the message lists close matches).
     """
+    if path is not None:
+        check_output(path, "out", "plot.png")  # before drawing: only a regular file is replaced
     figure_module = require("matplotlib.figure", "plots")
     t = np.asarray(trajectory.t, dtype=float)
     series, base, root = _joint_series(trajectory, robot)
