@@ -38,10 +38,12 @@ import numpy as np
 import pinocchio as pin
 
 from .base import Attempt, Integrator, System
+from .partitioned import SemiImplicitEuler
 
 MAX_ITERATIONS = 1000
 TOLERANCE = 1e-12  # absolute and relative feasibility and complementarity tolerances of the solvers
 ANDERSON_CAPACITY = 10
+_SEMI_IMPLICIT = SemiImplicitEuler()
 
 
 @dataclass
@@ -125,6 +127,14 @@ class TimeStepping(Integrator):
     def restart(self, system: System, q: np.ndarray, v: np.ndarray, state: Any) -> Any:
         """A new torque does not invalidate the impulses: the warm start and counts carry over."""
         return state if isinstance(state, ContactState) else self.init(system, q, v)
+
+    def jacobians(
+        self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, t: float
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Semi-implicit Euler's without contact; None with contact (the step is not differentiable there)."""
+        if getattr(system, "contact", None) is not None:
+            return None
+        return _SEMI_IMPLICIT.jacobians(system, q, v, tau, h, t)
 
     def solver_stats(self, state: Any) -> dict[str, int]:
         if not isinstance(state, ContactState):
