@@ -55,6 +55,9 @@ PENETRATION_CORRECTION = 0.2  # the fraction of a penetration pushed out per ste
 # Penetrations below this are left alone [m]: coal's box–plane distance is off by ~5e-12 m, and pushing that out
 # would jitter resting stacks at 1e-9 m/s.
 PENETRATION_SLOP = 1e-9
+# Position limits within this distance of q [rad or m] join the step's problem (speculatively): a joint faster than
+# LIMIT_MARGIN / dt (50 rad/s at 1 ms) may end a step past its limit, which the correction then undoes.
+LIMIT_MARGIN = 0.05
 TOUCHING = 1e-6  # [m]: a gap below this is a touching contact (restitution applies)
 # Cholesky regularization of the Delassus operator (keeps G's factorization defined on redundant contacts, such
 # as the 4 corners of a box on the ground: 12 rows on 6 dofs). Its effect on the impulses is ~1e-12 relative.
@@ -236,10 +239,15 @@ class ContactModel:
         self._limit_model: Any = None
         if self.limited_joints:
             self._limit_model = pin.JointLimitConstraintModel(model, pin.StdVec_Index(self.limited_joints))
+            self._limit_model.setPositionLimitAndMargin(
+                model.lowerPositionLimit, model.upperPositionLimit, np.full(model.nq, LIMIT_MARGIN)
+            )
         self._friction_model: Any = None
         if self.friction_joints:
             ids = pin.StdVec_Index([j for j, _ in self.friction_joints])
-            bound = np.array([f for _, f in self.friction_joints], dtype=float)
+            bound = np.zeros(model.nv)
+            for jid, force in self.friction_joints:
+                bound[model.joints[jid].idx_v] = force
             self._friction_model = pin.JointFrictionConstraintModel(model, ids, -bound, bound)
 
     # ---- what it models ----------------------------------------------------------------------------
@@ -364,16 +372,11 @@ class ContactModel:
         limit_rows = 0
         if self._limit_model is not None:
             limit = self._limit_model
-            limit.makeSelectionFilteredByLimitProximity(q)  # hmm
+            limit.makeSelectionFilteredByLimitProximity(q)  # the limits within LIMIT_MARGIN of q
             limit_rows = int(limit.residualSize())
             if limit_rows:
-                models.append(pin.ConstraintModel(limit))
-                keys.append(
-                    (
-                        "limits",
-                        tuple(limit.active_idx_in_activable) if hasattr(limit, "active_idx_in_activable") else (),
-                    )
-                )
+                models.append(pin.ConstraintModel(limit))  # a copy, with this step's selection
+                keys.append(("limits", *limit.active_idx_in_activable()))
                 sizes.append(limit_rows)
         friction_rows = 0
         if self._friction_model is not None:
@@ -385,6 +388,7 @@ class ContactModel:
         if not len(models):
             return None
         pin.crba(model, data, q, _WORLD)  # the decomposition needs CRBA in the WORLD convention (LOCAL: wrong G)
+        data.q_in = q  # the joint-limit constraint reads q there (CRBA does not set it)
         datas = pin.StdVec_ConstraintData()
         for cm in models:
             cd = cm.createData()
@@ -392,7 +396,7 @@ class ContactModel:
             datas.append(cd)
         cholesky = pin.ConstraintCholeskyDecomposition(model, data, models, datas)
         cholesky.compute(model, data, models, datas, DELASSUS_DAMPING)
-        jacobian = np.array(pin.getConstraintsJacobian(model, data, models, datas))
+        jacobian = np.array(pin.getConstraintsJacobian(model, data, models, datas)).reshape(-1, model.nv)
         g = jacobian @ v_free
         correction = np.zeros(len(g))
         restitution = np.zeros(len(g))
@@ -417,9 +421,13 @@ class ContactModel:
                     elif g[row] + bias < 0.0 and approach[c] < threshold:  # lands within this step
                         landings[pair] = min(landings.get(pair, 0.0), float(approach[c]))
                 g[row] += bias
-        start = 3 * len(points)
         if limit_rows:
-            g[start : start + limit_rows] += self._limit_bias(datas[len(points)], limit_rows, dt)
+            # The distance to each selected limit (negative beyond it), as a contact's gap: speculative inside,
+            # corrected beyond the slop.
+            rows = slice(3 * len(points), 3 * len(points) + limit_rows)
+            distance = np.array(datas[len(points)].extract().constraint_residual, dtype=float)
+            correction[rows] = PENETRATION_CORRECTION * np.minimum(distance + PENETRATION_SLOP, 0.0) / dt
+            g[rows] += np.where(distance >= 0.0, distance / dt, correction[rows])
         return ContactProblem(
             points=points,
             models=models,
@@ -436,15 +444,6 @@ class ContactModel:
             limit_rows=limit_rows,
             friction_rows=friction_rows,
         )
-
-    def _limit_bias(self, data: Any, rows: int, dt: float) -> np.ndarray:
-        """Position error of the active limit rows over dt (speculative below the bound, corrected beyond it)."""
-        error = (
-            np.array(data.constraint_residual, dtype=float)[:rows]
-            if hasattr(data, "constraint_residual")
-            else np.zeros(rows)
-        )
-        return np.where(error >= 0.0, error, PENETRATION_CORRECTION * error) / dt
 
     def inverse_mass_times(self, x: np.ndarray) -> np.ndarray:
         """M⁻¹ x at the latest problem's q (its CRBA and a sparse Cholesky of M in the contact's Data)."""
