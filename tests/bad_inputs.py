@@ -1122,6 +1122,7 @@ CATALOGUE: list[BadInput] = [
     ),
 ]
 
+
 # ---- trajectory headers, outputs, runs that end early, chunked parts (issue 17, the files part) --------------
 def edited_trajectory(edit: Callable[[dict[str, Any]], str | None]) -> Callable[[Path], Trigger]:
     """A real pendulum trajectory whose JSON header `edit` changes in place (or replaces: it returns the text)."""

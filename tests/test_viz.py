@@ -757,7 +757,11 @@ def test_play_without_meshcat_says_what_to_install(
 
 def test_run_view_refuses_a_bad_speed(capsys: pytest.CaptureFixture[str]) -> None:
     code, out, err = call(capsys, "run", "pendulum", "--view", "--view-speed", "-1")
-    assert (code, out, err) == (2, "", f"{PREFIX}the playback speed must be a positive number, got -1\n")
+    assert (code, out, err) == (
+        2,
+        "",
+        f"{PREFIX}--view-speed must be a number from 0.001 to 1000 (1 = real time), got -1\n",
+    )
 
 
 def test_play_serves_until_interrupted(

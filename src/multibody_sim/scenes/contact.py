@@ -47,6 +47,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..exceptions import SceneError
+from ..safety import safe_name
 
 # Gaps below this are contact candidates [m]: a pair closing faster than SPECULATIVE_MARGIN / dt (10 m/s at 1 ms)
 # may end a step inside each other, which the penetration correction then undoes.
@@ -276,9 +277,9 @@ class ContactModel:
             lines.append("  ground: none")
         robot_bodies = sorted({g.body for g in self.geometries if g.joint and g.body not in self._object_names})
         if robot_bodies:
-            lines.append("  robot collision geometry (declared): " + ", ".join(robot_bodies))
+            lines.append("  robot collision geometry (declared): " + ", ".join(map(safe_name, robot_bodies)))
         pairs = self.pair_names()
-        shown = ", ".join(f"{a}-{b}" for a, b in pairs[:12]) + (
+        shown = ", ".join(f"{safe_name(a)}-{safe_name(b)}" for a, b in pairs[:12]) + (
             f" (+{len(pairs) - 12} more)" if len(pairs) > 12 else ""
         )
         lines.append(f"  contact pairs: {shown if pairs else 'none'}")
