@@ -483,6 +483,22 @@ def _is_scene(args: argparse.Namespace) -> bool:
     return scene
 
 
+def _nothing_holds_it_up(robot: Any) -> str:
+    """The run header's line for a floating robot run without a scene: it falls, and which scene stands it up."""
+    from .scenes import shipped_scenes
+
+    standing = [name for name in shipped_scenes() if name.startswith(f"{robot.name}_") and "stand" in name]
+    cure = (
+        f"run the shipped scene {standing[0]} to stand it on the ground"
+        if standing
+        else "declare [ground] and [[contact.geometry]] in a scene to stand it on the ground"
+    )
+    return (
+        f"note: nothing holds {safe_name(robot.name)} up: without a scene there is no ground or contact, so its "
+        f"floating base falls; {cure}"
+    )
+
+
 def _print_note(args: argparse.Namespace) -> None:
     """The note _is_scene left, on stderr: printed once bad input can no longer be the next line."""
     note = getattr(args, "note", None)
@@ -568,6 +584,8 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     if controller is not None:
         options["controller"] = controller
     _print_note(args)
+    if scene is None and robot.floating_base:
+        _say(_nothing_holds_it_up(robot))
     if scene is not None:
         _say(scene.describe())
         if args.report_savings:
