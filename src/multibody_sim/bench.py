@@ -19,13 +19,11 @@ cheapest measured configuration whose error, plus the reference's own estimated 
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import hashlib
 import json
 import math
 import os
-import statistics
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -378,6 +376,8 @@ class WorkPrecision:
 
     def to_csv(self, path: str | os.PathLike[str]) -> Path:
         """Write one row per measurement as CSV, atomically (empty cells for missing values)."""
+        import csv  # here: `import multibody_sim` need not pay for what a study's files need
+
         rows = self.rows()
         buffer = _StringBuffer()
         writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, lineterminator="\n")
@@ -713,6 +713,8 @@ class _Study:
             again = self._simulate(method, dt, tolerance)
             m.cpu_times.append(time.process_time() - start)
             m.wall_times.append(float(again.stats["wall_time"]))
+        import statistics  # here: it pulls random and fractions into `import multibody_sim`
+
         m.cpu_time = statistics.median(m.cpu_times)
         m.wall_time = statistics.median(m.wall_times)
         m.steps = int(traj.stats["steps"])

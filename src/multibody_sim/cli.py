@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import difflib
-import importlib.metadata
 import io
 import json
 import math
@@ -454,6 +453,8 @@ def _add_server_options(group: Any, prefix: str) -> None:
 
 
 def _version() -> str:
+    import importlib.metadata  # here: `--help` and every command need not pay for it
+
     try:
         return importlib.metadata.version("multibody-sim")
     except importlib.metadata.PackageNotFoundError:

@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
-from scipy.interpolate import CubicSpline
 
 from .exceptions import InvalidArgumentError, UnknownNameError
 from .robot import Robot
@@ -276,6 +275,8 @@ class ComputedTorque:
         # Chart coordinates of each waypoint, accumulated leg by leg (each leg the short way round).
         steps = [pin.difference(self._model, points[i], points[i + 1]) for i in range(len(points) - 1)]
         chart = np.vstack([np.zeros(robot.nv), np.cumsum(steps, axis=0)])
+        from scipy.interpolate import CubicSpline  # here: SciPy would slow `import multibody_sim` by a third
+
         self.spline = CubicSpline(times, chart, axis=0, bc_type=bc_type)
         self._velocity, self._acceleration = self.spline.derivative(1), self.spline.derivative(2)
         self._damping = robot.damping if np.any(robot.damping) else None
