@@ -642,17 +642,17 @@ def rlimited(kind: str, size: int, *argv: str) -> subprocess.CompletedProcess[st
 
 
 def test_the_address_space_limit_is_honoured(tmp_path: Path) -> None:
-    """A run whose samples need ~1.2 GB, in a process allowed 256 MiB more than it has mapped (ulimit -v): refused
-    before any allocation, in one line naming that limit, not the machine's free memory."""
+    """A run whose samples need ~4 GB, in a process allowed 1 GiB more than it has mapped (ulimit -v; room for
+    the imports and threads a run starts): refused before any allocation, in one line naming that limit, not the
+    machine's free memory."""
     from multibody_sim.safety import memory_room
 
-    if memory_room().bytes < 4 * 2**30:
-        pytest.skip("needs 4 GiB available, so that the address-space limit is the one that binds")
-    # pendulum: 12 + nq + 3 nv + 2 elements = 20 columns of 8 bytes a sample: 7.5e6 samples = 1.2 GB
-    result = rlimited("as", 256 * MiB, "run", "pendulum", "--duration", "7500", "--dt", "0.001")
+    if memory_room().bytes < 8 * 2**30:
+        pytest.skip("needs 8 GiB available, so that the address-space limit is the one that binds")
+    result = rlimited("as", 1024 * MiB, "run", "pendulum", "--duration", "30000", "--dt", "0.001")
     assert result.returncode == 2, result.stderr
     assert re.fullmatch(
-        r"multibody-sim: error: this run would keep 7\.5e\+06 samples \([0-9.]+ GiB\) in memory, more than the "
+        r"multibody-sim: error: this run would keep 3e\+07 samples \([0-9.]+ GiB\) in memory, more than the "
         r"0\.\d+ GiB available \(this process's address-space limit \(ulimit -v\)\): sample less often \(output_dt\) "
         r"or stream to disk \(out= and chunk=; --chunk in the CLI\)\n",
         result.stderr,
