@@ -43,11 +43,15 @@ BLOCK_STEPS = 2048
 BLOCK_SAMPLES = 1024
 
 
+# A run whose contact solver stopped at its iteration cap on more than this fraction of its steps failed.
+SOLVER_FAILURE_FRACTION = 0.01
+
+
 # ---- torques -----------------------------------------------------------------------------------------------------
 def check_torque(system: Any, tau: Any, t: float | None, what: str = "controller output") -> np.ndarray:
     """tau as a float array (nv,) if it is a valid torque, else InvalidArgumentError naming the time and reason."""
     fast = type(tau) is np.ndarray and tau.dtype == np.float64 and tau.shape == (system.nv,)
-    if fast and math.isfinite(tau @ tau) and not (system.floating_base and tau[:6].any()):
+    if fast and math.isfinite(tau @ tau) and not system.unactuated_load(tau):
         return tau
     try:  # the full check, with the precise reason
         return system.check_tau(tau)
@@ -152,7 +156,8 @@ class Torques:
                 )
                 return np.zeros((n, nv)), [(j, error, True) for j in range(n)]
             TAU = np.array(out, dtype=float)
-            suspect = ~np.isfinite(TAU).all(axis=1) | (system.floating_base and TAU[:, :6].any(axis=1))
+            start, stop = system.actuated.start, system.actuated.stop
+            suspect = ~np.isfinite(TAU).all(axis=1) | TAU[:, :start].any(axis=1) | TAU[:, stop:].any(axis=1)
             for j in np.flatnonzero(suspect).tolist():
                 try:  # the full check, with the precise reason
                     system.check_tau(TAU[j])
@@ -725,6 +730,21 @@ class Run:
             outcome = self.outcomes[b]
             outcome.status, outcome.message = status, message
             outcome.counts = self._core_counts(b)
+            if status == "completed":
+                self._judge_solver(b)
+
+    def _judge_solver(self, b: int) -> None:
+        """A completed run whose contact solver stopped at its iteration cap on more than
+        SOLVER_FAILURE_FRACTION of the steps ends with status "solver_failed" (its samples kept)."""
+        stats = self.core.solver_stats.get(b, {})
+        unconverged, steps = stats.get("solver_unconverged", 0), self.outcomes[b].counts.get("steps", 0)
+        if steps and unconverged > SOLVER_FAILURE_FRACTION * steps:
+            outcome = self.outcomes[b]
+            outcome.status = "solver_failed"
+            outcome.message = (
+                f"solver_failed: the contact solver did not converge on {unconverged} of {steps} steps (more than "
+                f"{SOLVER_FAILURE_FRACTION:.0%}); each continued with the best impulses found; try a smaller dt"
+            )
 
     def _end(self, b: int, status: str, message: str, *, counts_at: int) -> None:
         outcome = self.outcomes[b]
@@ -747,6 +767,7 @@ class Run:
         dofs = self.system.dof_names
         return {
             **counts,
+            **self.core.solver_stats.get(b, {}),
             "controller_calls": int(self.controller_calls[b]),
             "saturated_controls": int(self.saturation.calls[b]),
             "saturated_dofs": {dofs[i]: int(n) for i, n in enumerate(self.saturation.dofs[b]) if n},
