@@ -21,7 +21,8 @@ from .files import signals_held
 from .integrators import Integrator
 from .integrators.batch import BatchRungeKutta, batch_kernel_supported
 from .metadata import run_metadata
-from .recording import COUNTERS, SampleStore, check_memory, samples_needed
+from .recording import COUNTERS, SampleStore, check_memory, file_bytes, samples_needed
+from .safety import check_file_size
 from .step_control import SLIVER, ConstantStep, PIController
 from .trajectory import (
     PARTS_SUFFIX,
@@ -423,6 +424,30 @@ class RunSettings:
         return -(-self.n_steps // self.control_every)
 
 
+def check_resources(system: Any, settings: RunSettings, sink: Sink, B: int = 1) -> None:
+    """Refuse, before the run, what this process could not hold or write: the samples in memory (or a chunk's
+    buffer) against usable_memory(), and the files against its file-size limit (check_file_sizes)."""
+    if sink.chunk is None:
+        check_memory(settings.capacity, system, B)
+    else:  # the chunk buffer is allocated whole
+        check_memory(sink.chunk, system, B, advice="choose a smaller chunk")
+    if sink.out is not None:
+        check_file_sizes(sink, settings, system)
+
+
+def check_file_sizes(sink: Sink, settings: RunSettings, system: Any) -> None:
+    """Refuse, before the run, files that this process's file-size limit (ulimit -f) would cut short: the chunk
+    files and the final file, where their sample counts are known (an adaptive run without output_dt: only the
+    chunks)."""
+    per_sample = file_bytes(system)
+    known = not settings.adaptive or settings.output_dt is not None
+    advice = "sample less often (output_dt) or raise the limit"
+    if known:
+        check_file_size(settings.capacity * per_sample, f"out {sink.out}", advice)
+    if sink.chunk is not None:
+        check_file_size(sink.chunk * per_sample, "a chunk file", "choose a smaller chunk or raise the limit")
+
+
 def n_steps(duration: float, dt: float) -> int:
     """Fixed steps of dt in a run of `duration`, the last one shortened (a sliver of round-off is no step)."""
     return step_count(duration, dt, SLIVER)
@@ -459,8 +484,7 @@ class Run:
         self.B = B
         self.Q0, self.V0 = Q0, V0
         chunk = self.sink.chunk
-        if chunk is None:
-            check_memory(settings.capacity, system, B)
+        check_resources(system, settings, self.sink, B)
         capacity = chunk if chunk is not None else min(settings.capacity, 1 << 20)
         record_width = sum(width for _, _, width in system.record_fields)
         self.store = SampleStore(B, system.nq, system.nv, len(system.ledger_elements), record_width, capacity)
