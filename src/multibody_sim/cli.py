@@ -585,8 +585,6 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     if controller is not None:
         options["controller"] = controller
     _print_note(args)
-    if scene is None and robot.floating_base:
-        _say(_nothing_holds_it_up(robot))
     if scene is not None:
         _say(scene.describe())
         if args.report_savings:
@@ -617,6 +615,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
                 f"run: {safe_name(robot.name)} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
                 f"dt {args.dt:g} s{tolerances}, duration {args.duration:g} s"
                 + (f", controller {args.controller}" if controller is not None else "")
+                + (f"\n{_nothing_holds_it_up(robot)}" if scene is None and robot.floating_base else "")
             )
             if args.chunk is not None:  # streamed to disk by the loop itself, merged into --out at the end
                 if out is None:
