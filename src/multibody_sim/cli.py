@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import difflib
-import importlib.metadata
 import io
 import json
 import math
@@ -21,6 +20,9 @@ from types import FrameType
 from typing import Any, NoReturn
 
 import multibody_sim as ms
+from multibody_sim import native
+from multibody_sim.driver import RunSettings, Sink, check_resources
+from multibody_sim.files import check_output, check_unlocked
 from multibody_sim.safety import printable, safe_name, terminal_text
 from multibody_sim.trajectory import plain_data
 from multibody_sim.validation import (
@@ -66,6 +68,14 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         raise _UsageError(message)
+
+
+class _VersionAction(argparse.Action):
+    """--version: the package version, then the kernel line, printed as is (argparse's action rewraps lines)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: Any) -> NoReturn:
+        print(f"{PROG} {_version()}\nkernel: {native.kernel()}")
+        parser.exit()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -128,7 +138,12 @@ def _build_parser() -> _Parser:
         epilog="Exit codes: 0 success, 1 the simulation failed (partial samples written to --out), "
         "2 bad input, 130 / 143 interrupted by SIGINT / SIGTERM (partial samples written to --out).",
     )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    parser.add_argument(
+        "--version",
+        action=_VersionAction,
+        nargs=0,
+        help="show the version and which stepping kernel runs (native C++, or Python and why), then exit",
+    )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     robot_options = _Parser(add_help=False)
@@ -438,6 +453,8 @@ def _add_server_options(group: Any, prefix: str) -> None:
 
 
 def _version() -> str:
+    import importlib.metadata  # here: `--help` and every command need not pay for it
+
     try:
         return importlib.metadata.version("multibody-sim")
     except importlib.metadata.PackageNotFoundError:
@@ -465,6 +482,22 @@ def _is_scene(args: argparse.Namespace) -> bool:
             f"({ROBOT_PREFIX}{source} for the robot alone)"
         )
     return scene
+
+
+def _nothing_holds_it_up(robot: Any) -> str:
+    """The run header's line for a floating robot run without a scene: it falls, and which scene stands it up."""
+    from .scenes import shipped_scenes
+
+    standing = [name for name in shipped_scenes() if name.startswith(f"{robot.name}_") and "stand" in name]
+    cure = (
+        f"run the shipped scene {standing[0]} to stand it on the ground"
+        if standing
+        else "declare [ground] and [[contact.geometry]] in a scene to stand it on the ground"
+    )
+    return (
+        f"note: nothing holds {safe_name(robot.name)} up: without a scene there is no ground or contact, so its "
+        f"floating base falls; {cure}"
+    )
 
 
 def _print_note(args: argparse.Namespace) -> None:
@@ -568,7 +601,10 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
         options.setdefault("rtol", ADAPTIVE_RTOL)
         options.setdefault("atol", ADAPTIVE_ATOL)
         tolerances = f", rtol {options['rtol']:g}, atol {options['atol']:g}"
-    _check_run_arguments(robot, method, args.duration, args.dt, {k: v for k, v in options.items() if k != "controller"})
+    checked = {k: v for k, v in options.items() if k != "controller"}
+    _check_run_arguments(robot, method, args.duration, args.dt, checked)
+    # What the run could not hold or write (memory, chunk buffers, the file-size limit): refused before the header.
+    check_resources(robot, RunSettings.check(method, args.duration, args.dt, checked), Sink(out, args.chunk))
     base = "floating" if robot.floating_base else "fixed"
     viewer = _open_viewer(robot, args.view_host, args.view_port, args.view_speed, q0) if args.view else None
     with _SigtermAsInterrupt() as signals:
@@ -579,11 +615,14 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
                 f"run: {safe_name(robot.name)} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
                 f"dt {args.dt:g} s{tolerances}, duration {args.duration:g} s"
                 + (f", controller {args.controller}" if controller is not None else "")
+                + (f"\n{_nothing_holds_it_up(robot)}" if scene is None and robot.floating_base else "")
             )
             if args.chunk is not None:  # streamed to disk by the loop itself, merged into --out at the end
                 if out is None:
                     raise _UsageError("--chunk needs --out FILE.npz (the chunks are merged into it)")
-                options.update(out=out, chunk=args.chunk)
+                options.update(chunk=args.chunk)
+            if out is not None:  # written by simulate however the run ends, signals held off the write
+                options.update(out=out)
             if viewer is not None:  # wait for a page, then show the run while it computes, paced to --view-speed
                 args._live = _await_browser(viewer, args)
                 options.update(on_sample=args._live)
@@ -594,7 +633,6 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
             failure = exc
         else:
             failure = None
-    streamed = args.chunk is not None
 
     def describe(trajectory: Any, report: str, error: str | None) -> None:
         if document is not None:
@@ -615,8 +653,6 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
             )
 
     if failure is None:
-        if out is not None and not streamed:
-            _save(trajectory, out)
         said = getattr(controller, "summary", lambda: "")()  # what the controller saw (tracking error, minima)
         describe(trajectory, said, None)
         _say(trajectory.summary() + (f"\n{said}" if said else "") + (f"\nwrote {out}" if out is not None else ""))
@@ -624,7 +660,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
             _watch(viewer, trajectory, args)
         return EXIT_OK
     partial = getattr(failure, "trajectory", None)
-    kept = _save_partial(partial, out, already_written=streamed)
+    kept = _kept(failure, out)
     if partial is not None and len(partial):
         describe(partial, "", f"{failure}; {kept}")
         _say(partial.summary())
@@ -1133,16 +1169,10 @@ def _wait_for_interrupt() -> None:
 
 
 def _check_output(name: str, option: str, example: str) -> Path:
-    """An output file must be writable before the work that produces it."""
-    path = Path(name).expanduser()
-    if path.is_dir():
-        raise _UsageError(f"{option} {name}: is a directory, expected a file name such as {example}")
-    folder = path.absolute().parent
-    while not folder.exists():
-        folder = folder.parent
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise _UsageError(f"{option} {name}: cannot create a file in {folder} (not a writable folder)")
-    return path
+    """An output must be a regular file (or a new name) in a writable folder, before the work that produces it
+    (files.check_output: directories, FIFOs, sockets and devices are refused; a symbolic link is written through)."""
+    check_output(name, option, example)
+    return Path(name).expanduser()
 
 
 # ---- helpers -----------------------------------------------------------------------------------------
@@ -1161,38 +1191,25 @@ def _positive_int(text: str) -> int:
 
 
 def _check_out(name: str) -> Path:
-    """--out must be writable before a possibly long run, not after it."""
-    path = Path(name).expanduser()
-    if path.is_dir():
-        raise _UsageError(f"--out {name}: is a directory, expected a file name such as run.npz")
-    folder = path.absolute().parent
-    while not folder.exists():  # Trajectory.save creates missing folders
-        folder = folder.parent
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise _UsageError(f"--out {name}: cannot create a file in {folder} (not a writable folder)")
+    """--out must be writable, and not being written by another run, before a possibly long run, not after it."""
+    path = _check_output(name, "--out", "run.npz")
+    check_unlocked(path, "--out")
     return path
 
 
-def _save(trajectory: Any, path: Path) -> None:
-    try:
-        trajectory.save(path)
-    except OSError as exc:
-        raise _UsageError(f"--out {path}: cannot write the trajectory ({exc.strerror or exc})") from None
-
-
-def _save_partial(trajectory: Any, out: Path | None, *, already_written: bool = False) -> str:
-    """Write a failed or interrupted run's samples; returns the clause that says what was kept."""
+def _kept(failure: BaseException, out: Path | None) -> str:
+    """The clause that says what a failed or interrupted run kept, and where (simulate wrote it: `.saved_to`)."""
+    trajectory = getattr(failure, "trajectory", None)
     if trajectory is None or not len(trajectory):
         return "no samples to keep"
     span = f"partial trajectory ({len(trajectory)} samples, t = {trajectory.t[0]:g}..{trajectory.t[-1]:g} s)"
     if out is None:
         return f"{span} not saved (pass --out FILE.npz to keep it)"
-    if already_written:
-        return f"{span} written to {out}"
-    try:
-        trajectory.save(out)
-    except OSError as exc:
-        return f"{span} could not be written to {out} ({exc.strerror or exc})"
+    saved_to = getattr(failure, "saved_to", None)
+    if saved_to is None:
+        return f"{span} not written to {out}: lost when this command exits"
+    if saved_to.is_dir():  # a chunked run whose parts could not be merged
+        return f"{span} kept in {saved_to} (`multibody-sim plot`, `export` and Trajectory.load read the folder)"
     return f"{span} written to {out}"
 
 

@@ -16,13 +16,23 @@ from typing import Any
 import numpy as np
 
 from .core import EMPTY, FULL, REACHED, Core, RowKernel, Sampler, cure_for_dt
-from .exceptions import ControllerOutputError, InvalidArgumentError, MultibodySimError
+from .exceptions import ControllerOutputError, InvalidArgumentError, MultibodySimError, TrajectoryFileError
+from .files import signals_held
 from .integrators import Integrator
 from .integrators.batch import BatchRungeKutta, batch_kernel_supported
 from .metadata import run_metadata
-from .recording import COUNTERS, SampleStore, check_memory, samples_needed
+from .recording import COUNTERS, SampleStore, check_memory, file_bytes, samples_needed
+from .safety import check_file_size
 from .step_control import SLIVER, ConstantStep, PIController
-from .trajectory import LimitViolations, Trajectory, chunk_path, combine_limit_violations, merge_parts
+from .trajectory import (
+    PARTS_SUFFIX,
+    LimitViolations,
+    Trajectory,
+    chunk_path,
+    combine_limit_violations,
+    merge_parts,
+    write_chunk,
+)
 from .validation import run_numbers, step_count
 
 # Energy blow-up: |energy_error| beyond this many times the run's energy scale is divergence, not error.
@@ -33,11 +43,15 @@ BLOCK_STEPS = 2048
 BLOCK_SAMPLES = 1024
 
 
+# A run whose contact solver stopped at its iteration cap on more than this fraction of its steps failed.
+SOLVER_FAILURE_FRACTION = 0.01
+
+
 # ---- torques -----------------------------------------------------------------------------------------------------
 def check_torque(system: Any, tau: Any, t: float | None, what: str = "controller output") -> np.ndarray:
     """tau as a float array (nv,) if it is a valid torque, else InvalidArgumentError naming the time and reason."""
     fast = type(tau) is np.ndarray and tau.dtype == np.float64 and tau.shape == (system.nv,)
-    if fast and math.isfinite(tau @ tau) and not (system.floating_base and tau[:6].any()):
+    if fast and math.isfinite(tau @ tau) and not system.unactuated_load(tau):
         return tau
     try:  # the full check, with the precise reason
         return system.check_tau(tau)
@@ -142,7 +156,8 @@ class Torques:
                 )
                 return np.zeros((n, nv)), [(j, error, True) for j in range(n)]
             TAU = np.array(out, dtype=float)
-            suspect = ~np.isfinite(TAU).all(axis=1) | (system.floating_base and TAU[:, :6].any(axis=1))
+            start, stop = system.actuated.start, system.actuated.stop
+            suspect = ~np.isfinite(TAU).all(axis=1) | TAU[:, :start].any(axis=1) | TAU[:, stop:].any(axis=1)
             for j in np.flatnonzero(suspect).tolist():
                 try:  # the full check, with the precise reason
                     system.check_tau(TAU[j])
@@ -289,13 +304,42 @@ class Sink:
     Attributes:
         out: the trajectory file, or None.
         chunk: samples per chunk file (out.npz.parts/), or None (one file at the end).
+        run_id: the run's identifier, recorded in each chunk file (files.RunLock makes it).
         written: chunk files written so far.
+        samples: samples in them.
+        violations: their limit-violation reports.
+        write_error: why a chunk could not be written (the run stopped there), or None.
     """
 
     out: Path | None = None
     chunk: int | None = None
+    run_id: str = ""
     written: int = 0
+    samples: int = 0
     violations: list[LimitViolations] = field(default_factory=list)
+    write_error: BaseException | None = None
+
+    @property
+    def parts(self) -> Path:
+        assert self.out is not None
+        return self.out.with_name(self.out.name + PARTS_SUFFIX)
+
+
+@dataclass
+class Kept:
+    """What a run's end kept, and where.
+
+    Attributes:
+        trajectory: every sample kept (from memory, the file or the parts).
+        saved_to: the file (or parts folder) that holds them, or None.
+        problem: what could not be written and why ("" when all went well).
+        interrupted: SIGINT or SIGTERM arrived while the samples were being written (they were written first).
+    """
+
+    trajectory: Trajectory
+    saved_to: Path | None = None
+    problem: str = ""
+    interrupted: bool = False
 
 
 @dataclass
@@ -380,6 +424,30 @@ class RunSettings:
         return -(-self.n_steps // self.control_every)
 
 
+def check_resources(system: Any, settings: RunSettings, sink: Sink, B: int = 1) -> None:
+    """Refuse, before the run, what this process could not hold or write: the samples in memory (or a chunk's
+    buffer) against usable_memory(), and the files against its file-size limit (check_file_sizes)."""
+    if sink.chunk is None:
+        check_memory(settings.capacity, system, B)
+    else:  # the chunk buffer is allocated whole
+        check_memory(sink.chunk, system, B, advice="choose a smaller chunk")
+    if sink.out is not None:
+        check_file_sizes(sink, settings, system)
+
+
+def check_file_sizes(sink: Sink, settings: RunSettings, system: Any) -> None:
+    """Refuse, before the run, files that this process's file-size limit (ulimit -f) would cut short: the chunk
+    files and the final file, where their sample counts are known (an adaptive run without output_dt: only the
+    chunks)."""
+    per_sample = file_bytes(system)
+    known = not settings.adaptive or settings.output_dt is not None
+    advice = "sample less often (output_dt) or raise the limit"
+    if known:
+        check_file_size(settings.capacity * per_sample, f"out {sink.out}", advice)
+    if sink.chunk is not None:
+        check_file_size(sink.chunk * per_sample, "a chunk file", "choose a smaller chunk or raise the limit")
+
+
 def n_steps(duration: float, dt: float) -> int:
     """Fixed steps of dt in a run of `duration`, the last one shortened (a sliver of round-off is no step)."""
     return step_count(duration, dt, SLIVER)
@@ -416,8 +484,7 @@ class Run:
         self.B = B
         self.Q0, self.V0 = Q0, V0
         chunk = self.sink.chunk
-        if chunk is None:
-            check_memory(settings.capacity, system, B)
+        check_resources(system, settings, self.sink, B)
         capacity = chunk if chunk is not None else min(settings.capacity, 1 << 20)
         record_width = sum(width for _, _, width in system.record_fields)
         self.store = SampleStore(B, system.nq, system.nv, len(system.ledger_elements), record_width, capacity)
@@ -464,6 +531,11 @@ class Run:
         except KeyboardInterrupt:
             self._stop_running("interrupted")
             raise
+        except MemoryError as exc:  # the samples so far are kept (and written by finish) as for any early stop
+            detail = f" ({exc})" if str(exc) else ""
+            self._stop_running(
+                "out_of_memory", f"ran out of memory at t = {self.core.t:.6g} s (MemoryError{detail}): the run stopped"
+            )
         finally:
             self.wall_time = time.perf_counter() - start
 
@@ -500,6 +572,8 @@ class Run:
                 return
             if reason == FULL:
                 self._make_room()
+                if not len(core.rows):  # a chunk could not be written: the run stopped
+                    return
             # REACHED a control instant, STEPPED (a block of steps, or one step between controls): carry on
 
     def _control(self, t: float, instant: int) -> None:
@@ -598,21 +672,34 @@ class Run:
     def _make_room(self) -> None:
         """The store reached its soft capacity: write a chunk file, or let it grow."""
         store = self.store
-        if self.sink.chunk is not None:
-            self._flush()
-        else:
+        if self.sink.chunk is None:
             store.make_room(store.count + BLOCK_SAMPLES)
+            return
+        try:
+            self._flush()
+        except (OSError, MemoryError) as exc:  # disk full, a file-size limit: stop, keeping what exists
+            sink = self.sink
+            sink.write_error = exc
+            assert sink.out is not None
+            self._stop_running(
+                "write_failed",
+                f"could not write {chunk_path(sink.out, sink.written)} ({describe_error(exc)}) at t = "
+                f"{self.core.t:.6g} s: the run stopped",
+            )
 
     def _flush(self) -> None:
-        """Write the samples in memory as the next chunk file and empty the store (one-row runs)."""
+        """Write the samples in memory as the next chunk file and empty the store (one-row runs). SIGINT and
+        SIGTERM wait until the chunk and its bookkeeping are complete."""
         sink = self.sink
         assert sink.out is not None
-        traj = self.trajectory(0, status="running")
-        sink.violations.append(traj.limit_violations)
-        traj.save(chunk_path(sink.out, sink.written))
-        sink.written += 1
-        self.store.clear()
-        self.checked = 0
+        with signals_held("finish"):
+            traj = self.trajectory(0, status="running")
+            write_chunk(traj, sink.out, sink.written, run_id=sink.run_id, first_sample=sink.samples)
+            sink.violations.append(traj.limit_violations)
+            sink.written += 1
+            sink.samples += len(traj)
+            self.store.clear()
+            self.checked = 0
 
     # ---- stopping rows -------------------------------------------------------------------------------------------
     def _stop_positions(self, js: np.ndarray, status: str) -> None:
@@ -626,8 +713,9 @@ class Run:
             outcome.status = status
             outcome.counts = self._core_counts(b)
 
-    def _stop_running(self, status: str) -> None:
-        """Every running row ends with `status` (completed, interrupted), its current state its last sample."""
+    def _stop_running(self, status: str, message: str = "") -> None:
+        """Every running row ends with `status` (completed, interrupted; write_failed and out_of_memory with a
+        message), its current state its last sample (interrupted)."""
         core = self.core
         if not len(core.rows):
             return
@@ -640,8 +728,23 @@ class Run:
         core.stop(np.arange(len(rows)))
         for b in rows:
             outcome = self.outcomes[b]
-            outcome.status = status
+            outcome.status, outcome.message = status, message
             outcome.counts = self._core_counts(b)
+            if status == "completed":
+                self._judge_solver(b)
+
+    def _judge_solver(self, b: int) -> None:
+        """A completed run whose contact solver stopped at its iteration cap on more than
+        SOLVER_FAILURE_FRACTION of the steps ends with status "solver_failed" (its samples kept)."""
+        stats = self.core.solver_stats.get(b, {})
+        unconverged, steps = stats.get("solver_unconverged", 0), self.outcomes[b].counts.get("steps", 0)
+        if steps and unconverged > SOLVER_FAILURE_FRACTION * steps:
+            outcome = self.outcomes[b]
+            outcome.status = "solver_failed"
+            outcome.message = (
+                f"solver_failed: the contact solver did not converge on {unconverged} of {steps} steps (more than "
+                f"{SOLVER_FAILURE_FRACTION:.0%}); each continued with the best impulses found; try a smaller dt"
+            )
 
     def _end(self, b: int, status: str, message: str, *, counts_at: int) -> None:
         outcome = self.outcomes[b]
@@ -664,6 +767,7 @@ class Run:
         dofs = self.system.dof_names
         return {
             **counts,
+            **self.core.solver_stats.get(b, {}),
             "controller_calls": int(self.controller_calls[b]),
             "saturated_controls": int(self.saturation.calls[b]),
             "saturated_dofs": {dofs[i]: int(n) for i, n in enumerate(self.saturation.dofs[b]) if n},
@@ -690,35 +794,97 @@ class Run:
             metadata=self.metadata(),
         )
 
-    def finish(self, b: int = 0) -> Trajectory:
-        """Row b's whole trajectory, also written to the sink's file (merging its chunks) when there is one."""
-        out, status = self.sink.out, self.outcomes[b].status
-        if self.sink.chunk is None:
+    def finish(self, b: int = 0) -> Kept:
+        """Row b's whole trajectory, also written to the sink's file (merging its chunks) when there is one.
+
+        Never raises for the writing: a write that fails (disk full, a file-size limit, memory) or is interrupted
+        is reported in the result, with what was kept and where (the file, the parts folder, or memory only).
+        """
+        sink, out = self.sink, self.sink.out
+        if sink.chunk is None:
             traj = self.trajectory(b)
-            if out is not None:
+            if out is None:
+                return Kept(traj)
+            try:
                 traj.save(out)
-            return traj
+            except KeyboardInterrupt:  # delivered once the file was complete
+                return Kept(traj, out, interrupted=True)
+            except (OSError, MemoryError) as exc:
+                return Kept(traj, None, f"{out} could not be written ({describe_error(exc)})")
+            return Kept(traj, out)
         assert out is not None
-        if self.store.count or not self.sink.written:
-            self._flush()
-        merge_parts(
-            out,
-            status=status,
-            stats=self.stats(b),
-            limit_violations=combine_limit_violations(self.sink.violations),
-        )
-        return Trajectory.load(out, mmap=True)
+        interrupted = False
+        try:
+            if sink.write_error is None and (self.store.count or not sink.written):
+                self._flush()
+            if sink.write_error is None:
+                merge_parts(
+                    out,
+                    status=self.outcomes[b].status,
+                    stats=self.stats(b),
+                    limit_violations=combine_limit_violations(sink.violations),
+                )
+                return Kept(Trajectory.load(out, mmap=True), out)
+        except KeyboardInterrupt:
+            interrupted = True
+            if not sink.parts.exists():  # the merge was complete when the signal was delivered
+                return Kept(Trajectory.load(out, mmap=True), out, interrupted=True)
+        except (OSError, MemoryError, TrajectoryFileError) as exc:  # TrajectoryFileError: check_parts refused
+            sink.write_error = sink.write_error or exc
+        return self._kept_in_parts(b, interrupted)
+
+    def _kept_in_parts(self, b: int, interrupted: bool) -> Kept:
+        """A chunked run whose parts could not be merged: its samples are the parts' and those still in memory."""
+        sink = self.sink
+        pieces = []
+        if sink.written:
+            try:
+                pieces.append(Trajectory.load(sink.parts))
+            except TrajectoryFileError:  # a stranger's chunk in the folder: the message names it (write_error)
+                sink.samples = 0
+        if self.store.samples_of(b):
+            pieces.append(self.trajectory(b))
+        traj = Trajectory.concatenate(pieces) if pieces else self.trajectory(b)
+        traj.status = self.outcomes[b].status
+        on_disk = f"{sink.samples} samples stay in {sink.parts} (Trajectory.load reads the folder)"
+        in_memory = len(traj) - sink.samples
+        if in_memory:
+            on_disk += f", the last {in_memory} only in memory"
+        if sink.write_error is not None and self.outcomes[b].status != "write_failed":
+            problem = f"{sink.out} could not be written ({describe_error(sink.write_error)}): {on_disk}"
+        elif interrupted:
+            problem = f"merging the chunks was interrupted: {on_disk}"
+        else:
+            problem = on_disk
+        return Kept(traj, sink.parts if sink.written else None, problem, interrupted)
 
 
-def stop_error(outcome: RowOutcome, trajectory: Any) -> MultibodySimError:
+def describe_error(exc: BaseException) -> str:
+    """An OSError or MemoryError in a few words: "No space left on device", "File too large", "out of memory"."""
+    if isinstance(exc, MemoryError):
+        return "out of memory"
+    if isinstance(exc, TrajectoryFileError):
+        return str(exc)
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    return str(exc) or type(exc).__name__
+
+
+def stop_error(
+    outcome: RowOutcome, trajectory: Any, *, problem: str = "", saved_to: Path | None = None
+) -> MultibodySimError:
     """The error an early stop raises: SimulationError (ControllerOutputError for a controller output that is not a
-    torque), its trajectory attached, the user's exception as its cause."""
+    torque), its trajectory attached, the user's exception as its cause; `problem` (what could not be written)
+    is added to the message, and `saved_to` says where the samples are on disk."""
     from .exceptions import SimulationError
 
+    message = outcome.message + (f"; {problem}" if problem else "")
     if outcome.bad_output:
-        error: SimulationError = ControllerOutputError(outcome.message, status="failed", trajectory=trajectory)
+        error: SimulationError = ControllerOutputError(
+            message, status="failed", trajectory=trajectory, saved_to=saved_to
+        )
     else:
-        error = SimulationError(outcome.message, status=outcome.status, trajectory=trajectory)
+        error = SimulationError(message, status=outcome.status, trajectory=trajectory, saved_to=saved_to)
     return error
 
 

@@ -212,7 +212,7 @@ def rollout(
     method = get_integrator(integrator)
     method.check_contract()
     check_options(method, options)
-    Q0, V0 = _check_batch(system, q0s, v0s)
+    Q0, V0 = check_batch(system, q0s, v0s)
     B = len(Q0)
     duration = positive_number(duration, "duration")
     dt = positive_number(dt, "dt")
@@ -382,18 +382,22 @@ def _row_by_row(job: _Job, *, bar: ProgressBar, start: float) -> BatchTrajectory
     return batch
 
 
-def _check_batch(system: Robot, q0s: Any, v0s: Any) -> tuple[np.ndarray, np.ndarray]:
-    Q0 = _as_batch(q0s, system.nq, "q0s")
-    V0 = _as_batch(v0s, system.nv, "v0s")
+def check_batch(
+    system: Robot, q0s: Any, v0s: Any, q_name: str = "q0s", v_name: str = "v0s"
+) -> tuple[np.ndarray, np.ndarray]:
+    """A batch of states (B, nq) and (B, nv) as float arrays, checked (finite, as many of each, unit quaternions),
+    or InvalidArgumentError naming the argument (rollout's and BatchStepper's)."""
+    Q0 = _as_batch(q0s, system.nq, q_name)
+    V0 = _as_batch(v0s, system.nv, v_name)
     if len(Q0) != len(V0):
-        raise InvalidArgumentError(f"q0s and v0s must hold as many states, got {len(Q0)} and {len(V0)}")
+        raise InvalidArgumentError(f"{q_name} and {v_name} must hold as many states, got {len(Q0)} and {len(V0)}")
     if not len(Q0):
-        raise InvalidArgumentError("q0s must hold at least one state, got an empty batch")
+        raise InvalidArgumentError(f"{q_name} must hold at least one state, got an empty batch")
     if any(joint.nq != joint.nv for joint in system.model.joints[1:]):  # vector spaces need no unit norms
         is_normalized = system.space.is_normalized  # unit quaternions and (cos, sin) pairs (Q0 is finite)
         for b, q in enumerate(Q0):
             if not is_normalized(q):
-                system.check_q(q, f"q0s[{b}]")  # raises, with check_q's message
+                system.check_q(q, f"{q_name}[{b}]")  # raises, with check_q's message
     return Q0, V0
 
 
@@ -476,6 +480,9 @@ def _check_taus(system: Robot, taus: Any, B: int, n_control: int) -> np.ndarray:
         raise InvalidArgumentError("taus must be finite")
     if system.floating_base and np.any(arr[:, :, :6]):
         raise InvalidArgumentError("taus[:, :, 0:6] act on the unactuated floating base and must be zero")
+    end = system.actuated.stop
+    if end < system.nv and np.any(arr[:, :, end:]):
+        raise InvalidArgumentError(f"taus[:, :, {end}:] act on the scene's unactuated free objects and must be zero")
     return arr
 
 

@@ -6,7 +6,6 @@ import json
 import math
 import os
 import re
-import tempfile
 import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -15,6 +14,7 @@ from typing import Any, Literal
 import numpy as np
 
 from .exceptions import InvalidArgumentError, TrajectoryFileError
+from .files import write_atomically
 from .safety import ARCHIVE_ERRORS, MAX_JSON_DEPTH, check_npz, json_depth, printable, read_npz, safe_name
 from .validation import sample_times
 
@@ -181,6 +181,13 @@ class Trajectory:
                     f"constraint '{safe_name(name)}': max drift {_max_abs(record.drift):.3g}, max velocity drift "
                     f"{_max_abs(record.velocity_drift):.3g}, max |force| {_max_abs(record.force):.3g}"
                 )
+        if "solver_steps" in s:  # the contact time-stepper's cone solver
+            unconverged = s.get("solver_unconverged", 0)
+            lines.append(
+                f"contact solver: {s['solver_steps']} steps with constraints, {s.get('solver_iterations', 0)} "
+                f"iterations; {unconverged} unconverged"
+                + (" (each continued with the best impulses found)" if unconverged else "")
+            )
         lines.append(self.limit_violations.describe())
         return "\n".join(lines)
 
@@ -263,7 +270,18 @@ class Trajectory:
 
     # ---- files ---------------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike[str]) -> Path:
-        """Write an .npz of plain arrays plus JSON metadata, atomically (temporary file, then rename)."""
+        """Write an .npz of plain arrays plus JSON metadata, atomically (temporary file, then rename).
+
+        Only a regular file is replaced (a symbolic link is written through: the link stays, its target is
+        replaced). SIGINT and SIGTERM wait until the file is complete (these samples may exist nowhere else).
+
+        Returns:
+            The path given.
+
+        Raises:
+            InvalidArgumentError: path is a directory, FIFO, socket or device, or its folder is not writable.
+            OSError: the write failed (disk full, a file-size limit): any previous file stays, and no temporary file.
+        """
         path = Path(path)
         arrays = {name: np.asarray(getattr(self, name)) for name in ARRAYS}
         for name, entry in self.ledger.items():
@@ -282,7 +300,7 @@ class Trajectory:
             "metadata": self.metadata,
         }
         arrays["header"] = np.array(json.dumps(header, default=_json_default))
-        write_atomically(path, lambda f: np.savez(f, **arrays))  # type: ignore[arg-type]
+        write_atomically(path, lambda f: np.savez(f, **arrays), mode="finish")  # type: ignore[arg-type]
         return path
 
     @classmethod
@@ -382,11 +400,16 @@ class Trajectory:
 
     @classmethod
     def _from_parts(cls, parts: Path) -> Trajectory:
-        """Concatenate a chunked run's parts in memory (a run stopped before merging them)."""
-        chunks = sorted(parts.glob(CHUNK_GLOB))
-        if not chunks:
-            raise TrajectoryFileError(f"{parts}: no trajectory chunks in this folder")
-        pieces = [cls.load(chunk) for chunk in chunks]
+        """Concatenate a chunked run's parts in memory (a run stopped before merging them), checked first
+        (check_parts): a hole, a chunk of another run or a jump back in time is refused, never stitched."""
+        pieces = [cls.load(chunk) for chunk in check_parts(parts)]
+        joined = cls.concatenate(pieces)
+        joined.status = joined.status if joined.status != "running" else "incomplete"
+        return joined
+
+    @classmethod
+    def concatenate(cls, pieces: list[Trajectory]) -> Trajectory:
+        """Consecutive pieces of one run as one trajectory (the last piece's status, stats and metadata)."""
         last = pieces[-1]
         return cls(
             **{name: np.concatenate([getattr(p, name) for p in pieces]) for name in ARRAYS},
@@ -405,8 +428,8 @@ class Trajectory:
             },
             limit_violations=combine_limit_violations([p.limit_violations for p in pieces]),
             stats=last.stats,
-            status=last.status if last.status != "running" else "incomplete",
-            metadata=last.metadata,
+            status=last.status,
+            metadata={k: v for k, v in last.metadata.items() if k != "chunk"},
         )
 
 
@@ -515,14 +538,18 @@ def chunk_path(out: Path, index: int) -> Path:
 def merge_parts(out: Path, *, status: str, stats: dict[str, Any], limit_violations: LimitViolations) -> Path:
     """Stream a chunked run's parts into one .npz at `out` (atomically), then remove the parts folder.
 
-    Each array is written chunk after chunk straight into the archive, so memory stays bounded by one chunk.
+    The parts are checked first (check_parts). Each array is written chunk after chunk straight into the archive,
+    so memory stays bounded by one chunk. SIGINT or SIGTERM during the streaming stops it (the temporary file is
+    removed, the parts stay and load); once the file is complete, the rename and the removal of the parts finish
+    before the signal is delivered.
     """
     parts = out.with_name(out.name + PARTS_SUFFIX)
-    chunks = sorted(parts.glob(CHUNK_GLOB))
+    chunks = check_parts(parts)
     with np.load(chunks[-1], allow_pickle=False) as last:
         names = [name for name in last.files if name != "header"]
         header = json.loads(str(last["header"][()]))
     header.update(status=status, stats=stats, limit_violations=limit_violations.__dict__)
+    header["metadata"].pop("chunk", None)
     shapes: dict[str, list[tuple[int, ...]]] = {name: [] for name in names}
     for chunk in chunks:
         with np.load(chunk, allow_pickle=False) as npz:
@@ -548,11 +575,98 @@ def merge_parts(out: Path, *, status: str, stats: dict[str, Any], limit_violatio
             with archive.open("header.npy", "w") as member:
                 np.lib.format.write_array(member, np.array(json.dumps(header, default=_json_default)))
 
-    write_atomically(out, write)
-    for chunk in chunks:
-        chunk.unlink()
-    parts.rmdir()
+    def remove_parts() -> None:
+        for chunk in chunks:
+            chunk.unlink()
+        parts.rmdir()
+
+    write_atomically(out, write, then=remove_parts)
     return out
+
+
+def write_chunk(trajectory: Trajectory, out: Path, index: int, *, run_id: str, first_sample: int) -> Path:
+    """Write chunk `index` of a chunked run writing `out` (its samples from number `first_sample` on), recording
+    the run it belongs to so that check_parts can tell its chunks from a stranger's."""
+    trajectory.metadata = {
+        **trajectory.metadata,
+        "chunk": {"run_id": run_id, "index": index, "first_sample": first_sample},
+    }
+    return trajectory.save(chunk_path(out, index))
+
+
+def check_parts(parts: Path) -> list[Path]:
+    """A chunked run's chunk files, in order, after checking that they are all there and all of one run.
+
+    Checks the numbering (no hole), the run each chunk records (chunk files of another run are not mixed in), the
+    sample counts and that time goes forward from one chunk to the next, from the chunks' headers and times alone.
+
+    Raises:
+        TrajectoryFileError: no chunks, a missing chunk (named, with the times it would have covered), a chunk of
+            another run, or a chunk that does not continue the previous one.
+    """
+    files = sorted(parts.glob(CHUNK_GLOB))
+    if not files:
+        raise TrajectoryFileError(f"{parts}: no trajectory chunks in this folder")
+    numbered = {}
+    for path in files:
+        match = _CHUNK_NAME.fullmatch(path.name)
+        if match is None:
+            raise TrajectoryFileError(
+                f"{parts}: {printable(path.name)} is not a chunk file name (chunk_NNNNNN.npz); move it out of the "
+                "folder"
+            )
+        numbered[int(match.group(1))] = path
+    chunks = [numbered[k] for k in sorted(numbered)]
+    records = [_chunk_record(path) for path in chunks]
+    missing = sorted(set(range(max(numbered) + 1)) - set(numbered))
+    if missing:
+        after = max((k for k in numbered if k < missing[0]), default=None)
+        before = min(k for k in numbered if k > missing[0])
+        since = f"t = {records[sorted(numbered).index(after)][3]:.6g} s" if after is not None else "the start"
+        until = records[sorted(numbered).index(before)][2]
+        names = ", ".join(f"chunk_{k:06d}.npz" for k in missing[:5]) + (", ..." if len(missing) > 5 else "")
+        raise TrajectoryFileError(
+            f"{parts}: {names} {'is' if len(missing) == 1 else 'are'} missing: the samples from {since} to "
+            f"t = {until:.6g} s are lost; load the chunk files one by one (Trajectory.load(chunk))"
+        )
+    run_id = records[0][0]
+    expected_sample, previous_end = 0, -math.inf
+    for path, (chunk_run, first_sample, t_first, t_last, n) in zip(chunks, records, strict=True):
+        if chunk_run != run_id:
+            raise TrajectoryFileError(
+                f"{parts}: {path.name} belongs to another run (run {printable(str(chunk_run))[:12]}, not "
+                f"{printable(str(run_id))[:12]} of {chunks[0].name}); move it out of the folder"
+            )
+        if first_sample != expected_sample or not t_first > previous_end:
+            raise TrajectoryFileError(
+                f"{parts}: {path.name} does not continue the previous chunk (it starts at sample "
+                f"{printable(repr(first_sample))[:20]}, t = {t_first:.6g} s; expected sample {expected_sample}, "
+                f"after t = {previous_end:.6g} s); move it out of the folder"
+            )
+        expected_sample, previous_end = expected_sample + n, t_last
+    return chunks
+
+
+_CHUNK_NAME = re.compile(r"chunk_(\d{6})\.npz")
+
+
+def _chunk_record(path: Path) -> tuple[Any, Any, float, float, int]:
+    """(run id, first sample, first time, last time, samples) of a chunk file, from its header and times."""
+    check_npz(path)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            header = _read_header({"header": npz["header"]}, path)
+            t = npz["t"]
+    except TrajectoryFileError:
+        raise
+    except (*ARCHIVE_ERRORS, KeyError) as exc:
+        raise TrajectoryFileError(f"{path}: not a readable trajectory file ({_first_line(exc)})") from None
+    record = header["metadata"].get("chunk")
+    if not isinstance(record, dict) or t.ndim != 1 or not len(t) or t.dtype.kind != "f":
+        raise TrajectoryFileError(
+            f"{path}: not a chunk of a run (no chunk record in its metadata, or no samples); move it out of the folder"
+        )
+    return record.get("run_id"), record.get("first_sample"), float(t[0]), float(t[-1]), len(t)
 
 
 def combine_limit_violations(parts: list[LimitViolations]) -> LimitViolations:
@@ -598,27 +712,6 @@ def _map_npz(path: Path) -> dict[str, np.ndarray] | None:
                 order: Literal["F", "C"] = "F" if fortran else "C"
                 contents[name] = np.memmap(path, dtype=dtype, mode="r", offset=f.tell(), shape=shape, order=order)
     return contents
-
-
-def write_atomically(path: Path, write: Any) -> None:
-    """Call write(file) on a temporary file beside path, then rename it over path.
-
-    A crash mid-write leaves any previous file at path intact.
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    umask = os.umask(0)  # mkstemp makes 0600 files; a saved trajectory gets the usual permissions
-    os.umask(umask)
-    os.fchmod(fd, 0o666 & ~umask)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _json_default(value: Any) -> Any:

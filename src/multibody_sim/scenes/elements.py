@@ -203,6 +203,27 @@ class ForceElements:
         self._circular_pos = np.flatnonzero(nq_of[self._sprung] == 2)  # their places among the springs
         self._plain_pos = np.flatnonzero(nq_of[self._sprung] == 1)
 
+        # The common case in a few whole-span operations: every element on a span of consecutive 1-dof joints
+        # with consecutive q (no continuous spring). Dofs of the span without an element get zero coefficients
+        # (adding exact zeros), so each force is the same arithmetic as the separate selections would give.
+        self._span = None
+        used = sorted(set(self._sprung.tolist()) | set(self._damped.tolist()) | set(self._rough.tolist()))
+        if used and not circular.size:
+            lo, hi = used[0], used[-1] + 1
+            q_at = idx_q[lo:hi]
+            if np.all(nq_of[lo:hi] == 1) and np.array_equal(q_at, q_at[0] + np.arange(hi - lo)):
+                span_rest = np.zeros(hi - lo)
+                span_rest[plain - lo] = rest[idx_q[plain]]
+                self._span = (
+                    slice(lo, hi),
+                    slice(int(q_at[0]), int(q_at[0]) + hi - lo),
+                    span_rest,
+                    -np.where(stiffness[lo:hi] > 0.0, stiffness[lo:hi], 0.0),
+                    damping[lo:hi] if self._damped.size else None,
+                    friction[lo:hi] if self._rough.size else None,
+                    hi - lo == nv,
+                )
+
         # Every element acts on rows of states with elementwise operations only (no per-row product), so a row's
         # force is the same whether it is evaluated alone or in a batch, and a batch costs a few array operations.
         self._wrenches = list(wrenches)
@@ -262,6 +283,17 @@ class ForceElements:
     def _joint_forces(self, Q: np.ndarray, V: np.ndarray, out: np.ndarray) -> None:
         """The joints' elements (springs, damping, friction) at Q (..., nq), V (..., nv), into out (..., nv):
         elementwise, so one row costs no more than its own arithmetic."""
+        if self._span is not None:
+            at, q_at, rest, minus_k, d, fc, whole = self._span
+            if not whole:
+                out[...] = 0.0
+            force = out[..., at]
+            np.multiply(Q[..., q_at] - rest, minus_k, out=force)
+            if d is not None:
+                force -= V[..., at] * d
+            if fc is not None:
+                force -= np.tanh(V[..., at] * self._inv_vs) * fc
+            return
         out[...] = 0.0
         if self._plain.size:  # -k (q - rest)
             out[..., self._plain_at] = (Q[..., self._plain_q_at] - self._plain_rest) * -self._plain_k
@@ -343,6 +375,8 @@ class ForceElements:
     def spring_displacements(self, q: np.ndarray) -> np.ndarray:
         """q ⊖ rest of each spring [rad or m], shape (..., len(potentials)) for q (..., nq): wrapped to (-π, π] on
         continuous joints."""
+        if not self._circular_pos.size:
+            return q[..., self._plain_q_at] - self._plain_rest
         x = np.empty((*q.shape[:-1], self._sprung.size))
         x[..., self._plain_pos] = q[..., self._plain_q] - self._plain_rest
         if self._circular_pos.size:

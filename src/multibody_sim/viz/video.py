@@ -22,7 +22,9 @@ from typing import Any
 import numpy as np
 
 from ..exceptions import InvalidArgumentError, MissingDependencyError
+from ..files import atomic_path, check_output
 from ..robot import Robot
+from ..safety import check_allocation
 from ..trajectory import Trajectory
 from ..validation import playback_speed
 from ._deps import check_viewer_dependencies, require
@@ -108,6 +110,13 @@ def export_video(
     """
     target, fps = check_video_options(path, fps=fps, speed=speed, width=width, height=height)
     suffix = target.suffix.lower()
+    if suffix == ".gif":  # a GIF is assembled in memory: one palette byte per pixel per frame
+        count = frame_count(trajectory, fps=fps, speed=speed)
+        check_allocation(
+            count * width * height,
+            f"a {width}x{height} GIF of {count} frames would keep them",
+            "choose a lower --fps, a smaller size, a higher --speed, or .mp4 (streamed to disk)",
+        )
     executable = find_browser(browser)
     check_viewer_dependencies()
     require("playwright.sync_api", "videos")
@@ -125,15 +134,12 @@ def export_video(
     with tempfile.TemporaryDirectory(prefix="multibody-sim-video-") as folder:
         html = Path(folder) / "page.html"
         html.write_text(page, encoding="utf-8")
-        partial = target.with_name(f".{target.name}.{os.getpid()}.partial{suffix}")
-        target.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            show = sys.stderr.isatty() if progress is None else progress
-            with _Encoder(partial, suffix, (width, height), fps) as write:
-                _film(executable, html, (width, height), offsets, times, write, show)
-            os.replace(partial, target)
-        finally:
-            partial.unlink(missing_ok=True)
+        show = sys.stderr.isatty() if progress is None else progress
+        with (
+            atomic_path(target, what="video", suffix=suffix) as partial,  # renamed over target when complete
+            _Encoder(partial, suffix, (width, height), fps) as write,
+        ):
+            _film(executable, html, (width, height), offsets, times, write, show)
     return target
 
 
@@ -155,6 +161,7 @@ def check_video_options(
     target = Path(path)
     suffix = target.suffix.lower()
     label = f"{prefix}video {target}" if prefix else str(target)
+    check_output(target, f"{prefix}video", "motion.mp4")  # only a regular file is replaced
     if suffix not in VIDEO_FORMATS:
         raise InvalidArgumentError(
             f"{label}: unknown video format '{target.suffix}' (choose from: {', '.join(VIDEO_FORMATS)})"
