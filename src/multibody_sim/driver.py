@@ -20,6 +20,7 @@ from .exceptions import ControllerOutputError, InvalidArgumentError, MultibodySi
 from .integrators import Integrator
 from .integrators.batch import BatchRungeKutta, batch_kernel_supported
 from .metadata import run_metadata
+from .native_core import NativeCore, NativeKernel, why_not_native
 from .recording import COUNTERS, SampleStore, check_memory, samples_needed
 from .step_control import SLIVER, ConstantStep, PIController
 from .trajectory import LimitViolations, Trajectory, chunk_path, combine_limit_violations, merge_parts
@@ -253,14 +254,24 @@ def choose_kernel(
     atol: float | None = None,
     num_threads: int = 1,
     torque_free: bool = False,
-) -> RowKernel | BatchRungeKutta:
-    """The kernel a run of these rows takes: the batch kernel for several rows when it renders the method on the
-    system, the row kernel otherwise (simulate(), Stepper and rollout() share this rule)."""
+) -> RowKernel | BatchRungeKutta | NativeKernel:
+    """The kernel a run of these rows takes: the native kernel when it runs the method on the system
+    (native_core.why_not_native), else the batch kernel for several rows when it renders the method on the system,
+    else the row kernel (simulate(), Stepper and rollout() share this rule)."""
+    if why_not_native(system, method) is None:
+        return NativeKernel(system, method, Q0, V0, rtol=rtol, atol=atol, num_threads=num_threads)
     if len(Q0) > 1 and batch_kernel_supported(system, method):
         dynamics = system.rows_dynamics(num_threads)
         if dynamics is not None:
             return BatchRungeKutta(system, method, Q0, V0, dynamics=dynamics, torque_free=torque_free)
     return RowKernel(system, method, Q0, V0, rtol=rtol, atol=atol)
+
+
+def kernel_name(kernel: Any) -> str:
+    """The kernel's name in the run header and the metadata: "native", "python (batch)" or "python (row)"."""
+    if isinstance(kernel, NativeKernel):
+        return "native"
+    return "python (batch)" if isinstance(kernel, BatchRungeKutta) else "python (row)"
 
 
 # ---- a run ---------------------------------------------------------------------------------------------------------
@@ -425,8 +436,9 @@ class Run:
             num_threads=num_threads,
             torque_free=torques.kind == "none",
         )
-        self.kernel_name = "python (batch)" if isinstance(kernel, BatchRungeKutta) else "python (row)"
-        self.core = Core(
+        self.kernel_name = kernel_name(kernel)
+        self.why_not_native = why_not_native(system, method)
+        self.core = (NativeCore if isinstance(kernel, NativeKernel) else Core)(
             system=system, method=method, kernel=kernel, control=control, sampler=sampler, store=self.store, B=B
         )
         self.monitor = Monitor(system, B)
