@@ -511,6 +511,17 @@ class RowKernel:
     def state_of(self, j: int) -> tuple[np.ndarray, np.ndarray]:
         return self.now[0][j].copy(), self.now[1][j].copy()
 
+    def flows_of(self, j: int) -> np.ndarray:
+        """Row j's cumulative ledger flows [J], shape (n_elements,) (not modified in place: a step makes new ones)."""
+        return self.now[2][j]
+
+    def set_row(self, j: int, q: np.ndarray, v: np.ndarray) -> None:
+        """Put row j at (q, v) by hand (a jump: its solver state restarts; its flows stay)."""
+        Q, V, flows, states, t, k = self.now
+        Q, V, states = list(Q), list(V), list(states)
+        Q[j], V[j], states[j] = q, v, self.method.init(self.system, q, v)
+        self.now = (Q, V, flows, states, t, k)
+
     def states(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
         return self.now[0], self.now[1]  # never modified in place: a step makes new arrays
 

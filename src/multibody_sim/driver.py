@@ -267,6 +267,11 @@ def choose_kernel(
     return RowKernel(system, method, Q0, V0, rtol=rtol, atol=atol)
 
 
+def core_class(kernel: Any) -> type[Core]:
+    """The core that drives this kernel: NativeCore for the native kernel (its loop runs in C++), else Core."""
+    return NativeCore if isinstance(kernel, NativeKernel) else Core
+
+
 def kernel_name(kernel: Any) -> str:
     """The kernel's name in the run header and the metadata: "native", "python (batch)" or "python (row)"."""
     if isinstance(kernel, NativeKernel):
@@ -438,7 +443,7 @@ class Run:
         )
         self.kernel_name = kernel_name(kernel)
         self.why_not_native = why_not_native(system, method)
-        self.core = (NativeCore if isinstance(kernel, NativeKernel) else Core)(
+        self.core = core_class(kernel)(
             system=system, method=method, kernel=kernel, control=control, sampler=sampler, store=self.store, B=B
         )
         self.monitor = Monitor(system, B)

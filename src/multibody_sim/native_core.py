@@ -65,7 +65,24 @@ def why_not_native(system: Any, method: Integrator) -> str | None:
         return f"integrator '{method.name}' is not an explicit method of the registry"
     if system.record_fields:
         return "the system records fields per sample"
+    replaced = [name for name in _SYSTEM_HOOKS if name in vars(system)]
+    replaced += [f"space.{name}" for name in _SPACE_HOOKS if name in vars(system.space)]
+    if replaced:  # e.g. a test or a study that wraps the dynamics: the engine would not call it
+        return f"the system's {', '.join(replaced)} replaced in Python"
     return None
+
+
+# What the engine computes itself: replaced on an instance (a wrapper), the run stays on the Python kernel.
+_SYSTEM_HOOKS = (
+    "unchecked_forward_dynamics",
+    "ledger_power",
+    "unchecked_energies",
+    "rows_dynamics",
+    "rows_energies",
+    "rows_ledger_power",
+    "rows_applied",
+)
+_SPACE_HOOKS = ("integrate", "difference", "chart_velocity")
 
 
 def method_data(method: Integrator) -> dict[str, Any]:
@@ -139,7 +156,7 @@ class NativeKernel:
         self.rtol, self.atol = rtol, atol
         self.num_threads = num_threads
         self._initial = (np.ascontiguousarray(Q0, dtype=float), np.ascontiguousarray(V0, dtype=float))
-        self.state = np.zeros(16)  # the core state the engine reads and writes (see kernel.cpp's pack())
+        self._start = (0.0, 0)  # (t, k) until the engine exists
         self.engine: Any = None
         self.method_data = method_data(method)
 
@@ -198,6 +215,7 @@ class NativeKernel:
             V0,
             self.num_threads,
         )
+        self.engine.t, self.engine.k = self._start
 
     # ---- the Kernel interface (core.py) ----------------------------------------------------------------------------
     @property
@@ -206,14 +224,17 @@ class NativeKernel:
 
     @property
     def t(self) -> float:
-        return float(self.state[0])
+        return self._start[0] if self.engine is None else float(self.engine.t)
 
     @property
     def k(self) -> int:
-        return int(self.state[1])
+        return self._start[1] if self.engine is None else int(self.engine.k)
 
     def start_at(self, t: float, k: int = 0) -> None:
-        self.state[0], self.state[1] = t, k
+        if self.engine is None:
+            self._start = (t, k)
+        else:
+            self.engine.t, self.engine.k = t, k
 
     def set_torques(self, TAU: np.ndarray, jump: bool) -> None:
         self.engine.set_torques(np.ascontiguousarray(TAU, dtype=float), jump)
@@ -226,6 +247,28 @@ class NativeKernel:
 
     def state_of(self, j: int) -> tuple[np.ndarray, np.ndarray]:
         return self.engine.running_q()[j].copy(), self.engine.running_v()[j].copy()
+
+    def flows_of(self, j: int) -> np.ndarray:
+        return np.asarray(self.engine.flows_of(self._row(j)))
+
+    def set_row(self, j: int, q: np.ndarray, v: np.ndarray) -> None:
+        row = self._row(j)
+        self.engine.set_state(row, q, v, self.engine.flows_of(row))
+
+    def snapshot(self) -> tuple[Any, ...]:
+        """Every row's whole state and the time (Stepper: one row)."""
+        rows = range(len(self._initial[0]))
+        return [self.engine.snapshot_row(b) for b in rows], self.t, self.k
+
+    def restore(self, snapshot: tuple[Any, ...]) -> None:
+        rows, t, k = snapshot
+        for b, state in enumerate(rows):
+            self.engine.restore_row(b, *state)
+        self.start_at(t, k)
+
+    def _row(self, j: int) -> int:
+        """The run row of running position j."""
+        return int(self.engine.running_rows()[j])
 
     def write_sample(self, store: SampleStore, i: int, index: Any, js: np.ndarray | None = None) -> None:
         """Write the current state of the run rows `index` (the store's columns: an int, a slice or the rows) as
@@ -263,7 +306,13 @@ def store_arrays(store: SampleStore) -> tuple[np.ndarray, ...]:
 
 
 class NativeCore(Core):
-    """A Core whose loop runs in the engine (see the module docstring); its kernel is a NativeKernel."""
+    """A Core whose loop runs in the engine (see the module docstring); its kernel is a NativeKernel.
+
+    The engine writes the core's counts, the store's count, the sampler's and the controller's state itself before
+    it returns (plain attribute assignments with the GIL held), and appends the rows it stopped to `_pending`: a
+    Ctrl-C, whose handler runs as soon as the engine returns, finds the run's samples and counts consistent, and the
+    stops are taken into account whenever the driver next looks (take_stops()).
+    """
 
     kernel: NativeKernel  # type: ignore[assignment]
 
@@ -271,29 +320,24 @@ class NativeCore(Core):
         super().__init__(**kwargs)
         self.kernel.bind(self.control)
         self._budget = 64  # steps per engine call, adapted to take about BUDGET_SECONDS
+        self._pending: list[tuple[Any, ...]] = []  # rows the engine stopped, not yet recorded as RowStops
 
     def advance(self, t_stop: float, *, max_steps: int | None = None) -> str:
         """Core.advance, in the engine: the same statuses, samples, counts and stops."""
         kernel, control, sampler, store = self.kernel, self.control, self.sampler, self.store
         tolerance = LANDING_FRACTION * control.scale(t_stop) if control.adaptive else 0.0
-        every = 0 if sampler is None or sampler.every is None else sampler.every
-        period = 0.0 if sampler is None or sampler.period is None else sampler.period
         taken = 0
         while True:
             limit = self._budget if max_steps is None else min(self._budget, max_steps - taken)
-            state = kernel.state
-            self._push(state)
             start = time.perf_counter()
-            status, steps, need, stops = kernel.engine.advance(
-                t_stop, limit, tolerance, sampler is not None, every, period, *store_arrays(store), state
+            status, steps, need = kernel.engine.advance(
+                t_stop, limit, tolerance, self, store, sampler, control, *store_arrays(store), self._pending
             )
             elapsed = time.perf_counter() - start
-            self._pull(state)
+            self._take_pending()
             taken += steps
             if steps:
                 self._budget = max(16, min(1 << 20, int(self._budget * BUDGET_SECONDS / max(elapsed, 1e-6))))
-            if stops:
-                self._native_stops(stops)
             if status == _NEED_ROOM:
                 store.room(need)
                 continue
@@ -302,50 +346,27 @@ class NativeCore(Core):
                 continue  # the budget, not the caller's limit: Python runs here (signals), then the engine again
             return reason
 
-    def _push(self, state: np.ndarray) -> None:
-        """The core's state as the engine reads it (the driver may have recorded, stopped rows or set a time)."""
-        store, sampler, control = self.store, self.sampler, self.control
-        state[2:10] = (
-            self.steps,
-            self.rejected,
-            self.evaluations,
-            self.recorded,
-            store.count,
-            store.full,
-            store.soft_capacity,
-            sampler.next_output if sampler is not None else 1,
-        )
-        if isinstance(control, ConstantStep):
-            state[10:13] = control.snapshot()
-        else:
-            state[12:16] = control.snapshot()
+    def take_stops(self) -> list[RowStop]:
+        self._take_pending()
+        return super().take_stops()
 
-    def _pull(self, state: np.ndarray) -> None:
-        store, sampler, control = self.store, self.sampler, self.control
-        self.steps, self.rejected, self.evaluations = int(state[2]), int(state[3]), int(state[4])
-        self.recorded = float(state[5])
-        store.count, store.full = int(state[6]), bool(state[7])
-        if sampler is not None:
-            sampler.next_output = int(state[9])
-        if isinstance(control, ConstantStep):
-            control.restore((float(state[10]), int(state[11]), float(state[12])))
-        else:
-            control.restore((float(state[12]), float(state[13]), float(state[14]), bool(state[15])))
-
-    def _native_stops(self, stops: list[tuple[Any, ...]]) -> None:
-        """Rows the engine stopped (it already took them out of its running rows): their RowStop, frozen counts and
-        last samples, as Core._note_stops and Core.stop record them."""
-        for code, row, when, step, dof, count, added, steps, rejected, evaluations, h, minimum, error in stops:
+    def _take_pending(self) -> None:
+        """Record the rows the engine stopped (it already took them out of its running rows): their RowStop, frozen
+        counts and last samples, as Core._note_stops and Core.stop record them. Each is taken whole or again."""
+        while self._pending:
+            code, row, when, step, dof, count, added, steps, rejected, evaluations, h, minimum, error = self._pending[0]
             if code == _DIVERGED:
                 status, message = "diverged", diverged_message(self.system, when, step, dof, self.dt_hint)
             else:
                 status = "step_collapsed"
                 norm = None if math.isnan(error) else error
                 message = collapsed_message(self.system, when, step, h, minimum, norm)
-            self.stops.append(RowStop(int(row), status, message, when, count + added - 1, bool(added)))
-            self.stopped_counts[row] = (steps, rejected, evaluations)
-            self.store.stop(np.array([row]), bool(added), count=count)
-            keep = self.rows != row
-            n = int(keep.sum())
-            self.extra_evaluations[:n] = self.extra_evaluations[: len(keep)][keep]
-            self._set_rows(self.rows[keep])
+            if row in self.rows:
+                self.stops.append(RowStop(int(row), status, message, when, count + added - 1, bool(added)))
+                self.stopped_counts[row] = (steps, rejected, evaluations)
+                self.store.stop(np.array([row]), bool(added), count=count)
+                keep = self.rows != row
+                n = int(keep.sum())
+                self.extra_evaluations[:n] = self.extra_evaluations[: len(keep)][keep]
+                self._set_rows(self.rows[keep])
+            self._pending.pop(0)

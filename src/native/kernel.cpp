@@ -899,6 +899,8 @@ namespace msim
 
   void Engine::set_torques(const RowMatrix & TAU, bool jump)
   {
+    if (TAU.rows() != running() || TAU.cols() != model_.nv)
+      throw std::invalid_argument("torques must have shape (running rows, nv)");
     int64_t r = 0;
     for (auto & th : threads_)
       for (size_t j = 0; j < th->rows.size(); ++j)
@@ -912,12 +914,24 @@ namespace msim
 
   void Engine::keep(const std::vector<bool> & keep)
   {
+    if (static_cast<int64_t>(keep.size()) != running())
+      throw std::invalid_argument("keep needs one flag per running row");
     size_t r = 0;
     for (auto & th : threads_)
       for (size_t j = 0; j < th->rows.size(); ++j)
         if (th->alive[j])
           if (!keep[r++])
             th->kill(j);
+  }
+
+  std::vector<int64_t> Engine::running_rows() const
+  {
+    std::vector<int64_t> out;
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->alive[j])
+          out.push_back(th->rows[j]);
+    return out;
   }
 
   RowMatrix Engine::running_q() const
@@ -953,6 +967,8 @@ namespace msim
 
   void Engine::set_state(int64_t row, const Vec & q, const Vec & v, const Vec & flows)
   {
+    if (q.size() != model_.nq || v.size() != model_.nv || flows.size() != n_ledger_)
+      throw std::invalid_argument("a row's state has the wrong sizes");
     for (auto & th : threads_)
       for (size_t j = 0; j < th->rows.size(); ++j)
         if (th->rows[j] == row)
@@ -973,6 +989,41 @@ namespace msim
           th->alive[j] = 1;
           ++th->n_alive;
         }
+  }
+
+  std::tuple<Vec, Vec, Vec, Vec, Vec, bool> Engine::snapshot_row(int64_t row) const
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+          return {th->q[j], th->v[j], th->flows[j], th->tau[j], th->first[j], th->has_first[j] != 0};
+    throw std::invalid_argument("no such row");
+  }
+
+  void Engine::restore_row(
+    int64_t row, const Vec & q, const Vec & v, const Vec & flows, const Vec & tau, const Vec & first, bool has_first)
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+        {
+          if (q.size() != th->nq || v.size() != th->nv || tau.size() != th->nv || flows.size() != th->m
+              || first.size() != th->w)
+            throw std::invalid_argument("a row's state has the wrong sizes");
+          th->q[j] = q;
+          th->v[j] = v;
+          th->flows[j] = flows;
+          th->tau[j] = tau;
+          th->first[j] = first;
+          th->has_first[j] = has_first;
+          if (!th->alive[j])
+          {
+            th->alive[j] = 1;
+            ++th->n_alive;
+          }
+          return;
+        }
+    throw std::invalid_argument("no such row");
   }
 
   int64_t Engine::running() const
@@ -999,8 +1050,6 @@ namespace
 {
   using Doubles = nb::ndarray<double, nb::c_contig, nb::device::cpu>;
   using Ints = nb::ndarray<int64_t, nb::c_contig, nb::device::cpu>;
-  constexpr size_t STATE_SIZE = 16;
-
   msim::Store store_of(Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY, Doubles FLOWS, Ints COUNTS)
   {
     msim::Store s;
@@ -1020,48 +1069,73 @@ namespace
     return s;
   }
 
-  void unpack(const double * x, msim::CoreState & s)
+  template<typename T>
+  T get(const nb::handle & obj, const char * name)
   {
-    s.t = x[0];
-    s.k = static_cast<int64_t>(x[1]);
-    s.steps = static_cast<int64_t>(x[2]);
-    s.rejected = static_cast<int64_t>(x[3]);
-    s.evaluations = static_cast<int64_t>(x[4]);
-    s.recorded = x[5];
-    s.count = static_cast<int64_t>(x[6]);
-    s.full = x[7] != 0.0;
-    s.soft_capacity = x[8];
-    s.next_output = static_cast<int64_t>(x[9]);
-    s.c_t0 = x[10];
-    s.c_k = static_cast<int64_t>(x[11]);
-    s.c_time = x[12];
-    s.c_h = x[13];
-    s.c_previous_error = x[14];
-    s.c_rejected_last = x[15] != 0.0;
+    return nb::cast<T>(nb::getattr(obj, name));
   }
 
-  void pack(const msim::CoreState & s, double * x)
+  // The core's state from the Python objects that hold it (core.Core, recording.SampleStore, core.Sampler,
+  // step_control.ConstantStep / PIController: the attribute names are native_core.py's contract with this file).
+  void read_state(
+    const msim::Engine & engine, nb::handle core, nb::handle store, nb::handle sampler, nb::handle control,
+    msim::CoreState & s)
   {
-    x[0] = s.t;
-    x[1] = static_cast<double>(s.k);
-    x[2] = static_cast<double>(s.steps);
-    x[3] = static_cast<double>(s.rejected);
-    x[4] = static_cast<double>(s.evaluations);
-    x[5] = s.recorded;
-    x[6] = static_cast<double>(s.count);
-    x[7] = s.full ? 1.0 : 0.0;
-    x[8] = s.soft_capacity;
-    x[9] = static_cast<double>(s.next_output);
-    x[10] = s.c_t0;
-    x[11] = static_cast<double>(s.c_k);
-    x[12] = s.c_time;
-    x[13] = s.c_h;
-    x[14] = s.c_previous_error;
-    x[15] = s.c_rejected_last ? 1.0 : 0.0;
+    s.t = engine.t;
+    s.k = engine.k;
+    s.steps = get<int64_t>(core, "steps");
+    s.rejected = get<int64_t>(core, "rejected");
+    s.evaluations = get<int64_t>(core, "evaluations");
+    s.recorded = get<double>(core, "recorded");
+    s.count = get<int64_t>(store, "count");
+    s.full = get<bool>(store, "full");
+    s.soft_capacity = get<double>(store, "soft_capacity");
+    s.next_output = sampler.is_none() ? 1 : get<int64_t>(sampler, "next_output");
+    if (get<bool>(control, "adaptive"))
+    {
+      s.c_time = get<double>(control, "time");
+      s.c_h = get<double>(control, "h");
+      s.c_previous_error = get<double>(control, "_previous_error");
+      s.c_rejected_last = get<bool>(control, "_rejected_last");
+    }
+    else
+    {
+      s.c_t0 = get<double>(control, "_t0");
+      s.c_k = get<int64_t>(control, "_k");
+      s.c_time = get<double>(control, "time");
+    }
   }
 
-  using StopTuple =
-    std::tuple<int, int64_t, double, int64_t, int64_t, int64_t, bool, int64_t, int64_t, int64_t, double, double, double>;
+  // ... and back, with plain attribute assignments while the GIL is held: no Python code runs between them, so a
+  // signal handler (Ctrl-C) that runs when this call returns never sees the engine's work half recorded.
+  void write_state(
+    msim::Engine & engine, nb::handle core, nb::handle store, nb::handle sampler, nb::handle control,
+    const msim::CoreState & s)
+  {
+    engine.t = s.t;
+    engine.k = s.k;
+    nb::setattr(core, "steps", nb::int_(s.steps));
+    nb::setattr(core, "rejected", nb::int_(s.rejected));
+    nb::setattr(core, "evaluations", nb::int_(s.evaluations));
+    nb::setattr(core, "recorded", nb::float_(s.recorded));
+    nb::setattr(store, "count", nb::int_(s.count));
+    nb::setattr(store, "full", nb::bool_(s.full));
+    if (!sampler.is_none())
+      nb::setattr(sampler, "next_output", nb::int_(s.next_output));
+    nb::setattr(control, "time", nb::float_(s.c_time));
+    if (get<bool>(control, "adaptive"))
+    {
+      nb::setattr(control, "h", nb::float_(s.c_h));
+      nb::setattr(control, "_previous_error", nb::float_(s.c_previous_error));
+      nb::setattr(control, "_rejected_last", nb::bool_(s.c_rejected_last));
+    }
+    else
+    {
+      nb::setattr(control, "_t0", nb::float_(s.c_t0));
+      nb::setattr(control, "_k", nb::int_(s.c_k));
+    }
+  }
+
 } // namespace
 
 void bind_kernel(nb::module_ & m)
@@ -1136,31 +1210,37 @@ void bind_kernel(nb::module_ & m)
     .def(
       "advance",
       [](
-        Engine & self, double t_stop, int64_t limit, double tolerance, bool sampled, int64_t every, double period,
-        Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY, Doubles FLOWS, Ints COUNTS, Doubles state) {
-        if (state.size() != STATE_SIZE)
-          throw std::invalid_argument("the core state has 16 entries");
-        msim::Store store = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS);
-        msim::Sampler sampler;
-        sampler.present = sampled;
-        sampler.every = every;
-        sampler.period = period;
+        Engine & self, double t_stop, int64_t limit, double tolerance, nb::handle core, nb::handle store,
+        nb::handle sampler, nb::handle control, Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY,
+        Doubles FLOWS, Ints COUNTS, nb::list stops) {
+        msim::Store arrays = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS);
+        msim::Sampler sampling;
+        if (!sampler.is_none())
+        {
+          sampling.present = true;
+          nb::object every = nb::getattr(sampler, "every"), period = nb::getattr(sampler, "period");
+          sampling.every = every.is_none() ? 0 : nb::cast<int64_t>(every);
+          sampling.period = period.is_none() ? 0.0 : nb::cast<double>(period);
+        }
         msim::CoreState s;
-        unpack(state.data(), s);
+        read_state(self, core, store, sampler, control, s);
         msim::AdvanceResult result;
         {
           nb::gil_scoped_release release;
-          result = self.advance(t_stop, limit, tolerance, sampler, store, s);
+          result = self.advance(t_stop, limit, tolerance, sampling, arrays, s);
         }
-        pack(s, state.data());
-        std::vector<StopTuple> stops;
         for (const msim::StopEvent & ev : result.stops)
-          stops.emplace_back(
+          stops.append(nb::make_tuple(
             ev.code, ev.row, ev.time, ev.step, ev.dof, ev.count, ev.added, ev.counts[0], ev.counts[1], ev.counts[2],
-            ev.h, ev.minimum, ev.error);
-        return std::make_tuple(result.status, result.taken, result.need, stops);
+            ev.h, ev.minimum, ev.error));
+        write_state(self, core, store, sampler, control, s);
+        return std::make_tuple(result.status, result.taken, result.need);
       },
-      "Core.advance towards t_stop; the core state (16 floats) is read and written in place.")
+      nb::arg("t_stop"), nb::arg("limit"), nb::arg("tolerance"), nb::arg("core"), nb::arg("store"),
+      nb::arg("sampler").none(), nb::arg("control"), nb::arg("T"), nb::arg("Q"), nb::arg("V"), nb::arg("TAU"),
+      nb::arg("ENERGY"), nb::arg("FLOWS"), nb::arg("COUNTS"), nb::arg("stops"),
+      "Core.advance towards t_stop: reads and writes the core's, store's, sampler's and controller's state "
+      "attributes; rows that stop are appended to `stops` as tuples.")
     .def(
       "write_rows",
       [](
@@ -1176,10 +1256,15 @@ void bind_kernel(nb::module_ & m)
       })
     .def("set_torques", &Engine::set_torques)
     .def("keep", &Engine::keep)
+    .def("running_rows", &Engine::running_rows)
     .def("running_q", &Engine::running_q)
     .def("running_v", &Engine::running_v)
     .def("flows_of", &Engine::flows_of)
     .def("set_state", &Engine::set_state)
     .def("revive", &Engine::revive)
-    .def_prop_ro("running", &Engine::running);
+    .def("snapshot_row", &Engine::snapshot_row)
+    .def("restore_row", &Engine::restore_row)
+    .def_prop_ro("running", &Engine::running)
+    .def_rw("t", &Engine::t)
+    .def_rw("k", &Engine::k);
 }

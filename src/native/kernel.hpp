@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <memory>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include <Eigen/Core>
@@ -164,17 +165,26 @@ namespace msim
 
     void set_torques(const RowMatrix & TAU, bool jump);  // the running rows' torques, in order
     void keep(const std::vector<bool> & keep);          // the running rows to keep, in order
+    std::vector<int64_t> running_rows() const;
     RowMatrix running_q() const;
     RowMatrix running_v() const;
     Vec flows_of(int64_t row) const;
     void set_state(int64_t row, const Vec & q, const Vec & v, const Vec & flows);  // by hand: a jump
     void revive(int64_t row);  // a row stopped by the caller runs again (Stepper's restore)
+    // Row `row`'s whole state (q, v, flows, tau, the solver state's first stage row, whether it holds one), and back
+    // (running again): Stepper's snapshot and restore.
+    std::tuple<Vec, Vec, Vec, Vec, Vec, bool> snapshot_row(int64_t row) const;
+    void restore_row(int64_t row, const Vec & q, const Vec & v, const Vec & flows, const Vec & tau, const Vec & first,
+                     bool has_first);
     int64_t running() const;
 
     const pinocchio::Model & model() const
     {
       return model_;
     }
+
+    double t = 0.0;  // the running rows' time [s] (kernel.t)
+    int64_t k = 0;   // accepted steps (kernel.k)
 
   private:
     friend struct Thread;
