@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from multibody_sim import BatchTrajectory, load_robot, rollout, simulate
+from multibody_sim import BatchTrajectory, load_robot, make_scene, rollout, simulate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_step_cost import (  # noqa: E402  (a sibling script: the same MuJoCo model and state map)
@@ -382,6 +382,87 @@ def ray_scaling(name: str, B: int, steps: int, repeats: int) -> dict[str, float]
     return result
 
 
+# ---- scenes: what modelling a scene's physics costs a batch ---------------------------------------------------------
+SCENE_TARGETS = {"springs, damping, friction": 1.3, "+ wrenches": 2.0}  # the one-stepping-core issue's targets
+
+
+def scene_variants(name: str, frame: str) -> dict[str, Any]:
+    """The bare robot and two scenes on it: springs, viscous damping and Coulomb friction on every joint; and the
+    same with a world-frame force (ramped) and a local torque (sine) at `frame`."""
+    robot = load_robot(name, damping=False)
+    joints = {
+        joint: {"stiffness": 2.0, "rest": 0.1, "damping": 0.05, "friction": 0.02}
+        for joint in robot.model.names[1:]
+        if robot.model.joints[robot.model.getJointId(joint)].nv == 1
+    }
+    wrenches = [
+        {
+            "name": "push",
+            "frame": frame,
+            "force": [5.0, 0.0, 0.0],
+            "reference": "world",
+            "shape": "ramp",
+            "start": 0.0,
+            "ramp_time": 0.1,
+        },
+        {
+            "name": "twist",
+            "frame": frame,
+            "torque": [0.0, 0.0, 0.2],
+            "reference": "local",
+            "shape": "sine",
+            "frequency": 2.0,
+        },
+    ]
+    source = {"source": name, "damping": False}
+    return {
+        "bare robot": robot,
+        "springs, damping, friction": make_scene(robot=source, joints=joints),
+        "+ wrenches": make_scene(robot=source, joints=joints, force=wrenches),
+    }
+
+
+def scene_costs(name: str, frame: str, B: int, steps: int, repeats: int) -> dict[str, tuple[float, float, float]]:
+    """Per scene: rollout's CPU µs per state-step (output every 10 steps) and its ratio to the bare robot's, as
+    (cost, median ratio, IQR low, IQR high) over interleaved rounds."""
+    systems = scene_variants(name, frame)
+    robot = systems["bare robot"]
+    Q0, V0 = states(robot, B)
+    kwargs = dict(duration=steps * DT, dt=DT, output_dt=10 * DT, progress=False)
+    runs: dict[str, list[float]] = {label: [] for label in systems}
+    for label, system in systems.items():  # untimed: caches and lazy set-up
+        done = rollout(system, Q0, V0, **kwargs)
+        if not done.completed.all():
+            raise SystemExit(f"{name} {label}: elements stopped early")
+    for _ in range(repeats):
+        for label, system in systems.items():
+            runs[label].append(cpu_us(lambda system=system: rollout(system, Q0, V0, **kwargs), B * steps))
+    result = {}
+    for label in systems:
+        ratios = [a / b for a, b in zip(runs[label], runs["bare robot"], strict=True)]
+        q1, _, q3 = statistics.quantiles(ratios, n=4) if len(ratios) > 1 else (ratios[0], 0, ratios[0])
+        result[label] = (median(runs[label]), statistics.median(ratios), q1, q3)
+    return result
+
+
+def scene_report(name: str, costs: dict[str, tuple[float, float, float, float]], B: int) -> list[str]:
+    rows = []
+    for label, (cost, ratio, q1, q3) in costs.items():
+        target = SCENE_TARGETS.get(label)
+        verdict = "" if target is None else (f"≤ {target}: met" if ratio <= target else f"≤ {target}: NOT met")
+        rows.append([label, fmt(cost, 1), f"{ratio:.2f} ({q1:.2f}–{q3:.2f})", verdict])
+    return [
+        f"## Scenes batch ({name}, B = {B})",
+        "",
+        para(f"""A scene's physics runs elementwise over the batch (one code path for one row and many). rollout
+        of {name} with springs, viscous damping and Coulomb friction on every joint, then with a world-frame force
+        and a local torque at the tool added (a frame Jacobian per row and stage), against the bare robot, output
+        every 10 steps; CPU µs per state-step, ratios as medians of per-round ratios (IQR in brackets)."""),
+        "",
+        *table(["system", "µs / state-step", "/ bare robot", "target"], rows),
+    ]
+
+
 # ---- the report ----------------------------------------------------------------------------------------------------
 def write_report(
     path: Path,
@@ -394,6 +475,7 @@ def write_report(
     command: str,
     elapsed: float,
     loads: tuple[float, float],
+    scene_lines: list[str],
 ) -> str:
     B, steps = args.batch, args.steps
     date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -599,6 +681,7 @@ def write_report(
                 workers were warmed by one small rollout first). Each task receives the robot once through
                 `ray.put` and returns its chunk's arrays."""),
         ]
+    lines += ["", *scene_lines]
     lines += ["", "## Reading", "", *reading(benches, over_cores, over_ray, over_batch), ""]
     text = "\n".join(lines)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -736,6 +819,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cores-robot", default="panda")
     parser.add_argument("--cores-batch", type=int, default=512)
     parser.add_argument("--no-ray", action="store_true", help="skip the Ray measurement")
+    parser.add_argument("--scene-robot", default="ur5:tool0", help="ROBOT:FRAME of the scene section")
+    parser.add_argument("--scenes-only", action="store_true", help="run only the scene section and print it")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "rollout_cost.md")
     args = parser.parse_args(argv)
     python = Path(sys.executable)
@@ -744,6 +829,11 @@ def main(argv: list[str] | None = None) -> int:
     if mujoco is not None:  # keep the URDF importer's warnings out of MUJOCO_LOG.TXT in the cwd
         mujoco.set_mju_user_warning(lambda message: None)
     start, load_before = time.perf_counter(), load_average()
+    scene_name, scene_frame = args.scene_robot.split(":")
+    scenes = scene_costs(scene_name, scene_frame, args.batch, args.steps, args.repeats)
+    print("\n".join(scene_report(scene_name, scenes, args.batch)), flush=True)
+    if args.scenes_only:
+        return 0
 
     benches = [make_bench(name, args.batch, args.steps) for name in args.robots.split(",")]
     workloads = [(b, b.variants()) for b in benches]
@@ -786,6 +876,7 @@ def main(argv: list[str] | None = None) -> int:
         command,
         elapsed,
         (load_before, load_average()),
+        scene_report(scene_name, scenes, args.batch),
     )
     print(text)
     print(f"wrote {args.out}")

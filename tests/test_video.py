@@ -173,8 +173,11 @@ def test_a_view_without_the_robot_is_an_error_not_a_blank_video(
         (["--video", "{d}/x.avi"], "--video {d}/x.avi: unknown video format '.avi' (choose from: .gif, .mp4)"),
         (["--video", "{d}/x.mp4", "--fps", "500"], "--fps must be from 1 to 120 frames per second for .mp4, got 500"),
         (["--video", "{d}/x.gif", "--fps", "60"], "--fps must be from 1 to 50 frames per second for .gif, got 60"),
-        (["--video", "{d}/x.mp4", "--fps", "0"], "--fps must be a positive number, got 0"),
-        (["--video", "{d}/x.mp4", "--speed", "-2"], "--speed must be a positive number, got -2"),
+        (["--video", "{d}/x.mp4", "--fps", "0"], "--fps must be from 1 to 120 frames per second for .mp4, got 0"),
+        (
+            ["--video", "{d}/x.mp4", "--speed", "-2"],
+            "--speed must be a number from 0.001 to 1000 (1 = real time), got -2",
+        ),
         (["--video", "{d}/x.mp4", "--width", "20"], "--width must be from 64 to 3840 pixels, got 20"),
         (
             ["--video", "{d}/x.mp4", "--height", "241"],

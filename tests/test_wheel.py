@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import importlib.util
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -18,7 +20,7 @@ import multibody_sim as ms
 
 REPO = Path(__file__).resolve().parents[1]
 # What a wheel is built from: the project's metadata, its code and the models it ships (never build/ or caches).
-SOURCES = ("pyproject.toml", "README.md", "CHANGELOG.md", "LICENSE", "src", "models")
+SOURCES = ("pyproject.toml", "CMakeLists.txt", "README.md", "CHANGELOG.md", "LICENSE", "src", "models")
 IGNORED = shutil.ignore_patterns("__pycache__", "*.egg-info", "*.pyc")
 
 
@@ -66,6 +68,19 @@ def test_the_wheel_holds_every_model_file_as_package_data(wheel):
     assert not any(name.startswith("models/") for name in names)
 
 
+def extension_in(wheel: Path) -> list[str]:
+    """The compiled extension's files in the wheel (empty for a pure-Python wheel)."""
+    return [n for n in zipfile.ZipFile(wheel).namelist() if re.fullmatch(r"multibody_sim/_native\.[^/]*\.so", n)]
+
+
+def test_the_wheel_holds_the_compiled_extension(wheel):
+    if not extension_in(wheel) and shutil.which("c++") is None and os.environ.get("CI") != "true":
+        pytest.skip("no C++ compiler here: the wheel is pure Python (the fallback)")
+    assert len(extension_in(wheel)) == 1, zipfile.ZipFile(wheel).namelist()
+    assert "multibody_sim/_native_build.py" in zipfile.ZipFile(wheel).namelist()
+    assert not wheel.name.endswith("-py3-none-any.whl"), wheel.name  # tagged for this interpreter and platform
+
+
 def test_every_catalog_entry_loads_from_the_installed_wheel(wheel, tmp_path):
     site = tmp_path / "site"
     install = subprocess.run(
@@ -91,13 +106,20 @@ def test_every_catalog_entry_loads_from_the_installed_wheel(wheel, tmp_path):
     elsewhere.mkdir()
     probe = textwrap.dedent("""
         import json
+        import sys
+        # An editable install of the checkout (scripts/test.sh's) hooks imports ahead of the path: drop its hook so
+        # the wheel's copy, first on the path, is what loads.
+        sys.meta_path[:] = [f for f in sys.meta_path if type(f).__name__ != "ScikitBuildRedirectingFinder"]
         import multibody_sim as ms
+        from multibody_sim import native
         from multibody_sim.catalog import CATALOG, load_robot, shipped_models_dir
         sizes = {}
         for name in CATALOG:
             robot = load_robot(name)
             sizes[name] = [robot.nq, robot.nv, robot.floating_base, robot.source["urdf_path"]]
-        print(json.dumps({"file": ms.__file__, "models": str(shipped_models_dir()), "sizes": sizes}))
+        extension = native.module.__file__ if native.module is not None else None
+        report = {"file": ms.__file__, "models": str(shipped_models_dir()), "sizes": sizes}
+        print(json.dumps({**report, "kernel": native.kernel(), "extension": extension}))
     """)
     # The installed copy comes first on the path; dependencies (pin, ...) come from this environment.
     result = subprocess.run(
@@ -113,6 +135,9 @@ def test_every_catalog_entry_loads_from_the_installed_wheel(wheel, tmp_path):
     assert Path(report["file"]).resolve().is_relative_to(site.resolve()), report["file"]
     assert Path(report["models"]).resolve() == (site / "multibody_sim" / "models").resolve()
     assert set(report["sizes"]) == set(ms.CATALOG)
+    if extension_in(wheel):  # the wheel's own extension runs, against this environment's Pinocchio
+        assert report["kernel"] == f"native (C++, Pinocchio {importlib.metadata.version('pin')})", report["kernel"]
+        assert Path(report["extension"]).resolve().is_relative_to(site.resolve()), report["extension"]
     for name, (nq, nv, floating, urdf_path) in report["sizes"].items():
         here = ms.load_robot(name)
         assert (nq, nv, floating) == (here.nq, here.nv, here.floating_base), name

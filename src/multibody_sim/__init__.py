@@ -45,7 +45,7 @@ from .rollout import BatchTrajectory, rollout
 from .scenes import Scene, load_scene, make_scene
 from .simulation import simulate
 from .stability import LadderRung, StabilityLimit, Stiffness, largest_stable_dt, linearization, stiffness_ratio
-from .stepper import Stepper, StepperState
+from .stepper import BatchStep, BatchStepper, Stepper, StepperState
 from .trajectory import ConstraintRecord, LedgerEntry, LimitViolations, Trajectory
 
 __version__ = "0.1.0"
@@ -56,6 +56,8 @@ __all__ = [
     "CONTROLLERS",
     "INTEGRATORS",
     "PD",
+    "BatchStep",
+    "BatchStepper",
     "BatchTrajectory",
     "BenchInterrupted",
     "ButcherTableau",

@@ -19,13 +19,11 @@ cheapest measured configuration whose error, plus the reference's own estimated 
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import hashlib
 import json
 import math
 import os
-import statistics
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -35,11 +33,13 @@ from typing import Any
 import numpy as np
 
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
+from .files import write_atomically
 from .integrators import INTEGRATORS, Integrator, get_integrator
 from .metadata import versions
 from .robot import Robot
+from .safety import safe_name
 from .simulation import simulate
-from .trajectory import Trajectory, write_atomically
+from .trajectory import Trajectory
 from .validation import positive_number
 
 FORMAT = "multibody-sim work-precision"
@@ -376,6 +376,8 @@ class WorkPrecision:
 
     def to_csv(self, path: str | os.PathLike[str]) -> Path:
         """Write one row per measurement as CSV, atomically (empty cells for missing values)."""
+        import csv  # here: `import multibody_sim` need not pay for what a study's files need
+
         rows = self.rows()
         buffer = _StringBuffer()
         writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, lineterminator="\n")
@@ -407,7 +409,7 @@ class WorkPrecision:
     def summary(self, tolerances: Sequence[float] = (1e-2, 1e-4, 1e-6, 1e-8)) -> str:
         """What the `bench` command prints: the reference, the orders and the recommendations."""
         lines = [
-            f"work-precision study of {self.system}: {self.duration:g} s, error = max over samples every "
+            f"work-precision study of {safe_name(self.system)}: {self.duration:g} s, error = max over samples every "
             f"{self.output_dt:g} s of |(q ⊖ q_ref, v − v_ref)|∞"
             + ("" if self.complete else " (INTERRUPTED: partial results)")
         ]
@@ -711,6 +713,8 @@ class _Study:
             again = self._simulate(method, dt, tolerance)
             m.cpu_times.append(time.process_time() - start)
             m.wall_times.append(float(again.stats["wall_time"]))
+        import statistics  # here: it pulls random and fractions into `import multibody_sim`
+
         m.cpu_time = statistics.median(m.cpu_times)
         m.wall_time = statistics.median(m.wall_times)
         m.steps = int(traj.stats["steps"])
@@ -1089,11 +1093,10 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
     for ax in axes:
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=7, loc="best")
-    fig.suptitle(title or f"{result.system}: work-precision over {result.duration:g} s (dashed: adaptive)")
+    fig.suptitle(title or f"{safe_name(result.system)}: work-precision over {result.duration:g} s (dashed: adaptive)")
     fig.tight_layout()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    write_atomically(path, lambda f: fig.savefig(f, dpi=110, format=path.suffix.lstrip(".") or "png"))
     plt.close(fig)
     return path
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import difflib
 import hashlib
-import importlib.metadata
 import importlib.resources
 import math
 import os
@@ -20,7 +19,6 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
-from lxml import etree
 
 from .exceptions import InvalidArgumentError, ModelError, RobotNotFoundError
 from .robot import Robot
@@ -518,6 +516,8 @@ def example_robot_data_share() -> Path:
     Raises:
         ModelError: example-robot-data is not installed.
     """
+    import importlib.metadata  # here, as lxml below: what `import multibody_sim` need not pay
+
     candidates = []
     try:
         dist = importlib.metadata.distribution(_ERD)
@@ -587,8 +587,8 @@ def load_robot(
             raise InvalidArgumentError(f"{flag} must be {allowed or 'True or False'}, got {value!r}")
     if srdf is not None and not isinstance(srdf, (str, os.PathLike)):
         raise InvalidArgumentError(f"srdf must be a path to an SRDF file, got {type(srdf).__name__}")
-    dirs = _folders("package_dirs", package_dirs)
-    extra_roots = _folders("allowed_roots", allowed_roots)
+    dirs = folder_list("package_dirs", package_dirs)
+    extra_roots = folder_list("allowed_roots", allowed_roots)
     name = os.fspath(source).removeprefix(ROBOT_PREFIX)  # the prefix only says "the robot, not the scene"
     arguments: dict[str, Any] = {
         "source": name,
@@ -891,6 +891,8 @@ def _prune(xml: bytes, path: Path, joint: str) -> bytes:
         gone |= tag == "transmission" and any(j.get("name") in removed_joints for j in element.findall("joint"))
         if gone:
             root.remove(element)
+    from lxml import etree
+
     return etree.tostring(root, xml_declaration=True, encoding="utf-8")
 
 
@@ -933,7 +935,7 @@ def reduce_configuration(full: pin.Model, reduced: pin.Model, q: np.ndarray) -> 
     return out
 
 
-def _folders(argument: str, folders: Any) -> list[Path]:
+def folder_list(argument: str, folders: Any) -> list[Path]:
     """The resolved folders of a package_dirs / allowed_roots argument, or InvalidArgumentError."""
     if folders is None:
         return []
@@ -1009,6 +1011,8 @@ def parse_xml(xml: bytes, path: Path, kind: str, largest: str) -> Any:
         raise ModelError(
             f"{path}: the file has {tags} XML elements, more than the {MAX_XML_ELEMENTS} a {kind} may have {largest}"
         )
+    from lxml import etree
+
     parser = etree.XMLParser(
         resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False, remove_comments=True, remove_pis=True
     )

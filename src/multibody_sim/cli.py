@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import difflib
-import importlib.metadata
 import io
 import json
 import math
@@ -21,9 +20,19 @@ from types import FrameType
 from typing import Any, NoReturn
 
 import multibody_sim as ms
-from multibody_sim.safety import printable
+from multibody_sim import native
+from multibody_sim.files import check_output, check_unlocked
+from multibody_sim.safety import printable, safe_name, terminal_text
 from multibody_sim.trajectory import plain_data
-from multibody_sim.validation import check_options, positive_number, steps_per
+from multibody_sim.validation import (
+    check_options,
+    frame_rate,
+    playback_speed,
+    port_number,
+    positive_count,
+    positive_number,
+    run_numbers,
+)
 
 PROG = "multibody-sim"
 COMMANDS = ("run", "models", "inspect", "integrators", "bench", "play", "plot", "export")
@@ -58,6 +67,14 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         raise _UsageError(message)
+
+
+class _VersionAction(argparse.Action):
+    """--version: the package version, then the kernel line, printed as is (argparse's action rewraps lines)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: Any) -> NoReturn:
+        print(f"{PROG} {_version()}\nkernel: {native.kernel()}")
+        parser.exit()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -120,7 +137,12 @@ def _build_parser() -> _Parser:
         epilog="Exit codes: 0 success, 1 the simulation failed (partial samples written to --out), "
         "2 bad input, 130 / 143 interrupted by SIGINT / SIGTERM (partial samples written to --out).",
     )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    parser.add_argument(
+        "--version",
+        action=_VersionAction,
+        nargs=0,
+        help="show the version and which stepping kernel runs (native C++, or Python and why), then exit",
+    )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     robot_options = _Parser(add_help=False)
@@ -170,7 +192,8 @@ def _build_parser() -> _Parser:
         action="append",
         default=[],
         help="a further folder mesh paths may resolve into, besides the URDF's folder and the package "
-        "folders (repeat the option for several)",
+        "folders; for a scene file, a further folder its robot file and package_dirs may lie in, besides its own "
+        "folder and the catalog's (repeat the option for several)",
     )
 
     run = commands.add_parser(
@@ -272,8 +295,9 @@ def _build_parser() -> _Parser:
     view.add_argument(
         "--view",
         action="store_true",
-        help="after the run, play it in a meshcat page served on 127.0.0.1 (the URL is printed; the playback "
-        "starts when a browser opens it)",
+        help="watch the run live in a meshcat page served on 127.0.0.1: the URL is printed and the run starts "
+        "when a browser opens it; after the run the page keeps the recording until Ctrl-C when run from a "
+        "terminal (otherwise the viewer closes at the end and says so)",
     )
     view.add_argument(
         "--view-speed", metavar="X", type=float, default=1.0, help="playback speed, 1 = real time (default: 1)"
@@ -428,6 +452,8 @@ def _add_server_options(group: Any, prefix: str) -> None:
 
 
 def _version() -> str:
+    import importlib.metadata  # here: `--help` and every command need not pay for it
+
     try:
         return importlib.metadata.version("multibody-sim")
     except importlib.metadata.PackageNotFoundError:
@@ -461,7 +487,7 @@ def _print_note(args: argparse.Namespace) -> None:
     """The note _is_scene left, on stderr: printed once bad input can no longer be the next line."""
     note = getattr(args, "note", None)
     if note:
-        print(note, file=sys.stderr, flush=True)
+        _print(note, sys.stderr)
         args.note = None
 
 
@@ -473,14 +499,14 @@ def _load(args: argparse.Namespace) -> Any:
                 ("--floating-base/--fixed-base", args.floating_base is not None),
                 ("--no-damping", args.no_damping),
                 ("--package-dir", args.package_dir),
-                ("--allow-root", args.allow_root),
                 ("--srdf", args.srdf),
             )
             if value
         ]
         if given:
             raise _UsageError(f"{', '.join(given)}: a scene declares its robot: set this in its [robot] table")
-        return ms.load_scene(args.robot)
+        # --allow-root is the user's own say: a scene from elsewhere reads only its folder and the catalog's
+        return ms.load_scene(args.robot, allowed_roots=args.allow_root or None)
     if args.report_savings:
         raise _UsageError("--report-savings applies to scene files (.toml): a robot alone has nothing to save")
     return ms.load_robot(
@@ -507,6 +533,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     """The run command; fills `document` (when given) with the run's description and summary as data."""
+    playback_speed(args.view_speed, "--view-speed")
+    port_number(args.view_port, "--view-port")
     out = _check_out(args.out) if args.out else None
     robot = _load(args)
     scene = robot if isinstance(robot, ms.Scene) else None
@@ -564,14 +592,16 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
             # Printed (and flushed) with the handlers in place, just before stepping: a watcher may signal
             # as soon as it reads this line.
             _say(
-                f"run: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
+                f"run: {safe_name(robot.name)} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
                 f"dt {args.dt:g} s{tolerances}, duration {args.duration:g} s"
                 + (f", controller {args.controller}" if controller is not None else "")
             )
             if args.chunk is not None:  # streamed to disk by the loop itself, merged into --out at the end
                 if out is None:
                     raise _UsageError("--chunk needs --out FILE.npz (the chunks are merged into it)")
-                options.update(out=out, chunk=args.chunk)
+                options.update(chunk=args.chunk)
+            if out is not None:  # written by simulate however the run ends, signals held off the write
+                options.update(out=out)
             if viewer is not None:  # wait for a page, then show the run while it computes, paced to --view-speed
                 args._live = _await_browser(viewer, args)
                 options.update(on_sample=args._live)
@@ -582,7 +612,6 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
             failure = exc
         else:
             failure = None
-    streamed = args.chunk is not None
 
     def describe(trajectory: Any, report: str, error: str | None) -> None:
         if document is not None:
@@ -603,8 +632,6 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
             )
 
     if failure is None:
-        if out is not None and not streamed:
-            _save(trajectory, out)
         said = getattr(controller, "summary", lambda: "")()  # what the controller saw (tracking error, minima)
         describe(trajectory, said, None)
         _say(trajectory.summary() + (f"\n{said}" if said else "") + (f"\nwrote {out}" if out is not None else ""))
@@ -612,7 +639,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
             _watch(viewer, trajectory, args)
         return EXIT_OK
     partial = getattr(failure, "trajectory", None)
-    kept = _save_partial(partial, out, already_written=streamed)
+    kept = _kept(failure, out)
     if partial is not None and len(partial):
         describe(partial, "", f"{failure}; {kept}")
         _say(partial.summary())
@@ -626,7 +653,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     # The stepping loop cannot tell which signal raised the KeyboardInterrupt; our handler can.
     name = signals.received or "SIGINT"
     where = str(failure) or "interrupted before the first step"
-    print(f"{PROG}: {name}: {where}; {kept}", file=sys.stderr)
+    _print(f"{PROG}: {name}: {printable(where)}; {kept}", sys.stderr)
     return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
 
 
@@ -647,20 +674,16 @@ def _configuration(robot: Any, words: list[str]) -> Any:
 def _check_run_arguments(robot: Any, method: Any, duration: Any, dt: Any, options: dict[str, Any]) -> None:
     """What simulate() would refuse, checked before the header is printed (dt None: chosen later, by a pilot).
 
-    The same checks, with the same messages, as simulate()'s: bad input prints one line and nothing else.
+    The same checks (validation.py), with the same messages, as simulate()'s: bad input prints one line and
+    nothing else.
     """
     positive_number(duration, "duration")
     if dt is None:
         return
-    positive_number(dt, "dt")
+    if method.adaptive:  # the command line's default tolerances, unless given
+        options = {"rtol": ADAPTIVE_RTOL, "atol": ADAPTIVE_ATOL, **options}
     check_options(method, options)
-    if method.adaptive:
-        for name in ("rtol", "atol", "max_step", "output_dt", "control_dt"):
-            if options.get(name) is not None:
-                positive_number(options[name], name, "units" if name in ("rtol", "atol") else "seconds")
-    else:
-        for name in ("output_dt", "control_dt"):
-            steps_per(options.get(name), dt, name)
+    run_numbers(method.adaptive, duration, dt, options)
     method.check_system(robot)
 
 
@@ -734,7 +757,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if not started:
             started.append(True)
             _print_note(args)
-            _say(f"bench: {robot.name} ({base} base, nq {robot.nq}, nv {robot.nv}), duration {args.duration:g} s")
+            _say(
+                f"bench: {safe_name(robot.name)} ({base} base, nq {robot.nq}, nv {robot.nv}), "
+                f"duration {args.duration:g} s"
+            )
         if args.verbose:  # one line per run; the default report is the header and the summary
             _say(line)
 
@@ -754,7 +780,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if failure is None:
         return EXIT_OK
     name = signals.received or "SIGINT"
-    print(f"{PROG}: {name}: {failure}; partial results written to {out}", file=sys.stderr)
+    _print(f"{PROG}: {name}: {printable(str(failure))}; partial results written to {out}", sys.stderr)
     return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
 
 
@@ -773,13 +799,13 @@ def _check_out_dir(name: str) -> Path:
 
 def _cmd_models(args: argparse.Namespace) -> int:
     rows = ms.catalog_table()
-    print(
+    _print(
         _table(
             ["name", "nq", "nv", "base", "poses", "description"],
             [[r["name"], r["nq"], r["nv"], r["base"], _poses_cell(r), r["description"]] for r in rows],
         )
     )
-    print(
+    _print(
         "\nposes: the SRDF's named poses (run ROBOT --q0 NAME); * marks the default pose, where runs start; "
         "- none: runs start from the neutral configuration"
     )
@@ -788,12 +814,12 @@ def _cmd_models(args: argparse.Namespace) -> int:
 
     scenes = shipped_scenes()
     if scenes:
-        print(f"\nscenes (run one with `{PROG} run NAME`; the files are in {next(iter(scenes.values())).parent}):")
+        _print(f"\nscenes (run one with `{PROG} run NAME`; the files are in {next(iter(scenes.values())).parent}):")
         scene_rows = [[name, read_scene_file(path).description] for name, path in scenes.items()]
-        print(_table(["name", "description"], scene_rows, indent=2))
+        _print(_table(["name", "description"], scene_rows, indent=2))
     both = sorted(set(scenes) & set(ms.CATALOG))
     if both:
-        print(
+        _print(
             f"\n{', '.join(both)}: both a robot and a scene; run, inspect and bench take the scene "
             f"(robot:{both[0]} for the robot alone)"
         )
@@ -818,22 +844,22 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     robot = _load(args)
     _print_note(args)
     if isinstance(robot, ms.Scene):
-        print(robot.describe())
-        print(_savings(robot))
-        print()
+        _print(robot.describe())
+        _print(_savings(robot))
+        _print()
     model = robot.model
     entry = ms.CATALOG.get(args.robot)
-    lines = [f"{robot.name}" + (f": {entry.description}" if entry is not None else "")]
+    lines = [safe_name(robot.name) + (f": {entry.description}" if entry is not None else "")]
     source = robot.source
     derived = {"sdf": " (SDF, converted to URDF)"}.get(source.get("derivation", ""), "")
     if source.get("derivation", "").startswith("prune:"):
-        derived = f" (without the subtree below {source['derivation'].removeprefix('prune:')})"
-    lines += [f"URDF: {source.get('urdf_path')}{derived}", f"sha256: {source.get('urdf_sha256')}"]
+        derived = f" (without the subtree below {safe_name(source['derivation'].removeprefix('prune:'))})"
+    lines += [f"URDF: {safe_name(source.get('urdf_path'))}{derived}", f"sha256: {source.get('urdf_sha256')}"]
     base = "floating (free-flyer root joint)" if robot.floating_base else "fixed (root link welded to the world)"
     lines += [f"base: {base}", f"nq: {robot.nq}  nv: {robot.nv}"]
     if robot.poses:
-        named = ", ".join(f"{p} (default)" if p == robot.default_pose_name else p for p in robot.poses)
-        lines.append(f"poses: {named} (from {source.get('srdf_path')})")
+        named = ", ".join(safe_name(p) + (" (default)" if p == robot.default_pose_name else "") for p in robot.poses)
+        lines.append(f"poses: {named} (from {safe_name(source.get('srdf_path'))})")
     else:
         lines.append("poses: none (runs start from the neutral configuration)")
     welded = float(model.inertias[0].mass)
@@ -887,7 +913,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
         "bodies (links joined by fixed joints are merged):",
         _table(["moved by joint", "mass [kg]", "links"], body_rows, indent=2),
     ]
-    print("\n".join(lines))
+    _print("\n".join(lines))
     return EXIT_OK
 
 
@@ -901,18 +927,19 @@ def _cmd_integrators(args: argparse.Namespace) -> int:
         rows.append([name, method.order, evaluations, ", ".join(flags) or "-", method.description])
         if method.notes:
             notes.append(f"  {name}: {method.notes}")
-    print(_table(["name", "order", "evaluations/step", "flags", "description"], rows))
+    _print(_table(["name", "order", "evaluations/step", "flags", "description"], rows))
     if notes:
-        print("\nnotes:\n" + "\n".join(notes))
+        _print("\nnotes:\n" + "\n".join(notes))
     return EXIT_OK
 
 
 def _cmd_play(args: argparse.Namespace) -> int:
     viz = _viz()
     html = _check_output(args.html, "--html", "view.html") if args.html else None
-    for option, value in (("--fps", args.fps), ("--speed", args.speed)):
-        if not (math.isfinite(value) and value > 0):
-            raise _UsageError(f"{option} must be a positive number, got {value:g}")
+    if not args.video:  # a video's frame rate has its own range per format (checked with the video's options)
+        frame_rate(args.fps, "--fps")
+    playback_speed(args.speed, "--speed")
+    port_number(args.port, "--port")
     video = _check_video(args) if args.video else None
     trajectory = ms.Trajectory.load(args.trajectory)
     try:
@@ -935,7 +962,10 @@ def _cmd_play(args: argparse.Namespace) -> int:
             viewer.animate(trajectory, fps=args.fps, speed=args.speed)
             if args.plot:
                 viewer.show_plot(trajectory)
-            _say(f"play: {robot.name}, {len(trajectory)} samples, t = {trajectory.t[0]:g}..{trajectory.t[-1]:g} s")
+            _say(
+                f"play: {safe_name(robot.name)}, {len(trajectory)} samples, "
+                f"t = {trajectory.t[0]:g}..{trajectory.t[-1]:g} s"
+            )
             _say(f"view: open {viewer.url} in a browser (time slider under Open Controls > Animations); Ctrl-C to quit")
             _wait_for_interrupt()
         finally:
@@ -1041,8 +1071,6 @@ def _viz() -> Any:
 def _open_viewer(robot: Any, host: str, port: int | None, speed: float, q0: Any = None) -> Any:
     """Start the meshcat viewer before the work (bad options and missing packages fail first), showing q0."""
     viz = _viz()
-    if not (math.isfinite(speed) and speed > 0):
-        raise _UsageError(f"the playback speed must be a positive number, got {speed:g}")
     try:
         with _viewer_warnings(viz):
             viewer = viz.Viewer(robot, host=host, port=port, announce=False)
@@ -1066,7 +1094,7 @@ def _viewer_warnings(viz: Any) -> Iterator[None]:
         finally:
             for warning in caught:
                 if issubclass(warning.category, viz.ViewerWarning):
-                    print(f"{PROG}: warning: {warning.message}", file=sys.stderr)
+                    _print(f"{PROG}: warning: {printable(str(warning.message))}", sys.stderr)
                 else:  # someone else's: shown as Python would have
                     warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
 
@@ -1092,6 +1120,11 @@ def _watch(viewer: Any, trajectory: Any, args: argparse.Namespace) -> None:
         if _interactive():  # someone at a terminal may still want the page; a script wants the exit
             _say("view: played; the page keeps the recording (time slider under Open Controls); Ctrl-C to quit")
             _wait_for_interrupt()
+        else:
+            _say(
+                "view: played; the viewer closes now, as stdin is not a terminal (run from a terminal to keep the "
+                "page open until Ctrl-C)"
+            )
     except KeyboardInterrupt:
         pass  # the run is complete and saved: closing the viewer is the normal way out
     finally:
@@ -1115,69 +1148,47 @@ def _wait_for_interrupt() -> None:
 
 
 def _check_output(name: str, option: str, example: str) -> Path:
-    """An output file must be writable before the work that produces it."""
-    path = Path(name).expanduser()
-    if path.is_dir():
-        raise _UsageError(f"{option} {name}: is a directory, expected a file name such as {example}")
-    folder = path.absolute().parent
-    while not folder.exists():
-        folder = folder.parent
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise _UsageError(f"{option} {name}: cannot create a file in {folder} (not a writable folder)")
-    return path
+    """An output must be a regular file (or a new name) in a writable folder, before the work that produces it
+    (files.check_output: directories, FIFOs, sockets and devices are refused; a symbolic link is written through)."""
+    check_output(name, option, example)
+    return Path(name).expanduser()
 
 
 # ---- helpers -----------------------------------------------------------------------------------------
 def _error(message: str, code: int = EXIT_BAD_INPUT) -> int:
     """Print one line on stderr and return the exit code."""
-    # Names in messages may come from untrusted files: escape control characters, keep it to one line.
-    print(f"{PROG}: error: {printable(' '.join(message.splitlines()))}", file=sys.stderr)
+    # Names in messages may come from untrusted files: control characters and line breaks escaped visibly.
+    print(f"{PROG}: error: {printable(message)}", file=sys.stderr)
     return code
 
 
 def _positive_int(text: str) -> int:
     try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive whole number, got '{text}'") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive whole number, got '{text}'")
-    return value
+        return positive_count(int(text), "N")
+    except ValueError:  # not a whole number, or out of range (InvalidArgumentError is a ValueError)
+        raise argparse.ArgumentTypeError(f"expected a whole number from 1 to 2**53, got '{text}'") from None
 
 
 def _check_out(name: str) -> Path:
-    """--out must be writable before a possibly long run, not after it."""
-    path = Path(name).expanduser()
-    if path.is_dir():
-        raise _UsageError(f"--out {name}: is a directory, expected a file name such as run.npz")
-    folder = path.absolute().parent
-    while not folder.exists():  # Trajectory.save creates missing folders
-        folder = folder.parent
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise _UsageError(f"--out {name}: cannot create a file in {folder} (not a writable folder)")
+    """--out must be writable, and not being written by another run, before a possibly long run, not after it."""
+    path = _check_output(name, "--out", "run.npz")
+    check_unlocked(path, "--out")
     return path
 
 
-def _save(trajectory: Any, path: Path) -> None:
-    try:
-        trajectory.save(path)
-    except OSError as exc:
-        raise _UsageError(f"--out {path}: cannot write the trajectory ({exc.strerror or exc})") from None
-
-
-def _save_partial(trajectory: Any, out: Path | None, *, already_written: bool = False) -> str:
-    """Write a failed or interrupted run's samples; returns the clause that says what was kept."""
+def _kept(failure: BaseException, out: Path | None) -> str:
+    """The clause that says what a failed or interrupted run kept, and where (simulate wrote it: `.saved_to`)."""
+    trajectory = getattr(failure, "trajectory", None)
     if trajectory is None or not len(trajectory):
         return "no samples to keep"
     span = f"partial trajectory ({len(trajectory)} samples, t = {trajectory.t[0]:g}..{trajectory.t[-1]:g} s)"
     if out is None:
         return f"{span} not saved (pass --out FILE.npz to keep it)"
-    if already_written:
-        return f"{span} written to {out}"
-    try:
-        trajectory.save(out)
-    except OSError as exc:
-        return f"{span} could not be written to {out} ({exc.strerror or exc})"
+    saved_to = getattr(failure, "saved_to", None)
+    if saved_to is None:
+        return f"{span} not written to {out}: lost when this command exits"
+    if saved_to.is_dir():  # a chunked run whose parts could not be merged
+        return f"{span} kept in {saved_to} (`multibody-sim plot`, `export` and Trajectory.load read the folder)"
     return f"{span} written to {out}"
 
 
@@ -1222,16 +1233,22 @@ def _joint_kind(shortname: str) -> str:
 
 def _table(headers: list[str], rows: list[list[Any]], indent: int = 0) -> str:
     """Left-aligned columns separated by two spaces."""
-    cells = [[str(c) for c in row] for row in [headers, *rows]]
+    cells = [[safe_name(c) for c in row] for row in [headers, *rows]]  # names from files: one line each
     widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
     pad = " " * indent
     return "\n".join(pad + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in cells)
 
 
+def _print(text: str = "", file: Any = None) -> None:
+    """Print the program's text: its own line breaks kept, every other unprintable character escaped (names in it
+    come from files: safe_name escapes them where they are inserted, this is the last defence)."""
+    print(terminal_text(text), file=file or sys.stdout, flush=True)
+
+
 def _say(text: str) -> None:
     """Print a run's progress; a reader that left (`| head`) must not cost the run or its file."""
     try:
-        print(text, flush=True)
+        _print(text)
     except BrokenPipeError:
         _discard_stdout()
 

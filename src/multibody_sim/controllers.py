@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
-from scipy.interpolate import CubicSpline
 
 from .exceptions import InvalidArgumentError, UnknownNameError
 from .robot import Robot
+from .safety import safe_name
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 
@@ -275,6 +275,8 @@ class ComputedTorque:
         # Chart coordinates of each waypoint, accumulated leg by leg (each leg the short way round).
         steps = [pin.difference(self._model, points[i], points[i + 1]) for i in range(len(points) - 1)]
         chart = np.vstack([np.zeros(robot.nv), np.cumsum(steps, axis=0)])
+        from scipy.interpolate import CubicSpline  # here: SciPy would slow `import multibody_sim` by a third
+
         self.spline = CubicSpline(times, chart, axis=0, bc_type=bc_type)
         self._velocity, self._acceleration = self.spline.derivative(1), self.spline.derivative(2)
         self._damping = robot.damping if np.any(robot.damping) else None
@@ -330,7 +332,8 @@ class ComputedTorque:
             return "computed torque: not called"
         worst = int(np.argmax(np.abs(log.position_error).max(axis=0)))
         return (
-            f"computed torque: max tracking error {log.max_position_error:.3g} (in '{self.robot.dof_names[worst]}'), "
+            f"computed torque: max tracking error {log.max_position_error:.3g} "
+            f"(in '{safe_name(self.robot.dof_names[worst])}'), "
             f"max velocity error {log.max_velocity_error:.3g}, over {len(log.t)} controller calls"
         )
 

@@ -16,15 +16,24 @@ from typing import Any
 import numpy as np
 
 from .core import EMPTY, FULL, REACHED, Core, RowKernel, Sampler, cure_for_dt
-from .exceptions import ControllerOutputError, InvalidArgumentError, MultibodySimError
+from .exceptions import ControllerOutputError, InvalidArgumentError, MultibodySimError, TrajectoryFileError
+from .files import signals_held
 from .integrators import Integrator
 from .integrators.batch import BatchRungeKutta, batch_kernel_supported
 from .metadata import run_metadata
 from .native_core import NativeCore, NativeKernel, why_not_native
 from .recording import COUNTERS, SampleStore, check_memory, samples_needed
 from .step_control import SLIVER, ConstantStep, PIController
-from .trajectory import LimitViolations, Trajectory, chunk_path, combine_limit_violations, merge_parts
-from .validation import positive_number, steps_per
+from .trajectory import (
+    PARTS_SUFFIX,
+    LimitViolations,
+    Trajectory,
+    chunk_path,
+    combine_limit_violations,
+    merge_parts,
+    write_chunk,
+)
+from .validation import run_numbers, step_count
 
 # Energy blow-up: |energy_error| beyond this many times the run's energy scale is divergence, not error.
 BLOWUP_FACTOR = 1e3
@@ -206,6 +215,24 @@ class Monitor:
         self.scale[rows] = energies[:, 0] + np.abs(energies[:, 1]) + self.system.energy_scale
         self.started[rows] = True
 
+    def suspects(self, store: SampleStore, rows: list[int], start: int, limits: list[int]) -> list[int]:
+        """The rows among `rows` that may have a problem among their samples start..limit-1: every row that
+        first_problem() would flag, and maybe a few more (judged at half the bound, all rows at once)."""
+        stop = max(limits, default=start)
+        if stop <= start:
+            return []
+        E = store.ENERGY[start:stop, rows]
+        total = E[..., 0] + E[..., 1]
+        flows = store.FLOWS[start:stop, rows]
+        work = flows[..., self.is_work].sum(axis=-1)
+        dissipated = flows[..., ~self.is_work].sum(axis=-1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            error = total - self.initial[rows] - work + dissipated
+            bound = 0.5 * BLOWUP_FACTOR * (self.scale[rows] + np.abs(work))
+            bad = ~np.isfinite(total) | (np.abs(error) > bound) | (dissipated > bound)
+        inside = np.arange(stop - start)[:, None] < np.array(limits)[None, :] - start
+        return [rows[j] for j in np.flatnonzero((bad & inside).any(axis=0)).tolist()]
+
     def first_problem(self, store: SampleStore, b: int, start: int, stop: int) -> tuple[int, str, bool] | None:
         """(sample index, what, whether the sample is kept) of row b's first problem among samples start..stop-1,
         or None."""
@@ -287,13 +314,42 @@ class Sink:
     Attributes:
         out: the trajectory file, or None.
         chunk: samples per chunk file (out.npz.parts/), or None (one file at the end).
+        run_id: the run's identifier, recorded in each chunk file (files.RunLock makes it).
         written: chunk files written so far.
+        samples: samples in them.
+        violations: their limit-violation reports.
+        write_error: why a chunk could not be written (the run stopped there), or None.
     """
 
     out: Path | None = None
     chunk: int | None = None
+    run_id: str = ""
     written: int = 0
+    samples: int = 0
     violations: list[LimitViolations] = field(default_factory=list)
+    write_error: BaseException | None = None
+
+    @property
+    def parts(self) -> Path:
+        assert self.out is not None
+        return self.out.with_name(self.out.name + PARTS_SUFFIX)
+
+
+@dataclass
+class Kept:
+    """What a run's end kept, and where.
+
+    Attributes:
+        trajectory: every sample kept (from memory, the file or the parts).
+        saved_to: the file (or parts folder) that holds them, or None.
+        problem: what could not be written and why ("" when all went well).
+        interrupted: SIGINT or SIGTERM arrived while the samples were being written (they were written first).
+    """
+
+    trajectory: Trajectory
+    saved_to: Path | None = None
+    problem: str = ""
+    interrupted: bool = False
 
 
 @dataclass
@@ -334,26 +390,25 @@ class RunSettings:
 
     @classmethod
     def check(cls, method: Integrator, duration: float, dt: float, options: dict[str, Any]) -> RunSettings:
+        numbers = run_numbers(method.adaptive, duration, dt, options)
         if method.adaptive:
-            max_step = options.get("max_step")
-            output_dt, control_dt = options.get("output_dt"), options.get("control_dt")
             return cls(
-                duration,
-                dt,
+                numbers["duration"],
+                numbers["dt"],
                 True,
-                rtol=positive_number(options["rtol"], "rtol", "units"),
-                atol=positive_number(options["atol"], "atol", "units"),
-                max_step=positive_number(max_step, "max_step") if max_step is not None else math.inf,
-                output_dt=positive_number(output_dt, "output_dt") if output_dt is not None else None,
-                control_dt=positive_number(control_dt, "control_dt") if control_dt is not None else None,
+                rtol=numbers["rtol"],
+                atol=numbers["atol"],
+                max_step=numbers.get("max_step", math.inf),
+                output_dt=numbers.get("output_dt"),
+                control_dt=numbers.get("control_dt"),
             )
         return cls(
-            duration,
-            dt,
+            numbers["duration"],
+            numbers["dt"],
             False,
-            output_every=steps_per(options.get("output_dt"), dt, "output_dt"),
-            control_every=steps_per(options.get("control_dt"), dt, "control_dt"),
-            n_steps=n_steps(duration, dt),
+            output_every=numbers["output_every"],
+            control_every=numbers["control_every"],
+            n_steps=numbers["n_steps"],
         )
 
     @property
@@ -381,7 +436,7 @@ class RunSettings:
 
 def n_steps(duration: float, dt: float) -> int:
     """Fixed steps of dt in a run of `duration`, the last one shortened (a sliver of round-off is no step)."""
-    return max(1, math.ceil(duration / dt - SLIVER))
+    return step_count(duration, dt, SLIVER)
 
 
 class Run:
@@ -464,6 +519,11 @@ class Run:
         except KeyboardInterrupt:
             self._stop_running("interrupted")
             raise
+        except MemoryError as exc:  # the samples so far are kept (and written by finish) as for any early stop
+            detail = f" ({exc})" if str(exc) else ""
+            self._stop_running(
+                "out_of_memory", f"ran out of memory at t = {self.core.t:.6g} s (MemoryError{detail}): the run stopped"
+            )
         finally:
             self.wall_time = time.perf_counter() - start
 
@@ -500,6 +560,8 @@ class Run:
                 return
             if reason == FULL:
                 self._make_room()
+                if not len(core.rows):  # a chunk could not be written: the run stopped
+                    return
             # REACHED a control instant, STEPPED (a block of steps, or one step between controls): carry on
 
     def _control(self, t: float, instant: int) -> None:
@@ -538,11 +600,15 @@ class Run:
             fresh = [b for b in rows if not monitor.started[b] and store.samples_of(b)]
             if fresh:
                 monitor.start(np.array(fresh), store.ENERGY[0, fresh])
+        limits = {}
         for b in rows:
             stop = stops.get(b)
             end = store.samples_of(b)
-            limit = end if stop is None or not stop.added else stop.sample  # a stop's own last sample is not judged
-            problem = monitor.first_problem(store, b, self.checked, limit)
+            limits[b] = end if stop is None or not stop.added else stop.sample  # a stop's own last sample: not judged
+        suspects = set(monitor.suspects(store, rows, self.checked, list(limits.values())))
+        for b in rows:
+            stop = stops.get(b)
+            problem = monitor.first_problem(store, b, self.checked, limits[b]) if b in suspects else None
             if problem is not None:
                 i, what, keep = problem
                 t = store.T[i, b]
@@ -594,21 +660,34 @@ class Run:
     def _make_room(self) -> None:
         """The store reached its soft capacity: write a chunk file, or let it grow."""
         store = self.store
-        if self.sink.chunk is not None:
-            self._flush()
-        else:
+        if self.sink.chunk is None:
             store.make_room(store.count + BLOCK_SAMPLES)
+            return
+        try:
+            self._flush()
+        except (OSError, MemoryError) as exc:  # disk full, a file-size limit: stop, keeping what exists
+            sink = self.sink
+            sink.write_error = exc
+            assert sink.out is not None
+            self._stop_running(
+                "write_failed",
+                f"could not write {chunk_path(sink.out, sink.written)} ({describe_error(exc)}) at t = "
+                f"{self.core.t:.6g} s: the run stopped",
+            )
 
     def _flush(self) -> None:
-        """Write the samples in memory as the next chunk file and empty the store (one-row runs)."""
+        """Write the samples in memory as the next chunk file and empty the store (one-row runs). SIGINT and
+        SIGTERM wait until the chunk and its bookkeeping are complete."""
         sink = self.sink
         assert sink.out is not None
-        traj = self.trajectory(0, status="running")
-        sink.violations.append(traj.limit_violations)
-        traj.save(chunk_path(sink.out, sink.written))
-        sink.written += 1
-        self.store.clear()
-        self.checked = 0
+        with signals_held("finish"):
+            traj = self.trajectory(0, status="running")
+            write_chunk(traj, sink.out, sink.written, run_id=sink.run_id, first_sample=sink.samples)
+            sink.violations.append(traj.limit_violations)
+            sink.written += 1
+            sink.samples += len(traj)
+            self.store.clear()
+            self.checked = 0
 
     # ---- stopping rows -------------------------------------------------------------------------------------------
     def _stop_positions(self, js: np.ndarray, status: str) -> None:
@@ -622,8 +701,9 @@ class Run:
             outcome.status = status
             outcome.counts = self._core_counts(b)
 
-    def _stop_running(self, status: str) -> None:
-        """Every running row ends with `status` (completed, interrupted), its current state its last sample."""
+    def _stop_running(self, status: str, message: str = "") -> None:
+        """Every running row ends with `status` (completed, interrupted; write_failed and out_of_memory with a
+        message), its current state its last sample (interrupted)."""
         core = self.core
         if not len(core.rows):
             return
@@ -636,7 +716,7 @@ class Run:
         core.stop(np.arange(len(rows)))
         for b in rows:
             outcome = self.outcomes[b]
-            outcome.status = status
+            outcome.status, outcome.message = status, message
             outcome.counts = self._core_counts(b)
 
     def _end(self, b: int, status: str, message: str, *, counts_at: int) -> None:
@@ -686,35 +766,97 @@ class Run:
             metadata=self.metadata(),
         )
 
-    def finish(self, b: int = 0) -> Trajectory:
-        """Row b's whole trajectory, also written to the sink's file (merging its chunks) when there is one."""
-        out, status = self.sink.out, self.outcomes[b].status
-        if self.sink.chunk is None:
+    def finish(self, b: int = 0) -> Kept:
+        """Row b's whole trajectory, also written to the sink's file (merging its chunks) when there is one.
+
+        Never raises for the writing: a write that fails (disk full, a file-size limit, memory) or is interrupted
+        is reported in the result, with what was kept and where (the file, the parts folder, or memory only).
+        """
+        sink, out = self.sink, self.sink.out
+        if sink.chunk is None:
             traj = self.trajectory(b)
-            if out is not None:
+            if out is None:
+                return Kept(traj)
+            try:
                 traj.save(out)
-            return traj
+            except KeyboardInterrupt:  # delivered once the file was complete
+                return Kept(traj, out, interrupted=True)
+            except (OSError, MemoryError) as exc:
+                return Kept(traj, None, f"{out} could not be written ({describe_error(exc)})")
+            return Kept(traj, out)
         assert out is not None
-        if self.store.count or not self.sink.written:
-            self._flush()
-        merge_parts(
-            out,
-            status=status,
-            stats=self.stats(b),
-            limit_violations=combine_limit_violations(self.sink.violations),
-        )
-        return Trajectory.load(out, mmap=True)
+        interrupted = False
+        try:
+            if sink.write_error is None and (self.store.count or not sink.written):
+                self._flush()
+            if sink.write_error is None:
+                merge_parts(
+                    out,
+                    status=self.outcomes[b].status,
+                    stats=self.stats(b),
+                    limit_violations=combine_limit_violations(sink.violations),
+                )
+                return Kept(Trajectory.load(out, mmap=True), out)
+        except KeyboardInterrupt:
+            interrupted = True
+            if not sink.parts.exists():  # the merge was complete when the signal was delivered
+                return Kept(Trajectory.load(out, mmap=True), out, interrupted=True)
+        except (OSError, MemoryError, TrajectoryFileError) as exc:  # TrajectoryFileError: check_parts refused
+            sink.write_error = sink.write_error or exc
+        return self._kept_in_parts(b, interrupted)
+
+    def _kept_in_parts(self, b: int, interrupted: bool) -> Kept:
+        """A chunked run whose parts could not be merged: its samples are the parts' and those still in memory."""
+        sink = self.sink
+        pieces = []
+        if sink.written:
+            try:
+                pieces.append(Trajectory.load(sink.parts))
+            except TrajectoryFileError:  # a stranger's chunk in the folder: the message names it (write_error)
+                sink.samples = 0
+        if self.store.samples_of(b):
+            pieces.append(self.trajectory(b))
+        traj = Trajectory.concatenate(pieces) if pieces else self.trajectory(b)
+        traj.status = self.outcomes[b].status
+        on_disk = f"{sink.samples} samples stay in {sink.parts} (Trajectory.load reads the folder)"
+        in_memory = len(traj) - sink.samples
+        if in_memory:
+            on_disk += f", the last {in_memory} only in memory"
+        if sink.write_error is not None and self.outcomes[b].status != "write_failed":
+            problem = f"{sink.out} could not be written ({describe_error(sink.write_error)}): {on_disk}"
+        elif interrupted:
+            problem = f"merging the chunks was interrupted: {on_disk}"
+        else:
+            problem = on_disk
+        return Kept(traj, sink.parts if sink.written else None, problem, interrupted)
 
 
-def stop_error(outcome: RowOutcome, trajectory: Any) -> MultibodySimError:
+def describe_error(exc: BaseException) -> str:
+    """An OSError or MemoryError in a few words: "No space left on device", "File too large", "out of memory"."""
+    if isinstance(exc, MemoryError):
+        return "out of memory"
+    if isinstance(exc, TrajectoryFileError):
+        return str(exc)
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    return str(exc) or type(exc).__name__
+
+
+def stop_error(
+    outcome: RowOutcome, trajectory: Any, *, problem: str = "", saved_to: Path | None = None
+) -> MultibodySimError:
     """The error an early stop raises: SimulationError (ControllerOutputError for a controller output that is not a
-    torque), its trajectory attached, the user's exception as its cause."""
+    torque), its trajectory attached, the user's exception as its cause; `problem` (what could not be written)
+    is added to the message, and `saved_to` says where the samples are on disk."""
     from .exceptions import SimulationError
 
+    message = outcome.message + (f"; {problem}" if problem else "")
     if outcome.bad_output:
-        error: SimulationError = ControllerOutputError(outcome.message, status="failed", trajectory=trajectory)
+        error: SimulationError = ControllerOutputError(
+            message, status="failed", trajectory=trajectory, saved_to=saved_to
+        )
     else:
-        error = SimulationError(outcome.message, status=outcome.status, trajectory=trajectory)
+        error = SimulationError(message, status=outcome.status, trajectory=trajectory, saved_to=saved_to)
     return error
 
 

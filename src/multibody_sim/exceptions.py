@@ -5,6 +5,8 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     from .trajectory import Trajectory
 
 
@@ -24,7 +26,10 @@ class UnknownNameError(MultibodySimError, LookupError):
     """A name (robot, integrator, ...) is not in its registry; the message lists close matches."""
 
     def __str__(self) -> str:  # LookupError would quote the message like a dict key
-        return str(self.args[0]) if self.args else ""
+        # The names it lists may come from a file (joints, frames, poses): escaped, one line.
+        from .safety import printable
+
+        return printable(str(self.args[0])) if self.args else ""
 
 
 class RobotNotFoundError(UnknownNameError):
@@ -51,25 +56,44 @@ class SimulationError(MultibodySimError, RuntimeError):
     """A simulation stopped before reaching its duration.
 
     Attributes:
-        status: why it stopped ("diverged", ...).
+        status: why it stopped ("diverged", "failed", "write_failed", "out_of_memory", ...).
         trajectory: every finite sample computed before the stop.
+        saved_to: the file (or a chunked run's parts folder) holding them, or None when they are in memory only.
     """
 
-    def __init__(self, message: str, *, status: str, trajectory: Trajectory | None = None, **details: Any):
+    def __init__(
+        self,
+        message: str,
+        *,
+        status: str,
+        trajectory: Trajectory | None = None,
+        saved_to: Path | None = None,
+        **details: Any,
+    ):
         super().__init__(message)
         self.status = status
         self.trajectory = trajectory
+        self.saved_to = saved_to
         self.details = details
 
 
 class SimulationInterrupted(KeyboardInterrupt):
-    """Ctrl-C (or SIGTERM in the CLI) stopped a simulation; `.trajectory` holds the samples so far."""
+    """Ctrl-C (or SIGTERM in the CLI) stopped a simulation; `.trajectory` holds the samples so far and `.saved_to`
+    the file (or parts folder) holding them, or None."""
 
-    def __init__(self, message: str, *, trajectory: Trajectory | None = None, signal_name: str = "SIGINT"):
+    def __init__(
+        self,
+        message: str,
+        *,
+        trajectory: Trajectory | None = None,
+        signal_name: str = "SIGINT",
+        saved_to: Path | None = None,
+    ):
         super().__init__(message)
         self.status = "interrupted"
         self.trajectory = trajectory
         self.signal_name = signal_name
+        self.saved_to = saved_to
 
 
 class ControllerOutputError(SimulationError, InvalidArgumentError):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import importlib.metadata
 from typing import Any
 
 
@@ -27,6 +26,8 @@ def run_metadata(system: Any) -> dict[str, Any]:
 @functools.cache
 def versions() -> dict[str, str]:
     """Versions of the packages a result depends on ("not installed" where missing)."""
+    import importlib.metadata  # here: it costs a few percent of `import multibody_sim`
+
     found = {}
     for dist in ("multibody-sim", "pin", "example-robot-data", "numpy", "yourdfpy"):
         try:

@@ -16,8 +16,8 @@ import time
 from typing import Any
 
 import numpy as np
-import pinocchio as pin
 
+from . import native
 from .core import EMPTY, FULL, REACHED, STEPPED, Core, KernelAttempt, RowStop, collapsed_message, diverged_message
 from .integrators import INTEGRATORS, Integrator
 from .integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
@@ -34,7 +34,6 @@ NATIVE_METHODS = {
     DormandPrince853: 2,
     SemiImplicitEuler: 3,
 }
-ENVIRONMENT = "MULTIBODY_SIM_NATIVE"  # "0" forces the Python kernel
 # advance() returns to Python after about this much work [s] (interrupts, signals)
 BUDGET_SECONDS = 0.03
 _STATUSES = (REACHED, STEPPED, FULL, EMPTY)
@@ -42,23 +41,13 @@ _NEED_ROOM = 4
 _DIVERGED, _COLLAPSED = 1, 2
 
 
-def extension() -> tuple[Any, str | None]:
-    """(the compiled module, None) when it imports, else (None, why not)."""
-    try:
-        from . import _native  # type: ignore[attr-defined]
-    except ImportError as exc:
-        return None, f"the compiled extension is not available ({exc})"
-    return _native, None
-
-
 def why_not_native(system: Any, method: Integrator) -> str | None:
     """None when the native kernel runs `method` on `system`, else why not (one phrase for describe() and the
     run header)."""
-    if os.environ.get(ENVIRONMENT, "") == "0":
-        return f"{ENVIRONMENT}=0"
-    module, missing = extension()
-    if module is None:
-        return missing
+    if os.environ.get(native.ENV, "") == "0":  # read at every run (native.available: once, at import)
+        return f"{native.ENV}=0"
+    if not native.available:
+        return native.why_unavailable
     if type(system) is not Robot:
         return "a scene's physics runs on the Python kernel"
     if type(method) not in NATIVE_METHODS or INTEGRATORS.get(method.name) is not method:
@@ -129,13 +118,6 @@ def method_data(method: Integrator) -> dict[str, Any]:
     return data
 
 
-def model_bytes(model: pin.Model) -> bytes:
-    """The model in Pinocchio's binary serialization (what the engine loads)."""
-    buffer = pin.serialization.StreamBuffer()
-    model.saveToBinary(buffer)
-    return bytes(buffer.tobytes())
-
-
 class NativeKernel:
     """The running rows' states in the engine (the Kernel interface of core.py for Core's own code: records, stops,
     torques; the steps themselves are taken by NativeCore.advance). The engine is made once the step-size controller
@@ -162,9 +144,6 @@ class NativeKernel:
 
     def bind(self, control: ConstantStep | PIController) -> None:
         """Make the engine for this controller."""
-        module, missing = extension()
-        if module is None:  # pragma: no cover - choose_kernel checked it
-            raise RuntimeError(missing)
         system, data = self.system, self.method_data
         space = system.space
         blocks = [
@@ -185,8 +164,8 @@ class NativeKernel:
                 float(self.atol),  # type: ignore[arg-type]
             ]
         Q0, V0 = self._initial
-        self.engine = module.Kernel(
-            model_bytes(system.model),
+        self.engine = native.module.Kernel(  # type: ignore[union-attr]
+            native.load_model(system.model),
             data["kind"],
             data["stages"],
             data["a"],

@@ -27,7 +27,7 @@ from .progress import ProgressBar
 from .recording import find_limit_violations, split_records
 from .robot import Robot, real_array
 from .trajectory import ARRAYS, ConstraintRecord, LedgerEntry, LimitViolations, Trajectory
-from .validation import check_options, positive_number
+from .validation import check_options, positive_count, positive_number
 
 _RECORD_PARTS = ("force", "drift", "velocity_drift")  # a ConstraintRecord's arrays
 _COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls")
@@ -212,18 +212,15 @@ def rollout(
     method = get_integrator(integrator)
     method.check_contract()
     check_options(method, options)
-    Q0, V0 = _check_batch(system, q0s, v0s)
+    Q0, V0 = check_batch(system, q0s, v0s)
     B = len(Q0)
     duration = positive_number(duration, "duration")
     dt = positive_number(dt, "dt")
     if backend not in _BACKENDS:
         raise InvalidArgumentError(f"backend must be one of {', '.join(_BACKENDS)}, got {backend!r}")
-    if isinstance(num_threads, bool) or not isinstance(num_threads, (int, np.integer)) or num_threads < 1:
-        raise InvalidArgumentError(f"num_threads must be a positive whole number, got {num_threads!r}")
-    if chunk_size is not None and (
-        isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1
-    ):
-        raise InvalidArgumentError(f"chunk_size must be a positive whole number of elements, got {chunk_size!r}")
+    num_threads = positive_count(num_threads, "num_threads")
+    if chunk_size is not None:
+        chunk_size = positive_count(chunk_size, "chunk_size", "elements")
     if progress is not None and not isinstance(progress, bool):
         raise InvalidArgumentError(f"progress must be True, False or None, got {progress!r}")
     method.check_system(system)
@@ -385,18 +382,22 @@ def _row_by_row(job: _Job, *, bar: ProgressBar, start: float) -> BatchTrajectory
     return batch
 
 
-def _check_batch(system: Robot, q0s: Any, v0s: Any) -> tuple[np.ndarray, np.ndarray]:
-    Q0 = _as_batch(q0s, system.nq, "q0s")
-    V0 = _as_batch(v0s, system.nv, "v0s")
+def check_batch(
+    system: Robot, q0s: Any, v0s: Any, q_name: str = "q0s", v_name: str = "v0s"
+) -> tuple[np.ndarray, np.ndarray]:
+    """A batch of states (B, nq) and (B, nv) as float arrays, checked (finite, as many of each, unit quaternions),
+    or InvalidArgumentError naming the argument (rollout's and BatchStepper's)."""
+    Q0 = _as_batch(q0s, system.nq, q_name)
+    V0 = _as_batch(v0s, system.nv, v_name)
     if len(Q0) != len(V0):
-        raise InvalidArgumentError(f"q0s and v0s must hold as many states, got {len(Q0)} and {len(V0)}")
+        raise InvalidArgumentError(f"{q_name} and {v_name} must hold as many states, got {len(Q0)} and {len(V0)}")
     if not len(Q0):
-        raise InvalidArgumentError("q0s must hold at least one state, got an empty batch")
+        raise InvalidArgumentError(f"{q_name} must hold at least one state, got an empty batch")
     if any(joint.nq != joint.nv for joint in system.model.joints[1:]):  # vector spaces need no unit norms
         is_normalized = system.space.is_normalized  # unit quaternions and (cos, sin) pairs (Q0 is finite)
         for b, q in enumerate(Q0):
             if not is_normalized(q):
-                system.check_q(q, f"q0s[{b}]")  # raises, with check_q's message
+                system.check_q(q, f"{q_name}[{b}]")  # raises, with check_q's message
     return Q0, V0
 
 

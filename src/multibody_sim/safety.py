@@ -32,13 +32,17 @@ MAX_NPZ_MEMBERS = 4096  # a trajectory has ~11 arrays plus one per ledger elemen
 MAX_EXPANSION = 100
 MIN_BUDGET_BYTES = 256 * 1024 * 1024
 MAX_HEADER_BYTES = 10_000  # np.load's own default limit on an .npy header
+# A trajectory's JSON header nests 5 deep (header > metadata > robot > load_robot > package_dirs); json.loads
+# recurses once per level and raises RecursionError near 1000, so deeper documents are refused before parsing.
+MAX_JSON_DEPTH = 64
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
 _READABLE_COMPRESSION = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
 _END_OF_DIRECTORY = b"PK\x05\x06"
 _END_RECORD_SIZE = 22  # the fixed part of zip's end-of-central-directory record; a comment (<= 64 KiB) may follow
 
 
 # C0 and C1 controls (line breaks, ESC and CSI start terminal escapes), DEL, zero-width and bidi overrides.
-_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u200b-\u200f\u2028-\u202e\u2066-\u2069]")
+_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u061c\u200b-\u200f\u2028-\u202e\u2060-\u2069\ufeff]")
 MAX_MESSAGE_CHARS = 2000
 # What reading a damaged or hostile archive raises besides our own errors: zlib.error for a corrupted deflate
 # stream, struct.error for a damaged header, NotImplementedError / RuntimeError for a zip version, compression
@@ -67,9 +71,41 @@ def printable(message: str) -> str:
     return message
 
 
+MAX_NAME_CHARS = 200  # a name longer than this is cut (its start and end kept) in tables and summaries
+
+
+def safe_name(name: object) -> str:
+    """A name from a file (link, joint, frame, file name) as it may be shown on a terminal, inside a line.
+
+    Control characters (C0, C1, DEL), line and paragraph separators, zero-width and bidirectional overrides
+    are escaped visibly (\\x0a, \\u202e): a name cannot break a line, colour or clear the terminal, or reorder
+    what is printed around it. At most MAX_NAME_CHARS characters are kept (the first 150 and the last 40).
+    Every place that prints names uses this (messages use printable, which applies the same escapes).
+    """
+    text = _UNPRINTABLE.sub(lambda m: _escape(m.group()), str(name))
+    if len(text) > MAX_NAME_CHARS:
+        text = f"{text[:150]}[... {len(text) - 190} characters ...]{text[-40:]}"
+    return text
+
+
+def terminal_text(text: str) -> str:
+    """Text for a terminal whose own line breaks are kept: every other unprintable character is escaped as
+    safe_name does (the last defence of the command line's output; names are escaped where they are inserted)."""
+    return "\n".join(_UNPRINTABLE.sub(lambda m: _escape(m.group()), line) for line in text.split("\n"))
+
+
 def _escape(char: str) -> str:
     code = ord(char)
     return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}"
+
+
+def json_depth(text: str) -> int:
+    """How deep a JSON text nests its arrays and objects, counted without parsing it (no recursion: linear time,
+    whatever the text; brackets inside strings do not count)."""
+    skeleton = _JSON_STRING.sub('""', text).encode("utf-8", "replace")
+    codes = np.frombuffer(skeleton, dtype=np.uint8)
+    steps = np.isin(codes, (ord("["), ord("{"))).astype(np.int64) - np.isin(codes, (ord("]"), ord("}")))
+    return int(np.cumsum(steps).max(initial=0))
 
 
 def npz_budget(file_size: int) -> int:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -10,12 +11,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from .driver import Run, RunSettings, Sink, Torques, stop_error
-from .exceptions import InvalidArgumentError, SimulationInterrupted
+from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
+from .files import RunLock, SigtermAsInterrupt, check_output, check_unlocked
 from .integrators import Integrator, get_integrator
 from .progress import ProgressBar
 from .robot import Robot
 from .trajectory import PARTS_SUFFIX, Trajectory
-from .validation import check_callable, check_options, positive_number
+from .validation import check_callable, check_options, positive_count, positive_number
 
 
 class Controller(Protocol):
@@ -93,44 +95,83 @@ def simulate(
     if callable(reset):
         reset()  # a stateful controller starts every run afresh
     bar = ProgressBar(progress, duration, "s", "simulate", seconds=True)
-    run = Run(
-        system=system,
-        method=method,
-        Q0=q0[None, :],
-        V0=v0[None, :],
-        settings=settings,
-        torques=Torques.single(controller),
-        sink=sink,
-        on_sample=on_sample,
-        progress=bar if bar.active else None,
-        options=options,
-    )
-    try:
-        run.execute()
-    except KeyboardInterrupt:
-        traj = run.finish()
-        steps = run.stats(0)["steps"]
-        raise SimulationInterrupted(
-            f"interrupted at t = {traj.t[-1] if len(traj) else 0.0:.6g} s (step {steps}); {len(traj)} samples kept",
-            trajectory=traj,
-        ) from None
-    finally:
-        bar.close()
-    outcome = run.outcomes[0]
-    traj = run.finish()
-    if outcome.status != "completed":
-        raise stop_error(outcome, traj) from outcome.cause
-    return traj
+    lock = RunLock(sink.out) if sink.out is not None else None
+    # With an output, an unhandled SIGTERM stops the run like Ctrl-C (the samples written, the lock released),
+    # then terminates the process as it would have.
+    term = SigtermAsInterrupt() if lock is not None else None
+    with term if term is not None else contextlib.nullcontext():
+        if lock is not None:
+            lock.acquire()  # two runs never write the same out; released however this run ends
+            sink.run_id = lock.run_id
+        try:
+            run = Run(
+                system=system,
+                method=method,
+                Q0=q0[None, :],
+                V0=v0[None, :],
+                settings=settings,
+                torques=Torques.single(controller),
+                sink=sink,
+                on_sample=on_sample,
+                progress=bar if bar.active else None,
+                options=options,
+            )
+            try:
+                run.execute()
+            except KeyboardInterrupt:
+                kept = run.finish()
+                traj = kept.trajectory
+                steps = run.stats(0)["steps"]
+                raise SimulationInterrupted(
+                    f"interrupted at t = {traj.t[-1] if len(traj) else 0.0:.6g} s (step {steps}); {len(traj)} samples "
+                    f"kept" + (f"; {kept.problem}" if kept.problem else ""),
+                    trajectory=traj,
+                    saved_to=kept.saved_to,
+                    signal_name="SIGTERM" if term is not None and term.received else "SIGINT",
+                ) from None
+            finally:
+                bar.close()
+            outcome = run.outcomes[0]
+            kept = run.finish()
+            traj = kept.trajectory
+            if kept.interrupted:  # the signal came while the samples were being written: they were written first
+                raise SimulationInterrupted(
+                    f"interrupted while writing the samples, after the run {outcome.status} at t = "
+                    f"{traj.t[-1] if len(traj) else 0.0:.6g} s; {len(traj)} samples kept"
+                    + (f"; {kept.problem}" if kept.problem else ""),
+                    trajectory=traj,
+                    saved_to=kept.saved_to,
+                )
+            if outcome.status != "completed":
+                raise stop_error(outcome, traj, problem=kept.problem, saved_to=kept.saved_to) from outcome.cause
+            if kept.problem:
+                raise SimulationError(
+                    f"the run completed, but {kept.problem}",
+                    status="write_failed",
+                    trajectory=traj,
+                    saved_to=kept.saved_to,
+                )
+            return traj
+        finally:
+            if lock is not None:
+                lock.release()
 
 
 def make_sink(out: str | os.PathLike[str] | None, chunk: Any) -> Sink:
-    """Where the samples go besides memory (checked): nowhere, `out` at the end, or chunks of `out`."""
-    path = Path(out) if out is not None else None
+    """Where the samples go besides memory (checked): nowhere, `out` at the end, or chunks of `out`.
+
+    Checked before any work: out is a regular file or a new name in a writable folder (check_output), no other
+    live run is writing it (its lock), and for a chunked run no parts folder is left from another run.
+    """
+    path = None
+    if out is not None:
+        check_output(out, "out")  # a symbolic link is written through (messages name the link)
+        path = Path(out)
+        check_unlocked(path)
     if chunk is not None:
         if path is None:
             raise InvalidArgumentError("chunk needs out: the chunks are streamed to out.npz.parts/ and merged")
-        if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
-            raise InvalidArgumentError(f"chunk must be a positive whole number of samples, got {chunk!r}")
+        chunk = positive_count(chunk, "chunk", "samples")
         parts = path.with_name(path.name + PARTS_SUFFIX)
         if parts.exists():
             raise InvalidArgumentError(f"{parts} already exists (a previous chunked run's parts): move it first")

@@ -4,6 +4,7 @@ one control interval per call."""
 from __future__ import annotations
 
 import math
+import re
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -13,11 +14,20 @@ from .driver import Monitor, Saturation, check_torque, choose_kernel, core_class
 from .exceptions import InvalidArgumentError, SimulationError
 from .integrators import Integrator, get_integrator
 from .recording import SampleStore
-from .robot import Robot
+from .robot import Robot, real_array
+from .rollout import check_batch
 from .simulation import Controller
 from .step_control import SLIVER, ConstantStep, PIController
 from .trajectory import LedgerEntry, Trajectory
-from .validation import check_callable, check_options, finite_number, positive_number, steps_per
+from .validation import (
+    check_callable,
+    check_options,
+    check_ratio,
+    finite_number,
+    positive_number,
+    relative_tolerance,
+    steps_per,
+)
 
 _ADAPTIVE_OPTIONS = ("atol", "max_step", "rtol")
 
@@ -100,25 +110,18 @@ class Stepper:
             InvalidArgumentError: a bad argument or option (the message names it).
             UnknownIntegratorError: an unknown integrator name.
         """
-        method = get_integrator(integrator)
-        method.check_contract()
-        check_options(method, options, fixed_step=(), adaptive_only=_ADAPTIVE_OPTIONS)
+        method, self.dt, self.control_dt, self._interval_steps = _check_settings(
+            system, integrator, dt, control_dt, options
+        )
         self.system = system
         self.integrator = method
-        self.dt = positive_number(dt, "dt")
         self.options = dict(options)
         self._adaptive = method.adaptive
         if self._adaptive:
-            self._rtol = positive_number(options["rtol"], "rtol", "units")
+            self._rtol = relative_tolerance(options["rtol"])
             self._atol = positive_number(options["atol"], "atol", "units")
             max_step = options.get("max_step")
             self._max_step = positive_number(max_step, "max_step") if max_step is not None else math.inf
-            self.control_dt = positive_number(control_dt, "control_dt") if control_dt is not None else self.dt
-            self._interval_steps = 0
-        else:
-            self._interval_steps = steps_per(control_dt, self.dt, "control_dt")
-            self.control_dt = self._interval_steps * self.dt
-        method.check_system(system)
         self._q0 = system.check_q(q0, "q0") if q0 is not None else system.neutral()
         self._v0 = system.check_v(v0, "v0") if v0 is not None else np.zeros(system.nv)
         self._t0_initial = finite_number(t0, "t0")
@@ -333,6 +336,8 @@ class Stepper:
         if t_end < now:
             raise InvalidArgumentError(f"t must not be before the current time {now!r} s, got {t_end!r} s")
         check_callable(controller, "controller", "controller(t, q, v)")
+        if t_end > now:  # the control instants up to t_end are counted: their number must stay exact
+            check_ratio(t_end - now, self.control_dt, "(t - current time)", "control_dt")
         while self.t < t_end:
             snapshot = self._snapshot()
             if controller is not None:
@@ -367,7 +372,8 @@ class Stepper:
     def _advance(self, t_next: float, snapshot: tuple[Any, ...]) -> None:
         """Advance to t_next (a control instant, or advance_to's end); on failure restore `snapshot` and raise."""
         core = self._core
-        core.advance(t_next)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # divergence is reported
+            core.advance(t_next)
         stops = core.take_stops()
         if stops:
             self._restore(snapshot)
@@ -444,6 +450,295 @@ class Stepper:
     def __repr__(self) -> str:
         name = getattr(self.system, "name", type(self.system).__name__)
         return f"<Stepper {name} {self.integrator.name} dt={self.dt:g} s at t={self.t:g} s>"
+
+
+class BatchStep(NamedTuple):
+    """What one BatchStepper.step() did to every row.
+
+    Attributes:
+        t: each row's time after the call [s], shape (B,).
+        q: configurations, shape (B, nq); v: velocities, shape (B, nv) (copies).
+        tau: the torques applied over the interval (after saturation) [N·m, N], shape (B, nv).
+        failures: row -> (status, message) for the rows whose step failed ("diverged", "newton_failed",
+            "step_collapsed", "failed"); those rows are at their state before the call.
+    """
+
+    t: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    tau: np.ndarray
+    failures: dict[int, tuple[str, str]]
+
+
+class BatchStepper:
+    """B rows of states advanced together one control interval per call, with a torque per row: the batched
+    Stepper, for vector environments and batched MPC loops.
+
+    Fixed-step methods on a system whose dynamics do not depend on time (a robot; a scene without time-varying
+    forces) advance every row through one stepping core over the B rows, as rollout() does (the batch kernel where
+    it renders the method, driver.choose_kernel); each row then gets a Stepper's states bit for bit (to round-off
+    on free-flyer, spherical and planar joints with multi-stage methods, as rollout). Adaptive methods, whose rows
+    choose their own steps, and time-varying scenes, whose rows' clocks differ once rows are reset apart, advance
+    one Stepper per row. A row whose step fails stops at its state before the call and says why (in the step's
+    ``failures``); the others go on. Resetting rows (reset(rows, Q, V)) puts them at a new state with their clock at
+    0, a fresh energy reference and zero torque, as Stepper.reset does.
+
+    Attributes:
+        system, integrator, dt, control_dt: as Stepper's.
+        B: the number of rows.
+    """
+
+    def __init__(
+        self,
+        system: Robot,
+        Q0: Any,
+        V0: Any,
+        *,
+        dt: float,
+        integrator: str | Integrator = "rk4",
+        control_dt: float | None = None,
+        check_energy: bool = True,
+        num_threads: int = 1,
+        **options: Any,
+    ):
+        """B rows at (Q0, V0), time 0.
+
+        Args:
+            system: the robot (or scene).
+            Q0: configurations, shape (B, nq); V0: velocities, shape (B, nv).
+            dt, integrator, control_dt, check_energy, **options: as Stepper's.
+            num_threads: threads of Pinocchio's abaInParallel in the batch kernel.
+
+        Raises:
+            InvalidArgumentError: a bad argument or option (the message names it).
+        """
+        method, self.dt, self.control_dt, self._interval_steps = _check_settings(
+            system, integrator, dt, control_dt, options
+        )
+        self.system, self.integrator, self.options = system, method, dict(options)
+        self.check_energy = bool(check_energy)
+        self._num_threads = num_threads
+        Q, V = self._check_states(Q0, V0, "Q0", "V0")
+        self.B = len(Q)
+        self._alone: list[Stepper] | None = None
+        if method.adaptive or not _time_invariant(system):
+            self._alone = [
+                Stepper(
+                    system,
+                    dt=dt,
+                    integrator=method,
+                    control_dt=control_dt,
+                    q0=q,
+                    v0=v,
+                    check_energy=check_energy,
+                    **options,
+                )  # fmt: skip
+                for q, v in zip(Q, V, strict=True)
+            ]
+        self._Q0, self._V0 = Q, V
+        self._Q, self._V = Q.copy(), V.copy()
+        self._steps = np.zeros(self.B, dtype=np.int64)  # control intervals since each row's reset
+        self._TAU = np.zeros((self.B, system.nv))
+        self._monitor = Monitor(system, self.B)
+        self._ledger = np.zeros((self.B, len(system.ledger_elements)))  # each row's ledger flows since its reset
+        self._base = self._ledger.copy()  # ... when the current core was built (its flows count from there)
+        self._scratch = SampleStore(self.B, system.nq, system.nv, len(system.ledger_elements), 0, 1)
+        self._scratch.make_room(math.inf)
+        self._saturation = Saturation(system, self.B)
+        self._core: Core | None = None
+        self.reset()
+
+    def _check_states(self, Q: Any, V: Any, q_name: str, v_name: str) -> tuple[np.ndarray, np.ndarray]:
+        Q, V = check_batch(self.system, Q, V, q_name, v_name)
+        return Q.copy(), V.copy()
+
+    # ---- state ---------------------------------------------------------------------------------------
+    @property
+    def t(self) -> np.ndarray:
+        """Each row's time since its reset [s], shape (B,), as a Stepper counts it: (k · steps per interval) · dt
+        after k intervals (fixed-step methods), k · control_dt (adaptive ones)."""
+        if self._interval_steps:
+            return (self._steps * self._interval_steps) * self.dt
+        return self._steps * self.control_dt
+
+    @property
+    def q(self) -> np.ndarray:
+        """Configurations, shape (B, nq) (a copy)."""
+        return self._Q.copy()
+
+    @property
+    def v(self) -> np.ndarray:
+        """Velocities, shape (B, nv) (a copy)."""
+        return self._V.copy()
+
+    def reset(self, rows: Any = None, q: Any = None, v: Any = None) -> None:
+        """Put rows at new states, time 0, zero torque and a fresh energy reference.
+
+        Args:
+            rows: the rows to reset (indices or a boolean mask of shape (B,)); None: all.
+            q: their configurations, shape (len(rows), nq); None: the states given at construction.
+            v: their velocities, shape (len(rows), nv); None: the states given at construction, or zero with q.
+        """
+        index = np.arange(self.B) if rows is None else np.arange(self.B)[np.asarray(rows)]
+        if q is None:
+            Q, V = self._Q0[index], self._V0[index]
+        else:
+            if v is None:
+                v = np.zeros((len(np.atleast_2d(np.asarray(q, dtype=object))), self.system.nv))
+            Q, V = self._check_states(q, v, "q", "v")
+            if len(Q) != len(index):
+                raise InvalidArgumentError(f"q must hold one state per reset row ({len(index)}), got {len(Q)}")
+        self._Q[index], self._V[index] = Q, V
+        self._steps[index] = 0
+        self._TAU[index] = 0.0
+        self._ledger[index] = 0.0
+        self._monitor.start(index, self.system.rows_energies(Q, V))
+        if self._alone is not None:
+            for b, q_b, v_b in zip(index.tolist(), Q, V, strict=True):
+                self._alone[b].reset(q_b, v_b, 0.0)
+        self._core = None  # rebuilt from the rows' states at the next step
+
+    # ---- stepping ------------------------------------------------------------------------------------
+    def step(self, tau: Any) -> BatchStep:
+        """Advance every row by one control interval with its torque held over it.
+
+        Args:
+            tau: joint torques [N·m, N], shape (B, nv); saturated at the URDF's effort limits.
+
+        Returns:
+            The rows' new states and the failures.
+
+        Raises:
+            InvalidArgumentError: tau has the wrong shape, is not finite, or pushes on a floating base (the message
+                names the row).
+        """
+        TAU = self._check_torques(tau)
+        failures: dict[int, tuple[str, str]] = {}
+        if self._alone is not None:
+            for b, stepper in enumerate(self._alone):
+                try:
+                    stepper.step(TAU[b])
+                except SimulationError as exc:
+                    failures[b] = (exc.status, str(exc))
+                    continue
+                self._Q[b], self._V[b], self._TAU[b] = stepper.q, stepper.v, stepper.tau
+                self._steps[b] += 1
+            return self._result(failures)
+        TAU = self._saturation.apply(TAU, np.arange(self.B))
+        if self._core is None:
+            self._build()
+        core = self._core
+        assert core is not None
+        core.set_torques(TAU[core.rows], jump=True)
+        self._interval += 1
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # divergence is reported
+            core.advance(self._core_t0 + (self._interval * self._interval_steps) * self.dt)
+        for stop in core.take_stops():  # the row stays at its state before the call
+            failures[int(stop.row)] = (stop.status, self._on_row_clock(stop))
+        store = self._store
+        store.clear()
+        core.recorded = math.nan
+        core.record()
+        rows = core.rows
+        if len(rows):
+            scratch = self._scratch
+            scratch.clear()
+            scratch.ENERGY[0, rows] = store.ENERGY[0, rows]
+            scratch.FLOWS[0, rows] = self._base[rows] + store.FLOWS[0, rows]
+            scratch.V[0, rows] = store.V[0, rows]
+            scratch.advance()
+            monitor = self._monitor
+            for b in rows.tolist() if self.check_energy else ():
+                problem = monitor.first_problem(scratch, b, 0, 1)
+                if problem is not None:
+                    step = int((self._steps[b] + 1) * self._interval_steps)
+                    t_next = float((self._steps[b] + 1) * self.control_dt)
+                    cure = cure_for_dt(self.system, self.dt)
+                    failures[b] = ("diverged", f"diverged at t = {t_next:.6g} s (step {step}): {problem[1]}; {cure}")
+            good = np.array([b for b in rows.tolist() if b not in failures], dtype=int)
+            self._Q[good], self._V[good] = store.Q[0, good], store.V[0, good]
+            self._TAU[good] = TAU[good]
+            self._ledger[good] = scratch.FLOWS[0, good]
+            self._steps[good] += 1
+        if failures:
+            self._core = None  # failed rows left the core, or must go back: rebuilt from the rows' states
+        return self._result(failures)
+
+    def _on_row_clock(self, stop: Any) -> str:
+        """The core's message about a row, with the time and step counted from the row's reset (as its Stepper
+        would say them) instead of the core's, which started when the core was built."""
+        b = int(stop.row)
+        match = _STOP_CLOCK.match(stop.message)
+        if match is None:
+            return str(stop.message)
+        steps_before = int(self._built_at[b]) * self._interval_steps
+        t = steps_before * self.dt + stop.time
+        step = steps_before + int(match["step"])
+        return f"{match['status']} at t = {t:.6g} s (step {step}): {stop.message[match.end() :]}"
+
+    def _build(self) -> None:
+        """A stepping core over every row from the rows' states (its ledger flows count from the rows' ledger)."""
+        system, B = self.system, self.B
+        self._base = self._ledger.copy()
+        self._built_at = self._steps.copy()
+        kernel = choose_kernel(system, self.integrator, self._Q, self._V, num_threads=self._num_threads)
+        self._store = SampleStore(B, system.nq, system.nv, len(system.ledger_elements), 0, 1)
+        self._store.make_room(math.inf)  # it holds the state of the latest call only
+        self._core = core_class(kernel)(
+            system=system,
+            method=self.integrator,
+            kernel=kernel,
+            control=ConstantStep(self.dt),
+            sampler=None,
+            store=self._store,
+            B=B,
+        )
+        self._core_t0, self._interval = 0.0, 0
+
+    def _check_torques(self, tau: Any) -> np.ndarray:
+        system = self.system
+        TAU = real_array(tau, "tau", f"an array of real numbers of shape ({self.B}, {system.nv})")
+        if TAU.shape != (self.B, system.nv):
+            raise InvalidArgumentError(f"tau must have shape ({self.B}, {system.nv}), got {TAU.shape}")
+        if not np.isfinite(TAU).all() or (system.floating_base and TAU[:, :6].any()):
+            for b in range(self.B):
+                system.check_tau(TAU[b], f"tau[{b}]")  # raises, with check_tau's message
+        return TAU
+
+    def _result(self, failures: dict[int, tuple[str, str]]) -> BatchStep:
+        return BatchStep(self.t, self._Q.copy(), self._V.copy(), self._TAU.copy(), failures)
+
+    def __repr__(self) -> str:
+        name = getattr(self.system, "name", type(self.system).__name__)
+        return f"<BatchStepper {name} {self.B} rows {self.integrator.name} dt={self.dt:g} s>"
+
+
+# The core's messages about a row begin "<status> at t = <time> s (step <n>): " (core.py).
+_STOP_CLOCK = re.compile(r"(?P<status>\w+) at t = \S+ s \(step (?P<step>\d+)\): ")
+
+
+def _time_invariant(system: Any) -> bool:
+    """Whether the system's dynamics ignore time: a robot's do; a scene's unless it declares time-varying forces."""
+    elements = getattr(system, "elements", None)
+    return not bool(getattr(elements, "time_dependent", False))
+
+
+def _check_settings(
+    system: Robot, integrator: str | Integrator, dt: float, control_dt: float | None, options: dict[str, Any]
+) -> tuple[Integrator, float, float, int]:
+    """The checked method, dt, control interval and steps per interval (0: adaptive) of a stepper."""
+    method = get_integrator(integrator)
+    method.check_contract()
+    check_options(method, options, fixed_step=(), adaptive_only=_ADAPTIVE_OPTIONS)
+    dt = positive_number(dt, "dt")
+    if method.adaptive:
+        interval = positive_number(control_dt, "control_dt") if control_dt is not None else dt
+        steps = 0
+    else:
+        steps = steps_per(control_dt, dt, "control_dt")
+        interval = steps * dt
+    method.check_system(system)
+    return method, dt, interval, steps
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:

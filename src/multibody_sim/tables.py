@@ -20,8 +20,9 @@ from typing import Any
 import numpy as np
 
 from .exceptions import InvalidArgumentError, MissingDependencyError
+from .files import check_output, write_atomically
 from .robot import Robot
-from .trajectory import Trajectory, write_atomically
+from .trajectory import Trajectory
 
 TABLE_FORMATS = (".csv", ".parquet")
 ENERGY_COLUMNS = ("kinetic_energy", "potential_energy", "total_energy", "work", "dissipated", "energy_error")
@@ -108,6 +109,7 @@ def write_table(
     """
     target = Path(path)
     suffix = check_table_format(target, format)
+    check_output(target, "out", f"table{suffix}")  # before the work: only a regular file is replaced
     pandas = _require("pandas", "CSV and Parquet files")
     columns = column_names(trajectory, robot)
     frames = (

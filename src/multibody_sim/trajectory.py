@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
+import re
 import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -13,8 +13,10 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .exceptions import TrajectoryFileError
-from .safety import ARCHIVE_ERRORS, check_npz, read_npz
+from .exceptions import InvalidArgumentError, TrajectoryFileError
+from .files import write_atomically
+from .safety import ARCHIVE_ERRORS, MAX_JSON_DEPTH, check_npz, json_depth, printable, read_npz, safe_name
+from .validation import sample_times
 
 FORMAT = "multibody-sim trajectory"
 FORMAT_VERSION = 1
@@ -72,7 +74,7 @@ class LimitViolations:
         if not self.count:
             return "no position-limit violations"
         return (
-            f"{self.count} position-limit violations in {self.samples} samples; worst: '{self.worst_joint}' "
+            f"{self.count} position-limit violations in {self.samples} samples; worst: '{safe_name(self.worst_joint)}' "
             f"{self.worst_excess:.3g} outside its limit at t = {self.worst_time:.6g} s"
         )
 
@@ -171,12 +173,12 @@ class Trajectory:
             worst = max(dofs, key=dofs.get) if dofs else "?"
             lines.append(
                 f"torque saturated at the effort limits in {s['saturated_controls']} of {s.get('controller_calls', 0)} "
-                f"controller calls (most often '{worst}')"
+                f"controller calls (most often '{safe_name(worst)}')"
             )
         for name, record in self.constraints.items():
             if len(record.drift):
                 lines.append(
-                    f"constraint '{name}': max drift {_max_abs(record.drift):.3g}, max velocity drift "
+                    f"constraint '{safe_name(name)}': max drift {_max_abs(record.drift):.3g}, max velocity drift "
                     f"{_max_abs(record.velocity_drift):.3g}, max |force| {_max_abs(record.force):.3g}"
                 )
         lines.append(self.limit_violations.describe())
@@ -261,7 +263,18 @@ class Trajectory:
 
     # ---- files ---------------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike[str]) -> Path:
-        """Write an .npz of plain arrays plus JSON metadata, atomically (temporary file, then rename)."""
+        """Write an .npz of plain arrays plus JSON metadata, atomically (temporary file, then rename).
+
+        Only a regular file is replaced (a symbolic link is written through: the link stays, its target is
+        replaced). SIGINT and SIGTERM wait until the file is complete (these samples may exist nowhere else).
+
+        Returns:
+            The path given.
+
+        Raises:
+            InvalidArgumentError: path is a directory, FIFO, socket or device, or its folder is not writable.
+            OSError: the write failed (disk full, a file-size limit): any previous file stays, and no temporary file.
+        """
         path = Path(path)
         arrays = {name: np.asarray(getattr(self, name)) for name in ARRAYS}
         for name, entry in self.ledger.items():
@@ -280,7 +293,7 @@ class Trajectory:
             "metadata": self.metadata,
         }
         arrays["header"] = np.array(json.dumps(header, default=_json_default))
-        write_atomically(path, lambda f: np.savez(f, **arrays))  # type: ignore[arg-type]
+        write_atomically(path, lambda f: np.savez(f, **arrays), mode="finish")  # type: ignore[arg-type]
         return path
 
     @classmethod
@@ -317,44 +330,38 @@ class Trajectory:
 
     @classmethod
     def _from_arrays(cls, contents: dict[str, np.ndarray], path: Path) -> Trajectory:
-        try:
-            header = json.loads(str(contents["header"][()]))
-        except (KeyError, ValueError, TypeError):
-            raise TrajectoryFileError(f"{path}: not a multibody-sim trajectory (no valid header)") from None
-        if not isinstance(header, dict) or header.get("format") != FORMAT:
-            raise TrajectoryFileError(f"{path}: not a multibody-sim trajectory (wrong format tag)")
-        if header.get("format_version") != FORMAT_VERSION:
-            raise TrajectoryFileError(
-                f"{path}: trajectory format version {header.get('format_version')!r} is not supported "
-                f"(this version reads {FORMAT_VERSION})"
-            )
+        header = _read_header(contents, path)
         missing = [name for name in ARRAYS if name not in contents]
         if missing:
             raise TrajectoryFileError(f"{path}: trajectory file lacks arrays: {', '.join(missing)}")
         n = contents["t"].shape[0] if contents["t"].ndim == 1 else -1
         for name in ARRAYS:
             arr = contents[name]
-            if arr.dtype.kind != "f" or arr.ndim not in (1, 2) or arr.shape[0] != n:
+            ndim = 2 if name in _PER_DOF else 1
+            if arr.dtype.kind != "f" or arr.ndim != ndim or arr.shape[0] != n:
                 raise TrajectoryFileError(
                     f"{path}: array '{name}' has shape {arr.shape} and dtype {arr.dtype}, inconsistent with {n} samples"
                 )
-        for key in ("stats", "ledger_kinds", "limit_violations", "metadata"):
-            if not isinstance(header.get(key, {}), dict):
-                raise TrajectoryFileError(f"{path}: malformed {key} in the header (expected a JSON object)")
-        kinds = header.get("ledger_kinds", {})
-        if not all(isinstance(name, str) and kind in LEDGER_KINDS for name, kind in kinds.items()):
-            raise TrajectoryFileError(
-                f"{path}: malformed ledger_kinds in the header (expected {', '.join(LEDGER_KINDS)})"
-            )
+        try:  # sample times from a file: finite and increasing (validation.py), or the file is refused
+            sample_times(contents["t"], "t")
+        except InvalidArgumentError as exc:
+            raise TrajectoryFileError(f"{path}: sample times: {exc}") from None
+        robot = header["metadata"].get("robot", {})
+        for name, size in (("q", "nq"), ("v", "nv"), ("tau", "nv")):
+            width = robot.get(size) if isinstance(robot, dict) else None
+            if width is not None and contents[name].shape[1:] != (width,):
+                raise TrajectoryFileError(
+                    f"{path}: array '{name}' has shape {contents[name].shape}, but the metadata's robot has "
+                    f"{size} = {printable(repr(width))}"
+                )
+        kinds = header["ledger_kinds"]
         ledger = {}
         for name, kind in kinds.items():
             key = _LEDGER_PREFIX + name
             if key not in contents or contents[key].shape != (n,):
-                raise TrajectoryFileError(f"{path}: ledger entry '{name}' is missing or has the wrong shape")
+                raise TrajectoryFileError(f"{path}: ledger entry '{printable(name)}' is missing or has the wrong shape")
             ledger[name] = LedgerEntry(kind=kind, energy=contents[key])
-        names = header.get("constraints", [])
-        if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
-            raise TrajectoryFileError(f"{path}: malformed constraints in the header (expected a list of names)")
+        names = header["constraints"]
         constraints = {}
         for name in names:
             parts = [
@@ -370,29 +377,32 @@ class Trajectory:
                 or drift.shape != (n,)
                 or velocity_drift.shape != (n,)
             ):
-                raise TrajectoryFileError(f"{path}: constraint record '{name}' is missing or has the wrong shape")
+                raise TrajectoryFileError(
+                    f"{path}: constraint record '{printable(name)}' is missing or has the wrong shape"
+                )
             constraints[name] = ConstraintRecord(force, drift, velocity_drift)
-        try:
-            violations = LimitViolations(**header.get("limit_violations", {}))
-        except TypeError:
-            raise TrajectoryFileError(f"{path}: malformed limit_violations in the header") from None
         return cls(
             **{name: contents[name] for name in ARRAYS},
             ledger=ledger,
             constraints=constraints,
-            limit_violations=violations,
-            stats=dict(header.get("stats", {})),
-            status=str(header.get("status", "unknown")),
-            metadata=dict(header.get("metadata", {})),
+            limit_violations=LimitViolations(**header["limit_violations"]),
+            stats=dict(header["stats"]),
+            status=header["status"],
+            metadata=dict(header["metadata"]),
         )
 
     @classmethod
     def _from_parts(cls, parts: Path) -> Trajectory:
-        """Concatenate a chunked run's parts in memory (a run stopped before merging them)."""
-        chunks = sorted(parts.glob(CHUNK_GLOB))
-        if not chunks:
-            raise TrajectoryFileError(f"{parts}: no trajectory chunks in this folder")
-        pieces = [cls.load(chunk) for chunk in chunks]
+        """Concatenate a chunked run's parts in memory (a run stopped before merging them), checked first
+        (check_parts): a hole, a chunk of another run or a jump back in time is refused, never stitched."""
+        pieces = [cls.load(chunk) for chunk in check_parts(parts)]
+        joined = cls.concatenate(pieces)
+        joined.status = joined.status if joined.status != "running" else "incomplete"
+        return joined
+
+    @classmethod
+    def concatenate(cls, pieces: list[Trajectory]) -> Trajectory:
+        """Consecutive pieces of one run as one trajectory (the last piece's status, stats and metadata)."""
         last = pieces[-1]
         return cls(
             **{name: np.concatenate([getattr(p, name) for p in pieces]) for name in ARRAYS},
@@ -411,9 +421,102 @@ class Trajectory:
             },
             limit_violations=combine_limit_violations([p.limit_violations for p in pieces]),
             stats=last.stats,
-            status=last.status if last.status != "running" else "incomplete",
-            metadata=last.metadata,
+            status=last.status,
+            metadata={k: v for k, v in last.metadata.items() if k != "chunk"},
         )
+
+
+_PER_DOF = ("q", "v", "tau")
+# What the header's fields must hold (a file from a stranger is read, not trusted): the stats' counters are whole
+# numbers, its times and errors numbers; a status is one lowercase word.
+_STATS_COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls")
+_STATS_NUMBERS = ("wall_time", "max_abs_energy_error")
+_STATUS = re.compile(r"[a-z_]{1,40}")
+_VIOLATION_FIELDS: dict[str, tuple[tuple[type, ...], str]] = {
+    "count": ((int,), "a whole number"),
+    "samples": ((int,), "a whole number"),
+    "worst_joint": ((str, type(None)), "a joint name or null"),
+    "worst_excess": ((int, float), "a number"),
+    "worst_time": ((int, float, type(None)), "a number or null"),
+}
+
+
+def _read_header(contents: dict[str, np.ndarray], path: Path) -> dict[str, Any]:
+    """The file's JSON header, every field the loader and summary() use checked for its type.
+
+    Raises:
+        TrajectoryFileError: no header, a header nested deeper than MAX_JSON_DEPTH (refused before parsing: json
+            recurses per level), or a field of the wrong type (one line naming the field).
+    """
+    try:
+        text = str(contents["header"][()])
+    except (KeyError, ValueError, TypeError, IndexError):
+        raise TrajectoryFileError(f"{path}: not a multibody-sim trajectory (no valid header)") from None
+    depth = json_depth(text)
+    if depth > MAX_JSON_DEPTH:
+        raise TrajectoryFileError(
+            f"{path}: refused: its header nests {depth} levels deep, more than the {MAX_JSON_DEPTH} a trajectory "
+            "header may"
+        )
+    try:
+        header = json.loads(text)
+    except (ValueError, RecursionError):
+        raise TrajectoryFileError(f"{path}: not a multibody-sim trajectory (no valid header)") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        raise TrajectoryFileError(f"{path}: not a multibody-sim trajectory (wrong format tag)")
+    if header.get("format_version") != FORMAT_VERSION:
+        raise TrajectoryFileError(
+            f"{path}: trajectory format version {printable(repr(header.get('format_version')))[:40]} is not "
+            f"supported (this version reads {FORMAT_VERSION})"
+        )
+
+    def malformed(key: str, expected: str) -> TrajectoryFileError:
+        return TrajectoryFileError(f"{path}: malformed {key} in the header (expected {expected})")
+
+    for key in ("stats", "ledger_kinds", "limit_violations", "metadata"):
+        header.setdefault(key, {})
+        if not isinstance(header[key], dict):
+            raise malformed(key, "a JSON object")
+    status = header.setdefault("status", "unknown")
+    if not isinstance(status, str) or not _STATUS.fullmatch(status):
+        raise malformed("status", "one lowercase word such as completed or interrupted")
+    stats = header["stats"]
+    for key in _STATS_COUNTS:
+        if key in stats and not _is_int(stats[key]):
+            raise malformed(f"stats.{key}", "a whole number")
+    for key in _STATS_NUMBERS:
+        if key in stats and not _is_number(stats[key]):
+            raise malformed(f"stats.{key}", "a number")
+    dofs = stats.get("saturated_dofs", {})
+    if not isinstance(dofs, dict) or not all(_is_int(count) for count in dofs.values()):
+        raise malformed("stats.saturated_dofs", "an object of whole numbers")
+    kinds = header["ledger_kinds"]
+    if not all(kind in LEDGER_KINDS for kind in kinds.values()):
+        raise malformed("ledger_kinds", ", ".join(LEDGER_KINDS))
+    names = header.setdefault("constraints", [])
+    if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
+        raise malformed("constraints", "a list of names")
+    violations = header["limit_violations"]
+    for key, value in violations.items():
+        if key not in _VIOLATION_FIELDS:
+            raise malformed("limit_violations", f"only the fields {', '.join(_VIOLATION_FIELDS)}")
+        types, expected = _VIOLATION_FIELDS[key]
+        if isinstance(value, bool) or not isinstance(value, types):
+            raise malformed(f"limit_violations.{key}", expected)
+    robot = header["metadata"].get("robot", {})
+    if isinstance(robot, dict):
+        for key in ("nq", "nv"):
+            if key in robot and not _is_int(robot[key]):
+                raise malformed(f"metadata.robot.{key}", "a whole number")
+    return header
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 PARTS_SUFFIX = ".parts"
@@ -428,14 +531,18 @@ def chunk_path(out: Path, index: int) -> Path:
 def merge_parts(out: Path, *, status: str, stats: dict[str, Any], limit_violations: LimitViolations) -> Path:
     """Stream a chunked run's parts into one .npz at `out` (atomically), then remove the parts folder.
 
-    Each array is written chunk after chunk straight into the archive, so memory stays bounded by one chunk.
+    The parts are checked first (check_parts). Each array is written chunk after chunk straight into the archive,
+    so memory stays bounded by one chunk. SIGINT or SIGTERM during the streaming stops it (the temporary file is
+    removed, the parts stay and load); once the file is complete, the rename and the removal of the parts finish
+    before the signal is delivered.
     """
     parts = out.with_name(out.name + PARTS_SUFFIX)
-    chunks = sorted(parts.glob(CHUNK_GLOB))
+    chunks = check_parts(parts)
     with np.load(chunks[-1], allow_pickle=False) as last:
         names = [name for name in last.files if name != "header"]
         header = json.loads(str(last["header"][()]))
     header.update(status=status, stats=stats, limit_violations=limit_violations.__dict__)
+    header["metadata"].pop("chunk", None)
     shapes: dict[str, list[tuple[int, ...]]] = {name: [] for name in names}
     for chunk in chunks:
         with np.load(chunk, allow_pickle=False) as npz:
@@ -461,11 +568,98 @@ def merge_parts(out: Path, *, status: str, stats: dict[str, Any], limit_violatio
             with archive.open("header.npy", "w") as member:
                 np.lib.format.write_array(member, np.array(json.dumps(header, default=_json_default)))
 
-    write_atomically(out, write)
-    for chunk in chunks:
-        chunk.unlink()
-    parts.rmdir()
+    def remove_parts() -> None:
+        for chunk in chunks:
+            chunk.unlink()
+        parts.rmdir()
+
+    write_atomically(out, write, then=remove_parts)
     return out
+
+
+def write_chunk(trajectory: Trajectory, out: Path, index: int, *, run_id: str, first_sample: int) -> Path:
+    """Write chunk `index` of a chunked run writing `out` (its samples from number `first_sample` on), recording
+    the run it belongs to so that check_parts can tell its chunks from a stranger's."""
+    trajectory.metadata = {
+        **trajectory.metadata,
+        "chunk": {"run_id": run_id, "index": index, "first_sample": first_sample},
+    }
+    return trajectory.save(chunk_path(out, index))
+
+
+def check_parts(parts: Path) -> list[Path]:
+    """A chunked run's chunk files, in order, after checking that they are all there and all of one run.
+
+    Checks the numbering (no hole), the run each chunk records (chunk files of another run are not mixed in), the
+    sample counts and that time goes forward from one chunk to the next, from the chunks' headers and times alone.
+
+    Raises:
+        TrajectoryFileError: no chunks, a missing chunk (named, with the times it would have covered), a chunk of
+            another run, or a chunk that does not continue the previous one.
+    """
+    files = sorted(parts.glob(CHUNK_GLOB))
+    if not files:
+        raise TrajectoryFileError(f"{parts}: no trajectory chunks in this folder")
+    numbered = {}
+    for path in files:
+        match = _CHUNK_NAME.fullmatch(path.name)
+        if match is None:
+            raise TrajectoryFileError(
+                f"{parts}: {printable(path.name)} is not a chunk file name (chunk_NNNNNN.npz); move it out of the "
+                "folder"
+            )
+        numbered[int(match.group(1))] = path
+    chunks = [numbered[k] for k in sorted(numbered)]
+    records = [_chunk_record(path) for path in chunks]
+    missing = sorted(set(range(max(numbered) + 1)) - set(numbered))
+    if missing:
+        after = max((k for k in numbered if k < missing[0]), default=None)
+        before = min(k for k in numbered if k > missing[0])
+        since = f"t = {records[sorted(numbered).index(after)][3]:.6g} s" if after is not None else "the start"
+        until = records[sorted(numbered).index(before)][2]
+        names = ", ".join(f"chunk_{k:06d}.npz" for k in missing[:5]) + (", ..." if len(missing) > 5 else "")
+        raise TrajectoryFileError(
+            f"{parts}: {names} {'is' if len(missing) == 1 else 'are'} missing: the samples from {since} to "
+            f"t = {until:.6g} s are lost; load the chunk files one by one (Trajectory.load(chunk))"
+        )
+    run_id = records[0][0]
+    expected_sample, previous_end = 0, -math.inf
+    for path, (chunk_run, first_sample, t_first, t_last, n) in zip(chunks, records, strict=True):
+        if chunk_run != run_id:
+            raise TrajectoryFileError(
+                f"{parts}: {path.name} belongs to another run (run {printable(str(chunk_run))[:12]}, not "
+                f"{printable(str(run_id))[:12]} of {chunks[0].name}); move it out of the folder"
+            )
+        if first_sample != expected_sample or not t_first > previous_end:
+            raise TrajectoryFileError(
+                f"{parts}: {path.name} does not continue the previous chunk (it starts at sample "
+                f"{printable(repr(first_sample))[:20]}, t = {t_first:.6g} s; expected sample {expected_sample}, "
+                f"after t = {previous_end:.6g} s); move it out of the folder"
+            )
+        expected_sample, previous_end = expected_sample + n, t_last
+    return chunks
+
+
+_CHUNK_NAME = re.compile(r"chunk_(\d{6})\.npz")
+
+
+def _chunk_record(path: Path) -> tuple[Any, Any, float, float, int]:
+    """(run id, first sample, first time, last time, samples) of a chunk file, from its header and times."""
+    check_npz(path)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            header = _read_header({"header": npz["header"]}, path)
+            t = npz["t"]
+    except TrajectoryFileError:
+        raise
+    except (*ARCHIVE_ERRORS, KeyError) as exc:
+        raise TrajectoryFileError(f"{path}: not a readable trajectory file ({_first_line(exc)})") from None
+    record = header["metadata"].get("chunk")
+    if not isinstance(record, dict) or t.ndim != 1 or not len(t) or t.dtype.kind != "f":
+        raise TrajectoryFileError(
+            f"{path}: not a chunk of a run (no chunk record in its metadata, or no samples); move it out of the folder"
+        )
+    return record.get("run_id"), record.get("first_sample"), float(t[0]), float(t[-1]), len(t)
 
 
 def combine_limit_violations(parts: list[LimitViolations]) -> LimitViolations:
@@ -511,27 +705,6 @@ def _map_npz(path: Path) -> dict[str, np.ndarray] | None:
                 order: Literal["F", "C"] = "F" if fortran else "C"
                 contents[name] = np.memmap(path, dtype=dtype, mode="r", offset=f.tell(), shape=shape, order=order)
     return contents
-
-
-def write_atomically(path: Path, write: Any) -> None:
-    """Call write(file) on a temporary file beside path, then rename it over path.
-
-    A crash mid-write leaves any previous file at path intact.
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    umask = os.umask(0)  # mkstemp makes 0600 files; a saved trajectory gets the usual permissions
-    os.umask(umask)
-    os.fchmod(fd, 0o666 & ~umask)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _json_default(value: Any) -> Any:

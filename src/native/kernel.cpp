@@ -1,6 +1,7 @@
 // The native stepping kernel (see kernel.hpp): Core.advance over rows of one robot, with the Python kernel's
 // arithmetic in its order. Each section names the Python function it renders.
 #include "kernel.hpp"
+#include "model.hpp"
 
 #include <algorithm>
 #include <chrono>
@@ -15,7 +16,7 @@
 #include "pinocchio/algorithm/energy.hpp"
 #include "pinocchio/algorithm/joint-configuration.hpp"
 
-namespace msim
+namespace multibody_sim
 {
   namespace
   {
@@ -1034,7 +1035,7 @@ namespace msim
     return n;
   }
 
-} // namespace msim
+} // namespace multibody_sim
 
 // ---- Python bindings: class _native.Kernel (native_core.py is its only user) ------------------------------------
 #include <nanobind/eigen/dense.h>
@@ -1050,9 +1051,9 @@ namespace
 {
   using Doubles = nb::ndarray<double, nb::c_contig, nb::device::cpu>;
   using Ints = nb::ndarray<int64_t, nb::c_contig, nb::device::cpu>;
-  msim::Store store_of(Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY, Doubles FLOWS, Ints COUNTS)
+  multibody_sim::Store store_of(Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY, Doubles FLOWS, Ints COUNTS)
   {
-    msim::Store s;
+    multibody_sim::Store s;
     s.T = T.data();
     s.Q = Q.data();
     s.V = V.data();
@@ -1078,8 +1079,8 @@ namespace
   // The core's state from the Python objects that hold it (core.Core, recording.SampleStore, core.Sampler,
   // step_control.ConstantStep / PIController: the attribute names are native_core.py's contract with this file).
   void read_state(
-    const msim::Engine & engine, nb::handle core, nb::handle store, nb::handle sampler, nb::handle control,
-    msim::CoreState & s)
+    const multibody_sim::Engine & engine, nb::handle core, nb::handle store, nb::handle sampler, nb::handle control,
+    multibody_sim::CoreState & s)
   {
     s.t = engine.t;
     s.k = engine.k;
@@ -1109,8 +1110,8 @@ namespace
   // ... and back, with plain attribute assignments while the GIL is held: no Python code runs between them, so a
   // signal handler (Ctrl-C) that runs when this call returns never sees the engine's work half recorded.
   void write_state(
-    msim::Engine & engine, nb::handle core, nb::handle store, nb::handle sampler, nb::handle control,
-    const msim::CoreState & s)
+    multibody_sim::Engine & engine, nb::handle core, nb::handle store, nb::handle sampler, nb::handle control,
+    const multibody_sim::CoreState & s)
   {
     engine.t = s.t;
     engine.k = s.k;
@@ -1138,23 +1139,23 @@ namespace
 
 } // namespace
 
-void bind_kernel(nb::module_ & m)
+void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
 {
-  using msim::Engine;
+  using multibody_sim::Engine;
   nb::class_<Engine>(m, "Kernel", "The native stepping kernel of one run (multibody_sim.native_core drives it).")
     .def(
       "__init__",
       [](
-        Engine * self, nb::bytes model, int kind, int stages, std::vector<double> a, std::vector<double> b,
+        Engine * self, const multibody_sim::NativeModel & model, int kind, int stages, std::vector<double> a, std::vector<double> b,
         std::vector<double> c, int chart_terms, bool fsal, std::vector<double> e, std::vector<double> dense,
         std::vector<double> e5, std::vector<double> e3, int extended_stages, std::vector<double> a_extended,
         std::vector<double> c_extended, std::vector<double> dense_weights,
         std::vector<std::tuple<int, int, std::vector<int>, std::vector<double>>> blocks,
         std::vector<double> half_series, const Eigen::VectorXd & damping, int n_ledger, bool adaptive, double dt,
-        double sliver, std::vector<double> pi, double landing, const msim::RowMatrix & Q0,
-        const msim::RowMatrix & V0, int num_threads) {
-        msim::Method me;
-        me.kind = static_cast<msim::Kind>(kind);
+        double sliver, std::vector<double> pi, double landing, const multibody_sim::RowMatrix & Q0,
+        const multibody_sim::RowMatrix & V0, int num_threads) {
+        multibody_sim::Method me;
+        me.kind = static_cast<multibody_sim::Kind>(kind);
         me.stages = stages;
         me.a = a;
         me.b = b;
@@ -1171,10 +1172,10 @@ void bind_kernel(nb::module_ & m)
         me.dense_weights = dense_weights;
         if (static_cast<int>(a.size()) != stages * stages || static_cast<int>(b.size()) != stages)
           throw std::invalid_argument("the tableau's shapes disagree with its number of stages");
-        std::vector<msim::ChartBlock> chart;
+        std::vector<multibody_sim::ChartBlock> chart;
         for (auto & [start, d, index, sign] : blocks)
         {
-          msim::ChartBlock block;
+          multibody_sim::ChartBlock block;
           block.start = start;
           block.d = d;
           block.index = index;
@@ -1183,7 +1184,7 @@ void bind_kernel(nb::module_ & m)
             throw std::invalid_argument("a chart block must be d x d with d <= 6");
           chart.push_back(block);
         }
-        msim::Control control;
+        multibody_sim::Control control;
         control.adaptive = adaptive;
         control.dt = dt;
         control.sliver = sliver;
@@ -1202,7 +1203,7 @@ void bind_kernel(nb::module_ & m)
           control.rtol = pi[7];
           control.atol = pi[8];
         }
-        const pinocchio::Model robot = msim::model_from_bytes(std::string(model.c_str(), model.size()));
+        const pinocchio::Model & robot = model.model;
         if (Q0.cols() != robot.nq || V0.cols() != robot.nv || Q0.rows() != V0.rows() || damping.size() != robot.nv)
           throw std::invalid_argument("initial states or damping disagree with the model's sizes");
         new (self) Engine(robot, me, chart, half_series, damping, n_ledger, control, Q0, V0, num_threads);
@@ -1213,8 +1214,8 @@ void bind_kernel(nb::module_ & m)
         Engine & self, double t_stop, int64_t limit, double tolerance, nb::handle core, nb::handle store,
         nb::handle sampler, nb::handle control, Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY,
         Doubles FLOWS, Ints COUNTS, nb::list stops) {
-        msim::Store arrays = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS);
-        msim::Sampler sampling;
+        multibody_sim::Store arrays = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS);
+        multibody_sim::Sampler sampling;
         if (!sampler.is_none())
         {
           sampling.present = true;
@@ -1222,14 +1223,14 @@ void bind_kernel(nb::module_ & m)
           sampling.every = every.is_none() ? 0 : nb::cast<int64_t>(every);
           sampling.period = period.is_none() ? 0.0 : nb::cast<double>(period);
         }
-        msim::CoreState s;
+        multibody_sim::CoreState s;
         read_state(self, core, store, sampler, control, s);
-        msim::AdvanceResult result;
+        multibody_sim::AdvanceResult result;
         {
           nb::gil_scoped_release release;
           result = self.advance(t_stop, limit, tolerance, sampling, arrays, s);
         }
-        for (const msim::StopEvent & ev : result.stops)
+        for (const multibody_sim::StopEvent & ev : result.stops)
           stops.append(nb::make_tuple(
             ev.code, ev.row, ev.time, ev.step, ev.dof, ev.count, ev.added, ev.counts[0], ev.counts[1], ev.counts[2],
             ev.h, ev.minimum, ev.error));
@@ -1246,7 +1247,7 @@ void bind_kernel(nb::module_ & m)
       [](
         Engine & self, int64_t i, std::vector<int64_t> rows, Doubles T, Doubles Q, Doubles V, Doubles TAU,
         Doubles ENERGY, Doubles FLOWS, Ints COUNTS) {
-        msim::Store store = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS);
+        multibody_sim::Store store = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS);
         if (i < 0 || i >= store.capacity)
           throw std::invalid_argument("sample index out of the store");
         for (int64_t b : rows)

@@ -16,7 +16,7 @@
 
 #include "pinocchio/multibody.hpp"
 
-namespace msim
+namespace multibody_sim
 {
   using Vec = Eigen::VectorXd;
   using RowMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
@@ -202,14 +202,15 @@ namespace msim
     std::unique_ptr<Pool> pool_;
   };
 
-  // The model from Pinocchio's binary serialization (model.saveToBinary): defined by the module's own unit.
-  pinocchio::Model model_from_bytes(const std::string & bytes);
-
-} // namespace msim
+} // namespace multibody_sim
 
 namespace nanobind
 {
   class module_;
 }
-// The kernel's Python bindings (class _native.Kernel), added to the extension module by its unit.
-void bind_kernel(nanobind::module_ & m);
+
+namespace multibody_sim
+{
+  // The kernel's Python bindings (class _native.Kernel over a _native.Model), added by module.cpp.
+  void bind_kernel(nanobind::module_ & m);
+} // namespace multibody_sim

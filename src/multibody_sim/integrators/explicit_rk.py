@@ -10,6 +10,7 @@ import numpy as np
 
 from ..ordered import ordered_dot, ordered_sum
 from ..state import chart_terms
+from . import dop853_tables as tables
 from .base import Attempt, Integrator, System, split_jacobian, tangent_selectors
 from .tableau import ButcherTableau, EmbeddedTableau
 
@@ -289,8 +290,8 @@ class DormandPrince853(AdaptiveRungeKutta):
     """DOP853: Dormand and Prince's 8th-order method with Hairer's 5th/3rd-order combined error estimate
     (7th order) and 7th-order dense output from three extra stages.
 
-    The coefficients are the published tables (Hairer, Nørsett & Wanner, Solving ODEs I), as scipy ships them in
-    `scipy.integrate._ivp.dop853_coefficients`; the step, the error norm on the tangent space and the dense
+    The coefficients are the published tables (Hairer, Nørsett & Wanner, Solving ODEs I), in dop853_tables.py
+    (checked against SciPy's copy in the tests); the step, the error norm on the tangent space and the dense
     output on the chart are this package's.
     """
 
@@ -298,8 +299,6 @@ class DormandPrince853(AdaptiveRungeKutta):
     embedded_order = 7  # the combined estimate behaves like a 7th-order one (scipy's error_estimator_order)
 
     def __init__(self) -> None:
-        from scipy.integrate._ivp import dop853_coefficients as tables
-
         n = tables.N_STAGES  # 12 stages; the 13th (row 12) is the new state, first same as last
         tableau = ButcherTableau(
             a=tuple(tuple(float(x) for x in row[: n + 1]) for row in tables.A[: n + 1]),

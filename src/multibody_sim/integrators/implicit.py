@@ -19,7 +19,6 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
-import scipy.linalg
 
 from .base import Attempt, Integrator, StepFailure, System, failed, split_jacobian, tangent_selectors
 
@@ -116,6 +115,8 @@ def _solve(
     (max norms), so no unconverged state passes. A full step from a fresh Jacobian that does not reduce the
     residual is halved (damped Newton) until it does, down to 1/64 of it; every residual counts as an iteration.
     """
+    import scipy.linalg  # here, not at the top: SciPy would cost a third of `import multibody_sim`
+
     x = v.copy()
     factors: tuple[np.ndarray, np.ndarray] | None = None
     fresh = False  # whether the factorised Jacobian was taken at the current iterate
@@ -177,6 +178,8 @@ def _solve(
 
 def _factorise(jacobian: np.ndarray, iteration: int, residual_norm: float) -> tuple[np.ndarray, np.ndarray]:
     """LU factors of the Newton Jacobian; StepFailure when it is non-finite or numerically singular."""
+    import scipy.linalg
+
     if not np.all(np.isfinite(jacobian)):
         raise StepFailure(
             f"Newton's Jacobian became non-finite at iteration {iteration} (residual norm {residual_norm:.3g})",

@@ -35,7 +35,6 @@ from typing import Any, NamedTuple
 
 import numpy as np
 import pinocchio as pin
-from scipy.linalg.lapack import dgesv
 
 from ..exceptions import InvalidArgumentError
 from .base import Attempt, Integrator, StepFailure, System, failed
@@ -251,9 +250,16 @@ class VariationalIntegrator(Integrator):
         self.last_evaluations, self.last_iterations, self.last_residual = evaluations, iterations, relative
 
 
+_DGESV: list[Any] = []  # scipy.linalg.lapack.dgesv, imported on first use: SciPy would slow `import multibody_sim`
+
+
 def _solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
     """x with A x = b and whether A was singular (LAPACK directly: numpy's solve costs 5x more on small A)."""
-    _, _, x, info = dgesv(A, b)
+    if not _DGESV:
+        from scipy.linalg.lapack import dgesv
+
+        _DGESV.append(dgesv)
+    _, _, x, info = _DGESV[0](A, b)
     return x, info != 0
 
 

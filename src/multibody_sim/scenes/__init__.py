@@ -6,13 +6,15 @@ Robot wherever one is accepted, and ``Scene.run()`` runs it with its own [simula
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 from pathlib import Path
 from typing import Any
 
-from ..catalog import shipped_models_dir
-from ..exceptions import SceneError
+from ..catalog import CATALOG, ROBOT_PREFIX, example_robot_data_share, folder_list, shipped_models_dir
+from ..exceptions import ModelError, SceneError
+from ..safety import printable
 from .scene import Scene
 from .spec import SceneSpec, parse_scene, read_scene_file
 
@@ -28,21 +30,29 @@ def shipped_scenes() -> dict[str, Path]:
 SCENE_PREFIX = "scene:"
 
 
-def load_scene(path: str | os.PathLike[str]) -> Scene:
+def load_scene(path: str | os.PathLike[str], *, allowed_roots: list[str | os.PathLike[str]] | None = None) -> Scene:
     """Read a scene file (TOML), or a shipped scene by name, and build its Scene.
 
     Args:
         path: a scene file, or the name of a shipped scene (`multibody-sim models` lists them), with or
             without ".toml"; a leading "scene:" is allowed (the CLI's way to name a scene explicitly).
+        allowed_roots: further folders the scene's robot file and package_dirs may lie in (the CLI's
+            `--allow-root`), besides the scene file's own folder and the catalog's folders.
 
     Scene files are untrusted input like URDFs: size-limited, parsed without executing anything, and every key
-    checked before anything is built.
+    checked before anything is built. A scene from elsewhere cannot widen where files are read from: its robot
+    file and its `package_dirs` must lie inside its own folder, the catalog's folders or `allowed_roots` (so
+    meshes, and an exported page, come only from there).
 
     Raises:
-        SceneError: the file is missing or malformed, or names something the robot does not have (the
-            one-line message names the file, the key and the valid options).
+        SceneError: the file is missing or malformed, names something the robot does not have, or reaches
+            outside the allowed folders (the one-line message names the file, the key and the valid options).
         RobotNotFoundError, ModelError: the robot it names cannot be loaded.
+        InvalidArgumentError: allowed_roots is not a list of existing folders.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise SceneError(f"a scene file must be a path, got {type(path).__name__}")
+    roots = folder_list("allowed_roots", allowed_roots)
     prefixed = isinstance(path, str) and path.startswith(SCENE_PREFIX)
     if isinstance(path, str):
         path = path.removeprefix(SCENE_PREFIX)
@@ -50,13 +60,47 @@ def load_scene(path: str | os.PathLike[str]) -> Scene:
         shipped = shipped_scenes()
         name = path.removesuffix(".toml")
         if name in shipped:
-            return Scene(read_scene_file(shipped[name]))
-        if prefixed:
+            path = shipped[name]
+        elif prefixed:
             listed = ", ".join(shipped)
             raise SceneError(
                 f"unknown scene '{path}': not a shipped scene nor an existing scene file (shipped: {listed})"
             )
-    return Scene(read_scene_file(path))
+    spec = read_scene_file(path)
+    check_scene_roots(spec, roots)
+    return Scene(dataclasses.replace(spec, allowed_roots=tuple(str(r) for r in roots)))
+
+
+def scene_roots(spec: SceneSpec, allowed_roots: list[Path]) -> list[Path]:
+    """The folders a scene file's robot and package_dirs may lie in: its own folder, the catalog's folders
+    (shipped models, example-robot-data) and allowed_roots, symlinks resolved."""
+    roots = [spec.base_dir] if spec.base_dir is not None else []
+    roots += [shipped_models_dir()]
+    with contextlib.suppress(ModelError):  # example-robot-data not installed: its folder allows nothing
+        roots.append(example_robot_data_share())
+    roots += allowed_roots
+    return [Path(os.path.realpath(root)) for root in roots]
+
+
+def check_scene_roots(spec: SceneSpec, allowed_roots: list[Path]) -> None:
+    """SceneError unless the scene's robot file and package_dirs lie inside scene_roots (a catalog name is fine)."""
+    roots = scene_roots(spec, allowed_roots)
+    paths = (
+        []
+        if spec.robot.source in CATALOG or spec.robot.source.startswith(ROBOT_PREFIX)
+        else [("robot.source", spec.robot.source)]
+    )
+    paths += [(f"robot.package_dirs[{i}]", d) for i, d in enumerate(spec.robot.package_dirs)]
+    for key, value in paths:
+        resolved = Path(os.path.realpath(Path(value).expanduser()))
+        if not any(resolved == root or resolved.is_relative_to(root) for root in roots):
+            raise SceneError(
+                printable(
+                    f"{spec.source}: {key}: '{value}' is outside the folders a scene may read from (its own folder "
+                    f"and the catalog's: {', '.join(str(r) for r in roots)}); to allow it, pass --allow-root DIR "
+                    "(allowed_roots=[DIR] in load_scene)"
+                )
+            )
 
 
 def make_scene(**tables: Any) -> Scene:
@@ -94,4 +138,6 @@ def scene_from_metadata(scene: dict[str, Any]) -> Scene:
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{scene.get('source', '<scene>')}: stored scene text is not TOML ({exc})") from None
     spec = parse_scene(data, str(scene.get("source", "<scene>")), base_dir=Path(base_dir) if base_dir else None)
-    return Scene(dataclasses.replace(spec, text=text))
+    roots = scene.get("allowed_roots")
+    roots = tuple(str(r) for r in roots) if isinstance(roots, list) else ()
+    return Scene(dataclasses.replace(spec, text=text, allowed_roots=roots))

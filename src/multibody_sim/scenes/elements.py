@@ -203,6 +203,27 @@ class ForceElements:
         self._circular_pos = np.flatnonzero(nq_of[self._sprung] == 2)  # their places among the springs
         self._plain_pos = np.flatnonzero(nq_of[self._sprung] == 1)
 
+        # The common case in a few whole-span operations: every element on a span of consecutive 1-dof joints
+        # with consecutive q (no continuous spring). Dofs of the span without an element get zero coefficients
+        # (adding exact zeros), so each force is the same arithmetic as the separate selections would give.
+        self._span = None
+        used = sorted(set(self._sprung.tolist()) | set(self._damped.tolist()) | set(self._rough.tolist()))
+        if used and not circular.size:
+            lo, hi = used[0], used[-1] + 1
+            q_at = idx_q[lo:hi]
+            if np.all(nq_of[lo:hi] == 1) and np.array_equal(q_at, q_at[0] + np.arange(hi - lo)):
+                span_rest = np.zeros(hi - lo)
+                span_rest[plain - lo] = rest[idx_q[plain]]
+                self._span = (
+                    slice(lo, hi),
+                    slice(int(q_at[0]), int(q_at[0]) + hi - lo),
+                    span_rest,
+                    -np.where(stiffness[lo:hi] > 0.0, stiffness[lo:hi], 0.0),
+                    damping[lo:hi] if self._damped.size else None,
+                    friction[lo:hi] if self._rough.size else None,
+                    hi - lo == nv,
+                )
+
         # Every element acts on rows of states with elementwise operations only (no per-row product), so a row's
         # force is the same whether it is evaluated alone or in a batch, and a batch costs a few array operations.
         self._wrenches = list(wrenches)
@@ -238,7 +259,12 @@ class ForceElements:
         """
         if out is None:
             out = np.empty(self.nv)
-        self.evaluate_rows(q[None, :], v[None, :], t, out[None, :])
+        self._joint_forces(q, v, out)
+        if self._wrenches:  # the rows' code over one row: the same products, in the same order
+            forces = self._wrench_forces(q[None, :], t)
+            for k in range(len(self._wrenches)):
+                force = forces[k, 0] if self._scales[k] == 1.0 else forces[k, 0] * self._scales[k]
+                np.add(out, force, out=out)
         return out
 
     def evaluate_rows(self, Q: np.ndarray, V: np.ndarray, t: float = 0.0, out: np.ndarray | None = None) -> np.ndarray:
@@ -246,23 +272,39 @@ class ForceElements:
         (into out when given). The wrenches' parts are remembered for powers_rows()."""
         if out is None:
             out = np.empty((len(Q), self.nv))
-        out[...] = 0.0
-        if self._plain.size:  # -k (q - rest)
-            out[:, self._plain_at] = (Q[:, self._plain_q_at] - self._plain_rest) * -self._plain_k
-        if self._circular.size:  # -k · wrapped angle from the rest angle
-            c, s = Q[:, self._cos_q], Q[:, self._sin_q]
-            angle = np.arctan2(self._cos_rest * s - self._sin_rest * c, self._cos_rest * c + self._sin_rest * s)
-            out[:, self._circular] = angle * -self._circular_k
-        if self._damped.size:  # -d v
-            out[:, self._damped_at] -= V[:, self._damped_at] * self._d
-        if self._rough.size:  # -F_c tanh(v / v_s)
-            out[:, self._rough_at] -= np.tanh(V[:, self._rough_at] * self._inv_vs) * self._fc
+        self._joint_forces(Q, V, out)
         if self._wrenches:
             forces = self._wrench_forces(Q, t)
             for k in range(len(self._wrenches)):
                 force = forces[k] if self._scales[k] == 1.0 else forces[k] * self._scales[k]
                 np.add(out, force, out=out)
         return out
+
+    def _joint_forces(self, Q: np.ndarray, V: np.ndarray, out: np.ndarray) -> None:
+        """The joints' elements (springs, damping, friction) at Q (..., nq), V (..., nv), into out (..., nv):
+        elementwise, so one row costs no more than its own arithmetic."""
+        if self._span is not None:
+            at, q_at, rest, minus_k, d, fc, whole = self._span
+            if not whole:
+                out[...] = 0.0
+            force = out[..., at]
+            np.multiply(Q[..., q_at] - rest, minus_k, out=force)
+            if d is not None:
+                force -= V[..., at] * d
+            if fc is not None:
+                force -= np.tanh(V[..., at] * self._inv_vs) * fc
+            return
+        out[...] = 0.0
+        if self._plain.size:  # -k (q - rest)
+            out[..., self._plain_at] = (Q[..., self._plain_q_at] - self._plain_rest) * -self._plain_k
+        if self._circular.size:  # -k · wrapped angle from the rest angle
+            c, s = Q[..., self._cos_q], Q[..., self._sin_q]
+            angle = np.arctan2(self._cos_rest * s - self._sin_rest * c, self._cos_rest * c + self._sin_rest * s)
+            out[..., self._circular] = angle * -self._circular_k
+        if self._damped.size:  # -d v
+            out[..., self._damped_at] -= V[..., self._damped_at] * self._d
+        if self._rough.size:  # -F_c tanh(v / v_s)
+            out[..., self._rough_at] -= np.tanh(V[..., self._rough_at] * self._inv_vs) * self._fc
 
     def _wrench_forces(self, Q: np.ndarray, t: float) -> np.ndarray:
         """Each wrench's unscaled Jᵀw for every row, shape (n_wrenches, n, nv) (kept for powers_rows()), and each
@@ -300,30 +342,41 @@ class ForceElements:
         from this v; work elements are positive when they put energy in: ``(Jᵀ w) · v`` with ``Jᵀ w`` from the
         latest evaluate(), so call it at the state (q, t) of interest first.
         """
-        self.powers_rows(v[None, :], out[None, :])
+        self._joint_powers(v, out)
+        if self._wrenches:
+            forces, nf = self._wrench_forces_of[1], self._n_flow_joint
+            for k in range(len(self._wrenches)):
+                work = forces[k, 0] @ v  # as rowdot computes each row
+                out[nf + k] = work if self._scales[k] == 1.0 else work * self._scales[k]
 
     def powers_rows(self, V: np.ndarray, out: np.ndarray) -> None:
         """powers() of n rows, V (n, nv), into out (n, len(ledger)), with the wrench parts of the latest
         evaluate_rows() call with as many rows."""
-        nd, nf = self._damped.size, self._n_flow_joint
-        if nd:
-            v = V[:, self._damped_at]
-            out[:, :nd] = v * v * self._d
-        if nf > nd:
-            v = V[:, self._rough_at]
-            out[:, nd:nf] = v * np.tanh(v * self._inv_vs) * self._fc
+        self._joint_powers(V, out)
         if self._wrenches:
-            forces = self._wrench_forces_of[len(V)]
+            forces, nf = self._wrench_forces_of[len(V)], self._n_flow_joint
             for k in range(len(self._wrenches)):
                 work = out[:, nf + k]
                 rowdot(forces[k], V, out=work)
                 if self._scales[k] != 1.0:
                     np.multiply(work, self._scales[k], out=work)
 
+    def _joint_powers(self, V: np.ndarray, out: np.ndarray) -> None:
+        """The joints' dissipated powers at V (..., nv), into the first columns of out (..., len(ledger))."""
+        nd, nf = self._damped.size, self._n_flow_joint
+        if nd:
+            v = V[..., self._damped_at]
+            out[..., :nd] = v * v * self._d
+        if nf > nd:
+            v = V[..., self._rough_at]
+            out[..., nd:nf] = v * np.tanh(v * self._inv_vs) * self._fc
+
     # ---- energies and derivatives -------------------------------------------------------------------
     def spring_displacements(self, q: np.ndarray) -> np.ndarray:
         """q ⊖ rest of each spring [rad or m], shape (..., len(potentials)) for q (..., nq): wrapped to (-π, π] on
         continuous joints."""
+        if not self._circular_pos.size:
+            return q[..., self._plain_q_at] - self._plain_rest
         x = np.empty((*q.shape[:-1], self._sprung.size))
         x[..., self._plain_pos] = q[..., self._plain_q] - self._plain_rest
         if self._circular_pos.size:

@@ -21,6 +21,7 @@ import pinocchio as pin
 from ..catalog import load_robot, read_urdf, reduce_configuration
 from ..exceptions import InvalidArgumentError, SceneError
 from ..robot import Robot
+from ..safety import safe_name
 from ..trajectory import Trajectory
 from .spec import SceneSpec
 
@@ -185,22 +186,22 @@ class Scene(Robot):
         base = "floating" if self.floating_base else "fixed"
         if spec.robot.position is not None or spec.robot.rpy is not None:
             base += f" at position {list(spec.robot.position or (0, 0, 0))} rpy {list(spec.robot.rpy or (0, 0, 0))}"
-        lines = [f"scene '{self.name}': robot {self.full_robot.name}, {base} base"]
+        lines = [f"scene '{safe_name(self.name)}': robot {safe_name(self.full_robot.name)}, {base} base"]
         if self.locked:
-            locked = ", ".join(f"{name} = {value:g}" for name, value in self.locked.items())
+            locked = ", ".join(f"{safe_name(name)} = {value:g}" for name, value in self.locked.items())
             lines.append(f"  locked: {locked}; model nq/nv {self.full_nq}/{self.full_nv} -> {self.nq}/{self.nv}")
         else:
             lines.append(f"  model nq/nv {self.nq}/{self.nv} (nothing locked)")
         lines.append(f"  gravity {np.round(self.model.gravity.linear, 6).tolist()} m/s²")
         if spec.payloads:
-            lines.append("  payloads: " + ", ".join(f"{p.mass:g} kg on {p.frame}" for p in spec.payloads))
-        armature = [f"{self.dof_names[i]} {a:g}" for i, a in enumerate(self.model.armature) if a]
+            lines.append("  payloads: " + ", ".join(f"{p.mass:g} kg on {safe_name(p.frame)}" for p in spec.payloads))
+        armature = [f"{safe_name(self.dof_names[i])} {a:g}" for i, a in enumerate(self.model.armature) if a]
         if armature:
             lines.append("  armature [kg·m²]: " + ", ".join(armature))
         if self.mimic:
             lines.append("  mimic joints honoured (forward dynamics by CRBA: ABA does not support them)")
         elements = self.element_names
-        lines.append("  force elements: " + (", ".join(elements) if elements else "none"))
+        lines.append("  force elements: " + (", ".join(map(safe_name, elements)) if elements else "none"))
         friction = np.array(self.model.friction, dtype=float)
         if self.elements is not None and friction.any():
             # The regularized friction's slope F/v_s over the joint's inertia: the rate of a stiff mode.
@@ -208,12 +209,13 @@ class Scene(Robot):
             rates = friction / self.spec.friction_velocity * inverse_mass
             i = int(np.argmax(rates))
             lines.append(
-                f"  friction stiffness: a mode of rate ~{rates[i]:.3g} 1/s in '{self.dof_names[i]}' at the initial "
-                f"state: explicit methods need dt < ~{2.8 / rates[i]:.2g} s (RK4); implicit_euler takes any step"
+                f"  friction stiffness: a mode of rate ~{rates[i]:.3g} 1/s in '{safe_name(self.dof_names[i])}' at the "
+                f"initial state: explicit methods need dt < ~{2.8 / rates[i]:.2g} s (RK4); implicit_euler takes any "
+                "step"
             )
         if self.constraints is not None:
             rows = ", ".join(
-                f"{n} ({r} rows)" for n, r in zip(self.constraints.names, self.constraints.rows, strict=True)
+                f"{safe_name(n)} ({r} rows)" for n, r in zip(self.constraints.names, self.constraints.rows, strict=True)
             )
             lines.append(f"  constraints: {rows}")
         else:
@@ -344,7 +346,7 @@ class Scene(Robot):
         else:
             kinetic, potential = super().unchecked_energies(q, v)
         if self.elements is not None and self.elements.potentials:
-            potential += float(self.elements.potential_energies(q[None, :]).sum(axis=1)[0])  # as rows_energies
+            potential += float(self.elements.potential_energies(q).sum())  # the same sum as rows_energies' per row
         return kinetic, potential
 
     def rows_energies(self, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
@@ -487,7 +489,11 @@ def _load_robot(spec: SceneSpec) -> Robot:
     floating = None if r.base is None else r.base == "floating"
     try:
         return load_robot(
-            r.source, floating_base=floating, damping=r.damping, package_dirs=list(r.package_dirs) or None
+            r.source,
+            floating_base=floating,
+            damping=r.damping,
+            package_dirs=list(r.package_dirs) or None,
+            allowed_roots=list(spec.allowed_roots) or None,
         )
     except InvalidArgumentError as exc:
         raise SceneError(f"{spec.source}: robot.source: {exc}") from None
@@ -717,4 +723,6 @@ def _scene_source(spec: SceneSpec) -> dict[str, Any]:
         source["spec"] = repr(dataclasses.replace(spec, text=None))
     if spec.base_dir is not None:
         source["base_dir"] = os.fspath(spec.base_dir)
+    if spec.allowed_roots:  # recorded only when given (a replay needs them)
+        source["allowed_roots"] = list(spec.allowed_roots)
     return source

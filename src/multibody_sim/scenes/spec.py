@@ -28,11 +28,6 @@ from ..exceptions import InvalidArgumentError, SceneError
 from ..integrators import INTEGRATORS
 from ..safety import printable
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - exercised on Python 3.10 only
-    import tomli as tomllib
-
 MAX_SCENE_BYTES = 1024 * 1024  # a scene is a few hundred bytes; a megabyte of TOML is not a scene
 TOP_LEVEL_KEYS = (
     "description",
@@ -280,6 +275,8 @@ class SceneSpec:
         source: the name used in messages (the file path as given, or "<scene>").
         text: the scene file's text (for trajectory metadata); None for a dict.
         base_dir: the folder relative paths were resolved against (the scene file's); None for a dict.
+        allowed_roots: further folders the robot's files and meshes may come from (load_scene's allowed_roots,
+            the command line's --allow-root), besides the scene's folder and the catalog.
     """
 
     robot: RobotSpec
@@ -298,6 +295,7 @@ class SceneSpec:
     source: str = "<scene>"
     text: str | None = None
     base_dir: Path | None = None
+    allowed_roots: tuple[str, ...] = ()
 
 
 # ---- reading -------------------------------------------------------------------------------------------
@@ -340,6 +338,10 @@ def read_scene_file(path: str | os.PathLike[str]) -> SceneSpec:
         raise SceneError(
             f"{source}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start}); save it as UTF-8"
         ) from None
+    if sys.version_info >= (3, 11):  # here, not at the top: its regular expressions slow `import multibody_sim`
+        import tomllib
+    else:  # pragma: no cover - exercised on Python 3.10 only
+        import tomli as tomllib
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

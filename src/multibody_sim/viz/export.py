@@ -9,8 +9,10 @@ from typing import Any
 
 import numpy as np
 
+from ..files import check_output, write_atomically
 from ..robot import Robot
-from ..trajectory import Trajectory, write_atomically
+from ..trajectory import Trajectory
+from ..validation import frame_rate, playback_speed
 from ._deps import check_viewer_dependencies, meshcat_viewer_js
 from .frames import DEFAULT_FPS, resample, robot_from_trajectory
 from .page import standalone_page
@@ -49,6 +51,8 @@ def export_html(
     Returns:
         The path written.
     """
+    fps, speed = frame_rate(fps), playback_speed(speed)
+    check_output(path, "out", "view.html")  # before the work: only a regular file is replaced
     check_viewer_dependencies()
     robot = robot_from_trajectory(trajectory) if robot is None else robot
     times, Q = resample(robot, trajectory, fps)

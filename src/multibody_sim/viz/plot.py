@@ -14,8 +14,10 @@ from typing import Any
 import numpy as np
 
 from ..exceptions import ModelError, TrajectoryFileError, UnknownNameError
+from ..files import check_output, write_atomically
 from ..robot import Robot
-from ..trajectory import Trajectory, write_atomically
+from ..safety import safe_name
+from ..trajectory import Trajectory
 from ._deps import require
 
 PANEL_HEIGHT = 2.4  # [in]
@@ -71,6 +73,8 @@ def plot_trajectory(
     Raises:
         UnknownNameError: a name in `joints` is not a joint of the robot (the message lists close matches).
     """
+    if path is not None:
+        check_output(path, "out", "plot.png")  # before drawing: only a regular file is replaced
     figure_module = require("matplotlib.figure", "plots")
     t = np.asarray(trajectory.t, dtype=float)
     series, base, root = _joint_series(trajectory, robot)
@@ -224,11 +228,11 @@ def _joint_series(trajectory: Trajectory, robot: Robot | None) -> tuple[list[_Se
         if "FreeFlyer" in joint.shortname():
             base, root = Q[:, iq : iq + 3], name
         elif joint.nq == 1:
-            series.append(_Series(name, name, Q[:, iq]))
+            series.append(_Series(name, safe_name(name), Q[:, iq]))
         elif joint.nq == 2 and joint.nv == 1:  # continuous: (cos, sin) -> angle, unwrapped
-            series.append(_Series(name, name, np.unwrap(np.arctan2(Q[:, iq + 1], Q[:, iq]))))
+            series.append(_Series(name, safe_name(name), np.unwrap(np.arctan2(Q[:, iq + 1], Q[:, iq]))))
         else:
-            series += [_Series(name, f"{name}[{k}]", Q[:, iq + k]) for k in range(joint.nq)]
+            series += [_Series(name, f"{safe_name(name)}[{k}]", Q[:, iq + k]) for k in range(joint.nq)]
     return series, base, root
 
 
@@ -248,14 +252,14 @@ def _series_from_metadata(
     offset = 7 if floating else 0
     if Q.ndim != 2 or Q.shape[1] != offset + len(names) or len(dof_names) != (6 if floating else 0) + len(names):
         return None
-    series = [_Series(name, name, Q[:, offset + k]) for k, name in enumerate(names)]
+    series = [_Series(name, safe_name(name), Q[:, offset + k]) for k, name in enumerate(names)]
     return series, (Q[:, :3] if floating else None), root
 
 
 def _title(trajectory: Trajectory, robot: Robot | None) -> str:
     meta = trajectory.metadata
     name = robot.name if robot is not None else (meta.get("robot") or {}).get("name", "trajectory")
-    parts = [str(name)]
+    parts = [safe_name(name)]  # names from files: no control characters in a figure either
     if meta.get("integrator"):
         parts.append(str(meta["integrator"]))
     dt = (meta.get("options") or {}).get("dt")

@@ -16,6 +16,8 @@ import warnings
 from collections.abc import Callable
 from typing import Any
 
+from ..exceptions import InvalidArgumentError
+from ..validation import port_number
 from ._deps import ViewerWarning, meshcat_viewer_js, require
 from .page import live_page
 from .scene import pack
@@ -44,6 +46,9 @@ class MeshcatServer:
     """
 
     def __init__(self, host: str = DEFAULT_HOST, port: int | None = None, *, title: str = "multibody-sim"):
+        if not isinstance(host, str):
+            raise InvalidArgumentError(f"host must be an address such as {DEFAULT_HOST!r}, got {type(host).__name__}")
+        port = port_number(port)
         tornado_web = require("tornado.web", "the meshcat viewer")
         tornado_websocket = require("tornado.websocket", "the meshcat viewer")
         tornado_netutil = require("tornado.netutil", "the meshcat viewer")
@@ -107,7 +112,8 @@ class MeshcatServer:
                     backlog = [server._scene[k] for k in sorted(server._scene, key=lambda k: _ORDER[k[0]])]
                     server._clients.add(self)
                 for message in backlog:
-                    self.write_message(message, binary=True)
+                    if not server._write(self, message):
+                        break  # the page left while it was being sent the scene
 
             def on_message(self, message: Any) -> None:
                 # Our page says when it has applied the scene; meshcat's pages send only captured images,
@@ -170,11 +176,29 @@ class MeshcatServer:
 
     def _broadcast(self, message: bytes, clients: list[Any]) -> None:
         for client in clients:
-            try:
-                client.write_message(message, binary=True)
-            except Exception:  # the page closed meanwhile: it gets nothing more
-                with self._lock:
-                    self._clients.discard(client)
+            self._write(client, message)
+
+    def _write(self, client: Any, message: bytes) -> bool:
+        """Send one message to one page; a page that left (closed, reset, mid-message) is dropped quietly.
+
+        tornado raises at once when it knows the connection is closed, and otherwise fails the write's future
+        later: both are handled here, so that no traceback or "exception was never retrieved" reaches stderr.
+        """
+        try:
+            done = client.write_message(message, binary=True)
+        except Exception:  # WebSocketClosedError, StreamClosedError: the page closed meanwhile
+            self._forget(client)
+            return False
+        done.add_done_callback(lambda future: self._after_write(client, future))
+        return True
+
+    def _after_write(self, client: Any, future: Any) -> None:
+        if future.cancelled() or future.exception() is not None:  # retrieving it keeps asyncio quiet
+            self._forget(client)
+
+    def _forget(self, client: Any) -> None:
+        with self._lock:
+            self._clients.discard(client)
 
     def _call(self, function: Callable[[], None]) -> None:
         if self._loop is not None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import asyncio
 import base64
 import io
-import math
 import os
 import shutil
 import sys
@@ -23,8 +22,10 @@ from typing import Any
 import numpy as np
 
 from ..exceptions import InvalidArgumentError, MissingDependencyError
+from ..files import atomic_path, check_output
 from ..robot import Robot
 from ..trajectory import Trajectory
+from ..validation import playback_speed
 from ._deps import check_viewer_dependencies, require
 from .export import page_title, recording_page
 from .frames import resample, robot_from_trajectory
@@ -125,15 +126,12 @@ def export_video(
     with tempfile.TemporaryDirectory(prefix="multibody-sim-video-") as folder:
         html = Path(folder) / "page.html"
         html.write_text(page, encoding="utf-8")
-        partial = target.with_name(f".{target.name}.{os.getpid()}.partial{suffix}")
-        target.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            show = sys.stderr.isatty() if progress is None else progress
-            with _Encoder(partial, suffix, (width, height), fps) as write:
-                _film(executable, html, (width, height), offsets, times, write, show)
-            os.replace(partial, target)
-        finally:
-            partial.unlink(missing_ok=True)
+        show = sys.stderr.isatty() if progress is None else progress
+        with (
+            atomic_path(target, what="video", suffix=suffix) as partial,  # renamed over target when complete
+            _Encoder(partial, suffix, (width, height), fps) as write,
+        ):
+            _film(executable, html, (width, height), offsets, times, write, show)
     return target
 
 
@@ -155,6 +153,7 @@ def check_video_options(
     target = Path(path)
     suffix = target.suffix.lower()
     label = f"{prefix}video {target}" if prefix else str(target)
+    check_output(target, f"{prefix}video", "motion.mp4")  # only a regular file is replaced
     if suffix not in VIDEO_FORMATS:
         raise InvalidArgumentError(
             f"{label}: unknown video format '{target.suffix}' (choose from: {', '.join(VIDEO_FORMATS)})"
@@ -166,8 +165,7 @@ def check_video_options(
             if isinstance(fps, (int, float))
             else f"{prefix}fps must be a number, got {fps!r}"
         )
-    if isinstance(speed, bool) or not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed > 0):
-        raise InvalidArgumentError(f"{prefix}speed must be a positive number, got {speed!r}")
+    playback_speed(speed, f"{prefix}speed")
     for name, value in (("width", width), ("height", height)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
             raise InvalidArgumentError(f"{prefix}{name} must be a whole number of pixels, got {value!r}")

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..robot import Robot
 from ..trajectory import Trajectory
-from ..validation import positive_number
+from ..validation import frame_rate, playback_speed
 from ._deps import check_viewer_dependencies
 from .frames import DEFAULT_FPS, resample
 from .scene import RobotScene, frame_marker
@@ -98,7 +98,7 @@ class Viewer:
         Returns:
             The number of frames shown.
         """
-        speed = positive_number(speed, "speed", None)
+        speed, fps = playback_speed(speed), frame_rate(fps)
         times, Q = resample(self.robot, trajectory, fps)
         self._stop_animation()
         if frame:
@@ -124,7 +124,7 @@ class Viewer:
         Call its ``finish(trajectory)`` after the run to show the last sample.
         """
         self._stop_animation()
-        return LiveView(self, positive_number(speed, "speed", None), 1.0 / positive_number(fps, "fps", None))
+        return LiveView(self, playback_speed(speed), 1.0 / frame_rate(fps))
 
     def animate(
         self,
@@ -148,7 +148,7 @@ class Viewer:
             seek: with play=False, show this animation time [s].
             frame: first aim the camera at the space the motion sweeps.
         """
-        speed = positive_number(speed, "speed", None)
+        speed, fps = playback_speed(speed), frame_rate(fps)
         times, Q = resample(self.robot, trajectory, fps)
         if frame:
             self.server.send(self.scene.camera_command(Q))

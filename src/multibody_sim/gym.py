@@ -1,0 +1,471 @@
+"""Gymnasium environments over any robot or scene: MultibodyEnv steps one Stepper, MultibodyVectorEnv steps B rows
+on the batched stepping core (BatchStepper). Needs gymnasium (`pip install 'multibody-sim[gym]'`).
+
+An environment step is one control interval (``control_dt``) with the action held as the joint torque; the
+observation is the state (q, v). Episodes start from a seeded distribution around the robot's default pose:
+
+    q0 = default_pose() ⊕ δq,  δq ~ U(-reset_noise_q, reset_noise_q)^nv  (in the tangent space: robot.integrate)
+    v0 = δv,                   δv ~ U(-reset_noise_v, reset_noise_v)^nv
+
+drawn in that order from the environment's generator (``np_random``, seeded by ``reset(seed=...)``), around
+``initial_q`` / ``initial_v`` when given instead of the default pose and rest; ``reset(options={"q": q, "v": v})``
+starts from an exact state instead.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .exceptions import InvalidArgumentError, MissingDependencyError, SimulationError
+from .integrators import Integrator
+from .robot import Robot
+from .stepper import BatchStepper, Stepper
+from .validation import check_callable, positive_number
+
+try:
+    import gymnasium
+    from gymnasium import spaces
+    from gymnasium.utils import seeding
+    from gymnasium.vector import AutoresetMode, VectorEnv
+    from gymnasium.vector.utils import batch_space
+except ImportError:  # pragma: no cover - exercised without the extra only
+    raise MissingDependencyError(
+        "multibody_sim.gym needs the 'gymnasium' package, which is not installed (pip install 'multibody-sim[gym]')"
+    ) from None
+
+Reward = Callable[[np.ndarray, np.ndarray, np.ndarray], float]
+Termination = Callable[[np.ndarray, np.ndarray], bool]
+
+
+@dataclass(frozen=True)
+class _Task:
+    """What both environments share, checked: the system, the callables, the timing and the start distribution."""
+
+    system: Robot
+    reward: Reward
+    terminated: Termination | None
+    max_episode_steps: int | None
+    control_dt: float
+    dt: float
+    method: str | Integrator
+    options: dict[str, Any]
+    initial_q: np.ndarray
+    initial_v: np.ndarray
+    reset_noise_q: float
+    reset_noise_v: float
+    failure_reward: float
+
+    @classmethod
+    def check(
+        cls,
+        system: Robot,
+        reward: Any,
+        terminated: Any,
+        max_episode_steps: Any,
+        control_dt: Any,
+        dt: Any,
+        method: str | Integrator,
+        options: dict[str, Any],
+        initial_q: Any,
+        initial_v: Any,
+        reset_noise_q: Any,
+        reset_noise_v: Any,
+        failure_reward: Any,
+    ) -> _Task:
+        if not isinstance(system, Robot):
+            raise InvalidArgumentError(
+                f"system must be a Robot or a Scene (load_robot, load_scene), got {type(system).__name__}"
+            )
+        if reward is None:
+            raise InvalidArgumentError("reward is required: a callable reward(q, v, tau) -> float")
+        check_callable(reward, "reward", "reward(q, v, tau)")
+        check_callable(terminated, "terminated", "terminated(q, v)")
+        if max_episode_steps is not None and (
+            isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, (int, np.integer))
+            or max_episode_steps < 1
+        ):  # fmt: skip
+            raise InvalidArgumentError(f"max_episode_steps must be a positive whole number, got {max_episode_steps!r}")
+        control_dt = positive_number(control_dt, "control_dt")
+        dt = control_dt if dt is None else positive_number(dt, "dt")
+        noise_q = _non_negative(reset_noise_q, "reset_noise_q")
+        noise_v = _non_negative(reset_noise_v, "reset_noise_v")
+        failure = float(failure_reward)
+        if not math.isfinite(failure):
+            raise InvalidArgumentError(f"failure_reward must be a finite number, got {failure_reward!r}")
+        q = system.default_pose() if initial_q is None else system.check_q(initial_q, "initial_q")
+        v = np.zeros(system.nv) if initial_v is None else system.check_v(initial_v, "initial_v")
+        return cls(
+            system,
+            reward,
+            terminated,
+            None if max_episode_steps is None else int(max_episode_steps),
+            control_dt,
+            dt,
+            method,
+            dict(options),
+            q,
+            v,
+            noise_q,
+            noise_v,
+            failure,
+        )
+
+    # ---- spaces ----------------------------------------------------------------------------------------------------
+    def observation_space(self) -> spaces.Box:
+        """(q, v), float64, shape (nq + nv,), unbounded."""
+        n = self.system.nq + self.system.nv
+        return spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float64)
+
+    def action_space(self) -> spaces.Box:
+        """Joint torques, float64, shape (nv,), within ± the effort limits (±inf where the URDF gives none), of width
+        zero on the unactuated entries (a floating base's 6)."""
+        high = np.array(self.system.effort_limit, dtype=np.float64)
+        if self.system.floating_base:
+            high[:6] = 0.0
+        return spaces.Box(-high, high, dtype=np.float64)
+
+    # ---- episodes --------------------------------------------------------------------------------------------------
+    def initial_state(self, rng: np.random.Generator, options: dict[str, Any] | None) -> tuple[np.ndarray, np.ndarray]:
+        """An episode's start: options' exact "q" (and "v", default zero), else a draw (see the module docstring)."""
+        system = self.system
+        if options and "q" in options:
+            q = system.check_q(options["q"], "options['q']")
+            v = system.check_v(options.get("v", np.zeros(system.nv)), "options['v']")
+            return q, v
+        if options and "v" in options:
+            raise InvalidArgumentError("options['v'] needs options['q'] too (the state to start from)")
+        dq = rng.uniform(-self.reset_noise_q, self.reset_noise_q, size=system.nv)
+        dv = rng.uniform(-self.reset_noise_v, self.reset_noise_v, size=system.nv)
+        return system.space.integrate(self.initial_q, dq), self.initial_v + dv
+
+    def outcome(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> tuple[float, bool]:
+        """(reward, terminated) of a step that ended at (q, v) with tau applied."""
+        reward = float(self.reward(q, v, tau))
+        terminated = bool(self.terminated(q, v)) if self.terminated is not None else False
+        return reward, terminated
+
+
+def _non_negative(value: Any, name: str) -> float:
+    number = float(value) if isinstance(value, (int, float, np.number)) and not isinstance(value, bool) else math.nan
+    if not (math.isfinite(number) and number >= 0.0):
+        raise InvalidArgumentError(f"{name} must be a finite number >= 0, got {value!r}")
+    return number
+
+
+def _observation(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.concatenate((q, v))
+
+
+class MultibodyEnv(gymnasium.Env):
+    """A Gymnasium environment over a robot or scene: one step holds the action as joint torque over one control
+    interval of a Stepper (simulate()'s stepping core).
+
+    Observation: ``np.concatenate((q, v))``, a float64 Box of shape (nq + nv,). Action: the joint torques, a float64
+    Box of shape (nv,) bounded by the URDF's effort limits (±inf where it gives none), of zero width on the unactuated
+    entries (a floating base's 6); torques beyond the limits are saturated. Reward: ``reward(q, v, tau)`` at the
+    state the step reached, with the torque applied. An episode terminates when ``terminated(q, v)`` says so, or
+    when the step fails (the state diverged, Newton failed, ...): then ``info["failure"]`` names the status and
+    ``info["message"]`` says why, the state stays where it was before the step and the reward is
+    ``failure_reward``. It is truncated after ``max_episode_steps`` steps. ``info["t"]`` is the episode's time [s].
+
+    Episodes start from a seeded distribution around the default pose (see the module docstring); ``reset(seed=s)``
+    reproduces an episode exactly. Rendering: none (``render_mode`` None): the viewer is a meshcat page in a
+    browser, not a frame source; record states and view them with ``multibody_sim.viz``.
+
+    Args:
+        system: a Robot or a Scene.
+        reward: ``reward(q, v, tau) -> float``.
+        terminated: ``terminated(q, v) -> bool``, or None (only failures terminate).
+        max_episode_steps: truncate after this many steps, or None.
+        control_dt: the environment's step [s] (the Stepper's control interval).
+        dt: the integration step [s] (default control_dt; control_dt must be a multiple of it for fixed-step
+            methods).
+        method: the integrator (`multibody-sim integrators` lists them).
+        initial_q, initial_v: the centre of the start distribution (default: default_pose() and rest).
+        reset_noise_q: half-width of the uniform perturbation of q in the tangent space [rad, m].
+        reset_noise_v: half-width of the uniform perturbation of v [rad/s, m/s].
+        failure_reward: the reward of a step that failed.
+        render_mode: None only.
+        **options: the integrator's options (rtol, atol, max_step for adaptive ones).
+    """
+
+    metadata: dict[str, Any] = {"render_modes": []}
+
+    def __init__(
+        self,
+        system: Robot,
+        *,
+        reward: Reward,
+        terminated: Termination | None = None,
+        max_episode_steps: int | None = None,
+        control_dt: float,
+        dt: float | None = None,
+        method: str | Integrator = "rk4",
+        initial_q: Any = None,
+        initial_v: Any = None,
+        reset_noise_q: float = 0.01,
+        reset_noise_v: float = 0.01,
+        failure_reward: float = 0.0,
+        render_mode: str | None = None,
+        **options: Any,
+    ):
+        _check_render_mode(render_mode)
+        self.task = task = _Task.check(
+            system, reward, terminated, max_episode_steps, control_dt, dt, method, options,
+            initial_q, initial_v, reset_noise_q, reset_noise_v, failure_reward,
+        )  # fmt: skip
+        self.render_mode = None
+        self.observation_space = task.observation_space()
+        self.action_space = task.action_space()
+        self.stepper = Stepper(
+            system, dt=task.dt, integrator=method, control_dt=task.control_dt, q0=task.initial_q, v0=task.initial_v,
+            **options,
+        )  # fmt: skip
+        self._elapsed = 0
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start an episode: from options' "q" (and "v") if given, else drawn around the default pose.
+
+        Returns:
+            The observation (q, v), shape (nq + nv,), and info {"t": 0.0}.
+        """
+        super().reset(seed=seed)
+        q, v = self.task.initial_state(self.np_random, options)
+        state = self.stepper.reset(q, v, 0.0)
+        self._elapsed = 0
+        return _observation(state.q, state.v), {"t": state.t}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Hold the action as joint torque over one control interval.
+
+        Returns:
+            (observation, reward, terminated, truncated, info), as the class docstring says.
+        """
+        task = self.task
+        info: dict[str, Any] = {}
+        try:
+            state = self.stepper.step(action)
+        except SimulationError as exc:
+            state = self.stepper.state
+            reward, terminated = task.failure_reward, True
+            info = {"failure": exc.status, "message": str(exc)}
+        else:
+            reward, terminated = task.outcome(state.q, state.v, self.stepper.tau)
+        self._elapsed += 1
+        truncated = task.max_episode_steps is not None and self._elapsed >= task.max_episode_steps
+        return _observation(state.q, state.v), reward, terminated, truncated, {"t": state.t, **info}
+
+
+class MultibodyVectorEnv(VectorEnv):
+    """``num_envs`` copies of MultibodyEnv stepped together on one stepping core over the rows (BatchStepper: the
+    batch kernel where it renders the method, as rollout() does).
+
+    Each row is the single environment: with the same seeds and actions, row i gives MultibodyEnv's episode seeded
+    with seed + i (``reset(seed=s)``, as gymnasium's SyncVectorEnv seeds its copies) bit for bit, but to round-off
+    on free-flyer, spherical and planar joints with multi-stage methods (the batch kernel's chart map sums its
+    products in another order). A row whose step fails terminates its own episode, with ``infos["failure"]`` and
+    ``infos["message"]`` set for it; the other rows go on. Rows reset automatically after their episode ends, as
+    ``autoreset_mode`` says (gymnasium 1.x: NEXT_STEP, the default: the step after a row's end resets it, with reward
+    0 and its action ignored; SAME_STEP: the ending step returns the reset observation, the last one in
+    ``infos["final_obs"]``; DISABLED: reset rows yourself with ``reset(options={"reset_mask": mask})``).
+
+    Args:
+        system: a Robot or a Scene.
+        num_envs: the number of rows.
+        autoreset_mode: an ``AutoresetMode`` or its value ("NextStep", "SameStep", "Disabled").
+        num_threads: threads of Pinocchio's abaInParallel in the batch kernel.
+        **kwargs: MultibodyEnv's (reward, terminated, max_episode_steps, control_dt, dt, method, initial_q,
+            initial_v, reset_noise_q, reset_noise_v, failure_reward, the integrator's options).
+    """
+
+    def __init__(
+        self,
+        system: Robot,
+        num_envs: int,
+        *,
+        reward: Reward,
+        terminated: Termination | None = None,
+        max_episode_steps: int | None = None,
+        control_dt: float,
+        dt: float | None = None,
+        method: str | Integrator = "rk4",
+        initial_q: Any = None,
+        initial_v: Any = None,
+        reset_noise_q: float = 0.01,
+        reset_noise_v: float = 0.01,
+        failure_reward: float = 0.0,
+        autoreset_mode: str | AutoresetMode = AutoresetMode.NEXT_STEP,
+        num_threads: int = 1,
+        render_mode: str | None = None,
+        **options: Any,
+    ):
+        _check_render_mode(render_mode)
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise InvalidArgumentError(f"num_envs must be a positive whole number, got {num_envs!r}")
+        try:
+            mode = autoreset_mode if isinstance(autoreset_mode, AutoresetMode) else AutoresetMode(autoreset_mode)
+        except ValueError:
+            valid = ", ".join(repr(m.value) for m in AutoresetMode)
+            raise InvalidArgumentError(f"autoreset_mode must be one of {valid}, got {autoreset_mode!r}") from None
+        self.task = task = _Task.check(
+            system, reward, terminated, max_episode_steps, control_dt, dt, method, options,
+            initial_q, initial_v, reset_noise_q, reset_noise_v, failure_reward,
+        )  # fmt: skip
+        self.num_envs = n = int(num_envs)
+        self.autoreset_mode = mode
+        self.metadata = {"render_modes": [], "autoreset_mode": mode}
+        self.render_mode = None
+        self.single_observation_space = task.observation_space()
+        self.single_action_space = task.action_space()
+        self.observation_space = batch_space(self.single_observation_space, n)
+        self.action_space = batch_space(self.single_action_space, n)
+        Q0 = np.tile(task.initial_q, (n, 1))
+        V0 = np.tile(task.initial_v, (n, 1))
+        self.stepper = BatchStepper(
+            system, Q0, V0, dt=task.dt, integrator=method, control_dt=task.control_dt, num_threads=num_threads,
+            **options,
+        )  # fmt: skip
+        self._rngs: list[np.random.Generator | None] = [None] * n
+        self._elapsed = np.zeros(n, dtype=np.int64)
+        self._autoreset = np.zeros(n, dtype=bool)
+
+    def _rng(self, i: int) -> np.random.Generator:
+        rng = self._rngs[i]
+        if rng is None:  # as gymnasium.Env.np_random: seeded at random on first use
+            rng, _ = seeding.np_random()
+            self._rngs[i] = rng
+        return rng
+
+    def reset(
+        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start every row's episode (or the rows of ``options["reset_mask"]``, a bool array of shape (num_envs,)).
+
+        Args:
+            seed: None (each row's generator goes on), an int s (row i seeded with s + i) or one seed per row.
+            options: ``reset_mask``; ``q`` (num_envs or masked rows, nq) and ``v`` to start from exact states.
+
+        Returns:
+            Observations, shape (num_envs, nq + nv), and infos {"t": zeros, "_t": the reset rows}.
+        """
+        n = self.num_envs
+        seeds: list[int | None]
+        if seed is None:
+            seeds = [None] * n
+        elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            seeds = [int(seed) + i for i in range(n)]
+        else:
+            seeds = list(seed)  # type: ignore[arg-type]
+            if len(seeds) != n:
+                raise InvalidArgumentError(f"seed as a list must hold one seed per row ({n}), got {len(seeds)}")
+        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            super().reset(seed=int(seed))
+        options = dict(options or {})
+        mask = options.pop("reset_mask", None)
+        if mask is None:
+            rows = np.arange(n)
+        else:
+            mask = np.asarray(mask)
+            if mask.shape != (n,) or mask.dtype != np.bool_ or not mask.any():
+                raise InvalidArgumentError(
+                    f"options['reset_mask'] must be a bool array of shape ({n},) with a True entry, got {mask!r}"
+                )
+            rows = np.flatnonzero(mask)
+        Qs = options.pop("q", None)
+        Vs = options.pop("v", None)
+        infos: dict[str, Any] = {}
+        states = []
+        for j, i in enumerate(rows.tolist()):
+            if seeds[i] is not None:
+                self._rngs[i], _ = seeding.np_random(seeds[i])
+            exact: dict[str, Any] | None = None  # an exact start, as MultibodyEnv's options
+            if Qs is not None or Vs is not None:
+                exact = {
+                    key: np.asarray(value, dtype=float)[j] for key, value in (("q", Qs), ("v", Vs)) if value is not None
+                }
+            states.append(self.task.initial_state(self._rng(i), exact))
+            infos = self._add_info(infos, {"t": 0.0}, i)
+        self.stepper.reset(rows, np.array([q for q, _ in states]), np.array([v for _, v in states]))
+        self._elapsed[rows] = 0
+        self._autoreset[rows] = False
+        return self._observations(), infos
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Hold each row's action as its joint torque over one control interval (rows due for an autoreset are
+        reset instead, NEXT_STEP).
+
+        Returns:
+            (observations (num_envs, nq + nv), rewards (num_envs,), terminations, truncations, infos).
+        """
+        task, n = self.task, self.num_envs
+        TAU = np.array(actions, dtype=np.float64)
+        if TAU.shape != (n, task.system.nv):
+            raise InvalidArgumentError(f"actions must have shape ({n}, {task.system.nv}), got {TAU.shape}")
+        resetting = self._autoreset.copy() if self.autoreset_mode == AutoresetMode.NEXT_STEP else np.zeros(n, bool)
+        if self.autoreset_mode == AutoresetMode.DISABLED and self._autoreset.any():
+            rows = np.flatnonzero(self._autoreset).tolist()
+            raise InvalidArgumentError(
+                f"rows {rows} ended their episodes: reset them first (reset(options={{'reset_mask': mask}}))"
+            )
+        TAU[resetting] = 0.0  # their actions are ignored: they start a new episode instead
+        result = self.stepper.step(TAU)
+        rewards = np.zeros(n)
+        terminations = np.zeros(n, dtype=bool)
+        truncations = np.zeros(n, dtype=bool)
+        infos: dict[str, Any] = {}
+        row_infos: list[dict[str, Any]] = []
+        for i in range(n):
+            if resetting[i]:
+                row_infos.append({})
+                continue
+            failure = result.failures.get(i)
+            info: dict[str, Any] = {"t": float(result.t[i])}
+            if failure is not None:
+                rewards[i], terminations[i] = task.failure_reward, True
+                info.update(failure=failure[0], message=failure[1])
+            else:
+                rewards[i], terminations[i] = task.outcome(result.q[i], result.v[i], result.tau[i])
+            self._elapsed[i] += 1
+            truncations[i] = task.max_episode_steps is not None and self._elapsed[i] >= task.max_episode_steps
+            row_infos.append(info)
+        ended = terminations | truncations
+        if resetting.any():
+            self._reset_rows(np.flatnonzero(resetting), row_infos)
+        if self.autoreset_mode == AutoresetMode.SAME_STEP and ended.any():
+            final = self._observations()
+            for i in np.flatnonzero(ended).tolist():
+                infos = self._add_info(infos, {"final_obs": final[i], "final_info": row_infos[i]}, i)
+            self._reset_rows(np.flatnonzero(ended), row_infos)
+        for i, info in enumerate(row_infos):
+            infos = self._add_info(infos, info, i)
+        self._autoreset = ended
+        return self._observations(), rewards, terminations, truncations, infos
+
+    def _reset_rows(self, rows: np.ndarray, row_infos: list[dict[str, Any]]) -> None:
+        """Autoreset: rows start new episodes drawn from their own generators (their infos become reset infos)."""
+        states = [self.task.initial_state(self._rng(i), None) for i in rows.tolist()]
+        self.stepper.reset(rows, np.array([q for q, _ in states]), np.array([v for _, v in states]))
+        self._elapsed[rows] = 0
+        for i in rows.tolist():
+            row_infos[i] = {"t": 0.0}
+
+    def _observations(self) -> np.ndarray:
+        return np.concatenate((self.stepper.q, self.stepper.v), axis=1)
+
+
+def _check_render_mode(render_mode: Any) -> None:
+    if render_mode is not None:
+        raise InvalidArgumentError(
+            f"render_mode must be None, got {render_mode!r}: the viewer is a meshcat page in a browser, not a frame "
+            "source; record the states and view them with multibody_sim.viz (export_html, export_video)"
+        )
+
+
+__all__ = ["MultibodyEnv", "MultibodyVectorEnv"]

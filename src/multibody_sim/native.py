@@ -1,0 +1,77 @@
+"""The compiled extension (multibody_sim._native): whether it runs here, why not, and the model hand-over.
+
+`available` is True when the extension was built (`pip install .` with a C++ compiler), was built against the
+Pinocchio installed now, loads, and `MULTIBODY_SIM_NATIVE=0` is not set; otherwise `why_unavailable` says why in
+one line and runs take the Python kernel. `kernel()` is the one phrase the CLI and run headers print.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from types import ModuleType
+from typing import Any
+
+import pinocchio as pin
+
+from .exceptions import MissingDependencyError
+
+#: Set to 0 to run the Python kernel even where the extension is built (1 or unset: native when available).
+ENV = "MULTIBODY_SIM_NATIVE"
+
+
+def _load() -> tuple[ModuleType | None, str | None]:
+    """The extension module, or None and why it cannot run here."""
+    setting = os.environ.get(ENV, "").strip()
+    if setting == "0":
+        return None, f"{ENV}=0"
+    if setting not in ("", "1"):
+        return None, f"{ENV}={setting!r} is not 0 (Python kernel) or 1 (native kernel when built)"
+    try:
+        build = importlib.import_module(f"{__package__}._native_build")  # written by the C++ build
+    except ImportError:
+        return None, (
+            "the C++ extension is not built (no C++ compiler at install time, or its build failed: "
+            "`pip install -v .` shows why)"
+        )
+    built, running = build.PINOCCHIO_VERSION, pin.__version__
+    if built != running:
+        return None, (
+            f"the C++ extension was built against Pinocchio {built} but Pinocchio {running} is installed "
+            "(no ABI promise across versions): reinstall multibody-sim"
+        )
+    try:
+        extension = importlib.import_module(f"{__package__}._native")
+    except ImportError as exc:
+        return None, f"the C++ extension does not load: {exc}"
+    return extension, None
+
+
+module, why_unavailable = _load()
+#: Whether runs can use the compiled kernel here (see why_unavailable when not).
+available: bool = module is not None
+#: The Pinocchio version the extension was built against (None when it is not available).
+pinocchio_version: str | None = module.PINOCCHIO_VERSION if module is not None else None
+
+
+def kernel() -> str:
+    """Which kernel runs, in one phrase: 'native (C++, Pinocchio 4.1.0)' or 'python (<why>)'."""
+    return f"native (C++, Pinocchio {pinocchio_version})" if available else f"python ({why_unavailable})"
+
+
+def model_bytes(model: pin.Model) -> bytes:
+    """The model as Pinocchio's binary archive (what `_native.Model(bytes)` rebuilds in C++)."""
+    buffer = pin.serialization.StreamBuffer()
+    model.saveToBinary(buffer)
+    return buffer.tobytes()
+
+
+def load_model(model: pin.Model) -> Any:
+    """The model handed over to C++: a `_native.Model` (pinocchio::Model + Data) built from model_bytes(model).
+
+    Raises:
+        MissingDependencyError: the extension is not available here (the message says why).
+    """
+    if module is None:
+        raise MissingDependencyError(f"the native kernel is not available: {why_unavailable}")
+    return module.Model(model_bytes(model))

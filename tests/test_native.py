@@ -1,0 +1,135 @@
+"""The compiled extension: the model hand-over, the RK4 floor against Pinocchio's own Python calls, the kernel
+choice (MULTIBODY_SIM_NATIVE, --version) and the version pin."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import importlib.util
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from multibody_sim import native
+
+REPO = Path(__file__).resolve().parents[1]
+ROBOTS = ["double_pendulum", "ur5", "panda", "solo12", "talos"]
+BUILT = importlib.util.find_spec("multibody_sim._native") is not None
+
+needs_native = pytest.mark.skipif(
+    not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
+    reason=f"the native kernel is not available here: {native.why_unavailable}",
+)
+
+
+def state(robot, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A seeded random (q, v, tau) near the robot's default pose (q moved on its configuration manifold)."""
+    rng = np.random.default_rng(seed)
+    q = pin.integrate(robot.model, robot.default_pose(), 0.3 * rng.normal(size=robot.nv))
+    return q, 0.5 * rng.normal(size=robot.nv), rng.normal(size=robot.nv)
+
+
+def python_rk4(model: pin.Model, q, v, tau, dt: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The RK4 loop of _native.Model.rk4_floor written with Pinocchio's Python calls (the oracle)."""
+    data = model.createData()
+    h, w = 0.5 * dt, dt / 6.0
+
+    def aba(qs, vs):
+        return pin.aba(model, data, qs, vs, tau, pin.Convention.WORLD).copy()
+
+    for _ in range(n):
+        a1 = aba(q, v)
+        v2 = v + h * a1
+        a2 = aba(pin.integrate(model, q, h * v), v2)
+        v3 = v + h * a2
+        a3 = aba(pin.integrate(model, q, h * v2), v3)
+        v4 = v + dt * a3
+        a4 = aba(pin.integrate(model, q, dt * v3), v4)
+        q = pin.integrate(model, q, w * (v + 2.0 * v2 + 2.0 * v3 + v4))
+        v = v + w * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+    return q, v
+
+
+@needs_native
+@pytest.mark.parametrize("name", ROBOTS)
+def test_the_model_crosses_to_cpp_whole(robot, name):
+    r = robot(name)
+    cpp = native.load_model(r.model)
+    assert (cpp.nq, cpp.nv, cpp.njoints, cpp.name) == (r.model.nq, r.model.nv, r.model.njoints, r.model.name)
+    for seed in range(3):
+        q, v, tau = state(r, seed)
+        expected = pin.aba(r.model, r.model.createData(), q, v, tau, pin.Convention.WORLD)
+        assert np.array_equal(cpp.aba(q, v, tau), expected), name
+
+
+@needs_native
+@pytest.mark.parametrize("name", ["ur5", "solo12"])
+def test_the_cpp_rk4_loop_equals_pinocchios_python_calls_bit_for_bit(robot, name):
+    r = robot(name)
+    q, v, tau = state(r, 7)
+    cpp_q, cpp_v = native.load_model(r.model).rk4_floor(q, v, tau, 1e-3, 200)
+    py_q, py_v = python_rk4(r.model, q, v, tau, 1e-3, 200)
+    assert np.abs(cpp_v - v).max() > 1e-3  # it moved
+    assert np.array_equal(cpp_q, py_q) and np.array_equal(cpp_v, py_v), (
+        np.abs(cpp_q - py_q).max(),
+        np.abs(cpp_v - py_v).max(),
+    )
+
+
+@needs_native
+def test_bad_bytes_and_bad_sizes_are_one_clear_error(robot):
+    with pytest.raises(ValueError, match="not a Pinocchio binary archive of a Model"):
+        native.module.Model(b"not an archive")
+    cpp = native.load_model(robot("ur5").model)
+    with pytest.raises(ValueError, match="q0 must have 6 entries, got 7"):
+        cpp.rk4_floor(np.zeros(7), np.zeros(6), np.zeros(6), 1e-3, 1)
+
+
+def version_lines(**env: str) -> list[str]:
+    """`multibody-sim --version`'s lines, run in a fresh process with env added."""
+    result = subprocess.run(
+        [sys.executable, "-m", "multibody_sim", "--version"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, **env},
+    )
+    assert result.returncode == 0, result.stderr
+    return result.stdout.splitlines()
+
+
+def test_version_names_the_kernel_and_the_environment_variable_turns_native_off():
+    runtime = importlib.metadata.version("pin")
+    default = version_lines(MULTIBODY_SIM_NATIVE="")[1]
+    if BUILT:
+        assert default == f"kernel: native (C++, Pinocchio {runtime})"
+    else:
+        assert default.startswith("kernel: python (the C++ extension is not built"), default
+    assert version_lines(MULTIBODY_SIM_NATIVE="0")[1] == "kernel: python (MULTIBODY_SIM_NATIVE=0)"
+    bad = version_lines(MULTIBODY_SIM_NATIVE="yes")[1]
+    assert bad == "kernel: python (MULTIBODY_SIM_NATIVE='yes' is not 0 (Python kernel) or 1 (native kernel when built))"
+
+
+@pytest.mark.skipif(not BUILT, reason="the C++ extension is not built here")
+def test_an_extension_built_against_another_pinocchio_is_refused_with_one_line(monkeypatch):
+    monkeypatch.setattr(pin, "__version__", "4.0.9")
+    module, why = native._load()
+    assert module is None
+    built = re.findall(r'"libpinocchio\[build\]==([0-9.]+)"', (REPO / "pyproject.toml").read_text())[0]
+    assert why == (
+        f"the C++ extension was built against Pinocchio {built} but Pinocchio 4.0.9 is "
+        "installed (no ABI promise across versions): reinstall multibody-sim"
+    )
+
+
+def test_runtime_and_build_pinocchio_are_pinned_to_the_same_exact_version():
+    text = (REPO / "pyproject.toml").read_text()
+    runtime = re.findall(r'"pin==([0-9.]+)"', text)
+    build = re.findall(r'"libpinocchio\[build\]==([0-9.]+)"', text)
+    assert len(runtime) == 1 and runtime == build, (runtime, build)
+    assert importlib.metadata.version("pin") == runtime[0]
