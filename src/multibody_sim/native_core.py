@@ -104,7 +104,9 @@ def method_data(method: Integrator) -> dict[str, Any]:
         )
     if isinstance(method, EmbeddedRungeKutta):
         dense = method._d
-        data.update(fsal=method.fsal, e=method._e.tolist(), dense=dense.tolist() if dense is not None and dense.any() else [])
+        data.update(
+            fsal=method.fsal, e=method._e.tolist(), dense=dense.tolist() if dense is not None and dense.any() else []
+        )
     if isinstance(method, DormandPrince853):
         data.update(
             fsal=True,

@@ -1,8 +1,8 @@
 """The batch kernel: explicit Runge–Kutta tableaux and semi-implicit Euler over many rows of states at once.
 
 The arithmetic per row is the row kernel's (the methods' own attempt()): the same ordered sums per row (multi-term
-stage sums and the step's combination, ordered.py), the same BLAS calls (the ledger's dot products), exact products where a stage sum has one
-power-of-two coefficient (RK4's), the system's batched forward dynamics (System.rows_dynamics: Pinocchio's
+stage sums, the step's combination and the ledger's dot products, ordered.py), exact products where a stage sum has
+one power-of-two coefficient (RK4's), the system's batched forward dynamics (System.rows_dynamics: Pinocchio's
 ``abaInParallel``, which equals ``aba`` per row), and the batched manifold (state.BatchSpace: Pinocchio's
 ``integrate`` per joint); so each row equals the row kernel bit for bit. One exception: the chart map of
 free-flyer, spherical and planar joints (in the stages after the first) is the same series but its products are
@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from ..recording import SampleStore
 from ..ordered import ordered_sum
+from ..recording import SampleStore
 from .explicit_rk import ExplicitRungeKutta
 from .partitioned import SemiImplicitEuler
 
