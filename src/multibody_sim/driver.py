@@ -753,6 +753,7 @@ class Run:
             "options": {"dt": self.settings.dt, "duration": self.settings.duration, **self.options},
             "controller": self.torques.label,
             "kernel": self.kernel_name,
+            **({"why_not_native": self.why_not_native} if self.why_not_native else {}),
         }
 
     def trajectory(self, b: int, *, status: str | None = None) -> Trajectory:
