@@ -1055,8 +1055,8 @@ CATALOGUE: list[BadInput] = [
         "scene-unknown-key",
         "scene file",
         "a misspelt top-level key in a scene",
-        "{scene}: unknown key 'gravty' (did you mean 'gravity'? valid: constraint, controller, description, force, "
-        "friction_velocity, gravity, initial, joints, lock, payload, robot, simulation)",
+        "{scene}: unknown key 'gravty' (did you mean 'gravity'? valid: constraint, contact, controller, description, "
+        "force, friction_velocity, gravity, ground, initial, joints, lock, object, payload, robot, simulation)",
         "Fix the key; every table lists its valid keys the same way.",
         scene_trigger('gravty = [0, 0, 0]\n[robot]\nsource = "ur5"\n'),
         ms.SceneError,
@@ -1115,7 +1115,7 @@ CATALOGUE: list[BadInput] = [
         "an implicit integrator on a scene with constraints",
         "integrator 'implicit_euler' needs the dynamics' analytic derivatives, which scene 'four_bar' does not "
         "provide (it has constraints: loop); use one of: bs32, dop853, dp54, euler, midpoint, rk4, "
-        "semi_implicit_euler",
+        "semi_implicit_euler, timestepping",
         "Use an explicit integrator: constraints are solved with Lagrange multipliers at each stage.",
         api(constrained_scene_on_implicit),
         ms.InvalidArgumentError,

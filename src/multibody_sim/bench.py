@@ -1102,7 +1102,8 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
 
 
 # One colour per integrator, the same in every diagram: Paul Tol's "muted" scheme, whose nine colours stay apart
-# under the common colour-vision deficiencies, then black for a tenth (ten methods are registered).
+# under the common colour-vision deficiencies, then black and blue (eleven methods are registered; the blue keeps
+# every pair apart under the three simulated deficiencies, as tests/test_bench.py checks).
 METHOD_COLORS = (
     "#332288",
     "#88CCEE",
@@ -1114,6 +1115,7 @@ METHOD_COLORS = (
     "#882255",
     "#AA4499",
     "#000000",
+    "#0077BB",
 )
 
 

@@ -21,6 +21,7 @@ from typing import Any, NoReturn
 
 import multibody_sim as ms
 from multibody_sim import native
+from multibody_sim.driver import RunSettings, Sink, check_resources
 from multibody_sim.files import check_output, check_unlocked
 from multibody_sim.safety import printable, safe_name, terminal_text
 from multibody_sim.trajectory import plain_data
@@ -584,7 +585,10 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
         options.setdefault("rtol", ADAPTIVE_RTOL)
         options.setdefault("atol", ADAPTIVE_ATOL)
         tolerances = f", rtol {options['rtol']:g}, atol {options['atol']:g}"
-    _check_run_arguments(robot, method, args.duration, args.dt, {k: v for k, v in options.items() if k != "controller"})
+    checked = {k: v for k, v in options.items() if k != "controller"}
+    _check_run_arguments(robot, method, args.duration, args.dt, checked)
+    # What the run could not hold or write (memory, chunk buffers, the file-size limit): refused before the header.
+    check_resources(robot, RunSettings.check(method, args.duration, args.dt, checked), Sink(out, args.chunk))
     base = "floating" if robot.floating_base else "fixed"
     viewer = _open_viewer(robot, args.view_host, args.view_port, args.view_speed, q0) if args.view else None
     with _SigtermAsInterrupt() as signals:

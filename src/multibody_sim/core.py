@@ -175,6 +175,7 @@ class Core:
         self.evaluations = 0  # evaluations every running row made
         self.extra_evaluations = np.zeros(B, dtype=np.int64)  # per position: evaluations beyond `evaluations`
         self.stopped_counts = np.zeros((B, len(COUNTERS)), dtype=np.int64)
+        self.solver_stats: dict[int, dict[str, int]] = {}  # stopped rows' solver counts (contact methods)
         self.stops: list[RowStop] = []
         self.recorded = -math.inf
 
@@ -319,6 +320,12 @@ class Core:
         """Stop the running rows at positions js (their counts frozen as they are now; `counted`: the latest step,
         which they did not take, is not theirs; `with_last`: they hold a last sample at the store's index count)."""
         rows = self.rows[js]
+        solver_stats = getattr(self.kernel, "solver_stats", None)
+        if solver_stats is not None:
+            for j, b in zip(js.tolist(), rows.tolist(), strict=True):
+                stats = solver_stats(j)
+                if stats:
+                    self.solver_stats[b] = stats
         counts = self.stopped_counts[rows]
         counts[:, 0] = self.steps - counted
         counts[:, 1] = self.rejected
@@ -435,7 +442,7 @@ class RowKernel:
         self.tau = list(TAU)
         if jump:
             method, system = self.method, self.system
-            states = [method.init(system, qj, vj) for qj, vj in zip(q, v, strict=True)]
+            states = [method.restart(system, qj, vj, sj) for qj, vj, sj in zip(q, v, states, strict=True)]
             self.now = (q, v, flows, states, t, k)
 
     def attempt(self, h: float) -> KernelAttempt:
@@ -521,6 +528,10 @@ class RowKernel:
         Q, V, states = list(Q), list(V), list(states)
         Q[j], V[j], states[j] = q, v, self.method.init(self.system, q, v)
         self.now = (Q, V, flows, states, t, k)
+
+    def solver_stats(self, j: int) -> dict[str, int]:
+        """Counts row j's solver state keeps (a contact solver's: steps, unconverged steps, iterations)."""
+        return self.method.solver_stats(self.now[3][j])
 
     def states(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
         return self.now[0], self.now[1]  # never modified in place: a step makes new arrays

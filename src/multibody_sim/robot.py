@@ -79,6 +79,8 @@ class Robot:
         scale = np.maximum(np.maximum(np.abs(self.lower_limit), np.abs(self.upper_limit)), 1.0)
         self.limit_tolerance = np.where(self._limited, LIMIT_TOLERANCE_ULPS * np.finfo(float).eps * scale, np.inf)
         self._n_base = 6 if floating_base else 0
+        # The actuated velocity coordinates: all but a floating base's 6 (a scene's free objects are left out too).
+        self.actuated = slice(self._n_base, self.nv)
         self.total_mass = float(pin.computeTotalMass(model))
         self._poses = {name: self.check_q(q, f"pose '{name}'").copy() for name, q in (poses or {}).items()}
         if default_pose is not None and default_pose not in self._poses:
@@ -367,7 +369,18 @@ class Robot:
             raise InvalidArgumentError(
                 f"{name}[0:6] acts on the unactuated floating base and must be zero, got {tau[:6].tolist()}"
             )
+        end = self.actuated.stop
+        if end < self.nv and np.any(tau[end:]):
+            raise InvalidArgumentError(
+                f"{name}[{end}:{self.nv}] acts on the scene's free objects, which are unactuated, and must be zero, "
+                f"got {tau[end:].tolist()}"
+            )
         return tau
+
+    def unactuated_load(self, tau: np.ndarray) -> bool:
+        """Whether tau (nv,) or rows of it (n, nv) put anything on unactuated coordinates (cheap; no message)."""
+        start, stop = self.actuated.start, self.actuated.stop
+        return bool(tau[..., :start].any() or tau[..., stop:].any())
 
 
 class RowsDynamics:
