@@ -282,7 +282,7 @@ def main() -> None:
         "",
         "## A box sliding at 2 m/s, μ = 0.8 (closed form: μg = 7.848 m/s², stops at 0.2548 s after 0.2548 m)",
         "",
-        "| | deceleration [m/s²] | relative to μg | stop time [s] | distance [m] | |v| at 0.5 s [m/s] |",
+        "| | deceleration [m/s²] | relative to μg | stop time [s] | distance [m] | speed at 0.5 s [m/s] |",
         "|---|---|---|---|---|---|",
     ]
     for name, facts in slide.items():

@@ -861,7 +861,8 @@ def _savings(scene: Any) -> str:
             "µs/step (objects only: no robot model to compare with)"
         )
     return (
-        f"savings ({measured['integrator']}, CPU-time medians of 5 x 200 steps): scene {measured['scene_us']:.1f} "
+        f"savings ({'RK4' if measured['integrator'] == 'rk4' else measured['integrator']}, CPU-time medians of 5 x "
+        f"200 steps): scene {measured['scene_us']:.1f} "
         f"µs/step, full robot "
         f"model {measured['full_us']:.1f} µs/step: {measured['ratio']:.2f}x the full model's cost"
     )
