@@ -236,3 +236,83 @@ def test_describe_says_what_is_modelled():
     assert "position limits: reported, not enforced" in text
     assert "joint dry friction: regularized" in text
     assert "force elements: none" in text
+
+
+# ---- robots: limits, exact joint friction, feet ------------------------------------------------------------------
+def test_a_joint_driven_into_its_limit_stops_there():
+    """panda_limits drives joint 4 towards −0.5 rad, past its upper limit (−0.0698 rad), with up to its full
+    effort: enforced as a unilateral constraint, the limit is violated by at most 1e-6 rad at any sample."""
+    scene = load_scene("panda_limits")
+    traj = scene.run()
+    upper = scene.upper_limit[3]
+    assert traj.q[-1, 3] == pytest.approx(upper, abs=1e-3)  # it did reach the limit
+    assert scene.limit_excess(traj.q).max() <= 1e-6
+    assert traj.stats["saturated_dofs"].get("panda_joint4", 0) > 0  # pushed as hard as it could
+    text = scene.describe()
+    assert "position limits: enforced as unilateral constraints (9 joints)" in text
+
+
+def friction_scene(F: float) -> ms.Scene:
+    """The double pendulum without gravity or damping, dry friction F on its first joint, exact."""
+    return make_scene(
+        robot={"source": "double_pendulum", "damping": False},
+        gravity=[0.0, 0.0, 0.0],
+        joints={"joint1": {"friction": F}},
+        contact={"friction": "exact"},
+    )
+
+
+@pytest.mark.parametrize(
+    ("v", "tau", "sticks"),
+    [
+        ([0.0, 0.0], [0.3, 0.0], True),
+        ([0.0, 0.0], [-0.49, 0.0], True),
+        ([0.0, 0.0], [0.8, 0.0], False),
+        ([0.0, 0.0], [-0.49, 0.2], False),  # joint 2's torque loads joint 1 through M: it slips
+        ([0.5, 0.2], [0.1, 0.0], False),
+        ([-0.5, 0.2], [0.1, -0.3], True),  # the arm's own dynamics nearly stop joint 1: friction does the rest
+    ],
+)
+def test_exact_joint_friction_sticks_below_its_bound_and_slips_with_coulomb_force(v, tau, sticks):
+    """One step of dry friction F on joint 1 is a one-dimensional complementarity problem with a closed form:
+    with v_free = v + dt M⁻¹(τ − C v) and w = (M⁻¹)₁₁, the impulse that stops the joint is p = −v_free[0] / w; if
+    |p| ≤ F dt the joint sticks (v⁺ = v_free + M⁻¹ e₁ p), else it slips with the full Coulomb torque:
+    v⁺ = v + dt M⁻¹(τ − C v − F sign(v⁺) e₁). The time-stepper agrees to 1e-9."""
+    F, dt = 0.5, 1e-3
+    scene = friction_scene(F)
+    q, v, tau = np.array([0.3, -0.2]), np.array(v), np.array(tau)
+    step = TimeStepping().attempt(scene, q, v, tau, dt, 0.0, None)
+    M, h = scene.mass_matrix(q), scene.nonlinear_effects(q, v)
+    e1 = np.array([1.0, 0.0])
+    v_free = v + dt * np.linalg.solve(M, tau - h)
+    column = np.linalg.solve(M, e1)
+    stop = -v_free[0] / column[0]
+    assert (abs(stop) <= F * dt) == sticks
+    if sticks:
+        expected = v_free + column * stop
+        assert abs(step.v[0]) <= 1e-9
+    else:
+        expected = v + dt * np.linalg.solve(M, tau - h - F * np.sign(v_free[0]) * e1)
+        assert np.sign(expected[0]) == np.sign(v_free[0])
+    np.testing.assert_allclose(step.v, expected, rtol=0, atol=1e-9)
+    assert "joint dry friction: exact (a constraint: stiction), on 1 joints" in scene.describe()
+
+
+def test_solo12_stands_on_its_four_foot_spheres():
+    scene = load_scene("solo12_standing")
+    traj = scene.run(duration=0.5)
+    assert np.abs(traj.q[:, 2] - traj.q[0, 2]).max() < 0.02  # dropped 3 mm, sags under its PD, never falls
+    assert np.abs(traj.q[:, :2] - traj.q[0, :2]).max() < 1e-4  # its feet do not slide
+    assert np.abs(traj.energy_error).max() <= 1e-9 * scene.total_mass * G
+    assert np.diff(traj.ledger["contact"].energy).min() >= 0.0
+
+
+def test_run_solo12_without_a_scene_says_nothing_holds_it_up(capsys):
+    from multibody_sim.cli import main
+
+    assert main(["run", "solo12", "--duration", "0.002"]) == 0
+    out = capsys.readouterr().out
+    assert (
+        "note: nothing holds solo12 up: without a scene there is no ground or contact, so its floating base falls; "
+        "run the shipped scene solo12_standing to stand it on the ground"
+    ) in out

@@ -484,6 +484,22 @@ def _is_scene(args: argparse.Namespace) -> bool:
     return scene
 
 
+def _nothing_holds_it_up(robot: Any) -> str:
+    """The run header's line for a floating robot run without a scene: it falls, and which scene stands it up."""
+    from .scenes import shipped_scenes
+
+    standing = [name for name in shipped_scenes() if name.startswith(f"{robot.name}_") and "stand" in name]
+    cure = (
+        f"run the shipped scene {standing[0]} to stand it on the ground"
+        if standing
+        else "declare [ground] and [[contact.geometry]] in a scene to stand it on the ground"
+    )
+    return (
+        f"note: nothing holds {safe_name(robot.name)} up: without a scene there is no ground or contact, so its "
+        f"floating base falls; {cure}"
+    )
+
+
 def _print_note(args: argparse.Namespace) -> None:
     """The note _is_scene left, on stderr: printed once bad input can no longer be the next line."""
     note = getattr(args, "note", None)
@@ -599,6 +615,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
                 f"run: {safe_name(robot.name)} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
                 f"dt {args.dt:g} s{tolerances}, duration {args.duration:g} s"
                 + (f", controller {args.controller}" if controller is not None else "")
+                + (f"\n{_nothing_holds_it_up(robot)}" if scene is None and robot.floating_base else "")
             )
             if args.chunk is not None:  # streamed to disk by the loop itself, merged into --out at the end
                 if out is None:

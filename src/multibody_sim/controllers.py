@@ -253,7 +253,9 @@ class ComputedTorque:
         bc_type: str = "clamped",
     ):
         _refuse_floating_base(robot, "computed torque")
-        if not robot.space.is_flat:
+        # A scene's free objects (free-flyers after the arm) are not actuated: their coordinates only ride along.
+        arm_end = _actuated(robot).stop
+        if not all(start >= arm_end for start, _ in robot.space.curved_blocks):
             raise InvalidArgumentError(
                 f"computed torque supports revolute, prismatic and continuous joints; robot '{robot.name}' has a "
                 "spherical or planar joint"
