@@ -21,6 +21,7 @@ from .files import signals_held
 from .integrators import Integrator
 from .integrators.batch import BatchRungeKutta, batch_kernel_supported
 from .metadata import run_metadata
+from .native_core import NativeCore, NativeKernel, why_not_native
 from .recording import COUNTERS, SampleStore, check_memory, file_bytes, samples_needed
 from .safety import check_file_size
 from .step_control import SLIVER, ConstantStep, PIController
@@ -286,14 +287,29 @@ def choose_kernel(
     atol: float | None = None,
     num_threads: int = 1,
     torque_free: bool = False,
-) -> RowKernel | BatchRungeKutta:
-    """The kernel a run of these rows takes: the batch kernel for several rows when it renders the method on the
-    system, the row kernel otherwise (simulate(), Stepper and rollout() share this rule)."""
+) -> RowKernel | BatchRungeKutta | NativeKernel:
+    """The kernel a run of these rows takes: the native kernel when it runs the method on the system
+    (native_core.why_not_native), else the batch kernel for several rows when it renders the method on the system,
+    else the row kernel (simulate(), Stepper and rollout() share this rule)."""
+    if why_not_native(system, method) is None:
+        return NativeKernel(system, method, Q0, V0, rtol=rtol, atol=atol, num_threads=num_threads)
     if len(Q0) > 1 and batch_kernel_supported(system, method):
         dynamics = system.rows_dynamics(num_threads)
         if dynamics is not None:
             return BatchRungeKutta(system, method, Q0, V0, dynamics=dynamics, torque_free=torque_free)
     return RowKernel(system, method, Q0, V0, rtol=rtol, atol=atol)
+
+
+def core_class(kernel: Any) -> type[Core]:
+    """The core that drives this kernel: NativeCore for the native kernel (its loop runs in C++), else Core."""
+    return NativeCore if isinstance(kernel, NativeKernel) else Core
+
+
+def kernel_name(kernel: Any) -> str:
+    """The kernel's name in the run header and the metadata: "native", "python (batch)" or "python (row)"."""
+    if isinstance(kernel, NativeKernel):
+        return "native"
+    return "python (batch)" if isinstance(kernel, BatchRungeKutta) else "python (row)"
 
 
 # ---- a run ---------------------------------------------------------------------------------------------------------
@@ -509,8 +525,9 @@ class Run:
             num_threads=num_threads,
             torque_free=torques.kind == "none",
         )
-        self.kernel_name = "python (batch)" if isinstance(kernel, BatchRungeKutta) else "python (row)"
-        self.core = Core(
+        self.kernel_name = kernel_name(kernel)
+        self.why_not_native = why_not_native(system, method)
+        self.core = core_class(kernel)(
             system=system, method=method, kernel=kernel, control=control, sampler=sampler, store=self.store, B=B
         )
         self.monitor = Monitor(system, B)
@@ -781,6 +798,7 @@ class Run:
             "options": {"dt": self.settings.dt, "duration": self.settings.duration, **self.options},
             "controller": self.torques.label,
             "kernel": self.kernel_name,
+            **({"why_not_native": self.why_not_native} if self.why_not_native else {}),
         }
 
     def trajectory(self, b: int, *, status: str | None = None) -> Trajectory:

@@ -84,9 +84,10 @@ class SampleStore:
         if self.count >= self.soft_capacity:
             self.full = True
 
-    def stop(self, rows: np.ndarray, with_last: bool) -> None:
-        """Rows stop with the samples the running rows hold (and the one at index count too, `with_last`)."""
-        self._stopped_samples[rows] = self.count + with_last
+    def stop(self, rows: np.ndarray, with_last: bool, *, count: int | None = None) -> None:
+        """Rows stop with the samples the running rows hold (and the one at index count too, `with_last`); `count`:
+        the running rows' count when they stopped, if not now (the native kernel reports its stops afterwards)."""
+        self._stopped_samples[rows] = (self.count if count is None else count) + with_last
         self.running[rows] = False
 
     def clear(self) -> None:

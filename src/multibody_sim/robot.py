@@ -9,6 +9,7 @@ import numpy as np
 import pinocchio as pin
 
 from .exceptions import InvalidArgumentError, UnknownNameError
+from .ordered import ordered_dot
 from .state import ConfigurationSpace
 
 _WORLD = pin.Convention.WORLD
@@ -250,9 +251,9 @@ class Robot:
         """
         if out is None:
             out = np.empty(2 if self._damped else 1)
-        out[0] = tau @ v
+        out[0] = ordered_dot(tau, v)  # in index order, as the native kernel sums (ordered.py)
         if self._damped:
-            out[1] = v @ (self.damping * v)
+            out[1] = ordered_dot(v, self.damping * v)
         return out
 
     def unchecked_energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
@@ -289,11 +290,11 @@ class Robot:
         """ledger_power of each row into out (n, n_elements); `fresh`: rows_applied was just called at (Q, V, t);
         not `torques`: TAU is zero (no controller), so is the torques' power (tau · v = 0 for finite v)."""
         if torques:
-            rowdot(TAU, V, out=out[:, 0])
+            out[:, 0] = np.add.accumulate(TAU * V, axis=1)[:, -1]  # ledger_power's ordered_dot, row by row
         else:
             out[:, 0] = 0.0
         if self._damped:
-            rowdot(V, self.damping * V, out=out[:, 1])
+            out[:, 1] = np.add.accumulate(V * (self.damping * V), axis=1)[:, -1]
 
     def rows_energies(self, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
         """(T, V) [J] of each row, shape (n, 2), each as unchecked_energies computes it."""
