@@ -18,6 +18,7 @@ import pickle
 import signal
 import socket
 import struct
+import sys
 import xml.etree.ElementTree as ET
 import zipfile
 import zlib
@@ -125,6 +126,7 @@ DISPLAY = {
     "adaptive": "bs32, dop853, dp54",
     "numpy": "('EOF in multi-line statement', (2, 0))",
     "scene": "/home/me/scene.toml",
+    "roots": "/home/me, <site-packages>/multibody_sim/models, <site-packages>/cmeel.prefix/share",
     "joints": UR5_JOINTS,
     "frames": UR5_MOVING_FRAMES,
 }
@@ -1525,6 +1527,183 @@ FILES = [
 ]
 CATALOGUE += FILES
 
+
+# ---- numbers, names, scene folders (issue 17: ranges in validation.py, safe_name, scene roots) ------------
+SUBNORMAL = "9.99989e-321"  # how 1e-320 (a subnormal double) reads back
+COUNT_LIMIT = "is more than 2**53, the most a run can count exactly"
+
+
+def scene_outside(key: str) -> Callable[[Path], Trigger]:
+    """A scene file in scenes/ whose robot file or package_dirs lie in a folder beside it (or in /etc)."""
+
+    def build(tmp: Path) -> Trigger:
+        folder, outside = tmp / "scenes", tmp / "elsewhere"
+        folder.mkdir()
+        outside.mkdir()
+        (folder / "robot.urdf").write_text(urdf(ONE_JOINT))
+        (outside / "robot.urdf").write_text(urdf(ONE_JOINT))
+        if key == "source":
+            text, value = f'[robot]\nsource = "{outside / "robot.urdf"}"\n', str(outside / "robot.urdf")
+        else:
+            text, value = '[robot]\nsource = "robot.urdf"\npackage_dirs = ["/etc"]\n', "/etc"
+        path = folder / "scene.toml"
+        path.write_text(text)
+        roots = [os.path.realpath(folder), os.path.realpath(ms.catalog.shipped_models_dir())]
+        roots.append(str(ms.catalog.example_robot_data_share()))
+        fields = {"scene": str(path), "value": value, "roots": ", ".join(roots)}
+        return Trigger(call=lambda: ms.load_scene(path), argv=["run", str(path)], fields=fields)
+
+    return build
+
+
+def forged_times(times: list[float]) -> Callable[[Path], Trigger]:
+    """A saved run whose sample times were rewritten."""
+
+    def build(tmp: Path) -> Trigger:
+        run = ms.simulate(pendulum(), [0.1], [0.0], duration=0.003, dt=1e-3)
+        run.t = np.array(times)
+        path = run.save(tmp / "run.npz")
+        return npz_trigger(path)
+
+    return build
+
+
+def hostile_frame_names(tmp: Path) -> Trigger:
+    """A robot whose link names hold a right-to-left override and a CSI, asked for a frame it lacks."""
+    path = tmp / "robot.urdf"
+    path.write_text(urdf(BASE, link("arm&#x202e;&#x9b;2J"), joint("j1", "base", "arm&#x202e;&#x9b;2J")))
+    robot = ms.load_robot(path)
+    run = ms.simulate(robot, [0.0], [0.0], duration=0.002, dt=1e-3)
+    return Trigger(call=lambda: ms.analysis.frame_placements(robot, run, "tool"))
+
+
+RANGES_AND_NAMES = [
+    BadInput(
+        "port-above-65535",
+        "command line",
+        "`run pendulum --view --view-port 70000` (a port that would wrap to 4464)",
+        "--view-port must be a whole number from 0 to 65535 (0: any free port), got 70000",
+        "Give a port from 1024 to 65535, or 0 for any free one.",
+        cli("run", "pendulum", "--view", "--view-port", "70000"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "dt-subnormal",
+        "command line",
+        "`run pendulum --dt 1e-320` (a step that underflows below the smallest normal double)",
+        f"duration / dt = 1 s / {SUBNORMAL} s = inf {COUNT_LIMIT}: choose a larger dt or a smaller duration",
+        "Give a step the run can take: duration / dt must be at most 2**53.",
+        cli("run", "pendulum", "--dt", "1e-320"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "step-count-overflow",
+        "command line",
+        "`run pendulum --duration 1e300 --dt 1e-300` (the number of steps overflows)",
+        f"duration / dt = 1e+300 s / 1e-300 s = inf {COUNT_LIMIT}: choose a larger dt or a smaller duration",
+        "Times are t0 + k dt with k counted: a run has at most 2**53 steps.",
+        cli("run", "pendulum", "--duration", "1e300", "--dt", "1e-300"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "rtol-below-epsilon",
+        "command line",
+        "`run pendulum --integrator dp54 --rtol 1e-320`",
+        f"rtol must be a number from {sys.float_info.epsilon:g} to 1 (1 excluded), got {SUBNORMAL}",
+        "No step can meet a relative tolerance below machine epsilon; use 1e-14 or more.",
+        cli("run", "pendulum", "--integrator", "dp54", "--rtol", "1e-320"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "view-speed-nan",
+        "command line",
+        "`run pendulum --view --view-speed nan`",
+        "--view-speed must be a number from 0.001 to 1000 (1 = real time), got nan",
+        "Give a playback speed from 0.001 to 1000.",
+        cli("run", "pendulum", "--view", "--view-speed", "nan"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "play-fps-huge",
+        "command line",
+        "`play run.npz --fps 1e9`",
+        "--fps must be a number from 1 to 1000 frames per second, got 1e+09",
+        "Give a frame rate from 1 to 1000 (30 is plenty for a screen).",
+        lambda tmp: Trigger(argv=["play", str(tmp / "run.npz"), "--fps", "1e9"]),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "chunk-beyond-2-53",
+        "Python API",
+        "`simulate(..., out='run.npz', chunk=2**60)`",
+        f"chunk must be at most 2**53 = {2**53}, got {2**60}",
+        "Give a chunk of a few thousand samples: it is held in memory.",
+        lambda tmp: Trigger(
+            call=lambda: ms.simulate(pendulum(), [0.0], [0.0], duration=1.0, dt=1e-3, out=tmp / "r.npz", chunk=2**60)
+        ),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "stepper-advance-overflow",
+        "Python API",
+        "`Stepper(robot, dt=1e-10).advance_to(1e300)`",
+        f"(t - current time) / control_dt = 1e+300 s / 1e-10 s = inf {COUNT_LIMIT}: choose a larger control_dt or "
+        "a smaller (t - current time)",
+        "Advance by spans the stepper can count in steps.",
+        api(lambda: ms.Stepper(pendulum(), dt=1e-10).advance_to(1e300)),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "npz-times-go-back",
+        "trajectory file",
+        "a trajectory whose sample times go back",
+        "{npz}: sample times: t must be strictly increasing, got 0.002 then 0.001 at indices 1 and 2",
+        "The file was edited or forged: regenerate it.",
+        forged_times([0.0, 0.002, 0.001, 0.003]),
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-time-nan",
+        "trajectory file",
+        "a trajectory with a NaN sample time",
+        "{npz}: sample times: t must hold finite times, got nan at index 2",
+        "The file was edited or forged: regenerate it.",
+        forged_times([0.0, 0.001, float("nan"), 0.003]),
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "scene-package-dirs-etc",
+        "scene file",
+        "a scene from elsewhere whose `package_dirs` point at /etc",
+        "{scene}: robot.package_dirs[0]: '{value}' is outside the folders a scene may read from (its own folder "
+        "and the catalog's: {roots}); to allow it, pass --allow-root DIR (allowed_roots=[DIR] in load_scene)",
+        "A scene reads meshes from its own folder and the catalog only; allow another folder yourself if you trust it.",
+        scene_outside("package_dirs"),
+        ms.SceneError,
+    ),
+    BadInput(
+        "scene-robot-outside",
+        "scene file",
+        "a scene whose robot file lies in a folder beside the scene's",
+        "{scene}: robot.source: '{value}' is outside the folders a scene may read from (its own folder and the "
+        "catalog's: {roots}); to allow it, pass --allow-root DIR (allowed_roots=[DIR] in load_scene)",
+        "Put the URDF beside the scene, or allow its folder: `--allow-root DIR`.",
+        scene_outside("source"),
+        ms.SceneError,
+    ),
+    BadInput(
+        "frame-names-bidi",
+        "Python API",
+        "asking a robot whose link names hold a right-to-left override and a CSI for a frame it lacks",
+        "robot 'robot' has no frame 'tool' (its 4 frames: universe, base, j1, arm\\u202e\\x9b2J; "
+        "multibody_sim.analysis.frame_names(robot) lists them)",
+        "Names from files are escaped in every message and printout: they cannot reorder or recolour your terminal.",
+        hostile_frame_names,
+        ms.UnknownNameError,
+    ),
+]
+CATALOGUE += RANGES_AND_NAMES
+
 BY_ID = {entry.id: entry for entry in CATALOGUE}
 assert len(BY_ID) == len(CATALOGUE), "catalogue ids must be unique"
 
@@ -1545,4 +1724,7 @@ def display_fields(entry: BadInput) -> dict[str, Any]:
         fields["omitted"] = "998175"
     if entry.id == "not-xml":
         fields["libxml2"] = "Start tag expected, '<' not found, line 1, column 1"
+    fields["value"] = {"scene-package-dirs-etc": "/etc", "scene-robot-outside": "/home/elsewhere/robot.urdf"}.get(
+        entry.id, ""
+    )
     return fields
