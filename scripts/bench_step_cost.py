@@ -907,11 +907,39 @@ def native_section(results: list[RobotResult], steps: int, mj_on: bool) -> list[
             row += [fmt(mj_batch, 2), fmt(batch / mj_batch, 2)]
         rows.append(row)
     fixed = ", ".join(f"{r.name} {fmt(median(r.samples.native_fixed_ms), 2)} ms" for r in results)
+
+    def verdict(what: str, ratios: dict[str, float], target: float) -> str:
+        met = [name for name, x in ratios.items() if x <= target]
+        missed = [f"{name} ({x:.2f})" for name, x in ratios.items() if x > target]
+        return f"{what} ≤ {target:g}: " + (
+            f"met on {', '.join(met) or 'none'}" + (f"; missed on {', '.join(missed)}" if missed else "")
+        )
+
+    floors = {r.name: median(r.samples.floor_batch) for r in results}
+    simulate_ratios = {r.name: r.samples.native_loop(steps) / floors[r.name] for r in results}
+    verdicts = [
+        verdict("native simulate / floor", simulate_ratios, 1.3),
+        verdict("rollout / floor", {r.name: median(r.samples.native_rollout) / floors[r.name] for r in results}, 1.1),
+    ]
+    if mj_on:
+        verdicts.append(
+            verdict(
+                "native simulate / mj_step on double_pendulum and ur5",
+                {
+                    r.name: r.samples.native_loop(steps) / median(r.samples.mj_step)
+                    for r in results
+                    if r.name in ("double_pendulum", "ur5")
+                },
+                1.0,
+            )
+        )
     return [
         "",
         "## The native kernel (µs per step, CPU-time medians)",
         "",
         *table(head, rows),
+        "",
+        "Issue 15's targets, in this run: " + "; ".join(verdicts) + ".",
         "",
         para(f"""- Native simulate rk4: `simulate(..., integrator="rk4")` on the native kernel (the extension's C++
             loop: the whole run between the driver's events), output every step with its energies and ledger,
