@@ -127,6 +127,22 @@ def test_an_extension_built_against_another_pinocchio_is_refused_with_one_line(m
     )
 
 
+@pytest.mark.skipif(not BUILT, reason="the C++ extension is not built here")
+def test_the_extension_itself_refuses_another_pinocchio_at_import():
+    probe = (
+        "import pinocchio; pinocchio.__version__ = '4.0.9'\n"
+        "from multibody_sim import native; print(native.kernel())\n"
+        "import multibody_sim._native\n"
+    )
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert result.returncode != 0 and result.stdout.startswith("python (the C++ extension was built against")
+    built = re.findall(r'"libpinocchio\[build\]==([0-9.]+)"', (REPO / "pyproject.toml").read_text())[0]
+    assert result.stderr.strip().splitlines()[-1] == (
+        f"ImportError: multibody_sim._native was built against Pinocchio {built} but Pinocchio 4.0.9 is installed "
+        "(no ABI promise across versions): reinstall multibody-sim"
+    )
+
+
 def test_runtime_and_build_pinocchio_are_pinned_to_the_same_exact_version():
     text = (REPO / "pyproject.toml").read_text()
     runtime = re.findall(r'"pin==([0-9.]+)"', text)

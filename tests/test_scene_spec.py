@@ -447,8 +447,8 @@ def test_controller_rows_flags_and_exact_floats(robot):
 
 # ---- errors --------------------------------------------------------------------------------------------
 TOP = (
-    "valid: constraint, controller, description, force, friction_velocity, gravity, initial, joints, lock, payload, "
-    "robot, simulation"
+    "valid: constraint, contact, controller, description, force, friction_velocity, gravity, ground, initial, joints, "
+    "lock, object, payload, robot, simulation"
 )
 TRIANGLE = "break the triangle inequality (each at most the sum of the others)"
 ROBOT_KEYS = "valid: base, damping, mimic, package_dirs, position, rpy, source"
@@ -459,12 +459,12 @@ ERRORS = [
     # top level
     ("unknown key", scene(gravty=[0, 0, 0]), f"unknown key 'gravty' (did you mean 'gravity'? {TOP})"),
     ("unknown key, nothing close", scene(zzz=1), f"unknown key 'zzz' ({TOP})"),
-    ("reserved contact", scene(contact=[{"frame": "foot"}]), "contact: ground contact is not modelled yet"),
+    ("contact not a table", scene(contact=[{"frame": "foot"}]), "contact: must be a table, got an array of 1"),
     ("not a table", [1, 2], "a scene must be a table of keys, got an array of 2"),
     (
         "no robot",
         {"gravity": [0, 0, 0]},
-        "robot: missing (a scene needs a [robot] table with source = a catalog name or URDF path)",
+        "robot: missing (a scene needs a [robot] table with source = a catalog name or URDF path, or [[object]]s)",
     ),
     ("description", scene(description=3), "description: must be a string, got 3"),
     ("gravity length", scene(gravity=[0, -9.81]), "gravity: must be an array of 3 numbers, got 2"),
@@ -791,7 +791,7 @@ ERRORS = [
         "integrator",
         scene(simulation={"integrator": "rk5"}),
         "simulation.integrator: must be one of bs32, dop853, dp54, euler, implicit_euler, implicit_midpoint, midpoint, "
-        "rk4, semi_implicit_euler, variational, got 'rk5' (did you mean 'rk4'?)",
+        "rk4, semi_implicit_euler, timestepping, variational, got 'rk5' (did you mean 'rk4'?)",
     ),
     # controller
     ("controller no name", scene(controller={"kp": 1.0}), f"controller.name: missing (valid: {CONTROLLER_NAMES})"),
@@ -844,6 +844,117 @@ ERRORS = [
         "controller row entry",
         scene(controller={"name": "computed_torque", "waypoint": [[0], [1, "x"]]}),
         "controller.waypoint[1][1]: must be a real number, got 'x'",
+    ),
+    # contact
+    (
+        "ground key",
+        scene(ground={"hieght": 0}),
+        "ground: unknown key 'hieght' (did you mean 'height'? valid: friction, height, restitution)",
+    ),
+    ("ground friction", scene(ground={"friction": -0.1}), "ground.friction: must be >= 0, got -0.1"),
+    ("ground restitution", scene(ground={"restitution": 1.5}), "ground.restitution: must be within 0..1, got 1.5"),
+    (
+        "contact pairs word",
+        scene(contact={"pairs": "everything"}),
+        "contact.pairs: must be one of all, ground, got 'everything'",
+    ),
+    (
+        "contact pairs type",
+        scene(contact={"pairs": 3}),
+        "contact.pairs: must be one of all, ground, or a list of [body, body] pairs, got 3",
+    ),
+    (
+        "contact pair shape",
+        scene(contact={"pairs": [["a", "b", "c"]]}),
+        "contact.pairs[0]: must be a pair of body names [body, body], got an array of 3",
+    ),
+    (
+        "contact pair twice",
+        scene(contact={"pairs": [["a", "a"]]}),
+        "contact.pairs[0]: must name two different bodies, got 'a' twice",
+    ),
+    (
+        "contact limits",
+        scene(contact={"limits": "enforced"}),
+        "contact.limits: must be one of enforce, report, got 'enforced' (did you mean 'enforce'?)",
+    ),
+    (
+        "contact friction",
+        scene(contact={"friction": "coulomb"}),
+        "contact.friction: must be one of exact, regularized, got 'coulomb'",
+    ),
+    ("contact solver", scene(contact={"solver": "lcp"}), "contact.solver: must be one of admm, pgs, got 'lcp'"),
+    (
+        "contact key",
+        scene(contact={"pair": "all"}),
+        "contact: unknown key 'pair' (did you mean 'pairs'? valid: body_friction, body_restitution, friction, "
+        "geometry, limits, pairs, solver)",
+    ),
+    (
+        "geometry frame",
+        scene(contact={"geometry": [{"shape": "sphere", "radius": 0.1}]}),
+        "contact.geometry[0].frame: missing (the frame the shape is attached to)",
+    ),
+    (
+        "geometry shape",
+        scene(contact={"geometry": [{"frame": "panda_hand", "shape": "cone"}]}),
+        "contact.geometry[0].shape: must be one of box, cylinder, sphere, got 'cone'",
+    ),
+    (
+        "geometry missing radius",
+        scene(contact={"geometry": [{"frame": "panda_hand", "shape": "sphere"}]}),
+        "contact.geometry[0].radius: missing (a sphere needs radius: m, > 0)",
+    ),
+    (
+        "geometry size on sphere",
+        scene(contact={"geometry": [{"frame": "panda_hand", "shape": "sphere", "radius": 0.1, "size": [1, 1, 1]}]}),
+        "contact.geometry[0].size: only for shape box, not sphere",
+    ),
+    (
+        "object no mass",
+        scene(object=[{"name": "box", "shape": "box", "size": [0.1, 0.1, 0.1]}]),
+        "object[0].mass: missing (kg, > 0)",
+    ),
+    (
+        "object zero size",
+        scene(object=[{"shape": "box", "size": [0.1, 0, 0.1], "mass": 1}]),
+        "object[0].size[1]: must be > 0, got 0",
+    ),
+    (
+        "object velocity",
+        scene(object=[{"shape": "sphere", "radius": 0.1, "mass": 1, "velocity": [1, 0, 0]}]),
+        "object[0].velocity: must be an array of 6 numbers, got 3",
+    ),
+    (
+        "object named ground",
+        scene(object=[{"name": "ground", "shape": "sphere", "radius": 0.1, "mass": 1}]),
+        "object[0].name: 'ground' names the ground plane; choose another name",
+    ),
+    (
+        "object names",
+        scene(object=[{"name": "b", "shape": "sphere", "radius": 0.1, "mass": 1}] * 2),
+        "object[1].name: 'b' is already the name of object[0]",
+    ),
+    (
+        "object as table",
+        scene(object={"shape": "sphere"}),
+        "object: must be an array of tables ([[object]] in TOML, a list of dicts in Python), got a table",
+    ),
+    (
+        "objects only with lock",
+        {"object": [{"shape": "sphere", "radius": 0.1, "mass": 1}], "lock": {"j": 0.0}},
+        "lock: needs a robot: this scene has objects only (add a [robot] table)",
+    ),
+    (
+        "contact with rk4",
+        scene(ground={}, simulation={"integrator": "rk4"}),
+        "simulation.integrator: a scene with contact ([ground], [contact] or [[object]]) steps with timestepping, "
+        "got 'rk4'",
+    ),
+    (
+        "contact with constraints",
+        scene(ground={}, constraint=[{"type": "point", "frames": ["panda_hand"]}]),
+        "constraint: holonomic constraints and contact cannot be combined yet (drop one of them)",
     ),
 ]
 

@@ -67,19 +67,23 @@ def test_the_catalogue_covers_files_command_line_and_api():
 @pytest.mark.parametrize("entry", CATALOGUE, ids=[entry.id for entry in CATALOGUE])
 def test_a_bad_input_gets_its_one_exact_error(entry: BadInput, tmp_path: Path, capfd: pytest.CaptureFixture[str]):
     """The API raises the entry's error with the exact message; the command line prints that message as its
-    only line on stderr (file descriptor 2, so C++ logging would show) and exits 2."""
+    only line on stderr (file descriptor 2, so C++ logging would show) and exits with the entry's code (2 for bad
+    input; 1, 130 or 143 for a run that ends early)."""
     trigger = entry.build(tmp_path)
     message = render(entry.message, trigger.fields)
     seen = [message]
+    during = trigger.during or contextlib.nullcontext
     if trigger.call is not None:
-        with pytest.raises(entry.error, match=exact(message)) as info:
+        with during(), pytest.raises(entry.error, match=exact(message)) as info:
             trigger.call()
         assert isinstance(info.value, ms.MultibodySimError)
     if trigger.argv is not None:
         capfd.readouterr()
-        code = main(trigger.argv)
+        with during():
+            code = main(trigger.argv)
         out, err = capfd.readouterr()
-        assert (code, err) == (2, f"{PREFIX}{message}\n")
+        prefix = {130: "multibody-sim: SIGINT: ", 143: "multibody-sim: SIGTERM: "}.get(entry.code, PREFIX)
+        assert (code, err) == (entry.code, f"{prefix}{message}\n")
         seen += [out, err]
     assert not any(MARKER in text for text in seen)
 
@@ -616,3 +620,125 @@ def test_slow_unguarded_pinocchio_crashes_on_a_deep_chain(tmp_path: Path):
     assert result.returncode < 0, result  # killed by a signal (SIGSEGV)
     with pytest.raises(ms.ModelError, match="the robot has 5000 links, more than the 1000"):
         ms.load_robot(path)
+
+
+# ---- resources: every large allocation checked against what this process may use ----------------------------
+RLIMITED = r"""
+import json, resource, sys
+import multibody_sim as ms
+kind, size = sys.argv[1], int(sys.argv[2])
+if kind == "as":
+    used = next(int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmSize:"))
+    resource.setrlimit(resource.RLIMIT_AS, (used + size, resource.getrlimit(resource.RLIMIT_AS)[1]))
+else:
+    resource.setrlimit(resource.RLIMIT_FSIZE, (size, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+from multibody_sim.cli import main
+sys.exit(main(sys.argv[3:]))
+"""
+
+
+def rlimited(kind: str, size: int, *argv: str) -> subprocess.CompletedProcess[str]:
+    """`multibody-sim ARGV` in a child whose RLIMIT_AS (kind "as": size bytes more than it has mapped) or
+    RLIMIT_FSIZE (kind "fsize") is set first."""
+    return subprocess.run(
+        [sys.executable, "-c", RLIMITED, kind, str(size), *argv], capture_output=True, text=True, timeout=300
+    )
+
+
+def test_the_address_space_limit_is_honoured(tmp_path: Path) -> None:
+    """A run whose samples need ~4 GB, in a process allowed 1 GiB more than it has mapped (ulimit -v; room for
+    the imports and threads a run starts): refused before any allocation, in one line naming that limit, not the
+    machine's free memory."""
+    from multibody_sim.safety import memory_room
+
+    if memory_room().bytes < 8 * 2**30:
+        pytest.skip("needs 8 GiB available, so that the address-space limit is the one that binds")
+    result = rlimited("as", 1024 * MiB, "run", "pendulum", "--duration", "30000", "--dt", "0.001")
+    assert result.returncode == 2, result.stderr
+    assert re.fullmatch(
+        r"multibody-sim: error: this run would keep 3e\+07 samples \([0-9.]+ GiB\) in memory, more than the "
+        r"0\.\d+ GiB available \(this process's address-space limit \(ulimit -v\)\): sample less often \(output_dt\) "
+        r"or stream to disk \(out= and chunk=; --chunk in the CLI\)\n",
+        result.stderr,
+    ), result.stderr
+
+
+def test_the_cgroup_memory_limit_is_honoured(tmp_path: Path) -> None:
+    """cgroup v2 and v1 trees laid out as the kernel does: the tightest limit of the cgroup and its ancestors,
+    less what each uses."""
+    from multibody_sim.safety import cgroup_memory_room, memory_room
+
+    v2 = tmp_path / "v2"
+    (v2 / "user.slice" / "job").mkdir(parents=True)
+    (v2 / "user.slice" / "memory.max").write_text("1073741824\n")  # 1 GiB for the slice
+    (v2 / "user.slice" / "memory.current").write_text("268435456\n")  # 256 MiB of it used
+    (v2 / "user.slice" / "job" / "memory.max").write_text("max\n")  # no limit of its own
+    (v2 / "user.slice" / "job" / "memory.current").write_text("1000\n")
+    proc = tmp_path / "cgroup-v2"
+    proc.write_text("0::/user.slice/job\n")
+    assert cgroup_memory_room(v2, proc) == 1073741824 - 268435456
+    room = memory_room(cgroup_root=v2, proc_cgroup=proc)
+    assert room.bytes <= 805306368
+    v1 = tmp_path / "v1"
+    (v1 / "memory" / "docker" / "abc").mkdir(parents=True)
+    (v1 / "memory" / "docker" / "abc" / "memory.limit_in_bytes").write_text("536870912\n")
+    (v1 / "memory" / "docker" / "abc" / "memory.usage_in_bytes").write_text("134217728\n")
+    (v1 / "memory" / "memory.limit_in_bytes").write_text("9223372036854771712\n")  # v1's "no limit"
+    proc = tmp_path / "cgroup-v1"
+    proc.write_text("12:pids:/docker/abc\n9:memory:/docker/abc\n1:name=systemd:/docker/abc\n")
+    assert cgroup_memory_room(v1, proc) == 536870912 - 134217728
+    if memory_room().bytes > 402653184:  # this machine has more: the cgroup's limit binds and is named
+        assert memory_room(cgroup_root=v1, proc_cgroup=proc).limit == "its cgroup's memory limit"
+    (proc).write_text("0::/\n")
+    assert cgroup_memory_room(v1, proc) is None  # no limits anywhere
+
+
+def test_the_file_size_limit_is_checked_before_the_run(tmp_path: Path) -> None:
+    """ulimit -f of 1 MB and a run whose file would take ~8 MB (100 001 samples of 80 bytes): refused in one line
+    before the run, not cut short by EFBIG at its end."""
+    out = tmp_path / "run.npz"
+    result = rlimited("fsize", 10**6, "run", "pendulum", "--duration", "100", "--dt", "0.001", "--output-dt",
+                      "0.001", "--out", str(out))  # fmt: skip
+    assert (result.returncode, result.stdout) == (2, ""), result.stderr
+    assert result.stderr == (
+        f"multibody-sim: error: out {out} would take about 8 MB, more than this process's file-size limit (1 MB, "
+        "ulimit -f): sample less often (output_dt) or raise the limit\n"
+    )
+    result = rlimited("fsize", 10**6, "run", "pendulum", "--dt", "0.001", "--out", str(out), "--chunk", "20000",
+                      "--duration", "0.5")  # fmt: skip
+    assert result.stderr == (
+        "multibody-sim: error: a chunk file would take about 1.6 MB, more than this process's file-size limit (1 MB, "
+        "ulimit -f): choose a smaller chunk or raise the limit\n"
+    )
+    assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_a_chunk_buffer_that_cannot_fit_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(
+        ms.InvalidArgumentError,
+        match=r"^this run would keep 1e\+13 samples \([0-9.e+]+ GiB\) in memory, more than the [0-9.]+ GiB available "
+        r"\(.*\): choose a smaller chunk$",
+    ):
+        ms.simulate(
+            ms.load_robot("pendulum"), [0.1], [0.0], duration=1.0, dt=1e-3, out=tmp_path / "r.npz", chunk=10**13
+        )
+    assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_playback_frames_gif_frames_and_plot_canvases_are_checked_before_they_are_allocated(tmp_path: Path) -> None:
+    """A trajectory spanning 10^12 s played at 30 fps (3e13 frames), a GIF of 10^6 s at 50 fps, a plot at a
+    dpi of 10^5: each refused in one line before numpy or matplotlib allocates."""
+    viz = pytest.importorskip("multibody_sim.viz")
+    from multibody_sim.viz.frames import resample
+
+    robot = ms.load_robot("pendulum")
+    run = ms.simulate(robot, [1.0], [0.0], duration=0.02, dt=0.01)
+    run.t = np.array([0.0, 1e6, 1e12])
+    with pytest.raises(ms.InvalidArgumentError, match=r"^1e\+12 s at 30 frames per second would keep 3e\+13 frames"):
+        resample(robot, run, 30.0)
+    run.t = np.array([0.0, 5e5, 1e6])
+    with pytest.raises(ms.InvalidArgumentError, match=r"^a 1280x720 GIF of 50000000 frames would keep them \("):
+        viz.export_video(run, tmp_path / "motion.gif", robot=robot, fps=50)
+    with pytest.raises(ms.InvalidArgumentError, match=r"^a \d+x\d+-pixel plot of \d+ lines over 3 samples would keep"):
+        viz.plot_trajectory(run, tmp_path / "plot.png", robot=robot, dpi=100_000)
+    assert sorted(os.listdir(tmp_path)) == []

@@ -18,7 +18,7 @@ from conftest import joint, link, urdf
 import multibody_sim as ms
 from multibody_sim import tables
 from multibody_sim.cli import main
-from multibody_sim.trajectory import chunk_path
+from multibody_sim.trajectory import write_chunk
 
 for _module in ("pandas", "pyarrow"):
     if importlib.util.find_spec(_module) is None:  # in the test extra: CI must have them
@@ -187,7 +187,7 @@ def test_export_reads_the_parts_of_a_chunked_run(
             **{name: getattr(run, name)[rows] for name in ("t", "q", "v", "tau", *ENERGIES)},
             ledger={name: dataclasses.replace(entry, energy=entry.energy[rows]) for name, entry in run.ledger.items()},
         )
-        piece.save(chunk_path(out, index))
+        write_chunk(piece, out, index, run_id="one-run", first_sample=rows.start)  # as a chunked run writes them
     for given in (out, out.with_name("run.npz.parts")):  # the file's name, or the folder
         csv = tmp_path / "parts.csv"
         assert main(["export", str(given), "--csv", str(csv)]) == 0

@@ -40,7 +40,7 @@ from .robot import Robot
 from .safety import safe_name
 from .simulation import simulate
 from .trajectory import Trajectory
-from .validation import positive_number
+from .validation import MAX_STEPS, positive_number
 
 FORMAT = "multibody-sim work-precision"
 FORMAT_VERSION = 1
@@ -528,6 +528,13 @@ def work_precision(
     q0 = system.check_q(q0, "q0")
     v0 = system.check_v(v0, "v0")
     duration = positive_number(duration, "duration")
+    if steps is None:  # the ladder's finest step must fit in the run, and the run's steps must stay countable
+        finest = STEP_LADDER[-1]
+        if not finest <= duration <= MAX_STEPS * finest:
+            raise InvalidArgumentError(
+                f"duration must be from {finest:g} s (the finest step of the bench's ladder) to "
+                f"{MAX_STEPS * finest:.4g} s (2**53 of those steps), got {duration:g} s"
+            )
     methods, refused = _methods(system, integrators)
     grid = min(OUTPUT_DT, duration) if output_dt is None else positive_number(output_dt, "output_dt")
     if grid > duration * (1 + 1e-12):
@@ -1102,7 +1109,8 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
 
 
 # One colour per integrator, the same in every diagram: Paul Tol's "muted" scheme, whose nine colours stay apart
-# under the common colour-vision deficiencies, then black for a tenth (ten methods are registered).
+# under the common colour-vision deficiencies, then black and blue (eleven methods are registered; the blue keeps
+# every pair apart under the three simulated deficiencies, as tests/test_bench.py checks).
 METHOD_COLORS = (
     "#332288",
     "#88CCEE",
@@ -1114,6 +1122,7 @@ METHOD_COLORS = (
     "#882255",
     "#AA4499",
     "#000000",
+    "#0077BB",
 )
 
 

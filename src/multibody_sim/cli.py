@@ -21,6 +21,7 @@ from typing import Any, NoReturn
 
 import multibody_sim as ms
 from multibody_sim import native
+from multibody_sim.driver import RunSettings, Sink, check_resources
 from multibody_sim.files import check_output, check_unlocked
 from multibody_sim.safety import printable, safe_name, terminal_text
 from multibody_sim.trajectory import plain_data
@@ -483,6 +484,22 @@ def _is_scene(args: argparse.Namespace) -> bool:
     return scene
 
 
+def _nothing_holds_it_up(robot: Any) -> str:
+    """The run header's line for a floating robot run without a scene: it falls, and which scene stands it up."""
+    from .scenes import shipped_scenes
+
+    standing = [name for name in shipped_scenes() if name.startswith(f"{robot.name}_") and "stand" in name]
+    cure = (
+        f"run the shipped scene {standing[0]} to stand it on the ground"
+        if standing
+        else "declare [ground] and [[contact.geometry]] in a scene to stand it on the ground"
+    )
+    return (
+        f"note: nothing holds {safe_name(robot.name)} up: without a scene there is no ground or contact, so its "
+        f"floating base falls; {cure}"
+    )
+
+
 def _print_note(args: argparse.Namespace) -> None:
     """The note _is_scene left, on stderr: printed once bad input can no longer be the next line."""
     note = getattr(args, "note", None)
@@ -584,7 +601,10 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
         options.setdefault("rtol", ADAPTIVE_RTOL)
         options.setdefault("atol", ADAPTIVE_ATOL)
         tolerances = f", rtol {options['rtol']:g}, atol {options['atol']:g}"
-    _check_run_arguments(robot, method, args.duration, args.dt, {k: v for k, v in options.items() if k != "controller"})
+    checked = {k: v for k, v in options.items() if k != "controller"}
+    _check_run_arguments(robot, method, args.duration, args.dt, checked)
+    # What the run could not hold or write (memory, chunk buffers, the file-size limit): refused before the header.
+    check_resources(robot, RunSettings.check(method, args.duration, args.dt, checked), Sink(out, args.chunk))
     base = "floating" if robot.floating_base else "fixed"
     viewer = _open_viewer(robot, args.view_host, args.view_port, args.view_speed, q0) if args.view else None
     with _SigtermAsInterrupt() as signals:
@@ -595,6 +615,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
                 f"run: {safe_name(robot.name)} ({base} base, nq {robot.nq}, nv {robot.nv}), integrator {method.name}, "
                 f"dt {args.dt:g} s{tolerances}, duration {args.duration:g} s"
                 + (f", controller {args.controller}" if controller is not None else "")
+                + (f"\n{_nothing_holds_it_up(robot)}" if scene is None and robot.floating_base else "")
             )
             if args.chunk is not None:  # streamed to disk by the loop itself, merged into --out at the end
                 if out is None:
@@ -834,8 +855,15 @@ def _poses_cell(row: dict[str, Any]) -> str:
 
 def _savings(scene: Any) -> str:
     measured = scene.measure_savings()
+    if math.isnan(measured["full_us"]):  # objects only: no robot to compare with
+        return (
+            f"cost ({measured['integrator']}, CPU-time medians of 5 x 200 steps): scene {measured['scene_us']:.1f} "
+            "µs/step (objects only: no robot model to compare with)"
+        )
     return (
-        f"savings (RK4, CPU-time medians of 5 x 200 steps): scene {measured['scene_us']:.1f} µs/step, full robot "
+        f"savings ({'RK4' if measured['integrator'] == 'rk4' else measured['integrator']}, CPU-time medians of 5 x "
+        f"200 steps): scene {measured['scene_us']:.1f} "
+        f"µs/step, full robot "
         f"model {measured['full_us']:.1f} µs/step: {measured['ratio']:.2f}x the full model's cost"
     )
 

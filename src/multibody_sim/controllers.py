@@ -74,8 +74,13 @@ def _positive(value: Any, name: str, *, allow_zero: bool = False) -> float:
 
 
 def _n_base(robot: Robot) -> int:
-    """Number of unactuated velocity coordinates (the floating base's 6, else 0)."""
+    """Number of unactuated velocity coordinates before the actuated ones (the floating base's 6, else 0)."""
     return 6 if robot.floating_base else 0
+
+
+def _actuated(robot: Robot) -> slice:
+    """The actuated velocity coordinates: after a floating base, before a scene's free objects."""
+    return getattr(robot, "actuated", slice(_n_base(robot), robot.nv))
 
 
 def _refuse_floating_base(robot: Robot, what: str) -> None:
@@ -100,9 +105,8 @@ class _Stateless:
 # ---- PD, gravity compensation ---------------------------------------------------------------------------
 def _critical_damping(robot: Robot, q: np.ndarray, kp: np.ndarray) -> np.ndarray:
     """kd = 2 sqrt(kp M_jj(q)) on each actuated joint: critical damping of each joint taken alone."""
-    a = _n_base(robot)
     M = pin.crba(robot.model, robot.model.createData(), q)
-    return 2.0 * np.sqrt(kp * np.diag(M)[a:])
+    return 2.0 * np.sqrt(kp * np.diag(M)[_actuated(robot)])
 
 
 class PD(_Stateless):
@@ -127,8 +131,8 @@ class PD(_Stateless):
 
     def __init__(self, robot: Robot, q_ref: Any, *, kp: Any, kd: Any = None, v_ref: Any = None):
         self.robot = robot
-        self._a = _n_base(robot)
-        n = robot.nv - self._a
+        self._a = _actuated(robot)
+        n = self._a.stop - self._a.start
         self.q_ref = robot.check_q(q_ref, "q_ref")
         self.v_ref = np.zeros(robot.nv) if v_ref is None else robot.check_v(v_ref, "v_ref")
         self.kp = _gain(kp, n, "kp")
@@ -140,7 +144,7 @@ class PD(_Stateless):
         a = self._a
         error = pin.difference(self._model, q, self.q_ref)
         tau = np.zeros(self.robot.nv)
-        tau[a:] = self.kp * error[a:] + self.kd * (self.v_ref[a:] - v[a:])
+        tau[a] = self.kp * error[a] + self.kd * (self.v_ref[a] - v[a])
         return tau
 
 
@@ -156,13 +160,14 @@ class GravityCompensation(_Stateless):
 
     def __init__(self, robot: Robot):
         self.robot = robot
-        self._a = _n_base(robot)
+        self._a = _actuated(robot)
         self._model, self._data = robot.model, robot.model.createData()  # its own workspace
 
     def __call__(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Joint torques [N·m or N], shape (nv,)."""
         tau = pin.computeGeneralizedGravity(self._model, self._data, q).copy()
-        tau[: self._a] = 0.0
+        tau[: self._a.start] = 0.0
+        tau[self._a.stop :] = 0.0
         return tau
 
 
@@ -248,7 +253,9 @@ class ComputedTorque:
         bc_type: str = "clamped",
     ):
         _refuse_floating_base(robot, "computed torque")
-        if not robot.space.is_flat:
+        # A scene's free objects (free-flyers after the arm) are not actuated: their coordinates only ride along.
+        arm_end = _actuated(robot).stop
+        if not all(start >= arm_end for start, _ in robot.space.curved_blocks):
             raise InvalidArgumentError(
                 f"computed torque supports revolute, prismatic and continuous joints; robot '{robot.name}' has a "
                 "spherical or planar joint"
@@ -314,6 +321,7 @@ class ComputedTorque:
         tau = pin.rnea(self._model, self._data, q, v, a_des + self.kp * error + self.kd * d_error).copy()
         if self._damping is not None:  # the URDF damping takes D v away: give it back
             tau += self._damping * v
+        tau[_actuated(self.robot).stop :] = 0.0  # a scene's free objects are not actuated
         return tau
 
     def tracking_error(self) -> TrackingLog:

@@ -175,6 +175,7 @@ class Core:
         self.evaluations = 0  # evaluations every running row made
         self.extra_evaluations = np.zeros(B, dtype=np.int64)  # per position: evaluations beyond `evaluations`
         self.stopped_counts = np.zeros((B, len(COUNTERS)), dtype=np.int64)
+        self.solver_stats: dict[int, dict[str, int]] = {}  # stopped rows' solver counts (contact methods)
         self.stops: list[RowStop] = []
         self.recorded = -math.inf
 
@@ -319,6 +320,12 @@ class Core:
         """Stop the running rows at positions js (their counts frozen as they are now; `counted`: the latest step,
         which they did not take, is not theirs; `with_last`: they hold a last sample at the store's index count)."""
         rows = self.rows[js]
+        solver_stats = getattr(self.kernel, "solver_stats", None)
+        if solver_stats is not None:
+            for j, b in zip(js.tolist(), rows.tolist(), strict=True):
+                stats = solver_stats(j)
+                if stats:
+                    self.solver_stats[b] = stats
         counts = self.stopped_counts[rows]
         counts[:, 0] = self.steps - counted
         counts[:, 1] = self.rejected
@@ -369,22 +376,13 @@ class Core:
         self.stop(js, with_last=added)
 
     def _diverged_messages(self, bad: np.ndarray, t_next: float) -> list[str]:
-        messages = []
-        for j in bad.tolist():
-            dof = self.kernel.nonfinite_dof(j)
-            messages.append(
-                f"diverged at t = {t_next:.6g} s (step {self.steps + 1}): the state became non-finite in "
-                f"'{self.system.dof_names[dof]}'; {cure_for_dt(self.system, self.dt_hint)}"
-            )
-        return messages
+        return [
+            diverged_message(self.system, t_next, self.steps + 1, self.kernel.nonfinite_dof(j), self.dt_hint)
+            for j in bad.tolist()
+        ]
 
     def _collapse(self, t: float, h: float, minimum: float, error: float | None) -> None:
-        norm = f" (error norm {error:.3g})" if error is not None else ""
-        message = (
-            f"step_collapsed at t = {t:.6g} s (step {self.steps + 1}): the step fell to "
-            f"{h:.3g} s, below the {minimum:.3g} s minimum{norm}; the problem may be stiff or singular here: "
-            f"{cure_for_stiffness(self.system)}"
-        )
+        message = collapsed_message(self.system, t, self.steps + 1, h, minimum, error)
         self._stop_rows(np.array([0]), ["step_collapsed"], [message], t)
 
     @property
@@ -444,7 +442,7 @@ class RowKernel:
         self.tau = list(TAU)
         if jump:
             method, system = self.method, self.system
-            states = [method.init(system, qj, vj) for qj, vj in zip(q, v, strict=True)]
+            states = [method.restart(system, qj, vj, sj) for qj, vj, sj in zip(q, v, states, strict=True)]
             self.now = (q, v, flows, states, t, k)
 
     def attempt(self, h: float) -> KernelAttempt:
@@ -520,6 +518,21 @@ class RowKernel:
     def state_of(self, j: int) -> tuple[np.ndarray, np.ndarray]:
         return self.now[0][j].copy(), self.now[1][j].copy()
 
+    def flows_of(self, j: int) -> np.ndarray:
+        """Row j's cumulative ledger flows [J], shape (n_elements,) (not modified in place: a step makes new ones)."""
+        return self.now[2][j]
+
+    def set_row(self, j: int, q: np.ndarray, v: np.ndarray) -> None:
+        """Put row j at (q, v) by hand (a jump: its solver state restarts; its flows stay)."""
+        Q, V, flows, states, t, k = self.now
+        Q, V, states = list(Q), list(V), list(states)
+        Q[j], V[j], states[j] = q, v, self.method.init(self.system, q, v)
+        self.now = (Q, V, flows, states, t, k)
+
+    def solver_stats(self, j: int) -> dict[str, int]:
+        """Counts row j's solver state keeps (a contact solver's: steps, unconverged steps, iterations)."""
+        return self.method.solver_stats(self.now[3][j])
+
     def states(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
         return self.now[0], self.now[1]  # never modified in place: a step makes new arrays
 
@@ -575,6 +588,25 @@ class RowKernel:
 
 _NONE = np.zeros(0, dtype=int)
 _FIRST = np.zeros(1, dtype=int)
+
+
+# ---- messages of rows that stop inside the core (the row kernel's and the native kernel's) ----------------------
+def diverged_message(system: Any, t_next: float, step: int, dof: int, dt: float) -> str:
+    """Why a row stopped when its state became non-finite in velocity coordinate `dof` at step `step`."""
+    return (
+        f"diverged at t = {t_next:.6g} s (step {step}): the state became non-finite in "
+        f"'{system.dof_names[dof]}'; {cure_for_dt(system, dt)}"
+    )
+
+
+def collapsed_message(system: Any, t: float, step: int, h: float, minimum: float, error: float | None) -> str:
+    """Why an adaptive row stopped when its step fell to h [s] below `minimum` [s] (error: the norm, if judged)."""
+    norm = f" (error norm {error:.3g})" if error is not None else ""
+    return (
+        f"step_collapsed at t = {t:.6g} s (step {step}): the step fell to "
+        f"{h:.3g} s, below the {minimum:.3g} s minimum{norm}; the problem may be stiff or singular here: "
+        f"{cure_for_stiffness(system)}"
+    )
 
 
 # ---- cures named in messages -------------------------------------------------------------------------------------

@@ -21,7 +21,9 @@ from .files import signals_held
 from .integrators import Integrator
 from .integrators.batch import BatchRungeKutta, batch_kernel_supported
 from .metadata import run_metadata
-from .recording import COUNTERS, SampleStore, check_memory, samples_needed
+from .native_core import NativeCore, NativeKernel, why_not_native
+from .recording import COUNTERS, SampleStore, check_memory, file_bytes, samples_needed
+from .safety import check_file_size
 from .step_control import SLIVER, ConstantStep, PIController
 from .trajectory import (
     PARTS_SUFFIX,
@@ -42,11 +44,15 @@ BLOCK_STEPS = 2048
 BLOCK_SAMPLES = 1024
 
 
+# A run whose contact solver stopped at its iteration cap on more than this fraction of its steps failed.
+SOLVER_FAILURE_FRACTION = 0.01
+
+
 # ---- torques -----------------------------------------------------------------------------------------------------
 def check_torque(system: Any, tau: Any, t: float | None, what: str = "controller output") -> np.ndarray:
     """tau as a float array (nv,) if it is a valid torque, else InvalidArgumentError naming the time and reason."""
     fast = type(tau) is np.ndarray and tau.dtype == np.float64 and tau.shape == (system.nv,)
-    if fast and math.isfinite(tau @ tau) and not (system.floating_base and tau[:6].any()):
+    if fast and math.isfinite(tau @ tau) and not system.unactuated_load(tau):
         return tau
     try:  # the full check, with the precise reason
         return system.check_tau(tau)
@@ -151,7 +157,8 @@ class Torques:
                 )
                 return np.zeros((n, nv)), [(j, error, True) for j in range(n)]
             TAU = np.array(out, dtype=float)
-            suspect = ~np.isfinite(TAU).all(axis=1) | (system.floating_base and TAU[:, :6].any(axis=1))
+            start, stop = system.actuated.start, system.actuated.stop
+            suspect = ~np.isfinite(TAU).all(axis=1) | TAU[:, :start].any(axis=1) | TAU[:, stop:].any(axis=1)
             for j in np.flatnonzero(suspect).tolist():
                 try:  # the full check, with the precise reason
                     system.check_tau(TAU[j])
@@ -280,14 +287,29 @@ def choose_kernel(
     atol: float | None = None,
     num_threads: int = 1,
     torque_free: bool = False,
-) -> RowKernel | BatchRungeKutta:
-    """The kernel a run of these rows takes: the batch kernel for several rows when it renders the method on the
-    system, the row kernel otherwise (simulate(), Stepper and rollout() share this rule)."""
+) -> RowKernel | BatchRungeKutta | NativeKernel:
+    """The kernel a run of these rows takes: the native kernel when it runs the method on the system
+    (native_core.why_not_native), else the batch kernel for several rows when it renders the method on the system,
+    else the row kernel (simulate(), Stepper and rollout() share this rule)."""
+    if why_not_native(system, method) is None:
+        return NativeKernel(system, method, Q0, V0, rtol=rtol, atol=atol, num_threads=num_threads)
     if len(Q0) > 1 and batch_kernel_supported(system, method):
         dynamics = system.rows_dynamics(num_threads)
         if dynamics is not None:
             return BatchRungeKutta(system, method, Q0, V0, dynamics=dynamics, torque_free=torque_free)
     return RowKernel(system, method, Q0, V0, rtol=rtol, atol=atol)
+
+
+def core_class(kernel: Any) -> type[Core]:
+    """The core that drives this kernel: NativeCore for the native kernel (its loop runs in C++), else Core."""
+    return NativeCore if isinstance(kernel, NativeKernel) else Core
+
+
+def kernel_name(kernel: Any) -> str:
+    """The kernel's name in the run header and the metadata: "native", "python (batch)" or "python (row)"."""
+    if isinstance(kernel, NativeKernel):
+        return "native"
+    return "python (batch)" if isinstance(kernel, BatchRungeKutta) else "python (row)"
 
 
 # ---- a run ---------------------------------------------------------------------------------------------------------
@@ -418,6 +440,30 @@ class RunSettings:
         return -(-self.n_steps // self.control_every)
 
 
+def check_resources(system: Any, settings: RunSettings, sink: Sink, B: int = 1) -> None:
+    """Refuse, before the run, what this process could not hold or write: the samples in memory (or a chunk's
+    buffer) against usable_memory(), and the files against its file-size limit (check_file_sizes)."""
+    if sink.chunk is None:
+        check_memory(settings.capacity, system, B)
+    else:  # the chunk buffer is allocated whole
+        check_memory(sink.chunk, system, B, advice="choose a smaller chunk")
+    if sink.out is not None:
+        check_file_sizes(sink, settings, system)
+
+
+def check_file_sizes(sink: Sink, settings: RunSettings, system: Any) -> None:
+    """Refuse, before the run, files that this process's file-size limit (ulimit -f) would cut short: the chunk
+    files and the final file, where their sample counts are known (an adaptive run without output_dt: only the
+    chunks)."""
+    per_sample = file_bytes(system)
+    known = not settings.adaptive or settings.output_dt is not None
+    advice = "sample less often (output_dt) or raise the limit"
+    if known:
+        check_file_size(settings.capacity * per_sample, f"out {sink.out}", advice)
+    if sink.chunk is not None:
+        check_file_size(sink.chunk * per_sample, "a chunk file", "choose a smaller chunk or raise the limit")
+
+
 def n_steps(duration: float, dt: float) -> int:
     """Fixed steps of dt in a run of `duration`, the last one shortened (a sliver of round-off is no step)."""
     return step_count(duration, dt, SLIVER)
@@ -454,8 +500,7 @@ class Run:
         self.B = B
         self.Q0, self.V0 = Q0, V0
         chunk = self.sink.chunk
-        if chunk is None:
-            check_memory(settings.capacity, system, B)
+        check_resources(system, settings, self.sink, B)
         capacity = chunk if chunk is not None else min(settings.capacity, 1 << 20)
         record_width = sum(width for _, _, width in system.record_fields)
         self.store = SampleStore(B, system.nq, system.nv, len(system.ledger_elements), record_width, capacity)
@@ -480,8 +525,9 @@ class Run:
             num_threads=num_threads,
             torque_free=torques.kind == "none",
         )
-        self.kernel_name = "python (batch)" if isinstance(kernel, BatchRungeKutta) else "python (row)"
-        self.core = Core(
+        self.kernel_name = kernel_name(kernel)
+        self.why_not_native = why_not_native(system, method)
+        self.core = core_class(kernel)(
             system=system, method=method, kernel=kernel, control=control, sampler=sampler, store=self.store, B=B
         )
         self.monitor = Monitor(system, B)
@@ -701,6 +747,21 @@ class Run:
             outcome = self.outcomes[b]
             outcome.status, outcome.message = status, message
             outcome.counts = self._core_counts(b)
+            if status == "completed":
+                self._judge_solver(b)
+
+    def _judge_solver(self, b: int) -> None:
+        """A completed run whose contact solver stopped at its iteration cap on more than
+        SOLVER_FAILURE_FRACTION of the steps ends with status "solver_failed" (its samples kept)."""
+        stats = self.core.solver_stats.get(b, {})
+        unconverged, steps = stats.get("solver_unconverged", 0), self.outcomes[b].counts.get("steps", 0)
+        if steps and unconverged > SOLVER_FAILURE_FRACTION * steps:
+            outcome = self.outcomes[b]
+            outcome.status = "solver_failed"
+            outcome.message = (
+                f"solver_failed: the contact solver did not converge on {unconverged} of {steps} steps (more than "
+                f"{SOLVER_FAILURE_FRACTION:.0%}); each continued with the best impulses found; try a smaller dt"
+            )
 
     def _end(self, b: int, status: str, message: str, *, counts_at: int) -> None:
         outcome = self.outcomes[b]
@@ -723,6 +784,7 @@ class Run:
         dofs = self.system.dof_names
         return {
             **counts,
+            **self.core.solver_stats.get(b, {}),
             "controller_calls": int(self.controller_calls[b]),
             "saturated_controls": int(self.saturation.calls[b]),
             "saturated_dofs": {dofs[i]: int(n) for i, n in enumerate(self.saturation.dofs[b]) if n},
@@ -736,6 +798,7 @@ class Run:
             "options": {"dt": self.settings.dt, "duration": self.settings.duration, **self.options},
             "controller": self.torques.label,
             "kernel": self.kernel_name,
+            **({"why_not_native": self.why_not_native} if self.why_not_native else {}),
         }
 
     def trajectory(self, b: int, *, status: str | None = None) -> Trajectory:

@@ -7,12 +7,11 @@ configuration at sample i. A row that stopped early simply has fewer samples (``
 from __future__ import annotations
 
 import math
-import os
 from typing import Any
 
 import numpy as np
 
-from .exceptions import InvalidArgumentError
+from .safety import check_allocation
 from .trajectory import ConstraintRecord, LedgerEntry, LimitViolations, Trajectory
 
 # Counters kept per sample and row, so that a run truncated at a sample reports the counts it had there.
@@ -85,9 +84,10 @@ class SampleStore:
         if self.count >= self.soft_capacity:
             self.full = True
 
-    def stop(self, rows: np.ndarray, with_last: bool) -> None:
-        """Rows stop with the samples the running rows hold (and the one at index count too, `with_last`)."""
-        self._stopped_samples[rows] = self.count + with_last
+    def stop(self, rows: np.ndarray, with_last: bool, *, count: int | None = None) -> None:
+        """Rows stop with the samples the running rows hold (and the one at index count too, `with_last`); `count`:
+        the running rows' count when they stopped, if not now (the native kernel reports its stops afterwards)."""
+        self._stopped_samples[rows] = (self.count if count is None else count) + with_last
         self.running[rows] = False
 
     def clear(self) -> None:
@@ -201,24 +201,23 @@ def sample_bytes(system: Any, rows: int = 1) -> int:
     return 8 * widths * rows
 
 
-def check_memory(n_samples: int, system: Any, rows: int = 1) -> None:
-    """Refuse a run whose samples cannot fit in memory, before allocating them (a MemoryError helps no one)."""
-    needed = n_samples * sample_bytes(system, rows)
-    available = usable_memory()
-    if needed > available:
-        raise InvalidArgumentError(
-            f"this run would keep {n_samples:.3g} samples ({needed / 2**30:.3g} GiB) in memory, more than the "
-            f"{available / 2**30:.3g} GiB available: sample less often (output_dt) or stream to disk (out= and "
-            "chunk=; --chunk in the CLI)"
-        )
+def check_memory(n_samples: int, system: Any, rows: int = 1, advice: str | None = None) -> None:
+    """Refuse a run whose samples cannot fit in memory, before allocating them (a MemoryError helps no one).
+
+    The room is safety.usable_memory(): the machine's available memory, the address-space limit (RLIMIT_AS) and
+    the cgroup's memory limit, whichever is least.
+    """
+    check_allocation(
+        n_samples * sample_bytes(system, rows),
+        f"this run would keep {n_samples:.3g} samples",
+        advice or "sample less often (output_dt) or stream to disk (out= and chunk=; --chunk in the CLI)",
+    )
 
 
-def usable_memory() -> int:
-    """Memory this process may still allocate [bytes]: the machine's free memory."""
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):  # not on Linux: assume a generous machine
-        return 1 << 40
+def file_bytes(system: Any) -> int:
+    """Bytes a sample takes in a trajectory file (t, q, v, tau, five energies, the ledger and the records)."""
+    widths = 6 + system.nq + 2 * system.nv + len(system.ledger_elements)
+    return 8 * (widths + sum(width for _, _, width in system.record_fields))
 
 
 def samples_needed(duration: float, period: float) -> int:

@@ -9,6 +9,7 @@ import numpy as np
 import pinocchio as pin
 
 from .exceptions import InvalidArgumentError, UnknownNameError
+from .ordered import ordered_dot
 from .state import ConfigurationSpace
 
 _WORLD = pin.Convention.WORLD
@@ -78,6 +79,8 @@ class Robot:
         scale = np.maximum(np.maximum(np.abs(self.lower_limit), np.abs(self.upper_limit)), 1.0)
         self.limit_tolerance = np.where(self._limited, LIMIT_TOLERANCE_ULPS * np.finfo(float).eps * scale, np.inf)
         self._n_base = 6 if floating_base else 0
+        # The actuated velocity coordinates: all but a floating base's 6 (a scene's free objects are left out too).
+        self.actuated = slice(self._n_base, self.nv)
         self.total_mass = float(pin.computeTotalMass(model))
         self._poses = {name: self.check_q(q, f"pose '{name}'").copy() for name, q in (poses or {}).items()}
         if default_pose is not None and default_pose not in self._poses:
@@ -248,9 +251,9 @@ class Robot:
         """
         if out is None:
             out = np.empty(2 if self._damped else 1)
-        out[0] = tau @ v
+        out[0] = ordered_dot(tau, v)  # in index order, as the native kernel sums (ordered.py)
         if self._damped:
-            out[1] = v @ (self.damping * v)
+            out[1] = ordered_dot(v, self.damping * v)
         return out
 
     def unchecked_energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
@@ -287,11 +290,11 @@ class Robot:
         """ledger_power of each row into out (n, n_elements); `fresh`: rows_applied was just called at (Q, V, t);
         not `torques`: TAU is zero (no controller), so is the torques' power (tau · v = 0 for finite v)."""
         if torques:
-            rowdot(TAU, V, out=out[:, 0])
+            out[:, 0] = np.add.accumulate(TAU * V, axis=1)[:, -1]  # ledger_power's ordered_dot, row by row
         else:
             out[:, 0] = 0.0
         if self._damped:
-            rowdot(V, self.damping * V, out=out[:, 1])
+            out[:, 1] = np.add.accumulate(V * (self.damping * V), axis=1)[:, -1]
 
     def rows_energies(self, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
         """(T, V) [J] of each row, shape (n, 2), each as unchecked_energies computes it."""
@@ -366,7 +369,18 @@ class Robot:
             raise InvalidArgumentError(
                 f"{name}[0:6] acts on the unactuated floating base and must be zero, got {tau[:6].tolist()}"
             )
+        end = self.actuated.stop
+        if end < self.nv and np.any(tau[end:]):
+            raise InvalidArgumentError(
+                f"{name}[{end}:{self.nv}] acts on the scene's free objects, which are unactuated, and must be zero, "
+                f"got {tau[end:].tolist()}"
+            )
         return tau
+
+    def unactuated_load(self, tau: np.ndarray) -> bool:
+        """Whether tau (nv,) or rows of it (n, nv) put anything on unactuated coordinates (cheap; no message)."""
+        start, stop = self.actuated.start, self.actuated.stop
+        return bool(tau[..., :start].any() or tau[..., stop:].any())
 
 
 class RowsDynamics:

@@ -480,6 +480,9 @@ def _check_taus(system: Robot, taus: Any, B: int, n_control: int) -> np.ndarray:
         raise InvalidArgumentError("taus must be finite")
     if system.floating_base and np.any(arr[:, :, :6]):
         raise InvalidArgumentError("taus[:, :, 0:6] act on the unactuated floating base and must be zero")
+    end = system.actuated.stop
+    if end < system.nv and np.any(arr[:, :, end:]):
+        raise InvalidArgumentError(f"taus[:, :, {end}:] act on the scene's unactuated free objects and must be zero")
     return arr
 
 

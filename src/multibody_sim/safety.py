@@ -17,6 +17,7 @@ import re
 import struct
 import zipfile
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
@@ -263,3 +264,170 @@ def _too_big(path: Path, total: int, budget: int, size: int) -> str:
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
+
+
+# ---- resources: what this process may still allocate and write ----------------------------------------------
+_GENEROUS = 1 << 40  # where a limit cannot be read (not Linux): assume a generous machine
+_NO_CGROUP_LIMIT = 1 << 60  # cgroup v1 writes "no limit" as a huge number (9223372036854771712)
+
+
+@dataclass(frozen=True)
+class Room:
+    """How many bytes this process may still allocate, and which limit binds.
+
+    Attributes:
+        bytes: the room [bytes].
+        limit: the binding limit, in words ("the machine's available memory", "this process's address-space limit
+            (ulimit -v)", "its cgroup's memory limit").
+    """
+
+    bytes: int
+    limit: str
+
+
+def usable_memory() -> int:
+    """Memory this process may still allocate [bytes]: the least of the machine's available memory, the room left
+    under its address-space limit (RLIMIT_AS) and the room left under its cgroup's memory limit (v2 or v1)."""
+    return memory_room().bytes
+
+
+def memory_room(*, cgroup_root: Path = Path("/sys/fs/cgroup"), proc_cgroup: Path = Path("/proc/self/cgroup")) -> Room:
+    """usable_memory() with the limit that binds (the paths are parameters for tests)."""
+    rooms = [Room(_available_memory(), "the machine's available memory")]
+    address_space = _address_space_room()
+    if address_space is not None:
+        rooms.append(Room(address_space, "this process's address-space limit (ulimit -v)"))
+    cgroup = cgroup_memory_room(cgroup_root, proc_cgroup)
+    if cgroup is not None:
+        rooms.append(Room(cgroup, "its cgroup's memory limit"))
+    return min(rooms, key=lambda room: room.bytes)
+
+
+def _available_memory() -> int:
+    """MemAvailable (what can be allocated without swapping), else the free pages."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return _GENEROUS
+
+
+def _address_space_room() -> int | None:
+    """RLIMIT_AS less the address space already mapped (VmSize), or None without a limit."""
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    except (ImportError, OSError, ValueError):
+        return None
+    if soft == resource.RLIM_INFINITY:
+        return None
+    try:
+        with open("/proc/self/status") as f:
+            used = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmSize:"))
+    except (OSError, ValueError, StopIteration):
+        used = 0
+    return max(0, soft - used)
+
+
+def cgroup_memory_room(cgroup_root: Path, proc_cgroup: Path) -> int | None:
+    """The room under the memory limits of this process's cgroup and its ancestors (the tightest), or None.
+
+    cgroup v2 ("0::/path" in /proc/self/cgroup): memory.max less memory.current in cgroup_root/path and each
+    parent. cgroup v1 ("N:...memory...:/path"): memory.limit_in_bytes less memory.usage_in_bytes under
+    cgroup_root/memory/path and its parents.
+    """
+    try:
+        lines = proc_cgroup.read_text().splitlines()
+    except OSError:
+        return None
+    rooms = []
+    for line in lines:
+        fields = line.split(":", 2)
+        if len(fields) != 3:
+            continue
+        hierarchy, controllers, path = fields
+        if hierarchy == "0" and controllers == "":
+            base, limit_file, usage_file = cgroup_root, "memory.max", "memory.current"
+        elif "memory" in controllers.split(","):
+            base, limit_file, usage_file = cgroup_root / "memory", "memory.limit_in_bytes", "memory.usage_in_bytes"
+        else:
+            continue
+        folder = base / path.lstrip("/")
+        while True:
+            room = _cgroup_room(folder, limit_file, usage_file)
+            if room is not None:
+                rooms.append(room)
+            if folder == base or base not in folder.parents:
+                break
+            folder = folder.parent
+    return min(rooms) if rooms else None
+
+
+def _cgroup_room(folder: Path, limit_file: str, usage_file: str) -> int | None:
+    try:
+        text = (folder / limit_file).read_text().strip()
+    except OSError:
+        return None
+    if text == "max" or not text.isdigit() or int(text) >= _NO_CGROUP_LIMIT:
+        return None
+    try:
+        used = int((folder / usage_file).read_text().strip())
+    except (OSError, ValueError):
+        used = 0
+    return max(0, int(text) - used)
+
+
+def check_allocation(nbytes: float, what: str, advice: str) -> None:
+    """Refuse an allocation of nbytes that this process cannot make, before making it (a MemoryError, or the
+    kernel's OOM killer, helps no one).
+
+    Args:
+        nbytes: the bytes needed.
+        what: what needs them ("this run would keep 1e+09 samples"), the start of the message.
+        advice: what to do instead.
+
+    Raises:
+        InvalidArgumentError: nbytes exceeds usable_memory(); the message names the binding limit.
+    """
+    room = memory_room()
+    if nbytes > room.bytes:
+        from .exceptions import InvalidArgumentError
+
+        raise InvalidArgumentError(
+            f"{what} ({nbytes / 2**30:.3g} GiB) in memory, more than the {room.bytes / 2**30:.3g} GiB available "
+            f"({room.limit}): {advice}"
+        )
+
+
+def file_size_limit() -> int | None:
+    """This process's file-size limit (RLIMIT_FSIZE, ulimit -f) [bytes], or None without one."""
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    except (ImportError, OSError, ValueError):
+        return None
+    return None if soft == resource.RLIM_INFINITY else int(soft)
+
+
+def check_file_size(nbytes: float, what: str, advice: str) -> None:
+    """Refuse to start writing a file of about nbytes that RLIMIT_FSIZE would cut short (EFBIG mid-write).
+
+    Raises:
+        InvalidArgumentError: nbytes exceeds file_size_limit().
+    """
+    limit = file_size_limit()
+    if limit is not None and nbytes > limit:
+        from .exceptions import InvalidArgumentError
+
+        raise InvalidArgumentError(
+            f"{what} would take about {nbytes / 1e6:.3g} MB, more than this process's file-size limit "
+            f"({limit / 1e6:.3g} MB, ulimit -f): {advice}"
+        )

@@ -5,11 +5,14 @@ Every integrator moves configurations through this module, so nobody writes ``q 
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pinocchio as pin
+
+from .ordered import ordered_matvec
 
 _ARG_Q = pin.ArgumentPosition.ARG0
 _ARG_V = pin.ArgumentPosition.ARG1
@@ -100,7 +103,7 @@ class ConfigurationSpace:
         out = v.copy()
         for (start, stop), (index, half_sign) in zip(self.curved_blocks, self._chart_entries, strict=True):
             H = xi[start:stop][index] * half_sign
-            out[start:stop] = _chart_series(H.dot, v[start:stop], terms)
+            out[start:stop] = _chart_series(functools.partial(ordered_matvec, H), v[start:stop], terms)
         return out
 
     def chart_rates(self, XI: np.ndarray, V: np.ndarray, terms: int, out: np.ndarray) -> np.ndarray:

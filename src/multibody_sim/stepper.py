@@ -9,8 +9,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .core import Core, RowKernel, cure_for_dt
-from .driver import Monitor, Saturation, check_torque, choose_kernel
+from .core import Core, cure_for_dt
+from .driver import Monitor, Saturation, check_torque, choose_kernel, core_class
 from .exceptions import InvalidArgumentError, SimulationError
 from .integrators import Integrator, get_integrator
 from .recording import SampleStore
@@ -158,15 +158,15 @@ class Stepper:
             )
         else:
             control = ConstantStep(self.dt, t)
-        kernel = RowKernel(
+        kernel = choose_kernel(
             system, method, q[None, :], v[None, :], rtol=getattr(self, "_rtol", None), atol=getattr(self, "_atol", None)
         )
         kernel.start_at(t)
-        self._kernel = kernel
+        self._kernel: Any = kernel
         record_width = sum(width for _, _, width in system.record_fields)
         self._store = SampleStore(1, system.nq, system.nv, len(system.ledger_elements), record_width, 1)
         self._store.make_room(math.inf)  # it holds the state of the latest call only: the core never waits for room
-        self._core = Core(
+        self._core: Core = core_class(kernel)(
             system=system, method=method, kernel=kernel, control=control, sampler=None, store=self._store, B=1
         )
         self._grid = (t, 0)  # control instants t0 + k · control interval, k counted
@@ -198,7 +198,7 @@ class Stepper:
     @property
     def q(self) -> np.ndarray:
         """Configuration, shape (nq,) (read-only; assign a new one to change it, checked like Robot's)."""
-        return self._kernel.now[0][0]
+        return self._q
 
     @q.setter
     def q(self, value: Any) -> None:
@@ -207,7 +207,7 @@ class Stepper:
     @property
     def v(self) -> np.ndarray:
         """Velocity, shape (nv,) (read-only; assign a new one to change it, checked like Robot's)."""
-        return self._kernel.now[1][0]
+        return self._v
 
     @v.setter
     def v(self, value: Any) -> None:
@@ -226,20 +226,20 @@ class Stepper:
         kinetic, potential = system.unchecked_energies(q, v)
         monitor.initial[0] += kinetic + potential - before
         monitor.scale[0] = max(monitor.scale[0], kinetic + abs(potential) + system.energy_scale)
-        kernel = self._kernel
-        _, _, flows, _, t, k = kernel.now
-        kernel.now = ([q], [v], flows, [self.integrator.init(system, q, v)], t, k)
+        self._kernel.set_row(0, q, v)
         self._freeze()
 
     def _freeze(self) -> None:
         """The state arrays handed out are read-only: users see the state without copies and cannot edit it."""
-        self.q.setflags(write=False)
-        self.v.setflags(write=False)
+        Q, V = self._kernel.states()
+        self._q, self._v = Q[0], V[0]
+        self._q.setflags(write=False)
+        self._v.setflags(write=False)
 
     # ---- energy ledger -------------------------------------------------------------------------------
     @property
     def _flows(self) -> np.ndarray:
-        return self._kernel.now[2][0]
+        return self._kernel.flows_of(0)
 
     @property
     def work(self) -> float:
@@ -419,7 +419,7 @@ class Stepper:
         core.store.running[0] = True
         core.steps, core.rejected, core.evaluations, core.extra_evaluations = counts[:3] + (counts[3].copy(),)
         self._saturation.restore(saturation)
-        self._controller_calls, self._tau, self._grid = calls, tau, grid
+        self._controller_calls, self._tau, self._grid = calls, tau, grid  # q, v: still the snapshot's (_freeze)
 
     def _one_sample(self, status: str) -> Trajectory:
         """The current state as a one-sample Trajectory (what a failed step's SimulationError carries)."""
@@ -684,7 +684,7 @@ class BatchStepper:
         kernel = choose_kernel(system, self.integrator, self._Q, self._V, num_threads=self._num_threads)
         self._store = SampleStore(B, system.nq, system.nv, len(system.ledger_elements), 0, 1)
         self._store.make_room(math.inf)  # it holds the state of the latest call only
-        self._core = Core(
+        self._core = core_class(kernel)(
             system=system,
             method=self.integrator,
             kernel=kernel,

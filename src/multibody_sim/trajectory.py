@@ -181,6 +181,13 @@ class Trajectory:
                     f"constraint '{safe_name(name)}': max drift {_max_abs(record.drift):.3g}, max velocity drift "
                     f"{_max_abs(record.velocity_drift):.3g}, max |force| {_max_abs(record.force):.3g}"
                 )
+        if "solver_steps" in s:  # the contact time-stepper's cone solver
+            unconverged = s.get("solver_unconverged", 0)
+            lines.append(
+                f"contact solver: {s['solver_steps']} steps with constraints, {s.get('solver_iterations', 0)} "
+                f"iterations; {unconverged} unconverged"
+                + (" (each continued with the best impulses found)" if unconverged else "")
+            )
         lines.append(self.limit_violations.describe())
         return "\n".join(lines)
 

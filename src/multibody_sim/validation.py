@@ -210,12 +210,13 @@ def sample_times(t: np.ndarray, name: str = "t") -> None:
     """Sample times must be finite and strictly increasing (one row per distinct time)."""
     bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
-        raise InvalidArgumentError(f"{name} must hold finite times, got {t[bad[0]]!r} at index {bad[0]}")
+        raise InvalidArgumentError(f"{name} must hold finite times, got {float(t[bad[0]])!r} at index {bad[0]}")
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         i = int(back[0])
         raise InvalidArgumentError(
-            f"{name} must be strictly increasing, got {t[i]!r} then {t[i + 1]!r} at indices {i} and {i + 1}"
+            f"{name} must be strictly increasing, got {float(t[i])!r} then {float(t[i + 1])!r} at indices {i} and "
+            f"{i + 1}"
         )
 
 

@@ -125,8 +125,15 @@ NB_MODULE(_native, m)
 {
   using multibody_sim::NativeModel;
   m.doc() = "The compiled side of multibody-sim (load it through multibody_sim.native).";
-  // The Pinocchio whose headers and libpinocchio_default.so the extension was built against.
+  // The Pinocchio whose headers and libpinocchio_default.so the extension was built against: the Python one must
+  // be the same exact version (its libraries are the ones this module runs on; no ABI promise across versions).
   m.attr("PINOCCHIO_VERSION") = PINOCCHIO_VERSION;
+  const std::string running = nb::cast<std::string>(nb::module_::import_("pinocchio").attr("__version__"));
+  if (running != PINOCCHIO_VERSION)
+    throw nb::import_error(
+      ("multibody_sim._native was built against Pinocchio " PINOCCHIO_VERSION " but Pinocchio " + running
+       + " is installed (no ABI promise across versions): reinstall multibody-sim")
+        .c_str());
 
   nb::class_<NativeModel>(m, "Model", "A pinocchio::Model and its Data, rebuilt from Pinocchio's binary archive.")
     .def(

@@ -10,6 +10,7 @@ from .explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutt
 from .implicit import ImplicitEuler, ImplicitMidpoint
 from .partitioned import SemiImplicitEuler
 from .tableau import BOGACKI_SHAMPINE_32, DORMAND_PRINCE_54, EULER, MIDPOINT, RK4, ButcherTableau, EmbeddedTableau
+from .timestepping import TimeStepping
 from .variational import VariationalIntegrator
 
 INTEGRATORS: dict[str, Integrator] = {
@@ -25,6 +26,7 @@ INTEGRATORS: dict[str, Integrator] = {
         ImplicitEuler(),
         ImplicitMidpoint(),
         VariationalIntegrator(),
+        TimeStepping(),
     ]
 }
 

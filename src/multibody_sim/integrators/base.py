@@ -135,6 +135,15 @@ class Integrator(ABC):
         """The solver state for a run (or after a jump: a new torque, a state set by hand) starting at (q, v)."""
         return None
 
+    def restart(self, system: System, q: np.ndarray, v: np.ndarray, state: Any) -> Any:
+        """The solver state after a jump (a new torque) at (q, v), given the current one: init()'s by default (an
+        FSAL stage taken with the old torque is stale); a contact solver keeps its warm start."""
+        return self.init(system, q, v)
+
+    def solver_stats(self, state: Any) -> dict[str, int]:
+        """Counts a method keeps in its solver state, for the run's stats ({} for most methods)."""
+        return {}
+
     def attempt(
         self,
         system: System,
@@ -203,6 +212,11 @@ class Integrator(ABC):
         Implicit methods need the dynamics' analytic derivatives, which a scene with constraints or mimic joints
         does not provide: they refuse it, naming the integrators that accept it.
         """
+        if getattr(system, "contact", None) is not None and not getattr(self, "steps_contact", False):
+            raise InvalidArgumentError(
+                f"integrator '{self.name}' cannot step scene '{getattr(system, 'name', '?')}': it has contact "
+                "([ground], [contact] or [[object]]), which only integrator 'timestepping' steps"
+            )
         if self.implicit and not getattr(system, "has_derivatives", True):
             from . import INTEGRATORS  # the registry imports this module
 

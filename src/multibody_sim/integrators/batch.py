@@ -1,8 +1,8 @@
 """The batch kernel: explicit Runge–Kutta tableaux and semi-implicit Euler over many rows of states at once.
 
-The arithmetic per row is the row kernel's (the methods' own attempt()): the same BLAS calls per row (multi-term
-stage sums, the step's combination, the ledger's dot products), exact products where a stage sum has one
-power-of-two coefficient (RK4's), the system's batched forward dynamics (System.rows_dynamics: Pinocchio's
+The arithmetic per row is the row kernel's (the methods' own attempt()): the same ordered sums per row (multi-term
+stage sums, the step's combination and the ledger's dot products, ordered.py), exact products where a stage sum has
+one power-of-two coefficient (RK4's), the system's batched forward dynamics (System.rows_dynamics: Pinocchio's
 ``abaInParallel``, which equals ``aba`` per row), and the batched manifold (state.BatchSpace: Pinocchio's
 ``integrate`` per joint); so each row equals the row kernel bit for bit. One exception: the chart map of
 free-flyer, spherical and planar joints (in the stages after the first) is the same series but its products are
@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from ..ordered import ordered_sum
 from ..recording import SampleStore
 from .explicit_rk import ExplicitRungeKutta
 from .partitioned import SemiImplicitEuler
@@ -298,9 +299,9 @@ class BatchRungeKutta:
                     if self.chart_map:
                         self.system.space.chart_rates(self.shifted_xi, cur.Vs[i], self.chart_terms, cur.XI_DOT[i])
                 evaluate(cur, i, t + c[i] * h)
-            # `(b @ K) * h` with the same per-row BLAS call, into columns k: of a zeroed (n, width) buffer, then the
+            # `(b @ K) * h` summed in the same order per row, into columns k: of a zeroed (n, width) buffer, then the
             # new [q | v] by the same offset addition.
-            np.matmul(self.weights, cur.K, out=self.increment_k)
+            ordered_sum(self.weights, cur.K, axis=1, out=self.increment_k)
             np.multiply(self.increment_flat, h, out=self.increment_flat)
             np.add(head0, self.increment_tail, out=nxt.head[0])
             if q_lie is not None:
@@ -314,8 +315,8 @@ class BatchRungeKutta:
             if isinstance(rule, tuple):
                 j, coefficient = rule
                 Ys = np.multiply(cur.Ks[j], coefficient * h, out=self.Y)
-            else:  # the same per-row BLAS call as ExplicitRungeKutta's `a[i, :i] @ K[:i]`, then `* h`
-                Ys = np.multiply(np.matmul(rule, K[:, :i, :], out=self.Y), h, out=self.Y)
+            else:  # ExplicitRungeKutta's `ordered_sum(a[i, :i], K[:i])` for every row, then `* h`
+                Ys = np.multiply(ordered_sum(rule, K[:, :i, :], axis=1, out=self.Y), h, out=self.Y)
             if space.vector_space:
                 np.add(cur.X, Ys[:, : 2 * nv], out=cur.Xs[i])
             else:
@@ -325,7 +326,7 @@ class BatchRungeKutta:
                     system_space.chart_rates(Ys[:, :nv], cur.Vs[i], self.chart_terms, cur.XI_DOT[i])
             evaluate(cur, i, t + self.c[i] * h)
         increment = self.increment
-        np.matmul(self.weights, K, out=self.increment_k)  # `(b @ K) * h` with the same per-row BLAS call
+        ordered_sum(self.weights, K, axis=1, out=self.increment_k)  # `(b @ K) * h` in the same order per row
         np.multiply(self.increment_flat, h, out=self.increment_flat)
         if space.vector_space:
             np.add(cur.X, increment[:, k : k + 2 * nv], out=nxt.X)

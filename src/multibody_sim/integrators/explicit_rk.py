@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from ..ordered import ordered_dot, ordered_sum
 from ..state import chart_terms
 from . import dop853_tables as tables
 from .base import Attempt, Integrator, System, split_jacobian, tangent_selectors
@@ -51,7 +52,7 @@ class ExplicitRungeKutta(Integrator):
     ) -> Attempt:
         K, _, _ = self._stages(system, q, v, tau, h, t, None)
         nv = len(v)
-        increment = (self.b @ K) * h
+        increment = ordered_sum(self.b, K) * h
         q_next, v_next = system.space.integrate(q, increment[:nv]), v + increment[nv : 2 * nv]
         return Attempt(q_next, v_next, increment[2 * nv :], None, None, len(K))
 
@@ -153,7 +154,7 @@ def _fill_stages(
     q_stage, v_stage = q, v
     for i in range(start, stop):
         row = K[i]
-        y = (a[i, :i] @ K[:i]) * h
+        y = ordered_sum(a[i, :i], K[:i]) * h
         xi = y[:nv]
         v_stage = v + y[nv : 2 * nv]
         q_stage = space.integrate(q, xi)
@@ -209,7 +210,7 @@ class AdaptiveRungeKutta(ExplicitRungeKutta):
         has no error estimate: error None, the step as the method takes it)."""
         K, q_last, v_last = self._stages(system, q, v, tau, h, t, state)
         nv = len(v)
-        increment = (self.b @ K) * h
+        increment = ordered_sum(self.b, K) * h
         if self.fsal:  # the last stage is the new state
             q_next, v_next = q_last, v_last
         else:
@@ -250,8 +251,8 @@ class EmbeddedRungeKutta(AdaptiveRungeKutta):
         self._d = np.array(tableau.dense, dtype=float) if tableau.dense else None
 
     def _error_norm(self, K: np.ndarray, h: float, scale: np.ndarray) -> float:
-        scaled = (self._e @ K) * h / scale
-        return math.sqrt((scaled @ scaled) / len(scale))
+        scaled = ordered_sum(self._e, K) * h / scale
+        return math.sqrt(ordered_dot(scaled, scaled) / len(scale))
 
     def dense_output(
         self, system: System, q: np.ndarray, v: np.ndarray, attempt: Attempt, h: float, theta: float
@@ -263,11 +264,11 @@ class EmbeddedRungeKutta(AdaptiveRungeKutta):
         """
         K = attempt.detail.stages
         nv = len(v)
-        r1 = self.b @ K
+        r1 = ordered_sum(self.b, K)
         r2 = K[0] - r1
         r3 = 2.0 * r1 - K[0] - K[-1]
         if self._d is not None and self._d.any():
-            r3 = r3 + (1.0 - theta) * (self._d @ K)
+            r3 = r3 + (1.0 - theta) * ordered_sum(self._d, K)
         y = h * theta * (r1 + (1.0 - theta) * (r2 + theta * r3))
         return system.space.integrate(q, y[:nv]), v + y[nv : 2 * nv], y[2 * nv :]
 
@@ -319,9 +320,9 @@ class DormandPrince853(AdaptiveRungeKutta):
 
     def _error_norm(self, K: np.ndarray, h: float, scale: np.ndarray) -> float:
         """Hairer's combined estimate: h |err5|² / sqrt((|err5|² + 0.01 |err3|²) · 2 nv)."""
-        err5 = (self._e5 @ K) / scale
-        err3 = (self._e3 @ K) / scale
-        e5, e3 = err5 @ err5, err3 @ err3
+        err5 = ordered_sum(self._e5, K) / scale
+        err3 = ordered_sum(self._e3, K) / scale
+        e5, e3 = ordered_dot(err5, err5), ordered_dot(err3, err3)
         return 0.0 if e5 == 0.0 and e3 == 0.0 else h * e5 / math.sqrt((e5 + 0.01 * e3) * len(scale))
 
     def dense_output(
@@ -349,12 +350,13 @@ class DormandPrince853(AdaptiveRungeKutta):
                 terms=self.chart_terms,
             )
             detail.extra_evaluations = len(K) - len(stages)
-            delta = (self.b @ stages) * h
+            delta = ordered_sum(self.b, stages) * h
             F = np.empty((7, K.shape[1]))
             F[0] = delta
             F[1] = h * K[0] - delta
             F[2] = 2.0 * delta - h * (stages[-1] + K[0])
-            F[3:] = h * (self._dense_weights @ K)
+            for r, weights in enumerate(self._dense_weights):
+                F[3 + r] = h * ordered_sum(weights, K)
             detail.dense = F
         y = np.zeros(detail.dense.shape[1])
         for i, f in enumerate(detail.dense[::-1]):  # nested form: alternate factors θ and (1 - θ)

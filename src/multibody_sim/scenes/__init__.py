@@ -84,6 +84,8 @@ def scene_roots(spec: SceneSpec, allowed_roots: list[Path]) -> list[Path]:
 
 def check_scene_roots(spec: SceneSpec, allowed_roots: list[Path]) -> None:
     """SceneError unless the scene's robot file and package_dirs lie inside scene_roots (a catalog name is fine)."""
+    if spec.robot is None:  # objects only: no file to read
+        return
     roots = scene_roots(spec, allowed_roots)
     paths = (
         []

@@ -23,7 +23,15 @@ from ..exceptions import InvalidArgumentError, SceneError
 from ..robot import Robot
 from ..safety import safe_name
 from ..trajectory import Trajectory
-from .spec import SceneSpec
+from .spec import CONTACT_INTEGRATOR, RobotSpec, SceneSpec
+
+# The time-stepper's ledger elements, last in a contact scene's ledger (see integrators/timestepping.py).
+CONTACT_LEDGER = (
+    ("contact", "dissipated"),
+    ("penetration_correction", "work"),
+    ("restitution", "work"),
+    ("timestep_error", "work"),
+)
 
 _WORLD = pin.Convention.WORLD
 
@@ -56,6 +64,7 @@ class Scene(Robot):
         self.spec = spec
         where = spec.source
         robot = _load_robot(spec)
+        robot_spec = spec.robot if spec.robot is not None else RobotSpec(source="", damping=False)
         model = _build_model(robot, spec)
         self.full_nq, self.full_nv = robot.nq, robot.nv
         self.full_robot = robot
@@ -64,8 +73,8 @@ class Scene(Robot):
             model.gravity.linear = np.array(spec.gravity, dtype=float)
         for i, payload in enumerate(spec.payloads):
             _add_payload(model, payload, f"{where}: payload[{i}]")
-        friction = np.array(model.friction, dtype=float) if spec.robot.damping else np.zeros(model.nv)
-        damping = np.array(model.damping, dtype=float) if spec.robot.damping else np.zeros(model.nv)
+        friction = np.array(model.friction, dtype=float) if robot_spec.damping else np.zeros(model.nv)
+        damping = np.array(model.damping, dtype=float) if robot_spec.damping else np.zeros(model.nv)
         stiffness, rest_values = np.zeros(model.nv), {}
         for joint, settings in spec.joints.items():
             key = f"{where}: joints.{joint}"
@@ -87,19 +96,24 @@ class Scene(Robot):
                 if not settings.stiffness:
                     raise SceneError(f"{key}.rest: a rest position needs a spring: give stiffness > 0")
                 rest_values[joint] = settings.rest
-        if spec.robot.mimic:
+        if robot_spec.mimic:
             if spec.lock:
                 raise SceneError(
                     f"{where}: lock.{next(iter(spec.lock))}: locked joints and mimic joints cannot be combined yet "
                     "(drop the lock or robot.mimic)"
                 )
-            if spec.robot.damping:  # the URDF's <dynamics> of the followers act on their leaders
+            if robot_spec.damping:  # the URDF's <dynamics> of the followers act on their leaders
                 _fold_mimic_dissipation(model, robot.model, damping, friction)
         model.damping = damping
         model.friction = friction
         built = model  # before locking: the dof indices the per-joint arrays above use
         model, lock_config = _lock_joints(model, spec, robot.floating_base)
         self.locked = dict(spec.lock)
+        robot_nv, robot_nq = model.nv, model.nq
+        object_joints = _add_objects(model, spec)  # free-flyers after the robot's joints
+        poses = {name: reduce_configuration(robot.model, model, robot.pose(name)) for name in robot.poses}
+        for q_pose in poses.values():
+            _place_objects(model, spec, q_pose)
         # The Robot part: argument checks, limits, energies, damping (tau - D v) on the scene's model.
         super().__init__(
             model,
@@ -107,11 +121,15 @@ class Scene(Robot):
             floating_base=robot.floating_base,
             damping=True,
             source={**robot.source, "scene": _scene_source(spec)},
-            # The robot's named poses on the scene's model (locked joints and mimic followers dropped).
-            poses={name: reduce_configuration(robot.model, model, robot.pose(name)) for name in robot.poses},
+            # The robot's named poses on the scene's model (locked joints and mimic followers dropped; objects
+            # where the scene puts them).
+            poses=poses,
             default_pose=robot.default_pose_name,
         )
-        self.mimic = spec.robot.mimic
+        self.actuated = slice(self.actuated.start, robot_nv)  # free objects are unactuated
+        self.robot_nq, self.robot_nv = robot_nq, robot_nv
+        self.object_joints = object_joints
+        self.mimic = robot_spec.mimic
         self._clear_crba = self.mimic and _mimic_has_children(model)
         # Per-dof element parameters on the reduced model, read back by joint name (locking renumbers dofs).
         kept_stiffness, kept_friction = np.zeros(self.nv), np.array(model.friction, dtype=float)
@@ -123,6 +141,14 @@ class Scene(Robot):
                 _set_joint_position(model, jid, rest_values[joint], rest)
         if self.floating_base:
             kept_friction[:6] = 0.0
+        exact_friction: list[tuple[int, float]] = []
+        if spec.contact is not None and spec.contact.friction == "exact":
+            # Joint dry friction becomes a constraint of the time-stepper (exact stiction), not a tanh element.
+            for jid in range(1, model.njoints):
+                joint = model.joints[jid]
+                if joint.nv == 1 and kept_friction[joint.idx_v] > 0.0:
+                    exact_friction.append((jid, float(kept_friction[joint.idx_v])))
+                    kept_friction[joint.idx_v] = 0.0
         self.q0, self.v0 = _initial_state(self, spec)
         wrenches = [_wrench(model, force, f"{where}: force[{i}]") for i, force in enumerate(spec.forces)]
         elements = ForceElements(
@@ -147,12 +173,21 @@ class Scene(Robot):
 
             self.constraints = Constraints(model, list(spec.constraints), self.q0)
         self.lock_configuration = lock_config
+        self.contact = None
+        if spec.has_contact:
+            if self.mimic:
+                raise SceneError(f"{where}: contact: contact and mimic joints cannot be combined yet")
+            from .contact import build_contact
+
+            self.contact = build_contact(self, spec, exact_friction)
         self._flow_elements = list(super().ledger_elements)
         self._n_robot_flows = len(self._flow_elements)
         if self.elements is not None:
             self._flow_elements += self.elements.ledger
         if self.constraints is not None:
             self._flow_elements += self.constraints.ledger
+        if self.contact is not None:  # last, as the time-stepper writes them
+            self._flow_elements += list(CONTACT_LEDGER)
         fields: list[tuple[str, str, int]] = []
         if self.elements is not None:
             fields += [("potential", name, 1) for name in self.elements.potentials]
@@ -164,7 +199,9 @@ class Scene(Robot):
         self.record_fields = tuple(fields)
         self._last: tuple[Any, Any, float] | None = None  # (q, v, t) of the latest element/constraint evaluation
         self.no_derivatives_reason = ""
-        if self.constraints is not None:
+        if self.contact is not None:
+            self.no_derivatives_reason = "it has contact, which only the timestepping integrator steps"
+        elif self.constraints is not None:
             self.no_derivatives_reason = f"it has constraints: {', '.join(self.constraints.names)}"
         elif self.mimic:
             self.no_derivatives_reason = "it honours mimic joints, which Pinocchio's ABA derivatives do not support"
@@ -177,16 +214,28 @@ class Scene(Robot):
     @property
     def element_names(self) -> list[str]:
         """The force elements in play (ledger names, springs included; constraints and joint torques not)."""
-        names = [name for name, _ in self._flow_elements[1:] if not name.startswith("constraint:")]
+        time_stepper = {name for name, _ in CONTACT_LEDGER} if self.contact is not None else set()
+        names = [
+            name
+            for name, _ in self._flow_elements[1:]
+            if not name.startswith("constraint:") and name not in time_stepper
+        ]
         return names + (self.elements.potentials if self.elements is not None else [])
 
     def describe(self) -> str:
         """What the scene modelled, a few lines for the run summary."""
         spec = self.spec
         base = "floating" if self.floating_base else "fixed"
-        if spec.robot.position is not None or spec.robot.rpy is not None:
+        if spec.robot is not None and (spec.robot.position is not None or spec.robot.rpy is not None):
             base += f" at position {list(spec.robot.position or (0, 0, 0))} rpy {list(spec.robot.rpy or (0, 0, 0))}"
-        lines = [f"scene '{safe_name(self.name)}': robot {safe_name(self.full_robot.name)}, {base} base"]
+        if spec.robot is None:
+            lines = [f"scene '{safe_name(self.name)}': no robot, {len(spec.objects)} object(s)"]
+        else:
+            lines = [f"scene '{safe_name(self.name)}': robot {safe_name(self.full_robot.name)}, {base} base"]
+        for item in spec.objects:
+            lines.append(
+                f"  object '{item.name}': {item.shape.shape}, {item.mass:g} kg, free-flyer (dofs {item.name}.vx..wz)"
+            )
         if self.locked:
             locked = ", ".join(f"{safe_name(name)} = {value:g}" for name, value in self.locked.items())
             lines.append(f"  locked: {locked}; model nq/nv {self.full_nq}/{self.full_nv} -> {self.nq}/{self.nv}")
@@ -220,7 +269,10 @@ class Scene(Robot):
             lines.append(f"  constraints: {rows}")
         else:
             lines.append("  constraints: none")
-        lines.append("  not modelled: collision geometry, contact (visual meshes are loaded only to view)")
+        if self.contact is None:
+            lines.append("  not modelled: collision geometry, contact (visual meshes are loaded only to view)")
+        else:
+            lines += self.contact.describe()
         return "\n".join(lines)
 
     # ---- dynamics (the hot path) ---------------------------------------------------------------------
@@ -263,8 +315,9 @@ class Scene(Robot):
 
     # ---- many rows at once (the batch kernel) ------------------------------------------------------
     def rows_dynamics(self, num_threads: int = 1) -> Any:
-        """Batched forward dynamics (see Robot), or None: constraints and mimic joints have no batched form."""
-        if self.constraints is not None or self.mimic:
+        """Batched forward dynamics (see Robot), or None: constraints, contact and mimic joints have no batched
+        form."""
+        if self.constraints is not None or self.mimic or self.contact is not None:
             return None
         return super().rows_dynamics(num_threads)
 
@@ -321,7 +374,9 @@ class Scene(Robot):
             self.elements.powers(v, out[n:m])
             n = m
         if self.constraints is not None:
-            self.constraints.powers(v, out[n:])
+            self.constraints.powers(v, out[n : n + len(self.constraints.ledger)])
+        if self.contact is not None:  # impulses, not powers: the time-stepper books them
+            out[-len(CONTACT_LEDGER) :] = 0.0
         return out
 
     def mass_matrix(self, q: Any) -> np.ndarray:
@@ -416,7 +471,8 @@ class Scene(Robot):
     def simulation_settings(self) -> dict[str, Any]:
         """simulate()'s keyword arguments as the scene declares them (with q0 and v0), defaults filled in."""
         sim = self.spec.simulation
-        settings: dict[str, Any] = {"q0": self.q0, "v0": self.v0, "duration": 1.0, "dt": 1e-3, "integrator": "rk4"}
+        integrator = CONTACT_INTEGRATOR if self.contact is not None else "rk4"
+        settings: dict[str, Any] = {"q0": self.q0, "v0": self.v0, "duration": 1.0, "dt": 1e-3, "integrator": integrator}
         if sim is not None:
             for name in ("duration", "dt", "integrator"):
                 if getattr(sim, name) is not None:
@@ -439,35 +495,46 @@ class Scene(Robot):
             raise SceneError(f"{self.spec.source}: controller: {exc}") from None
 
     # ---- savings -------------------------------------------------------------------------------------
-    def measure_savings(self, steps: int = 200, repeats: int = 5) -> dict[str, float]:
-        """Time per RK4 step of this scene against its full robot (nothing locked, no elements): a short side
-        benchmark, run only when asked (`--report-savings`, `inspect`).
+    def measure_savings(self, steps: int = 200, repeats: int = 5) -> dict[str, Any]:
+        """Time per step of this scene against its full robot (nothing locked, no elements): a short side
+        benchmark, run only when asked (`--report-savings`, `inspect`). RK4 at 1 ms; a contact scene with its
+        integrator, timestepping, against the bare robot with the same integrator (semi-implicit Euler there).
 
         Returns:
-            {"scene_us": median µs per step, "full_us": median µs per step of the full model, "ratio": scene/full}.
+            {"scene_us": median µs per step, "full_us": median µs per step of the full model (nan for a scene of
+            objects only: there is no robot), "ratio": scene/full, "integrator": the integrator's name}.
         """
         from ..simulation import simulate
+
+        integrator = CONTACT_INTEGRATOR if self.contact is not None else "rk4"
 
         def per_step(system: Robot, q0: np.ndarray) -> float:
             times = []
             for _ in range(repeats):
                 start = time.process_time()
                 simulate(
-                    system, q0, np.zeros(system.nv), duration=steps * 1e-3, dt=1e-3, progress=False, output_dt=0.01
+                    system,
+                    q0,
+                    self.v0 if system is self else np.zeros(system.nv),
+                    duration=steps * 1e-3,
+                    dt=1e-3,
+                    integrator=integrator,
+                    progress=False,
+                    output_dt=0.01,
                 )
                 times.append((time.process_time() - start) / steps * 1e6)
             return float(np.median(times))
 
         full = self.full_robot
         scene_us = per_step(self, self.q0)
-        full_us = per_step(full, self.full_configuration(self.q0))
-        return {"scene_us": scene_us, "full_us": full_us, "ratio": scene_us / full_us}
+        full_us = per_step(full, self.full_configuration(self.q0)) if full.nv else math.nan
+        return {"scene_us": scene_us, "full_us": full_us, "ratio": scene_us / full_us, "integrator": integrator}
 
     def full_configuration(self, q: np.ndarray) -> np.ndarray:
         """The full robot's configuration for a scene configuration q: locked joints at their lock positions,
         mimic followers at scaling · leader + offset."""
         full, model = self.full_robot.model, self.model
-        out = pin.neutral(full)
+        out = pin.neutral(full)  # a scene's objects are not the robot's: left out
         for jid in range(1, full.njoints):
             name, joint = full.names[jid], full.joints[jid]
             i, n = joint.idx_q, joint.nq
@@ -486,6 +553,8 @@ class Scene(Robot):
 # ---- building ----------------------------------------------------------------------------------------
 def _load_robot(spec: SceneSpec) -> Robot:
     r = spec.robot
+    if r is None:  # objects only: an empty world to add them to
+        return Robot(pin.Model(), name="objects", floating_base=False, damping=False, source={"source": None})
     floating = None if r.base is None else r.base == "floating"
     try:
         return load_robot(
@@ -501,7 +570,7 @@ def _load_robot(spec: SceneSpec) -> Robot:
 
 def _build_model(robot: Robot, spec: SceneSpec) -> pin.Model:
     """A copy of the robot's model to modify; rebuilt from its (already checked) URDF to honour mimic joints."""
-    if not spec.robot.mimic:
+    if spec.robot is None or not spec.robot.mimic:
         return robot.model.copy()
     path = Path(robot.source["urdf_path"])
     text = read_urdf(path).decode("utf-8")
@@ -518,6 +587,8 @@ def _build_model(robot: Robot, spec: SceneSpec) -> pin.Model:
 
 def _apply_base_pose(model: pin.Model, spec: SceneSpec) -> None:
     """Weld the root at the scene's pose: every joint and frame attached to the world moves with it."""
+    if spec.robot is None:
+        return
     position, rpy = spec.robot.position, spec.robot.rpy
     if position is None and rpy is None:
         return
@@ -614,6 +685,7 @@ def _wrench(model: pin.Model, force: Any, key: str) -> Any:
 def _initial_state(scene: Scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarray]:
     where = spec.source
     q, v = scene.default_pose(), np.zeros(scene.nv)  # the robot's SRDF pose where it has one, else neutral
+    _place_objects(scene.model, spec, q, v)
     for key, given, size, target in (
         ("initial.q", spec.initial_q, scene.nq, q),
         ("initial.v", spec.initial_v, scene.nv, v),
@@ -637,6 +709,50 @@ def _initial_state(scene: Scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarra
     except InvalidArgumentError as exc:
         raise SceneError(f"{where}: {exc}") from None
     return q, v
+
+
+def _add_objects(model: pin.Model, spec: SceneSpec) -> dict[str, int]:
+    """Append each [[object]] as a free-flyer joint of the world carrying its body (uniform density) and a body
+    frame of its name; returns {name: joint id}."""
+    from .contact import shape_inertia
+
+    joints = {}
+    for i, item in enumerate(spec.objects):
+        if model.existJointName(item.name) or model.existFrame(item.name):
+            raise SceneError(
+                f"{spec.source}: object[{i}].name: '{item.name}' is already a joint or frame of the robot; "
+                "choose another name"
+            )
+        jid = model.addJoint(0, pin.JointModelFreeFlyer(), pin.SE3.Identity(), item.name)
+        model.appendBodyToJoint(
+            jid, shape_inertia(item.shape.shape, _dimensions(item.shape), item.mass), pin.SE3.Identity()
+        )
+        model.addBodyFrame(item.name, jid, pin.SE3.Identity(), 0)
+        joints[item.name] = jid
+    return joints
+
+
+def _dimensions(shape: Any) -> tuple[float, ...]:
+    """A ShapeSpec's dimensions: box (x, y, z), sphere (radius,), cylinder (radius, length)."""
+    if shape.shape == "box":
+        return tuple(shape.size)
+    if shape.shape == "sphere":
+        return (shape.radius,)
+    return (shape.radius, shape.length)
+
+
+def _place_objects(model: pin.Model, spec: SceneSpec, q: np.ndarray, v: np.ndarray | None = None) -> None:
+    """Write each object's declared pose into q (position, scalar-last quaternion) and, when v is given, its
+    declared world-frame velocity as Pinocchio's body-frame (linear, angular) velocity."""
+    for item in spec.objects:
+        joint = model.joints[model.getJointId(item.name)]
+        rotation = pin.rpy.rpyToMatrix(*item.rpy)
+        q[joint.idx_q : joint.idx_q + 3] = item.position
+        q[joint.idx_q + 3 : joint.idx_q + 7] = pin.Quaternion(rotation).coeffs()
+        if v is not None:
+            linear, angular = np.array(item.velocity[:3]), np.array(item.velocity[3:])
+            v[joint.idx_v : joint.idx_v + 3] = rotation.T @ linear
+            v[joint.idx_v + 3 : joint.idx_v + 6] = rotation.T @ angular
 
 
 def _mimic_has_children(model: pin.Model) -> bool:

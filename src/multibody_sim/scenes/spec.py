@@ -42,9 +42,10 @@ TOP_LEVEL_KEYS = (
     "initial",
     "simulation",
     "controller",
+    "ground",
+    "contact",
+    "object",
 )
-# Declared elements the format reserves for later: recognised, refused with what is missing.
-RESERVED_KEYS = {"contact": "ground contact is not modelled yet"}
 ROBOT_KEYS = ("source", "base", "position", "rpy", "damping", "mimic", "package_dirs")
 JOINT_KEYS = ("damping", "friction", "stiffness", "rest", "armature")
 FORCE_KEYS = ("name", "frame", "force", "torque", "reference", "shape", "start", "ramp_time", "frequency", "phase")
@@ -66,6 +67,19 @@ SHAPE_KEYS = {
 }
 CONSTRAINT_FRAMES = {"loop": 2, "point": 1, "weld": 2}
 DEFAULT_FRICTION_VELOCITY = 1e-3
+GROUND_KEYS = ("height", "friction", "restitution")
+CONTACT_KEYS = ("pairs", "limits", "friction", "solver", "body_friction", "body_restitution", "geometry")
+CONTACT_PAIRS = ("ground", "all")
+CONTACT_LIMITS = ("enforce", "report")
+CONTACT_FRICTION = ("exact", "regularized")
+CONTACT_SOLVERS = ("admm", "pgs")
+OBJECT_SHAPES = ("box", "sphere", "cylinder")
+# The dimensions each shape takes (and requires).
+SHAPE_DIMENSIONS = {"box": ("size",), "sphere": ("radius",), "cylinder": ("radius", "length")}
+GEOMETRY_KEYS = ("frame", "shape", "size", "radius", "length", "position", "rpy")
+OBJECT_KEYS = ("name", "shape", "size", "radius", "length", "mass", "position", "rpy", "velocity")
+DEFAULT_GROUND_FRICTION = 0.5
+CONTACT_INTEGRATOR = "timestepping"  # the one integrator that steps contact scenes
 # Ledger names become keys of trajectory files ("ledger/force:<name>"): keep them short and plain.
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
 _NAME_RULE = "1-64 letters, digits, '_', '.' or '-' (not starting with '.' or '-')"
@@ -212,6 +226,101 @@ class ConstraintSpec:
 
 
 @dataclass(frozen=True)
+class GroundSpec:
+    """The ground: the plane z = height, normal +z.
+
+    Attributes:
+        height: [m].
+        friction: Coulomb coefficient μ >= 0 of every contact with the ground.
+        restitution: Newton's coefficient e in [0, 1] of every contact with the ground.
+    """
+
+    height: float = 0.0
+    friction: float = DEFAULT_GROUND_FRICTION
+    restitution: float = 0.0
+
+
+@dataclass(frozen=True)
+class ShapeSpec:
+    """A collision shape: "box" (size = full extents x, y, z [m]), "sphere" (radius [m]) or "cylinder" (radius,
+    length along its z axis [m]).
+
+    Attributes:
+        shape: "box", "sphere" or "cylinder".
+        size: box extents [m], shape (3,), else None.
+        radius: sphere and cylinder radius [m], else None.
+        length: cylinder length [m], else None.
+    """
+
+    shape: str
+    size: tuple[float, float, float] | None = None
+    radius: float | None = None
+    length: float | None = None
+
+
+@dataclass(frozen=True)
+class GeometrySpec:
+    """Collision geometry of a robot's body, in place of its URDF's collision geometry.
+
+    Attributes:
+        frame: a frame of the robot on a moving body.
+        shape: the shape.
+        position: its centre relative to the frame [m], shape (3,).
+        rpy: its orientation relative to the frame [rad], shape (3,).
+    """
+
+    frame: str
+    shape: ShapeSpec
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """A free rigid body of uniform density (its inertia from its shape), a free-flyer after the robot's joints.
+
+    Attributes:
+        name: its name (its dofs are "<name>.vx" ... "<name>.wz").
+        shape: the shape.
+        mass: [kg], > 0.
+        position: its centre in the world [m], shape (3,).
+        rpy: its orientation [rad], shape (3,).
+        velocity: linear then angular velocity in world axes [m/s, rad/s], shape (6,).
+    """
+
+    name: str
+    shape: ShapeSpec
+    mass: float
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    velocity: tuple[float, float, float, float, float, float] = (0.0,) * 6
+
+
+@dataclass(frozen=True)
+class ContactSpec:
+    """What touches what, and how unilateral constraints are treated.
+
+    Attributes:
+        pairs: "ground" (every collision geometry against the ground), "all" (also between bodies, adjacent
+            links excluded) or explicit pairs of body names (links, objects or "ground").
+        limits: "enforce" (URDF position limits as unilateral constraints) or "report" (counted only).
+        friction: "exact" (joint dry friction as a constraint: exact stiction) or "regularized" (tanh).
+        solver: "admm" (Pinocchio's ADMM) or "pgs" (projected Gauss–Seidel).
+        body_friction: Coulomb μ of contacts between bodies (ground contacts take [ground] friction).
+        body_restitution: Newton's e of contacts between bodies.
+        geometry: collision geometry replacing the URDF's on the bodies it names.
+    """
+
+    pairs: str | tuple[tuple[str, str], ...] = "ground"
+    limits: str = "report"
+    friction: str = "regularized"
+    solver: str = "admm"
+    body_friction: float = DEFAULT_GROUND_FRICTION
+    body_restitution: float = 0.0
+    geometry: tuple[GeometrySpec, ...] = ()
+
+
+@dataclass(frozen=True)
 class SimulationSpec:
     """How to run the scene; None leaves a setting to the caller (the command line or simulate's defaults).
 
@@ -259,7 +368,7 @@ class SceneSpec:
     """A validated scene, before any model is built.
 
     Attributes:
-        robot: the robot and its base.
+        robot: the robot and its base; None for a scene of objects only.
         description: free text.
         gravity: [m/s²], shape (3,); None: Pinocchio's (0, 0, −9.81).
         friction_velocity: regularization velocity of Coulomb friction [rad/s or m/s], > 0.
@@ -272,6 +381,9 @@ class SceneSpec:
         initial_v: the same for v.
         simulation: run settings, or None when the scene has no [simulation] table.
         controller: a built-in controller, or None.
+        ground: the ground plane, or None.
+        contact: the [contact] table (None without one: no limits enforced, regularized friction).
+        objects: free rigid bodies.
         source: the name used in messages (the file path as given, or "<scene>").
         text: the scene file's text (for trajectory metadata); None for a dict.
         base_dir: the folder relative paths were resolved against (the scene file's); None for a dict.
@@ -279,7 +391,7 @@ class SceneSpec:
             the command line's --allow-root), besides the scene's folder and the catalog.
     """
 
-    robot: RobotSpec
+    robot: RobotSpec | None
     description: str = ""
     gravity: tuple[float, float, float] | None = None
     friction_velocity: float = DEFAULT_FRICTION_VELOCITY
@@ -292,10 +404,18 @@ class SceneSpec:
     initial_v: tuple[float, ...] | dict[str, float] | None = None
     simulation: SimulationSpec | None = None
     controller: ControllerSpec | None = None
+    ground: GroundSpec | None = None
+    contact: ContactSpec | None = None
+    objects: tuple[ObjectSpec, ...] = ()
     source: str = "<scene>"
     text: str | None = None
     base_dir: Path | None = None
     allowed_roots: tuple[str, ...] = ()
+
+    @property
+    def has_contact(self) -> bool:
+        """Whether the scene declares contact ([ground], [contact] or [[object]]): the timestepping integrator's."""
+        return self.ground is not None or self.contact is not None or bool(self.objects)
 
 
 # ---- reading -------------------------------------------------------------------------------------------
@@ -532,13 +652,30 @@ class _Parser:
     def scene(self, data: Any) -> SceneSpec:
         if not isinstance(data, Mapping):
             self.fail("", f"a scene must be a table of keys, got {_describe(data)}")
-        for key, why in RESERVED_KEYS.items():
-            if key in data:
-                self.fail(key, why)
         self.table(data, "", TOP_LEVEL_KEYS)
-        if "robot" not in data:
-            self.fail("robot", "missing (a scene needs a [robot] table with source = a catalog name or URDF path)")
-        robot = self.robot(data["robot"])
+        objects = tuple(
+            self.object(value, f"object[{i}]", i)
+            for i, value in enumerate(self.array_of_tables(data.get("object", []), "object"))
+        )
+        self.unique([o.name for o in objects], "object")
+        if "robot" not in data and not objects:
+            self.fail(
+                "robot",
+                "missing (a scene needs a [robot] table with source = a catalog name or URDF path, or [[object]]s)",
+            )
+        robot = self.robot(data["robot"]) if "robot" in data else None
+        if robot is None:
+            for key in ("lock", "joints", "payload", "constraint", "controller"):
+                if key in data:
+                    self.fail(key, "needs a robot: this scene has objects only (add a [robot] table)")
+        ground = self.ground(data["ground"]) if "ground" in data else None
+        contact = self.contact(data["contact"]) if "contact" in data else None
+        if robot is None and contact is not None:
+            if contact.geometry:
+                self.fail("contact.geometry", "needs a robot: this scene has objects only")
+            if contact.limits == "enforce" or contact.friction == "exact":
+                key = "limits" if contact.limits == "enforce" else "friction"
+                self.fail(f"contact.{key}", "needs a robot: this scene has objects only")
         lock = {
             key: self.number(value, _join("lock", key))
             for key, value in self.table(data.get("lock", {}), "lock").items()
@@ -564,6 +701,17 @@ class _Parser:
         )
         self.unique([c.name for c in constraints], "constraint")
         initial = self.table(data.get("initial", {}), "initial", INITIAL_KEYS)
+        has_contact = ground is not None or contact is not None or bool(objects)
+        if has_contact and constraints:
+            self.fail("constraint", "holonomic constraints and contact cannot be combined yet (drop one of them)")
+        simulation = self.simulation(data["simulation"]) if "simulation" in data else None
+        declared = simulation.integrator if simulation is not None else None
+        if has_contact and declared is not None and declared != CONTACT_INTEGRATOR:
+            self.fail(
+                "simulation.integrator",
+                f"a scene with contact ([ground], [contact] or [[object]]) steps with {CONTACT_INTEGRATOR}, "
+                f"got '{declared}'",
+            )
         return SceneSpec(
             robot=robot,
             description=self.text(data.get("description", ""), "description"),
@@ -578,8 +726,11 @@ class _Parser:
             constraints=constraints,
             initial_q=self.state(initial["q"], "initial.q") if "q" in initial else None,
             initial_v=self.state(initial["v"], "initial.v") if "v" in initial else None,
-            simulation=self.simulation(data["simulation"]) if "simulation" in data else None,
+            simulation=simulation,
             controller=self.controller(data["controller"]) if "controller" in data else None,
+            ground=ground,
+            contact=contact,
+            objects=objects,
             source=self.source,
             text=None,
             base_dir=self.base_dir,
@@ -726,6 +877,110 @@ class _Parser:
             frames=frames,
             position=self.vec3(table["position"], f"{path}.position") if "position" in table else None,
             stabilization=gains,
+        )
+
+    def ground(self, value: Any) -> GroundSpec:
+        table = self.table(value, "ground", GROUND_KEYS)
+        restitution = self.positive(table.get("restitution", 0.0), "ground.restitution", allow_zero=True)
+        if restitution > 1.0:
+            self.fail("ground.restitution", f"must be within 0..1, got {_describe(table['restitution'])}")
+        return GroundSpec(
+            height=self.number(table.get("height", 0.0), "ground.height"),
+            friction=self.positive(table.get("friction", DEFAULT_GROUND_FRICTION), "ground.friction", allow_zero=True),
+            restitution=restitution,
+        )
+
+    def contact(self, value: Any) -> ContactSpec:
+        table = self.table(value, "contact", CONTACT_KEYS)
+        pairs_value = table.get("pairs", "ground")
+        pairs: str | tuple[tuple[str, str], ...]
+        if isinstance(pairs_value, str):
+            pairs = self.choice(pairs_value, "contact.pairs", CONTACT_PAIRS)
+        elif isinstance(pairs_value, (list, tuple)):
+            found = []
+            for i, pair in enumerate(pairs_value):
+                path = f"contact.pairs[{i}]"
+                if not isinstance(pair, (list, tuple)) or len(pair) != 2:
+                    self.fail(path, f"must be a pair of body names [body, body], got {_describe(pair)}")
+                first, second = (self.string(name, f"{path}[{k}]") for k, name in enumerate(pair))
+                if first == second:
+                    self.fail(path, f"must name two different bodies, got '{first}' twice")
+                found.append((first, second))
+            if not found:
+                self.fail("contact.pairs", "must not be empty (valid: ground, all, or a list of [body, body] pairs)")
+            pairs = tuple(found)
+        else:
+            self.fail(
+                "contact.pairs",
+                f"must be one of all, ground, or a list of [body, body] pairs, got {_describe(pairs_value)}",
+            )
+        restitution = self.positive(table.get("body_restitution", 0.0), "contact.body_restitution", allow_zero=True)
+        if restitution > 1.0:
+            self.fail("contact.body_restitution", f"must be within 0..1, got {_describe(table['body_restitution'])}")
+        geometry = tuple(
+            self.geometry(item, f"contact.geometry[{i}]")
+            for i, item in enumerate(self.array_of_tables(table.get("geometry", []), "contact.geometry"))
+        )
+        return ContactSpec(
+            pairs=pairs,
+            limits=self.choice(table.get("limits", "report"), "contact.limits", CONTACT_LIMITS),
+            friction=self.choice(table.get("friction", "regularized"), "contact.friction", CONTACT_FRICTION),
+            solver=self.choice(table.get("solver", "admm"), "contact.solver", CONTACT_SOLVERS),
+            body_friction=self.positive(
+                table.get("body_friction", DEFAULT_GROUND_FRICTION), "contact.body_friction", allow_zero=True
+            ),
+            body_restitution=restitution,
+            geometry=geometry,
+        )
+
+    def shape(self, table: Mapping[str, Any], path: str) -> ShapeSpec:
+        """The shape and exactly the dimensions it takes, each > 0."""
+        kind = self.choice(
+            self.required(table, "shape", path, "box, cylinder or sphere"), f"{path}.shape", OBJECT_SHAPES
+        )
+        for key in ("size", "radius", "length"):
+            if key in table and key not in SHAPE_DIMENSIONS[kind]:
+                users = [s for s in OBJECT_SHAPES if key in SHAPE_DIMENSIONS[s]]
+                self.fail(f"{path}.{key}", f"only for shape {' or '.join(users)}, not {kind}")
+        for key in SHAPE_DIMENSIONS[kind]:
+            what = "[x, y, z] full extents in m" if key == "size" else "m, > 0"
+            self.required(table, key, path, f"a {kind} needs {key}: {what}")
+        size = None
+        if "size" in table:
+            size = self.vec3(table["size"], f"{path}.size")
+            for i, extent in enumerate(size):
+                if extent <= 0:
+                    self.fail(f"{path}.size[{i}]", f"must be > 0, got {_describe(table['size'][i])}")
+        return ShapeSpec(
+            shape=kind,
+            size=size,
+            radius=self.positive(table["radius"], f"{path}.radius") if "radius" in table else None,
+            length=self.positive(table["length"], f"{path}.length") if "length" in table else None,
+        )
+
+    def geometry(self, value: Any, path: str) -> GeometrySpec:
+        table = self.table(value, path, GEOMETRY_KEYS)
+        frame = self.string(self.required(table, "frame", path, "the frame the shape is attached to"), f"{path}.frame")
+        return GeometrySpec(
+            frame=frame,
+            shape=self.shape(table, path),
+            position=self.vec3(table.get("position", (0.0, 0.0, 0.0)), f"{path}.position"),
+            rpy=self.vec3(table.get("rpy", (0.0, 0.0, 0.0)), f"{path}.rpy"),
+        )
+
+    def object(self, value: Any, path: str, index: int) -> ObjectSpec:
+        table = self.table(value, path, OBJECT_KEYS)
+        name = self.name(table.get("name", f"object{index}"), f"{path}.name")
+        if name == "ground":
+            self.fail(f"{path}.name", "'ground' names the ground plane; choose another name")
+        x, y, z, wx, wy, wz = self.vector(table.get("velocity", (0.0,) * 6), f"{path}.velocity", 6)
+        return ObjectSpec(
+            name=name,
+            shape=self.shape(table, path),
+            mass=self.positive(self.required(table, "mass", path, "kg, > 0"), f"{path}.mass"),
+            position=self.vec3(table.get("position", (0.0, 0.0, 0.0)), f"{path}.position"),
+            rpy=self.vec3(table.get("rpy", (0.0, 0.0, 0.0)), f"{path}.rpy"),
+            velocity=(x, y, z, wx, wy, wz),
         )
 
     def state(self, value: Any, path: str) -> tuple[float, ...] | dict[str, float]:

@@ -11,6 +11,7 @@ import pinocchio as pin
 from ..catalog import CATALOG, load_robot
 from ..exceptions import InvalidArgumentError, ModelError, TrajectoryFileError
 from ..robot import Robot
+from ..safety import check_allocation
 from ..trajectory import Trajectory
 
 DEFAULT_FPS = 30.0
@@ -70,9 +71,18 @@ def _checked(robot: Robot, info: dict[str, Any], trajectory: Trajectory) -> Robo
     return robot
 
 
-def frame_times(t_start: float, t_end: float, fps: float) -> np.ndarray:
-    """Display times from t_start to t_end at `fps` frames per second, the end included."""
+def frame_times(t_start: float, t_end: float, fps: float, frame_bytes: int = 8) -> np.ndarray:
+    """Display times from t_start to t_end at `fps` frames per second, the end included.
+
+    Args:
+        frame_bytes: what the caller will keep per frame [bytes]; the frames must fit in usable_memory().
+    """
     count = int(math.floor((t_end - t_start) * fps + 1e-9))
+    check_allocation(
+        (count + 2) * frame_bytes,
+        f"{t_end - t_start:g} s at {fps:g} frames per second would keep {count + 2:.3g} frames",
+        "choose a lower frame rate (fps), or play a shorter trajectory",
+    )
     times = t_start + np.arange(count + 1) / fps
     if t_end - times[-1] > 1e-9 / fps:
         times = np.append(times, t_end)
@@ -105,7 +115,7 @@ def resample(robot: Robot, trajectory: Trajectory | Any, fps: float = DEFAULT_FP
         )
     if np.any(np.diff(t) < 0):
         raise InvalidArgumentError("trajectory times must be non-decreasing")
-    times = frame_times(float(t[0]), float(t[-1]), float(fps))
+    times = frame_times(float(t[0]), float(t[-1]), float(fps), frame_bytes=8 * (robot.nq + 2))
     if len(t) == 1:
         return times[:1], Q[:1].copy()
     segment = np.clip(np.searchsorted(t, times, side="right") - 1, 0, len(t) - 2)

@@ -16,7 +16,7 @@ import numpy as np
 from ..exceptions import ModelError, TrajectoryFileError, UnknownNameError
 from ..files import check_output, write_atomically
 from ..robot import Robot
-from ..safety import safe_name
+from ..safety import check_allocation, safe_name
 from ..trajectory import Trajectory
 from ._deps import require
 
@@ -85,8 +85,18 @@ def plot_trajectory(
     legend_columns = max(1, math.ceil(len(series) / LEGEND_ROWS))
     joint_height = max(PANEL_HEIGHT, 0.17 * min(len(series), LEGEND_ROWS) + 0.5)
     heights = [PANEL_HEIGHT] * 3 + ([joint_height] if series else []) + ([PANEL_HEIGHT] if base is not None else [])
+    size = (FIGURE_WIDTH + LEGEND_COLUMN_WIDTH * (legend_columns - 1), sum(heights) + 0.6)
+    # Before drawing: the canvas (4 bytes a pixel) and the lines (matplotlib keeps ~4 copies of each point's x, y).
+    lines = len(series) + 10 + len(trajectory.ledger)
+    pixels = size[0] * size[1] * float(dpi) ** 2
+    check_allocation(
+        4 * pixels + 64 * len(t) * lines,
+        f"a {size[0] * float(dpi):.0f}x{size[1] * float(dpi):.0f}-pixel plot of {lines} lines over {len(t)} samples "
+        "would keep its canvas and lines",
+        "plot fewer joints (joints=), a lower dpi, or a shorter trajectory",
+    )
     fig = figure_module.Figure(
-        figsize=(FIGURE_WIDTH + LEGEND_COLUMN_WIDTH * (legend_columns - 1), sum(heights) + 0.6),
+        figsize=size,
         dpi=dpi,
         layout="constrained",
     )

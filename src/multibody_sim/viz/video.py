@@ -24,6 +24,7 @@ import numpy as np
 from ..exceptions import InvalidArgumentError, MissingDependencyError
 from ..files import atomic_path, check_output
 from ..robot import Robot
+from ..safety import check_allocation
 from ..trajectory import Trajectory
 from ..validation import playback_speed
 from ._deps import check_viewer_dependencies, require
@@ -109,6 +110,13 @@ def export_video(
     """
     target, fps = check_video_options(path, fps=fps, speed=speed, width=width, height=height)
     suffix = target.suffix.lower()
+    if suffix == ".gif":  # a GIF is assembled in memory: one palette byte per pixel per frame
+        count = frame_count(trajectory, fps=fps, speed=speed)
+        check_allocation(
+            count * width * height,
+            f"a {width}x{height} GIF of {count} frames would keep them",
+            "choose a lower --fps, a smaller size, a higher --speed, or .mp4 (streamed to disk)",
+        )
     executable = find_browser(browser)
     check_viewer_dependencies()
     require("playwright.sync_api", "videos")

@@ -1,0 +1,353 @@
+"""The native kernel: the stepping core's loop (core.Core.advance) run in C++ for an eligible run.
+
+The Python core is the specification; the C++ engine (src/native/kernel.cpp, ``_native.Kernel``) renders the same
+loop and arithmetic: the method arrives as data (its tableau, error weights and dense-output coefficients, read from
+the Python integrator), the chart map as the Python space's own tables, the step-size controller as its constants
+and state. NativeCore is a Core whose advance() hands the whole loop to the engine between the driver's events and
+returns at least every ~50 ms of work (so Ctrl-C and SIGTERM are honoured with every sample kept); everything else
+(recording at the driver's request, stopping rows, the messages of rows that stop) is Core's own code.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from typing import Any
+
+import numpy as np
+
+from . import native
+from .core import EMPTY, FULL, REACHED, STEPPED, Core, KernelAttempt, RowStop, collapsed_message, diverged_message
+from .integrators import INTEGRATORS, Integrator
+from .integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
+from .integrators.partitioned import SemiImplicitEuler
+from .recording import SampleStore
+from .robot import Robot
+from .state import _HALF_SERIES
+from .step_control import LANDING_FRACTION, SLIVER, ConstantStep, PIController
+
+# The registry's explicit methods, which the engine renders (its kinds: kernel.hpp's Kind).
+NATIVE_METHODS = {
+    ExplicitRungeKutta: 0,
+    EmbeddedRungeKutta: 1,
+    DormandPrince853: 2,
+    SemiImplicitEuler: 3,
+}
+# advance() returns to Python after about this much work [s] (interrupts, signals)
+BUDGET_SECONDS = 0.03
+_STATUSES = (REACHED, STEPPED, FULL, EMPTY)
+_NEED_ROOM = 4
+_DIVERGED, _COLLAPSED = 1, 2
+
+
+def why_not_native(system: Any, method: Integrator) -> str | None:
+    """None when the native kernel runs `method` on `system`, else why not (one phrase for describe() and the
+    run header)."""
+    if os.environ.get(native.ENV, "") == "0":  # read at every run (native.available: once, at import)
+        return f"{native.ENV}=0"
+    if not native.available:
+        return native.why_unavailable
+    if type(system) is not Robot:
+        return "a scene's physics runs on the Python kernel"
+    if type(method) not in NATIVE_METHODS or INTEGRATORS.get(method.name) is not method:
+        return f"integrator '{method.name}' is not an explicit method of the registry"
+    if system.record_fields:
+        return "the system records fields per sample"
+    replaced = [name for name in _SYSTEM_HOOKS if name in vars(system)]
+    replaced += [f"space.{name}" for name in _SPACE_HOOKS if name in vars(system.space)]
+    if replaced:  # e.g. a test or a study that wraps the dynamics: the engine would not call it
+        return f"the system's {', '.join(replaced)} replaced in Python"
+    return None
+
+
+# What the engine computes itself: replaced on an instance (a wrapper), the run stays on the Python kernel.
+_SYSTEM_HOOKS = (
+    "unchecked_forward_dynamics",
+    "ledger_power",
+    "unchecked_energies",
+    "rows_dynamics",
+    "rows_energies",
+    "rows_ledger_power",
+    "rows_applied",
+)
+_SPACE_HOOKS = ("integrate", "difference", "chart_velocity")
+
+
+def method_data(method: Integrator) -> dict[str, Any]:
+    """The method as the engine takes it: kind, tableau (a row-major), error and dense-output weights."""
+    kind = NATIVE_METHODS[type(method)]
+    data: dict[str, Any] = {
+        "kind": kind,
+        "stages": 1,
+        "a": [0.0],
+        "b": [1.0],
+        "c": [0.0],
+        "chart_terms": 0,
+        "fsal": False,
+        "e": [],
+        "dense": [],
+        "e5": [],
+        "e3": [],
+        "extended_stages": 0,
+        "a_extended": [],
+        "c_extended": [],
+        "dense_weights": [],
+    }
+    if isinstance(method, ExplicitRungeKutta):
+        data.update(
+            stages=len(method.b),
+            a=method.a.ravel().tolist(),
+            b=method.b.tolist(),
+            c=method.c.tolist(),
+            chart_terms=method.chart_terms,
+        )
+    if isinstance(method, EmbeddedRungeKutta):
+        dense = method._d
+        data.update(
+            fsal=method.fsal, e=method._e.tolist(), dense=dense.tolist() if dense is not None and dense.any() else []
+        )
+    if isinstance(method, DormandPrince853):
+        data.update(
+            fsal=True,
+            e5=method._e5.tolist(),
+            e3=method._e3.tolist(),
+            extended_stages=len(method._c_extended),
+            a_extended=method._a_extended.ravel().tolist(),
+            c_extended=method._c_extended.tolist(),
+            dense_weights=method._dense_weights.ravel().tolist(),
+        )
+    return data
+
+
+class NativeKernel:
+    """The running rows' states in the engine (the Kernel interface of core.py for Core's own code: records, stops,
+    torques; the steps themselves are taken by NativeCore.advance). The engine is made once the step-size controller
+    is known (bind())."""
+
+    def __init__(
+        self,
+        system: Any,
+        method: Integrator,
+        Q0: np.ndarray,
+        V0: np.ndarray,
+        *,
+        rtol: float | None = None,
+        atol: float | None = None,
+        num_threads: int = 1,
+    ):
+        self.system, self.method = system, method
+        self.rtol, self.atol = rtol, atol
+        self.num_threads = num_threads
+        self._initial = (np.ascontiguousarray(Q0, dtype=float), np.ascontiguousarray(V0, dtype=float))
+        self._start = (0.0, 0)  # (t, k) until the engine exists
+        self.engine: Any = None
+        self.method_data = method_data(method)
+
+    def bind(self, control: ConstantStep | PIController) -> None:
+        """Make the engine for this controller."""
+        system, data = self.system, self.method_data
+        space = system.space
+        blocks = [
+            (start, stop - start, index.ravel().astype(int).tolist(), sign.ravel().tolist())
+            for (start, stop), (index, sign) in zip(space.curved_blocks, space._chart_entries, strict=True)
+        ]
+        pi = []
+        if isinstance(control, PIController):
+            pi = [
+                control.alpha,
+                control.beta,
+                control.safety,
+                control.factor_min,
+                control.factor_max,
+                control.max_step,
+                control.first_step,
+                float(self.rtol),  # type: ignore[arg-type]
+                float(self.atol),  # type: ignore[arg-type]
+            ]
+        Q0, V0 = self._initial
+        self.engine = native.module.Kernel(  # type: ignore[union-attr]
+            native.load_model(system.model),
+            data["kind"],
+            data["stages"],
+            data["a"],
+            data["b"],
+            data["c"],
+            data["chart_terms"],
+            data["fsal"],
+            data["e"],
+            data["dense"],
+            data["e5"],
+            data["e3"],
+            data["extended_stages"],
+            data["a_extended"],
+            data["c_extended"],
+            data["dense_weights"],
+            blocks,
+            list(_HALF_SERIES),
+            np.asarray(system.damping, dtype=float),
+            len(system.ledger_elements),
+            control.adaptive,
+            control.dt if isinstance(control, ConstantStep) else math.nan,
+            SLIVER,
+            pi,
+            LANDING_FRACTION,
+            Q0,
+            V0,
+            self.num_threads,
+        )
+        self.engine.t, self.engine.k = self._start
+
+    # ---- the Kernel interface (core.py) ----------------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        return len(self._initial[0]) if self.engine is None else int(self.engine.running)
+
+    @property
+    def t(self) -> float:
+        return self._start[0] if self.engine is None else float(self.engine.t)
+
+    @property
+    def k(self) -> int:
+        return self._start[1] if self.engine is None else int(self.engine.k)
+
+    def start_at(self, t: float, k: int = 0) -> None:
+        if self.engine is None:
+            self._start = (t, k)
+        else:
+            self.engine.t, self.engine.k = t, k
+
+    def set_torques(self, TAU: np.ndarray, jump: bool) -> None:
+        self.engine.set_torques(np.ascontiguousarray(TAU, dtype=float), jump)
+
+    def keep(self, keep: np.ndarray) -> None:
+        self.engine.keep([bool(x) for x in keep])
+
+    def states(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        return list(self.engine.running_q()), list(self.engine.running_v())
+
+    def state_of(self, j: int) -> tuple[np.ndarray, np.ndarray]:
+        return self.engine.running_q()[j].copy(), self.engine.running_v()[j].copy()
+
+    def flows_of(self, j: int) -> np.ndarray:
+        return np.asarray(self.engine.flows_of(self._row(j)))
+
+    def set_row(self, j: int, q: np.ndarray, v: np.ndarray) -> None:
+        row = self._row(j)
+        self.engine.set_state(row, q, v, self.engine.flows_of(row))
+
+    def snapshot(self) -> tuple[Any, ...]:
+        """Every row's whole state and the time (Stepper: one row)."""
+        rows = range(len(self._initial[0]))
+        return [self.engine.snapshot_row(b) for b in rows], self.t, self.k
+
+    def restore(self, snapshot: tuple[Any, ...]) -> None:
+        rows, t, k = snapshot
+        for b, state in enumerate(rows):
+            self.engine.restore_row(b, *state)
+        self.start_at(t, k)
+
+    def _row(self, j: int) -> int:
+        """The run row of running position j."""
+        return int(self.engine.running_rows()[j])
+
+    def write_sample(self, store: SampleStore, i: int, index: Any, js: np.ndarray | None = None) -> None:
+        """Write the current state of the run rows `index` (the store's columns: an int, a slice or the rows) as
+        sample i (the engine knows each row's state by its row; js, their positions, need not be looked up)."""
+        if type(index) is int:
+            rows = [index]
+        elif isinstance(index, slice):
+            rows = list(range(store.B))[index]
+        else:
+            rows = [int(b) for b in index]
+        self.engine.write_rows(i, rows, *store_arrays(store))
+
+    def attempt(self, h: float) -> KernelAttempt:
+        raise AssertionError("the native kernel steps inside NativeCore.advance")  # pragma: no cover
+
+    def nonfinite(self) -> np.ndarray:
+        raise AssertionError("the native kernel checks its steps itself")  # pragma: no cover
+
+    def nonfinite_dof(self, j: int) -> int:
+        raise AssertionError("the native kernel names non-finite coordinates itself")  # pragma: no cover
+
+    def accept(self, t_next: float) -> None:
+        raise AssertionError("the native kernel accepts its steps itself")  # pragma: no cover
+
+    def reject(self) -> None:
+        raise AssertionError("the native kernel rejects its steps itself")  # pragma: no cover
+
+    def write_dense(self, store: SampleStore, i: int, rows: np.ndarray, theta: float, h: float, t_out: float) -> int:
+        raise AssertionError("the native kernel writes its dense output itself")  # pragma: no cover
+
+
+def store_arrays(store: SampleStore) -> tuple[np.ndarray, ...]:
+    """The store's arrays as the engine takes them (the store may have grown since the last call)."""
+    return store.T, store.Q, store.V, store.TAU, store.ENERGY, store.FLOWS, store.COUNTS
+
+
+class NativeCore(Core):
+    """A Core whose loop runs in the engine (see the module docstring); its kernel is a NativeKernel.
+
+    The engine writes the core's counts, the store's count, the sampler's and the controller's state itself before
+    it returns (plain attribute assignments with the GIL held), and appends the rows it stopped to `_pending`: a
+    Ctrl-C, whose handler runs as soon as the engine returns, finds the run's samples and counts consistent, and the
+    stops are taken into account whenever the driver next looks (take_stops()).
+    """
+
+    kernel: NativeKernel  # type: ignore[assignment]
+
+    def __init__(self, **kwargs: Any):
+        super().__init__(**kwargs)
+        self.kernel.bind(self.control)
+        self._budget = 64  # steps per engine call, adapted to take about BUDGET_SECONDS
+        self._pending: list[tuple[Any, ...]] = []  # rows the engine stopped, not yet recorded as RowStops
+
+    def advance(self, t_stop: float, *, max_steps: int | None = None) -> str:
+        """Core.advance, in the engine: the same statuses, samples, counts and stops."""
+        kernel, control, sampler, store = self.kernel, self.control, self.sampler, self.store
+        tolerance = LANDING_FRACTION * control.scale(t_stop) if control.adaptive else 0.0
+        taken = 0
+        while True:
+            limit = self._budget if max_steps is None else min(self._budget, max_steps - taken)
+            start = time.perf_counter()
+            status, steps, need = kernel.engine.advance(
+                t_stop, limit, tolerance, self, store, sampler, control, *store_arrays(store), self._pending
+            )
+            elapsed = time.perf_counter() - start
+            self._take_pending()
+            taken += steps
+            if steps:
+                self._budget = max(16, min(1 << 20, int(self._budget * BUDGET_SECONDS / max(elapsed, 1e-6))))
+            if status == _NEED_ROOM:
+                store.room(need)
+                continue
+            reason = _STATUSES[status]
+            if reason == STEPPED and (max_steps is None or taken < max_steps):
+                continue  # the budget, not the caller's limit: Python runs here (signals), then the engine again
+            return reason
+
+    def take_stops(self) -> list[RowStop]:
+        self._take_pending()
+        return super().take_stops()
+
+    def _take_pending(self) -> None:
+        """Record the rows the engine stopped (it already took them out of its running rows): their RowStop, frozen
+        counts and last samples, as Core._note_stops and Core.stop record them. Each is taken whole or again."""
+        while self._pending:
+            code, row, when, step, dof, count, added, steps, rejected, evaluations, h, minimum, error = self._pending[0]
+            if code == _DIVERGED:
+                status, message = "diverged", diverged_message(self.system, when, step, dof, self.dt_hint)
+            else:
+                status = "step_collapsed"
+                norm = None if math.isnan(error) else error
+                message = collapsed_message(self.system, when, step, h, minimum, norm)
+            if row in self.rows:
+                self.stops.append(RowStop(int(row), status, message, when, count + added - 1, bool(added)))
+                self.stopped_counts[row] = (steps, rejected, evaluations)
+                self.store.stop(np.array([row]), bool(added), count=count)
+                keep = self.rows != row
+                n = int(keep.sum())
+                self.extra_evaluations[:n] = self.extra_evaluations[: len(keep)][keep]
+                self._set_rows(self.rows[keep])
+            self._pending.pop(0)

@@ -1,0 +1,539 @@
+"""Contact: collision geometry, the pairs that may touch, and the unilateral constraints of one time step.
+
+A scene with contact keeps a Pinocchio GeometryModel (coal shapes: the ground's half-space, the objects' shapes and
+the robot's declared collision geometry) and, at each step of the `timestepping` integrator, turns the pairs
+within the speculative margin into Pinocchio 4.1 constraint models: one ``PointContactConstraintModel`` (a Coulomb
+cone, 3 rows: two tangential, then the normal) per point of each pair's contact patch, a
+``JointLimitConstraintModel`` for position limits near their bound (``limits = "enforce"``) and a
+``JointFrictionConstraintModel`` for joint dry friction (``friction = "exact"``). The problem handed to
+Pinocchio's cone solvers is
+
+    min ½ λᵀ G λ + gᵀ λ  over the cones,    G = J M⁻¹ Jᵀ (the Delassus operator),   g = J v_free + b,
+
+with λ the constraint impulses [N·s, N·m·s] and b the velocity bias of each row (see :class:`ContactProblem`).
+
+Contact frames and signs. A contact point ties point 1 on the first shape of a pair (the ground for ground
+pairs) to point 2 on the second; its frame's z axis is the patch normal, pointing from shape 1 to shape 2. J's
+rows give point 2's velocity relative to point 1 in that frame, so a positive normal velocity separates, and λ is
+the impulse on body 2 (body 1 feels the opposite).
+
+Bias b (normal rows only; documented choices, each booked in the energy ledger):
+
+- Speculative contact: a gap d > 0 within SPECULATIVE_MARGIN enters as d / dt, so the constraint
+  ``u⁺ + d/dt ≥ 0`` lets the bodies close the gap within the step and no further.
+- Penetration correction: a penetration (d < 0) enters as ``PENETRATION_CORRECTION · min(d + s, 0) / dt``: a
+  fifth of the penetration beyond the slop s = PENETRATION_SLOP (1 nm, above coal's own round-off) is pushed out
+  per step (Baumgarte's stabilization at the velocity level). The energy this puts in is the ledger's
+  ``penetration_correction`` (kind "work"): ``-λᵀ b_corr ≥ 0``.
+- Restitution (Newton's law), in two steps so that the bounce starts at the surface: a pair with coefficient
+  e > 0 whose gap closes within the step (its speculative row is active) lands exactly on the surface at the
+  step's end, and its approach speed u⁻ (the normal velocity at the step's start) is remembered in the solver
+  state; on the next step, touching (gap below TOUCHING), it gets ``e u⁻`` as its bias: ``u⁺ ≥ -e u⁻``. A pair
+  that starts a step touching and approaching (no landing remembered) bounces on its own u⁻. Approaches slower
+  than the speed one step of free fall gives (|g| dt) never bounce, so resting contacts stay at rest. Bouncing
+  one step after landing delays the bounce by at most a step but starts it from the surface, so apex heights
+  are not biased by the gap at which the step found the pair. The energy a bounce gives back is the ledger's
+  ``restitution`` (kind "work"): ``-λᵀ b_rest ≥ 0``; the landing took it out (in ``contact``) the step before.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import coal
+import numpy as np
+import pinocchio as pin
+
+from ..exceptions import SceneError
+from ..safety import safe_name
+
+# Gaps below this are contact candidates [m]: a pair closing faster than SPECULATIVE_MARGIN / dt (10 m/s at 1 ms)
+# may end a step inside each other, which the penetration correction then undoes.
+SPECULATIVE_MARGIN = 0.01
+PENETRATION_CORRECTION = 0.2  # the fraction of a penetration pushed out per step
+# Penetrations below this are left alone [m]: coal's box–plane distance is off by ~5e-12 m, and pushing that out
+# would jitter resting stacks at 1e-9 m/s.
+PENETRATION_SLOP = 1e-9
+# Position limits within this distance of q [rad or m] join the step's problem (speculatively): a joint faster than
+# LIMIT_MARGIN / dt (50 rad/s at 1 ms) may end a step past its limit, which the correction then undoes.
+LIMIT_MARGIN = 0.05
+TOUCHING = 1e-6  # [m]: a gap below this is a touching contact (restitution applies)
+# Cholesky regularization of the Delassus operator (keeps G's factorization defined on redundant contacts, such
+# as the 4 corners of a box on the ground: 12 rows on 6 dofs). Its effect on the impulses is ~1e-12 relative.
+DELASSUS_DAMPING = 1e-12
+_WORLD = pin.Convention.WORLD
+_Z = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """One collision shape on one body.
+
+    Attributes:
+        body: the body's name ("ground", an object's name, or the frame a [[contact.geometry]] names).
+        joint: the joint the body moves with (0: the world).
+        placement: the shape's pose in that joint's frame.
+        shape: the coal shape.
+        kind: "halfspace", "box", "sphere" or "cylinder".
+        dimensions: box: full extents (3,) [m]; sphere: (radius,); cylinder: (radius, length); halfspace: (height,).
+    """
+
+    body: str
+    joint: int
+    placement: pin.SE3
+    shape: Any
+    kind: str
+    dimensions: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class ContactPoint:
+    """One point of a contact patch at the start of a step.
+
+    Attributes:
+        key: (pair index, point index): what the warm start is keyed on.
+        bodies: (body 1, body 2) names.
+        joint1, joint2: the joints the bodies move with.
+        placement1, placement2: the contact frame at point 1 (2) in joint 1's (2's) frame.
+        position: the point midway between the shapes, world [m], shape (3,).
+        normal: unit normal from shape 1 to shape 2, world, shape (3,).
+        gap: signed distance along the normal [m] (negative: penetration).
+        friction: Coulomb μ.
+        restitution: Newton's e.
+    """
+
+    key: tuple[int, int]
+    bodies: tuple[str, str]
+    joint1: int
+    joint2: int
+    placement1: pin.SE3
+    placement2: pin.SE3
+    position: np.ndarray
+    normal: np.ndarray
+    gap: float
+    friction: float
+    restitution: float
+
+
+@dataclass
+class ContactProblem:
+    """The constraint problem of one step (see the module docstring).
+
+    Attributes:
+        points: the contact points, in row order (3 rows each, the normal last).
+        models, datas: Pinocchio's constraint models and datas, points first, then limits, then joint friction.
+        keys: one warm-start key per constraint block.
+        sizes: rows of each block.
+        cholesky: the factorization the Delassus operator refers to (kept alive with it).
+        delassus: G = J M⁻¹ Jᵀ.
+        jacobian: J, shape (m, nv).
+        g: J v_free + b, shape (m,).
+        correction: b's penetration-correction part, ≤ 0, shape (m,).
+        restitution: b's restitution part, ≤ 0, shape (m,).
+        landings: pair index -> approach speed u⁻ (< 0) of the pairs that land this step (restitution).
+        limit_rows, friction_rows: rows of the joint-limit and joint-friction blocks.
+    """
+
+    points: list[ContactPoint]
+    models: Any
+    datas: Any
+    keys: list[tuple[Any, ...]]
+    sizes: list[int]
+    cholesky: Any
+    delassus: Any
+    jacobian: np.ndarray
+    g: np.ndarray
+    correction: np.ndarray
+    restitution: np.ndarray
+    landings: dict[int, float] = field(default_factory=dict)
+    limit_rows: int = 0
+    friction_rows: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def make_shape(kind: str, dimensions: Sequence[float]) -> Any:
+    """The coal shape of a declared shape: box (full extents x, y, z), sphere (radius), cylinder (radius, length)."""
+    if kind == "box":
+        return coal.Box(*map(float, dimensions))
+    if kind == "sphere":
+        return coal.Sphere(float(dimensions[0]))
+    if kind == "cylinder":
+        return coal.Cylinder(float(dimensions[0]), float(dimensions[1]))
+    raise ValueError(f"unknown shape {kind!r}")
+
+
+def shape_inertia(kind: str, dimensions: Sequence[float], mass: float) -> pin.Inertia:
+    """The inertia of a uniform solid about its centre: box, sphere, cylinder (axis z)."""
+    if kind == "box":
+        return pin.Inertia.FromBox(mass, *map(float, dimensions))
+    if kind == "sphere":
+        return pin.Inertia.FromSphere(mass, float(dimensions[0]))
+    return pin.Inertia.FromCylinder(mass, float(dimensions[0]), float(dimensions[1]))
+
+
+class ContactModel:
+    """A scene's collision geometry and unilateral constraints, on the scene's Pinocchio model.
+
+    Args:
+        model: the scene's model (objects included); a private Data is kept.
+        geometries: every collision shape (the ground first when there is one).
+        pairs: index pairs into `geometries` that may touch (the ground, when in a pair, first).
+        ground_friction, ground_restitution: μ and e of pairs with the ground.
+        body_friction, body_restitution: μ and e of other pairs.
+        solver: "admm" or "pgs".
+        limits: "enforce" or "report".
+        friction: "exact" or "regularized" (joint dry friction).
+        limited_joints: joint ids whose position limits are enforced (limits = "enforce").
+        friction_joints: (joint id, F [N·m or N]) of joints with exact dry friction.
+    """
+
+    def __init__(
+        self,
+        model: pin.Model,
+        geometries: Sequence[Geometry],
+        pairs: Sequence[tuple[int, int]],
+        *,
+        ground_friction: float,
+        ground_restitution: float,
+        body_friction: float,
+        body_restitution: float,
+        solver: str = "admm",
+        limits: str = "report",
+        friction: str = "regularized",
+        limited_joints: Sequence[int] = (),
+        friction_joints: Sequence[tuple[int, float]] = (),
+    ):
+        self.model = model
+        self.data = model.createData()
+        self.geometries = list(geometries)
+        self.pairs = list(pairs)
+        self.solver = solver
+        self.limits = limits
+        self.friction = friction
+        self.gravity = float(np.linalg.norm(model.gravity.linear))
+        gm = pin.GeometryModel()
+        for k, geometry in enumerate(self.geometries):
+            gm.addGeometryObject(
+                pin.GeometryObject(
+                    f"{geometry.body}:{k}", geometry.joint, geometry.joint, geometry.placement, geometry.shape
+                )
+            )
+        for first, second in self.pairs:
+            gm.addCollisionPair(pin.CollisionPair(first, second))
+        self.geometry_model = gm
+        self.geometry_data = pin.GeometryData(gm)
+        for request in self.geometry_data.collisionRequests:
+            request.enable_contact = True  # without it box–box normals are NaN
+            request.security_margin = SPECULATIVE_MARGIN
+        self._ground_coefficients = (ground_friction, ground_restitution)
+        self._object_names = {g.body for g in self.geometries if g.joint and model.names[g.joint] == g.body}
+        self._coefficients = [
+            (ground_friction, ground_restitution)
+            if "ground" in (self.geometries[a].body, self.geometries[b].body)
+            else (body_friction, body_restitution)
+            for a, b in self.pairs
+        ]
+        self.limited_joints = list(limited_joints)
+        self.friction_joints = list(friction_joints)
+        self._limit_model: Any = None
+        if self.limited_joints:
+            self._limit_model = pin.JointLimitConstraintModel(model, pin.StdVec_Index(self.limited_joints))
+            self._limit_model.setPositionLimitAndMargin(
+                model.lowerPositionLimit, model.upperPositionLimit, np.full(model.nq, LIMIT_MARGIN)
+            )
+        self._friction_model: Any = None
+        if self.friction_joints:
+            ids = pin.StdVec_Index([j for j, _ in self.friction_joints])
+            bound = np.zeros(model.nv)
+            for jid, force in self.friction_joints:
+                bound[model.joints[jid].idx_v] = force
+            self._friction_model = pin.JointFrictionConstraintModel(model, ids, -bound, bound)
+
+    # ---- what it models ----------------------------------------------------------------------------
+    @property
+    def empty(self) -> bool:
+        """No pair, no enforced limit, no exact friction: nothing to solve, ever."""
+        return not self.pairs and self._limit_model is None and self._friction_model is None
+
+    def pair_names(self) -> list[tuple[str, str]]:
+        """The body pairs that may touch (one per pair of bodies, in order)."""
+        seen: list[tuple[str, str]] = []
+        for a, b in self.pairs:
+            names = (self.geometries[a].body, self.geometries[b].body)
+            if names not in seen:
+                seen.append(names)
+        return seen
+
+    def describe(self) -> list[str]:
+        """What the contact models, a few lines for describe() and the run header."""
+        lines = []
+        ground = [g for g in self.geometries if g.body == "ground"]
+        if ground:
+            mu, e = self._ground_coefficients
+            lines.append(f"  ground: plane z = {ground[0].dimensions[0]:g} m, friction {mu:g}, restitution {e:g}")
+        else:
+            lines.append("  ground: none")
+        robot_bodies = sorted({g.body for g in self.geometries if g.joint and g.body not in self._object_names})
+        if robot_bodies:
+            lines.append("  robot collision geometry (declared): " + ", ".join(map(safe_name, robot_bodies)))
+        pairs = self.pair_names()
+        shown = ", ".join(f"{safe_name(a)}-{safe_name(b)}" for a, b in pairs[:12]) + (
+            f" (+{len(pairs) - 12} more)" if len(pairs) > 12 else ""
+        )
+        lines.append(f"  contact pairs: {shown if pairs else 'none'}")
+        solver = "ADMM (spectral rule, Anderson 10)" if self.solver == "admm" else "PGS"
+        lines.append(
+            f"  contact solver: {solver}, velocity-level time-stepping (exact Coulomb cones, speculative margin "
+            f"{SPECULATIVE_MARGIN:g} m, penetration correction {PENETRATION_CORRECTION:g} per step)"
+        )
+        limits = (
+            f"enforced as unilateral constraints ({len(self.limited_joints)} joints)"
+            if self.limits == "enforce"
+            else "reported, not enforced"
+        )
+        lines.append(f"  position limits: {limits}")
+        if self.friction == "exact":
+            lines.append(f"  joint dry friction: exact (a constraint: stiction), on {len(self.friction_joints)} joints")
+        else:
+            lines.append("  joint dry friction: regularized (tanh), if any")
+        return lines
+
+    # ---- one step ----------------------------------------------------------------------------------
+    def detect(self, q: np.ndarray) -> list[ContactPoint]:
+        """The contact points at q: every point of every pair's patch within SPECULATIVE_MARGIN.
+
+        Runs the kinematics of q in the contact's own Data (``updateGeometryPlacements``).
+        """
+        model, data, gm, gd = self.model, self.data, self.geometry_model, self.geometry_data
+        pin.updateGeometryPlacements(model, data, gm, gd, q)
+        if not self.pairs:
+            return []
+        pin.computeCollisions(gm, gd, False)
+        points: list[ContactPoint] = []
+        for k, (a, b) in enumerate(self.pairs):
+            if not gd.collisionResults[k].isCollision():
+                continue
+            pin.computeContactPatch(gm, gd, k)
+            patches = gd.contactPatchResults[k]
+            if patches.numContactPatches() == 0:
+                continue
+            patch = patches.getContactPatch(0)
+            normal = np.array(patch.getNormal(), dtype=float)
+            rotation = pin.Quaternion.FromTwoVectors(_Z, normal).matrix()
+            g1, g2 = self.geometries[a], self.geometries[b]
+            friction, restitution = self._coefficients[k]
+            for i in range(patch.size()):
+                p1 = np.array(patch.getPointShape1(i), dtype=float)
+                p2 = np.array(patch.getPointShape2(i), dtype=float)
+                frame1 = data.oMi[g1.joint].actInv(pin.SE3(rotation, p1))
+                frame2 = data.oMi[g2.joint].actInv(pin.SE3(rotation, p2))
+                points.append(
+                    ContactPoint(
+                        key=(k, i),
+                        bodies=(g1.body, g2.body),
+                        joint1=g1.joint,
+                        joint2=g2.joint,
+                        placement1=frame1,
+                        placement2=frame2,
+                        position=0.5 * (p1 + p2),
+                        normal=normal,
+                        gap=float(normal @ (p2 - p1)),
+                        friction=friction,
+                        restitution=restitution,
+                    )
+                )
+        return points
+
+    def problem(
+        self, q: np.ndarray, v: np.ndarray, v_free: np.ndarray, dt: float, landed: dict[int, float] | None = None
+    ) -> ContactProblem | None:
+        """The constraint problem of a step from (q, v) whose unconstrained end velocity is v_free, or None when
+        nothing is in contact, near a limit or under exact friction.
+
+        Args:
+            q: configuration at the step's start, shape (nq,).
+            v: velocity at the step's start, shape (nv,) (restitution reads the approach speed from it).
+            v_free: v + dt · a(q, v, tau): the end velocity without constraint impulses, shape (nv,).
+            dt: the step [s].
+            landed: pair index -> approach speed of the pairs that landed on the previous step (restitution).
+        """
+        model, data = self.model, self.data
+        points = self.detect(q)
+        models = pin.StdVec_ConstraintModel()
+        keys: list[tuple[Any, ...]] = []
+        sizes: list[int] = []
+        for point in points:
+            cm = pin.PointContactConstraintModel(model, point.joint1, point.placement1, point.joint2, point.placement2)
+            cm.setFriction(point.friction)
+            models.append(pin.ConstraintModel(cm))
+            keys.append(("point", *point.key))
+            sizes.append(3)
+        limit_rows = 0
+        if self._limit_model is not None:
+            limit = self._limit_model
+            limit.makeSelectionFilteredByLimitProximity(q)  # the limits within LIMIT_MARGIN of q
+            limit_rows = int(limit.residualSize())
+            if limit_rows:
+                models.append(pin.ConstraintModel(limit))  # a copy, with this step's selection
+                keys.append(("limits", *limit.active_idx_in_activable()))
+                sizes.append(limit_rows)
+        friction_rows = 0
+        if self._friction_model is not None:
+            self._friction_model.setTimeStep(dt)
+            friction_rows = int(self._friction_model.residualSize())
+            models.append(pin.ConstraintModel(self._friction_model))
+            keys.append(("friction",))
+            sizes.append(friction_rows)
+        if not len(models):
+            return None
+        pin.crba(model, data, q, _WORLD)  # the decomposition needs CRBA in the WORLD convention (LOCAL: wrong G)
+        data.q_in = q  # the joint-limit constraint reads q there (CRBA does not set it)
+        datas = pin.StdVec_ConstraintData()
+        for cm in models:
+            cd = cm.createData()
+            cm.calc(model, data, cd)  # before appending: the vector holds copies
+            datas.append(cd)
+        cholesky = pin.ConstraintCholeskyDecomposition(model, data, models, datas)
+        cholesky.compute(model, data, models, datas, DELASSUS_DAMPING)
+        jacobian = np.array(pin.getConstraintsJacobian(model, data, models, datas)).reshape(-1, model.nv)
+        g = jacobian @ v_free
+        correction = np.zeros(len(g))
+        restitution = np.zeros(len(g))
+        landings: dict[int, float] = {}
+        if points:
+            approach = jacobian[2 : 3 * len(points) : 3] @ v  # normal velocities at the step's start
+            threshold = -self.gravity * dt
+            landed = landed or {}
+            for c, point in enumerate(points):
+                row, pair = 3 * c + 2, point.key[0]
+                if point.gap < 0.0:
+                    correction[row] = PENETRATION_CORRECTION * min(point.gap + PENETRATION_SLOP, 0.0) / dt
+                    bias = correction[row]
+                else:
+                    bias = point.gap / dt
+                if point.restitution > 0.0:
+                    if point.gap < TOUCHING:
+                        speed = landed.get(pair, approach[c])
+                        if speed < threshold:
+                            restitution[row] = point.restitution * speed
+                            bias = min(bias, 0.0) + restitution[row]
+                    elif g[row] + bias < 0.0 and approach[c] < threshold:  # lands within this step
+                        landings[pair] = min(landings.get(pair, 0.0), float(approach[c]))
+                g[row] += bias
+        if limit_rows:
+            # The distance to each selected limit (negative beyond it), as a contact's gap: speculative inside,
+            # corrected beyond the slop.
+            rows = slice(3 * len(points), 3 * len(points) + limit_rows)
+            distance = np.array(datas[len(points)].extract().constraint_residual, dtype=float)
+            correction[rows] = PENETRATION_CORRECTION * np.minimum(distance + PENETRATION_SLOP, 0.0) / dt
+            g[rows] += np.where(distance >= 0.0, distance / dt, correction[rows])
+        return ContactProblem(
+            points=points,
+            models=models,
+            datas=datas,
+            keys=keys,
+            sizes=sizes,
+            cholesky=cholesky,
+            delassus=cholesky.getDelassusOperatorCholeskyExpression(),
+            jacobian=jacobian,
+            g=g,
+            correction=correction,
+            restitution=restitution,
+            landings=landings,
+            limit_rows=limit_rows,
+            friction_rows=friction_rows,
+        )
+
+    def inverse_mass_times(self, x: np.ndarray) -> np.ndarray:
+        """M⁻¹ x at the latest problem's q (its CRBA and a sparse Cholesky of M in the contact's Data)."""
+        pin.cholesky.decompose(self.model, self.data)
+        return np.array(pin.cholesky.solve(self.model, self.data, x), dtype=float)
+
+
+def build_contact(scene: Any, spec: Any, exact_friction: Sequence[tuple[int, float]]) -> ContactModel:
+    """The ContactModel a scene declares: the ground, the objects' shapes, [[contact.geometry]] on the robot, the
+    pairs, the limits to enforce and the joints with exact dry friction.
+
+    Raises:
+        SceneError: an unknown frame or body name (the message lists the valid ones).
+    """
+    from .scene import _dimensions, _frame_id
+
+    model, where = scene.model, spec.source
+    settings = spec.contact
+    geometries: list[Geometry] = []
+    if spec.ground is not None:
+        height = spec.ground.height
+        geometries.append(Geometry("ground", 0, pin.SE3.Identity(), coal.Halfspace(_Z, height), "halfspace", (height,)))
+    for item in spec.objects:
+        dims = _dimensions(item.shape)
+        jid = model.getJointId(item.name)
+        geometries.append(
+            Geometry(item.name, jid, pin.SE3.Identity(), make_shape(item.shape.shape, dims), item.shape.shape, dims)
+        )
+    for i, declared in enumerate(settings.geometry if settings is not None else ()):
+        fid = _frame_id(model, declared.frame, f"{where}: contact.geometry[{i}].frame", moving=True)
+        frame = model.frames[fid]
+        offset = pin.SE3(pin.rpy.rpyToMatrix(*declared.rpy), np.array(declared.position, dtype=float))
+        dims = _dimensions(declared.shape)
+        geometries.append(
+            Geometry(
+                declared.frame,
+                frame.parentJoint,
+                frame.placement * offset,
+                make_shape(declared.shape.shape, dims),
+                declared.shape.shape,
+                dims,
+            )
+        )
+    pairs_setting = settings.pairs if settings is not None else "ground"
+    pairs: list[tuple[int, int]] = []
+    ground = [k for k, g in enumerate(geometries) if g.body == "ground"]
+    bodies = [k for k, g in enumerate(geometries) if g.body != "ground"]
+    if isinstance(pairs_setting, str):
+        pairs += [(a, b) for a in ground for b in bodies]
+        if pairs_setting == "all":
+            for i, a in enumerate(bodies):
+                for b in bodies[i + 1 :]:
+                    if not _adjacent(model, geometries[a].joint, geometries[b].joint):
+                        pairs.append((a, b))
+    else:
+        names = list(dict.fromkeys(g.body for g in geometries))
+        for i, pair in enumerate(pairs_setting):
+            for k, name in enumerate(pair):
+                if name not in names:
+                    valid = ", ".join(names) or "none (declare [ground], [[object]] or [[contact.geometry]])"
+                    raise SceneError(f"{where}: contact.pairs[{i}][{k}]: unknown body '{name}' (valid: {valid})")
+            first, second = pair if pair[1] != "ground" else (pair[1], pair[0])
+            for a in (k for k, g in enumerate(geometries) if g.body == first):
+                for b in (k for k, g in enumerate(geometries) if g.body == second):
+                    if (a, b) not in pairs and (b, a) not in pairs and geometries[a].joint != geometries[b].joint:
+                        pairs.append((a, b))
+    limited: list[int] = []
+    if settings is not None and settings.limits == "enforce":
+        for jid in range(1, model.njoints):
+            joint = model.joints[jid]
+            if joint.nq == 1 and joint.nv == 1 and np.isfinite(scene.lower_limit[joint.idx_q]):
+                limited.append(jid)
+    ground_spec = spec.ground
+    return ContactModel(
+        model,
+        geometries,
+        pairs,
+        ground_friction=ground_spec.friction if ground_spec is not None else 0.0,
+        ground_restitution=ground_spec.restitution if ground_spec is not None else 0.0,
+        body_friction=settings.body_friction if settings is not None else 0.5,
+        body_restitution=settings.body_restitution if settings is not None else 0.0,
+        solver=settings.solver if settings is not None else "admm",
+        limits=settings.limits if settings is not None else "report",
+        friction=settings.friction if settings is not None else "regularized",
+        limited_joints=limited,
+        friction_joints=exact_friction,
+    )
+
+
+def _adjacent(model: pin.Model, a: int, b: int) -> bool:
+    """Whether two joints move one body, or one is the other's parent (adjacent links never collide)."""
+    return a == b or model.parents[a] == b or model.parents[b] == a

@@ -1,0 +1,1271 @@
+// The native stepping kernel (see kernel.hpp): Core.advance over rows of one robot, with the Python kernel's
+// arithmetic in its order. Each section names the Python function it renders.
+#include "kernel.hpp"
+#include "model.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <condition_variable>
+#include <functional>
+#include <limits>
+#include <mutex>
+#include <thread>
+
+#include "pinocchio/algorithm/aba.hpp"
+#include "pinocchio/algorithm/energy.hpp"
+#include "pinocchio/algorithm/joint-configuration.hpp"
+
+namespace multibody_sim
+{
+  namespace
+  {
+    using ConstRef = Eigen::Ref<const Vec>;
+    constexpr double INF = std::numeric_limits<double>::infinity();
+
+    // np.maximum: NaN wins.
+    inline double nan_max(double a, double b)
+    {
+      if (std::isnan(a))
+        return a;
+      if (std::isnan(b))
+        return b;
+      return a > b ? a : b;
+    }
+  } // namespace
+
+  // ---- one thread's rows and workspace ------------------------------------------------------------------------
+  struct Thread
+  {
+    const Engine & e;
+    pinocchio::Data data;
+    int nq, nv, m, w;
+    std::vector<int64_t> rows;  // the run rows this thread owns, ascending
+    std::vector<char> alive;
+    int64_t n_alive = 0;
+    std::vector<Vec> q, v, flows, tau, qn, vn, fn, first;
+    std::vector<char> has_first;
+    // workspace (no allocation in the step loop)
+    RowMatrix K;  // stage derivatives (xi', v', ledger power), one row per stage
+    Vec y, applied, acc, dv, xi, vs, qs, inc, chart_y, chart_t, q_last, v_last, size, diff, q_finite, yd, qd, vd;
+    RowMatrix H, F;
+    bool dense_ready = false;
+    int extra_evaluations = 0;
+    CoreState st;
+    AdvanceResult res;
+
+    Thread(const Engine & engine, const std::vector<int64_t> & owned, const RowMatrix & Q0, const RowMatrix & V0)
+    : e(engine)
+    , data(engine.model_)
+    , nq(engine.model_.nq)
+    , nv(engine.model_.nv)
+    , m(engine.n_ledger_)
+    , w(2 * engine.model_.nv + engine.n_ledger_)
+    , rows(owned)
+    {
+      const size_t n = rows.size();
+      alive.assign(n, 1);
+      n_alive = static_cast<int64_t>(n);
+      for (size_t j = 0; j < n; ++j)
+      {
+        q.push_back(Q0.row(rows[j]).transpose());
+        v.push_back(V0.row(rows[j]).transpose());
+      }
+      flows.assign(n, Vec::Zero(m));
+      tau.assign(n, Vec::Zero(nv));
+      qn.assign(n, Vec::Zero(nq));
+      vn.assign(n, Vec::Zero(nv));
+      fn.assign(n, Vec::Zero(m));
+      first.assign(n, Vec::Zero(w));
+      has_first.assign(n, 0);
+      const int stages = std::max(engine.method_.stages, engine.method_.extended_stages);
+      K = RowMatrix::Zero(std::max(stages, 1), w);
+      y = Vec::Zero(w);
+      inc = Vec::Zero(w);
+      yd = Vec::Zero(w);
+      applied = acc = dv = xi = vs = chart_y = chart_t = v_last = size = diff = vd = Vec::Zero(nv);
+      qs = q_last = q_finite = qd = Vec::Zero(nq);
+      size = Vec::Zero(2 * nv);
+      H = RowMatrix::Zero(6, 6);
+      F = RowMatrix::Zero(7, w);
+    }
+
+    // ---- the dynamics of a stage: Robot.unchecked_forward_dynamics and Robot.ledger_power ----------------------
+    void evaluate(const Vec & qx, const Vec & vx, const Vec & tx, int stage)
+    {
+      const pinocchio::Model & model = e.model_;
+      if (e.damped_)
+      {
+        for (int i = 0; i < nv; ++i)
+          applied[i] = tx[i] - e.damping_[i] * vx[i];
+      }
+      else
+        applied = tx;
+      const Vec & a = pinocchio::aba(
+        model, data, ConstRef(qx), ConstRef(vx), ConstRef(applied), pinocchio::Convention::WORLD);
+      double * row = K.row(stage).data();
+      for (int i = 0; i < nv; ++i)
+        row[nv + i] = a[i];
+      power(vx, tx, row + 2 * nv);
+    }
+
+    void power(const Vec & vx, const Vec & tx, double * out) const  // ordered.ordered_dot
+    {
+      double s = tx[0] * vx[0];
+      for (int i = 1; i < nv; ++i)
+        s += tx[i] * vx[i];
+      out[0] = s;
+      if (e.damped_)
+      {
+        double d = vx[0] * (e.damping_[0] * vx[0]);
+        for (int i = 1; i < nv; ++i)
+          d += vx[i] * (e.damping_[i] * vx[i]);
+        out[1] = d;
+      }
+    }
+
+    // ---- ConfigurationSpace.chart_velocity: Σ c_n Hⁿ v by Horner's rule on each curved block -------------------
+    void chart_velocity(const Vec & xis, const Vec & vx, double * out)
+    {
+      for (int i = 0; i < nv; ++i)
+        out[i] = vx[i];
+      const int terms = e.method_.chart_terms;
+      if (terms == 0)
+        return;
+      const std::vector<double> & c = e.half_series_;
+      for (const ChartBlock & block : e.blocks_)
+      {
+        const int d = block.d, s0 = block.start;
+        for (int r = 0; r < d; ++r)
+          for (int col = 0; col < d; ++col)
+            H(r, col) = xis[s0 + block.index[r * d + col]] * block.half_sign[r * d + col];
+        for (int r = 0; r < d; ++r)
+          chart_y[r] = vx[s0 + r] * c[terms];
+        for (int k = terms - 1; k >= 0; --k)
+        {
+          for (int r = 0; r < d; ++r)  // ordered.ordered_matvec
+          {
+            double s = H(r, 0) * chart_y[0];
+            for (int col = 1; col < d; ++col)
+              s += H(r, col) * chart_y[col];
+            chart_t[r] = s;
+          }
+          for (int r = 0; r < d; ++r)
+          {
+            if (k < 2)
+              chart_t[r] += vx[s0 + r];
+            else if (c[k] != 0.0)
+              chart_t[r] += vx[s0 + r] * c[k];
+            chart_y[r] = chart_t[r];
+          }
+        }
+        for (int r = 0; r < d; ++r)
+          out[s0 + r] = chart_y[r];
+      }
+    }
+
+    // ---- explicit_rk._fill_stages: stages start..stop-1 from the rows before them ------------------------------
+    void fill_stages(
+      int start, int stop, const double * a, int lda, const Vec & q0, const Vec & v0, const Vec & tx, double h)
+    {
+      const bool flat = e.blocks_.empty();
+      for (int i = start; i < stop; ++i)
+      {
+        const double * ai = a + i * lda;
+        for (int col = 0; col < w; ++col)
+        {
+          double s = ai[0] * K(0, col);
+          for (int j = 1; j < i; ++j)
+            s += ai[j] * K(j, col);
+          y[col] = s * h;
+        }
+        for (int r = 0; r < nv; ++r)
+        {
+          xi[r] = y[r];
+          vs[r] = v0[r] + y[nv + r];
+        }
+        pinocchio::integrate(e.model_, q0, xi, qs);
+        double * row = K.row(i).data();
+        if (flat)
+          for (int r = 0; r < nv; ++r)
+            row[r] = vs[r];
+        else
+          chart_velocity(xi, vs, row);
+        evaluate(qs, vs, tx, i);
+      }
+    }
+
+    // (weights @ K[:count]) * h into out (width w)
+    void combine(const double * weights, int count, double h, Vec & out) const
+    {
+      for (int col = 0; col < w; ++col)
+      {
+        double s = weights[0] * K(0, col);
+        for (int j = 1; j < count; ++j)
+          s += weights[j] * K(j, col);
+        out[col] = s * h;
+      }
+    }
+
+    // ---- ExplicitRungeKutta.attempt / SemiImplicitEuler.attempt on row j: the pending state in qn, vn, fn -------
+    int attempt_fixed(size_t j, double h)
+    {
+      const Method & me = e.method_;
+      const Vec &qj = q[j], &vj = v[j], &tj = tau[j];
+      if (me.kind == Kind::semi_implicit_euler)
+      {
+        evaluate_acceleration(qj, vj, tj);
+        for (int i = 0; i < nv; ++i)
+          vn[j][i] = vj[i] + h * acc[i];
+        for (int i = 0; i < nv; ++i)
+          dv[i] = h * vn[j][i];
+        pinocchio::integrate(e.model_, qj, dv, qn[j]);
+        double p[2];
+        power(vn[j], tj, p);
+        for (int i = 0; i < m; ++i)
+          fn[j][i] = h * p[i];
+        return 1;
+      }
+      const int s = me.stages;
+      for (int r = 0; r < nv; ++r)
+        K(0, r) = vj[r];
+      evaluate(qj, vj, tj, 0);
+      fill_stages(1, s, me.a.data(), s, qj, vj, tj, h);
+      combine(me.b.data(), s, h, inc);
+      for (int r = 0; r < nv; ++r)
+      {
+        xi[r] = inc[r];
+        vn[j][r] = vj[r] + inc[nv + r];
+      }
+      pinocchio::integrate(e.model_, qj, xi, qn[j]);
+      for (int i = 0; i < m; ++i)
+        fn[j][i] = inc[2 * nv + i];
+      return s;
+    }
+
+    void evaluate_acceleration(const Vec & qx, const Vec & vx, const Vec & tx)
+    {
+      if (e.damped_)
+      {
+        for (int i = 0; i < nv; ++i)
+          applied[i] = tx[i] - e.damping_[i] * vx[i];
+      }
+      else
+        applied = tx;
+      acc = pinocchio::aba(
+        e.model_, data, ConstRef(qx), ConstRef(vx), ConstRef(applied), pinocchio::Convention::WORLD);
+    }
+
+    // ---- AdaptiveRungeKutta.attempt on row 0: the error norm; the pending state in qn, vn, fn -------------------
+    double attempt_adaptive(double h, int & evaluations)
+    {
+      const Method & me = e.method_;
+      const Control & ctl = e.control_;
+      const size_t j = 0;
+      const Vec &qj = q[j], &vj = v[j], &tj = tau[j];
+      const int s = me.stages;
+      for (int r = 0; r < nv; ++r)
+        K(0, r) = vj[r];
+      if (has_first[j])
+        for (int col = nv; col < w; ++col)
+          K(0, col) = first[j][col];
+      else
+        evaluate(qj, vj, tj, 0);
+      fill_stages(1, s, me.a.data(), s, qj, vj, tj, h);
+      combine(me.b.data(), s, h, inc);
+      if (me.fsal)
+      {
+        qn[j] = qs;
+        vn[j] = vs;
+      }
+      else
+      {
+        for (int r = 0; r < nv; ++r)
+        {
+          xi[r] = inc[r];
+          vn[j][r] = vj[r] + inc[nv + r];
+        }
+        pinocchio::integrate(e.model_, qj, xi, qn[j]);
+      }
+      for (int i = 0; i < m; ++i)
+        fn[j][i] = inc[2 * nv + i];
+      // explicit_rk._error_scale
+      pinocchio::difference(e.model_, e.neutral_, qj, diff);
+      for (int r = 0; r < nv; ++r)
+        size[r] = std::abs(diff[r]);
+      pinocchio::difference(e.model_, e.neutral_, qn[j], diff);
+      for (int r = 0; r < nv; ++r)
+        size[r] = nan_max(size[r], std::abs(diff[r]));
+      for (int r = 0; r < nv; ++r)
+        size[nv + r] = nan_max(std::abs(vj[r]), std::abs(vn[j][r]));
+      for (int r = 0; r < 2 * nv; ++r)
+        size[r] = ctl.atol + ctl.rtol * size[r];
+      double norm;
+      if (me.kind == Kind::dop853)
+      {
+        double e5 = 0.0, e3 = 0.0;
+        for (int col = 0; col < 2 * nv; ++col)
+        {
+          double s5 = me.e5[0] * K(0, col), s3 = me.e3[0] * K(0, col);
+          for (int i = 1; i < s; ++i)
+          {
+            s5 += me.e5[i] * K(i, col);
+            s3 += me.e3[i] * K(i, col);
+          }
+          const double x5 = s5 / size[col], x3 = s3 / size[col];
+          e5 = col ? e5 + x5 * x5 : x5 * x5;
+          e3 = col ? e3 + x3 * x3 : x3 * x3;
+        }
+        norm = (e5 == 0.0 && e3 == 0.0) ? 0.0 : h * e5 / std::sqrt((e5 + 0.01 * e3) * (2 * nv));
+      }
+      else
+      {
+        double sum = 0.0;  // ordered.ordered_dot of the scaled errors
+        for (int col = 0; col < 2 * nv; ++col)
+        {
+          double x = me.e[0] * K(0, col);
+          for (int i = 1; i < s; ++i)
+            x += me.e[i] * K(i, col);
+          x = x * h / size[col];
+          sum = col ? sum + x * x : x * x;
+        }
+        norm = std::sqrt(sum / (2 * nv));
+      }
+      const double qq = qn[j].dot(qn[j]) + vn[j].dot(vn[j]);
+      if (!std::isfinite(norm) || !std::isfinite(qq))
+        norm = INF;
+      evaluations = s - (has_first[j] ? 1 : 0);
+      dense_ready = false;
+      extra_evaluations = 0;
+      return norm;
+    }
+
+    // ---- dense output at t + θh of the pending step of row 0 (EmbeddedRungeKutta / DormandPrince853) -----------
+    void dense(double h, double theta)
+    {
+      const Method & me = e.method_;
+      const size_t j = 0;
+      const Vec &qj = q[j], &vj = v[j];
+      const int s = me.stages;
+      if (me.kind == Kind::dop853)
+      {
+        if (!dense_ready)
+        {
+          fill_stages(s, me.extended_stages, me.a_extended.data(), me.extended_stages, qj, vj, tau[j], h);
+          extra_evaluations = me.extended_stages - s;
+          combine(me.b.data(), s, h, yd);  // delta
+          for (int col = 0; col < w; ++col)
+          {
+            const double delta = yd[col];
+            F(0, col) = delta;
+            F(1, col) = h * K(0, col) - delta;
+            F(2, col) = 2.0 * delta - h * (K(s - 1, col) + K(0, col));
+          }
+          for (int r = 0; r < 4; ++r)
+          {
+            const double * d = me.dense_weights.data() + r * me.extended_stages;
+            for (int col = 0; col < w; ++col)
+            {
+              double x = d[0] * K(0, col);
+              for (int i = 1; i < me.extended_stages; ++i)
+                x += d[i] * K(i, col);
+              F(3 + r, col) = h * x;
+            }
+          }
+          dense_ready = true;
+        }
+        for (int col = 0; col < w; ++col)
+        {
+          double x = 0.0;
+          for (int i = 0; i < 7; ++i)
+          {
+            x += F(6 - i, col);
+            x *= (i % 2 == 0) ? theta : 1.0 - theta;
+          }
+          yd[col] = x;
+        }
+      }
+      else
+      {
+        const bool quartic = !me.dense.empty();
+        for (int col = 0; col < w; ++col)
+        {
+          double r1 = me.b[0] * K(0, col);
+          for (int i = 1; i < s; ++i)
+            r1 += me.b[i] * K(i, col);
+          const double r2 = K(0, col) - r1;
+          double r3 = 2.0 * r1 - K(0, col) - K(s - 1, col);
+          if (quartic)
+          {
+            double dk = me.dense[0] * K(0, col);
+            for (int i = 1; i < s; ++i)
+              dk += me.dense[i] * K(i, col);
+            r3 = r3 + (1.0 - theta) * dk;
+          }
+          yd[col] = h * theta * (r1 + (1.0 - theta) * (r2 + theta * r3));
+        }
+      }
+      for (int r = 0; r < nv; ++r)
+      {
+        xi[r] = yd[r];
+        vd[r] = vj[r] + yd[nv + r];
+      }
+      pinocchio::integrate(e.model_, qj, xi, qd);
+    }
+
+    // ---- samples: RowKernel._write -------------------------------------------------------------------------------
+    void write(const Store & store, int64_t i, int64_t b, const Vec & qx, const Vec & vx, const Vec & tx,
+               const double * fl)
+    {
+      const int64_t at = i * store.B + b;
+      std::copy(qx.data(), qx.data() + nq, store.Q + at * nq);
+      std::copy(vx.data(), vx.data() + nv, store.V + at * nv);
+      std::copy(tx.data(), tx.data() + nv, store.TAU + at * nv);
+      std::copy(fl, fl + m, store.FLOWS + at * m);
+      const double kinetic = pinocchio::computeKineticEnergy(e.model_, data, qx, vx);
+      const double potential = pinocchio::computePotentialEnergy(e.model_, data);
+      store.ENERGY[at * 2] = kinetic;
+      store.ENERGY[at * 2 + 1] = potential;
+    }
+
+    void stamp(const Store & store, int64_t i, int64_t b, double t) const
+    {
+      const int64_t at = i * store.B + b;
+      store.T[at] = t;
+      store.COUNTS[at * 3] = st.steps;
+      store.COUNTS[at * 3 + 1] = st.rejected;
+      store.COUNTS[at * 3 + 2] = st.evaluations;
+    }
+
+    // Core.record: every running row's current state as sample `count`
+    void record(const Store & store)
+    {
+      const int64_t i = st.count;
+      for (size_t j = 0; j < rows.size(); ++j)
+        if (alive[j])
+        {
+          stamp(store, i, rows[j], st.t);
+          write(store, i, rows[j], q[j], v[j], tau[j], flows[j].data());
+        }
+      advance_count();
+      st.recorded = st.t;
+    }
+
+    void advance_count()
+    {
+      st.count += 1;
+      if (static_cast<double>(st.count) >= st.soft_capacity)
+        st.full = true;
+    }
+
+    // Core._record_stopping: the current state of rows js at index count, unless it is a sample already
+    bool record_stopping(const Store & store, const std::vector<size_t> & js)
+    {
+      if (st.recorded == st.t)
+        return false;
+      for (size_t j : js)
+      {
+        stamp(store, st.count, rows[j], st.t);
+        write(store, st.count, rows[j], q[j], v[j], tau[j], flows[j].data());
+      }
+      return true;
+    }
+
+    // RowKernel.nonfinite_dof: the first non-finite velocity coordinate of row j's pending state (else of q's)
+    int64_t nonfinite_dof(size_t j)
+    {
+      for (int i = 0; i < nv; ++i)
+        if (!std::isfinite(vn[j][i]))
+          return i;
+      for (int i = 0; i < nq; ++i)
+        q_finite[i] = std::isfinite(qn[j][i]) ? qn[j][i] : 0.0;
+      pinocchio::difference(e.model_, q[j], q_finite, diff);
+      for (int i = 0; i < nv; ++i)
+        if (!std::isfinite(diff[i]))
+          return i;
+      return 0;
+    }
+
+    // ---- the step-size controllers (step_control.py) ---------------------------------------------------------
+    double propose(double t_stop) const
+    {
+      const Control & c = e.control_;
+      if (c.adaptive)
+      {
+        const double scale = std::max(c.first_step, std::abs(t_stop));
+        if (st.c_time + st.c_h >= t_stop - c.landing * scale)
+          return t_stop;
+        return st.c_time + st.c_h;
+      }
+      const int64_t k_stop = std::max<int64_t>(
+        st.c_k + 1, static_cast<int64_t>(std::ceil((t_stop - st.c_t0) / c.dt - c.sliver)));
+      if (st.c_k + 1 < k_stop)
+        return st.c_t0 + static_cast<double>(st.c_k + 1) * c.dt;
+      return t_stop;
+    }
+
+    double step_size(double t_next) const
+    {
+      const Control & c = e.control_;
+      if (c.adaptive)
+        return t_next - st.c_time;
+      const double grid = st.c_t0 + static_cast<double>(st.c_k + 1) * c.dt;
+      return t_next == grid ? c.dt : t_next - st.c_time;
+    }
+
+    bool judge(double h, double error)  // PIController.next_step
+    {
+      const Control & c = e.control_;
+      if (!std::isfinite(error))
+      {
+        st.c_rejected_last = true;
+        st.c_h = h * c.factor_min;
+        return false;
+      }
+      if (error <= 1.0)
+      {
+        error = std::max(error, 1e-10);
+        double factor = c.safety * std::pow(error, -c.alpha) * std::pow(st.c_previous_error, c.beta);
+        factor = std::min(st.c_rejected_last ? 1.0 : c.factor_max, std::max(c.factor_min, factor));
+        st.c_previous_error = error;
+        st.c_rejected_last = false;
+        st.c_h = std::min(h * factor, c.max_step);
+        return true;
+      }
+      const double factor = std::max(c.factor_min, c.safety * std::pow(error, -c.alpha));
+      st.c_rejected_last = true;
+      st.c_h = h * factor;
+      return false;
+    }
+
+    void commit(double t_next)
+    {
+      const Control & c = e.control_;
+      if (!c.adaptive)
+      {
+        if (t_next == st.c_t0 + static_cast<double>(st.c_k + 1) * c.dt)
+          st.c_k += 1;
+        else
+        {
+          st.c_t0 = t_next;
+          st.c_k = 0;
+        }
+      }
+      st.c_time = t_next;
+    }
+
+    // Sampler.due
+    bool due(const Sampler & sampler, double t, double tolerance)
+    {
+      if (sampler.period > 0.0)
+      {
+        if (std::abs(t - static_cast<double>(st.next_output) * sampler.period) <= tolerance)
+        {
+          st.next_output += 1;
+          return true;
+        }
+        return t == 0.0;
+      }
+      if (sampler.every == 0)
+        return true;
+      return st.steps % sampler.every == 0;
+    }
+
+    int64_t dense_count(const Sampler & sampler, double t_next, double tolerance) const
+    {
+      if (!(sampler.period > 0.0))
+        return 0;
+      int64_t n = 0;
+      while (static_cast<double>(st.next_output + n) * sampler.period < t_next - tolerance)
+        ++n;
+      return n;
+    }
+
+    void stop_event(int code, size_t j, double time, bool added, int64_t counted_steps)
+    {
+      StopEvent ev;
+      ev.code = code;
+      ev.row = rows[j];
+      ev.time = time;
+      ev.step = st.steps + 1;
+      ev.count = st.count;
+      ev.added = added;
+      ev.counts[0] = counted_steps;
+      ev.counts[1] = st.rejected;
+      ev.counts[2] = st.evaluations;
+      res.stops.push_back(ev);
+    }
+
+    void kill(size_t j)
+    {
+      if (alive[j])
+      {
+        alive[j] = 0;
+        --n_alive;
+      }
+    }
+
+    // ---- Core.advance over this thread's rows --------------------------------------------------------------
+    void run(double t_stop, int64_t limit, double tolerance, const Sampler & sampler, const Store & store)
+    {
+      res = AdvanceResult();
+      const bool adaptive = e.control_.adaptive;
+      std::vector<size_t> bad;
+      while (true)
+      {
+        const double t = st.t;
+        if (t >= t_stop)
+        {
+          res.status = REACHED;
+          return;
+        }
+        if (sampler.present && st.recorded != t && n_alive)
+        {
+          if (st.count + 1 > store.capacity)
+          {
+            res.status = NEED_ROOM;
+            res.need = 1;
+            return;
+          }
+          if (due(sampler, t, tolerance))
+            record(store);
+        }
+        if (!n_alive)
+        {
+          res.status = EMPTY;
+          return;
+        }
+        if (res.taken == limit)
+        {
+          res.status = STEPPED;
+          return;
+        }
+        if (st.full)
+        {
+          res.status = FULL;
+          return;
+        }
+        const double t_next = propose(t_stop);
+        const double h = step_size(t_next);
+        const int64_t need = 1 + (adaptive ? dense_count(sampler, t_next, tolerance) : 0);
+        if (st.count + need > store.capacity)
+        {
+          res.status = NEED_ROOM;
+          res.need = need;
+          return;
+        }
+        if (adaptive)
+        {
+          int evaluations = 0;
+          const double error = attempt_adaptive(h, evaluations);
+          st.evaluations += evaluations;
+          if (!judge(h, error))
+          {
+            st.rejected += 1;
+            first[0] = K.row(0).transpose();  // the retry state: the same start, the same torque
+            has_first[0] = 1;
+            if (st.c_h < tolerance)
+            {
+              collapse(store, t, tolerance, error);
+              return;
+            }
+            continue;
+          }
+          if (st.c_h < tolerance)
+          {
+            collapse(store, t, tolerance, std::numeric_limits<double>::quiet_NaN());
+            return;
+          }
+          if (sampler.period > 0.0)  // Core._dense_samples
+          {
+            int extra = 0;
+            while (static_cast<double>(st.next_output) * sampler.period < t_next - tolerance)
+            {
+              const double t_out = static_cast<double>(st.next_output) * sampler.period;
+              const int64_t i = st.count;
+              stamp(store, i, rows[0], t_out);
+              dense(h, (t_out - t) / h);
+              for (int r = 0; r < m; ++r)
+                y[r] = flows[0][r] + yd[2 * nv + r];
+              write(store, i, rows[0], qd, vd, tau[0], y.data());
+              extra = extra_evaluations;
+              advance_count();
+              st.next_output += 1;
+            }
+            st.evaluations += extra;
+          }
+        }
+        else
+        {
+          int evaluations = 0;
+          for (size_t j = 0; j < rows.size(); ++j)
+            if (alive[j])
+              evaluations = attempt_fixed(j, h);
+          st.evaluations += evaluations;
+        }
+        bad.clear();
+        for (size_t j = 0; j < rows.size(); ++j)
+          if (alive[j] && !(qn[j].allFinite() && vn[j].allFinite()))
+            bad.push_back(j);
+        if (!bad.empty())  // their last sample is the state before this step; they leave once it is accepted
+        {
+          const bool added = record_stopping(store, bad);
+          for (size_t j : bad)
+          {
+            stop_event(STOP_DIVERGED, j, t_next, added, st.steps);
+            res.stops.back().dof = nonfinite_dof(j);
+          }
+        }
+        for (size_t j = 0; j < rows.size(); ++j)  // RowKernel.accept
+          if (alive[j])
+          {
+            q[j].swap(qn[j]);
+            v[j].swap(vn[j]);
+            for (int i = 0; i < m; ++i)
+              flows[j][i] = flows[j][i] + fn[j][i];
+            if (adaptive && e.method_.fsal)
+            {
+              first[j] = K.row(e.method_.stages - 1).transpose();
+              has_first[j] = 1;
+            }
+          }
+        st.t = t_next;
+        st.k += 1;
+        commit(t_next);
+        st.steps += 1;
+        res.taken += 1;
+        for (size_t j : bad)
+          kill(j);
+      }
+    }
+
+    void collapse(const Store & store, double t, double minimum, double error)
+    {
+      const std::vector<size_t> js{0};
+      const bool added = record_stopping(store, js);
+      stop_event(STOP_COLLAPSED, 0, t, added, st.steps);
+      StopEvent & ev = res.stops.back();
+      ev.h = st.c_h;
+      ev.minimum = minimum;
+      ev.error = error;
+      kill(0);
+      res.status = EMPTY;
+    }
+  };
+
+  // ---- a pool of threads that each run their own rows' loop, joined once per advance() --------------------------
+  struct Engine::Pool
+  {
+    std::vector<std::thread> workers;
+    std::mutex mutex;
+    std::condition_variable start, done;
+    std::function<void(size_t)> job;
+    uint64_t generation = 0;
+    size_t pending = 0;
+    bool quit = false;
+
+    explicit Pool(size_t n)
+    {
+      for (size_t i = 1; i < n; ++i)
+        workers.emplace_back([this, i] { loop(i); });
+    }
+
+    ~Pool()
+    {
+      {
+        std::lock_guard<std::mutex> lock(mutex);
+        quit = true;
+      }
+      start.notify_all();
+      for (std::thread & t : workers)
+        t.join();
+    }
+
+    void loop(size_t i)
+    {
+      uint64_t seen = 0;
+      while (true)
+      {
+        std::function<void(size_t)> task;
+        {
+          std::unique_lock<std::mutex> lock(mutex);
+          start.wait(lock, [&] { return quit || generation != seen; });
+          if (quit)
+            return;
+          seen = generation;
+          task = job;
+        }
+        task(i);
+        {
+          std::lock_guard<std::mutex> lock(mutex);
+          if (--pending == 0)
+            done.notify_one();
+        }
+      }
+    }
+
+    void run(const std::function<void(size_t)> & f)
+    {
+      {
+        std::lock_guard<std::mutex> lock(mutex);
+        job = f;
+        pending = workers.size();
+        ++generation;
+      }
+      start.notify_all();
+      f(0);
+      std::unique_lock<std::mutex> lock(mutex);
+      done.wait(lock, [&] { return pending == 0; });
+    }
+  };
+
+  // ---- Engine -----------------------------------------------------------------------------------------------------
+  Engine::Engine(
+    const pinocchio::Model & model,
+    const Method & method,
+    const std::vector<ChartBlock> & blocks,
+    const std::vector<double> & half_series,
+    const Vec & damping,
+    int n_ledger,
+    const Control & control,
+    const RowMatrix & Q0,
+    const RowMatrix & V0,
+    int num_threads)
+  : model_(model)
+  , method_(method)
+  , blocks_(blocks)
+  , half_series_(half_series)
+  , damping_(damping)
+  , damped_(damping.size() && (damping.array() != 0.0).any())
+  , n_ledger_(n_ledger)
+  , control_(control)
+  {
+    neutral_ = pinocchio::neutral(model_);
+    const int64_t B = Q0.rows();
+    const int64_t n = std::max<int64_t>(1, std::min<int64_t>(num_threads, B));
+    for (int64_t i = 0; i < n; ++i)  // rows split across threads once per run
+    {
+      std::vector<int64_t> owned;
+      for (int64_t b = i * B / n; b < (i + 1) * B / n; ++b)
+        owned.push_back(b);
+      threads_.emplace_back(new Thread(*this, owned, Q0, V0));
+    }
+    if (n > 1)
+      pool_.reset(new Pool(static_cast<size_t>(n)));
+  }
+
+  Engine::~Engine() = default;
+
+  AdvanceResult Engine::advance(
+    double t_stop, int64_t limit, double tolerance, const Sampler & sampler, const Store & store, CoreState & state)
+  {
+    for (auto & th : threads_)
+      th->st = state;
+    if (pool_)
+      pool_->run([&](size_t i) { threads_[i]->run(t_stop, limit, tolerance, sampler, store); });
+    else
+      threads_[0]->run(t_stop, limit, tolerance, sampler, store);
+    // Every thread with rows left took the same decisions; else the one that went furthest stands for the run.
+    Thread * lead = nullptr;
+    for (auto & th : threads_)
+      if (th->n_alive && (!lead || !lead->n_alive || th->st.steps > lead->st.steps))
+        lead = th.get();
+    if (!lead)
+      for (auto & th : threads_)
+        if (!lead || th->st.steps > lead->st.steps || th->st.count > lead->st.count)
+          lead = th.get();
+    AdvanceResult out;
+    out.status = lead->n_alive ? lead->res.status : EMPTY;
+    out.taken = lead->res.taken;
+    out.need = lead->res.need;
+    state = lead->st;
+    for (auto & th : threads_)
+      out.stops.insert(out.stops.end(), th->res.stops.begin(), th->res.stops.end());
+    std::stable_sort(out.stops.begin(), out.stops.end(), [](const StopEvent & a, const StopEvent & b) {
+      return a.step != b.step ? a.step < b.step : a.row < b.row;
+    });
+    for (auto & th : threads_)  // every thread continues from the run's time (rows that all stopped included)
+      th->st = state;
+    return out;
+  }
+
+  void Engine::write_rows(int64_t i, const std::vector<int64_t> & rows, const Store & store)
+  {
+    for (int64_t b : rows)
+      for (auto & th : threads_)
+        for (size_t j = 0; j < th->rows.size(); ++j)
+          if (th->rows[j] == b)
+            th->write(store, i, b, th->q[j], th->v[j], th->tau[j], th->flows[j].data());
+  }
+
+  void Engine::set_torques(const RowMatrix & TAU, bool jump)
+  {
+    if (TAU.rows() != running() || TAU.cols() != model_.nv)
+      throw std::invalid_argument("torques must have shape (running rows, nv)");
+    int64_t r = 0;
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->alive[j])
+        {
+          th->tau[j] = TAU.row(r++).transpose();
+          if (jump)
+            th->has_first[j] = 0;
+        }
+  }
+
+  void Engine::keep(const std::vector<bool> & keep)
+  {
+    if (static_cast<int64_t>(keep.size()) != running())
+      throw std::invalid_argument("keep needs one flag per running row");
+    size_t r = 0;
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->alive[j])
+          if (!keep[r++])
+            th->kill(j);
+  }
+
+  std::vector<int64_t> Engine::running_rows() const
+  {
+    std::vector<int64_t> out;
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->alive[j])
+          out.push_back(th->rows[j]);
+    return out;
+  }
+
+  RowMatrix Engine::running_q() const
+  {
+    RowMatrix out(running(), model_.nq);
+    int64_t r = 0;
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->alive[j])
+          out.row(r++) = th->q[j].transpose();
+    return out;
+  }
+
+  RowMatrix Engine::running_v() const
+  {
+    RowMatrix out(running(), model_.nv);
+    int64_t r = 0;
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->alive[j])
+          out.row(r++) = th->v[j].transpose();
+    return out;
+  }
+
+  Vec Engine::flows_of(int64_t row) const
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+          return th->flows[j];
+    return Vec();
+  }
+
+  void Engine::set_state(int64_t row, const Vec & q, const Vec & v, const Vec & flows)
+  {
+    if (q.size() != model_.nq || v.size() != model_.nv || flows.size() != n_ledger_)
+      throw std::invalid_argument("a row's state has the wrong sizes");
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+        {
+          th->q[j] = q;
+          th->v[j] = v;
+          th->flows[j] = flows;
+          th->has_first[j] = 0;
+        }
+  }
+
+  void Engine::revive(int64_t row)
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row && !th->alive[j])
+        {
+          th->alive[j] = 1;
+          ++th->n_alive;
+        }
+  }
+
+  std::tuple<Vec, Vec, Vec, Vec, Vec, bool> Engine::snapshot_row(int64_t row) const
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+          return {th->q[j], th->v[j], th->flows[j], th->tau[j], th->first[j], th->has_first[j] != 0};
+    throw std::invalid_argument("no such row");
+  }
+
+  void Engine::restore_row(
+    int64_t row, const Vec & q, const Vec & v, const Vec & flows, const Vec & tau, const Vec & first, bool has_first)
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+        {
+          if (q.size() != th->nq || v.size() != th->nv || tau.size() != th->nv || flows.size() != th->m
+              || first.size() != th->w)
+            throw std::invalid_argument("a row's state has the wrong sizes");
+          th->q[j] = q;
+          th->v[j] = v;
+          th->flows[j] = flows;
+          th->tau[j] = tau;
+          th->first[j] = first;
+          th->has_first[j] = has_first;
+          if (!th->alive[j])
+          {
+            th->alive[j] = 1;
+            ++th->n_alive;
+          }
+          return;
+        }
+    throw std::invalid_argument("no such row");
+  }
+
+  int64_t Engine::running() const
+  {
+    int64_t n = 0;
+    for (auto & th : threads_)
+      n += th->n_alive;
+    return n;
+  }
+
+} // namespace multibody_sim
+
+// ---- Python bindings: class _native.Kernel (native_core.py is its only user) ------------------------------------
+#include <nanobind/eigen/dense.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/nanobind.h>
+#include <nanobind/stl/string.h>
+#include <nanobind/stl/tuple.h>
+#include <nanobind/stl/vector.h>
+
+namespace nb = nanobind;
+
+namespace
+{
+  using Doubles = nb::ndarray<double, nb::c_contig, nb::device::cpu>;
+  using Ints = nb::ndarray<int64_t, nb::c_contig, nb::device::cpu>;
+  multibody_sim::Store store_of(Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY, Doubles FLOWS, Ints COUNTS)
+  {
+    multibody_sim::Store s;
+    s.T = T.data();
+    s.Q = Q.data();
+    s.V = V.data();
+    s.TAU = TAU.data();
+    s.ENERGY = ENERGY.data();
+    s.FLOWS = FLOWS.data();
+    s.COUNTS = COUNTS.data();
+    s.capacity = static_cast<int64_t>(T.shape(0));
+    s.B = static_cast<int64_t>(T.shape(1));
+    const size_t cells = T.shape(0) * T.shape(1);
+    if (COUNTS.size() != 3 * cells || ENERGY.size() != 2 * cells || Q.shape(0) != T.shape(0) || V.shape(0) != T.shape(0)
+        || TAU.shape(0) != T.shape(0) || FLOWS.shape(0) != T.shape(0))
+      throw std::invalid_argument("the sample store's arrays disagree in shape");
+    return s;
+  }
+
+  template<typename T>
+  T get(const nb::handle & obj, const char * name)
+  {
+    return nb::cast<T>(nb::getattr(obj, name));
+  }
+
+  // The core's state from the Python objects that hold it (core.Core, recording.SampleStore, core.Sampler,
+  // step_control.ConstantStep / PIController: the attribute names are native_core.py's contract with this file).
+  void read_state(
+    const multibody_sim::Engine & engine, nb::handle core, nb::handle store, nb::handle sampler, nb::handle control,
+    multibody_sim::CoreState & s)
+  {
+    s.t = engine.t;
+    s.k = engine.k;
+    s.steps = get<int64_t>(core, "steps");
+    s.rejected = get<int64_t>(core, "rejected");
+    s.evaluations = get<int64_t>(core, "evaluations");
+    s.recorded = get<double>(core, "recorded");
+    s.count = get<int64_t>(store, "count");
+    s.full = get<bool>(store, "full");
+    s.soft_capacity = get<double>(store, "soft_capacity");
+    s.next_output = sampler.is_none() ? 1 : get<int64_t>(sampler, "next_output");
+    if (get<bool>(control, "adaptive"))
+    {
+      s.c_time = get<double>(control, "time");
+      s.c_h = get<double>(control, "h");
+      s.c_previous_error = get<double>(control, "_previous_error");
+      s.c_rejected_last = get<bool>(control, "_rejected_last");
+    }
+    else
+    {
+      s.c_t0 = get<double>(control, "_t0");
+      s.c_k = get<int64_t>(control, "_k");
+      s.c_time = get<double>(control, "time");
+    }
+  }
+
+  // ... and back, with plain attribute assignments while the GIL is held: no Python code runs between them, so a
+  // signal handler (Ctrl-C) that runs when this call returns never sees the engine's work half recorded.
+  void write_state(
+    multibody_sim::Engine & engine, nb::handle core, nb::handle store, nb::handle sampler, nb::handle control,
+    const multibody_sim::CoreState & s)
+  {
+    engine.t = s.t;
+    engine.k = s.k;
+    nb::setattr(core, "steps", nb::int_(s.steps));
+    nb::setattr(core, "rejected", nb::int_(s.rejected));
+    nb::setattr(core, "evaluations", nb::int_(s.evaluations));
+    nb::setattr(core, "recorded", nb::float_(s.recorded));
+    nb::setattr(store, "count", nb::int_(s.count));
+    nb::setattr(store, "full", nb::bool_(s.full));
+    if (!sampler.is_none())
+      nb::setattr(sampler, "next_output", nb::int_(s.next_output));
+    nb::setattr(control, "time", nb::float_(s.c_time));
+    if (get<bool>(control, "adaptive"))
+    {
+      nb::setattr(control, "h", nb::float_(s.c_h));
+      nb::setattr(control, "_previous_error", nb::float_(s.c_previous_error));
+      nb::setattr(control, "_rejected_last", nb::bool_(s.c_rejected_last));
+    }
+    else
+    {
+      nb::setattr(control, "_t0", nb::float_(s.c_t0));
+      nb::setattr(control, "_k", nb::int_(s.c_k));
+    }
+  }
+
+} // namespace
+
+void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
+{
+  using multibody_sim::Engine;
+  nb::class_<Engine>(m, "Kernel", "The native stepping kernel of one run (multibody_sim.native_core drives it).")
+    .def(
+      "__init__",
+      [](
+        Engine * self, const multibody_sim::NativeModel & model, int kind, int stages, std::vector<double> a, std::vector<double> b,
+        std::vector<double> c, int chart_terms, bool fsal, std::vector<double> e, std::vector<double> dense,
+        std::vector<double> e5, std::vector<double> e3, int extended_stages, std::vector<double> a_extended,
+        std::vector<double> c_extended, std::vector<double> dense_weights,
+        std::vector<std::tuple<int, int, std::vector<int>, std::vector<double>>> blocks,
+        std::vector<double> half_series, const Eigen::VectorXd & damping, int n_ledger, bool adaptive, double dt,
+        double sliver, std::vector<double> pi, double landing, const multibody_sim::RowMatrix & Q0,
+        const multibody_sim::RowMatrix & V0, int num_threads) {
+        multibody_sim::Method me;
+        me.kind = static_cast<multibody_sim::Kind>(kind);
+        me.stages = stages;
+        me.a = a;
+        me.b = b;
+        me.c = c;
+        me.chart_terms = chart_terms;
+        me.fsal = fsal;
+        me.e = e;
+        me.dense = dense;
+        me.e5 = e5;
+        me.e3 = e3;
+        me.extended_stages = extended_stages;
+        me.a_extended = a_extended;
+        me.c_extended = c_extended;
+        me.dense_weights = dense_weights;
+        if (static_cast<int>(a.size()) != stages * stages || static_cast<int>(b.size()) != stages)
+          throw std::invalid_argument("the tableau's shapes disagree with its number of stages");
+        std::vector<multibody_sim::ChartBlock> chart;
+        for (auto & [start, d, index, sign] : blocks)
+        {
+          multibody_sim::ChartBlock block;
+          block.start = start;
+          block.d = d;
+          block.index = index;
+          block.half_sign = sign;
+          if (d > 6 || static_cast<int>(index.size()) != d * d || static_cast<int>(sign.size()) != d * d)
+            throw std::invalid_argument("a chart block must be d x d with d <= 6");
+          chart.push_back(block);
+        }
+        multibody_sim::Control control;
+        control.adaptive = adaptive;
+        control.dt = dt;
+        control.sliver = sliver;
+        control.landing = landing;
+        if (adaptive)
+        {
+          if (pi.size() != 9)
+            throw std::invalid_argument("the PI controller takes 9 constants");
+          control.alpha = pi[0];
+          control.beta = pi[1];
+          control.safety = pi[2];
+          control.factor_min = pi[3];
+          control.factor_max = pi[4];
+          control.max_step = pi[5];
+          control.first_step = pi[6];
+          control.rtol = pi[7];
+          control.atol = pi[8];
+        }
+        const pinocchio::Model & robot = model.model;
+        if (Q0.cols() != robot.nq || V0.cols() != robot.nv || Q0.rows() != V0.rows() || damping.size() != robot.nv)
+          throw std::invalid_argument("initial states or damping disagree with the model's sizes");
+        new (self) Engine(robot, me, chart, half_series, damping, n_ledger, control, Q0, V0, num_threads);
+      })
+    .def(
+      "advance",
+      [](
+        Engine & self, double t_stop, int64_t limit, double tolerance, nb::handle core, nb::handle store,
+        nb::handle sampler, nb::handle control, Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY,
+        Doubles FLOWS, Ints COUNTS, nb::list stops) {
+        multibody_sim::Store arrays = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS);
+        multibody_sim::Sampler sampling;
+        if (!sampler.is_none())
+        {
+          sampling.present = true;
+          nb::object every = nb::getattr(sampler, "every"), period = nb::getattr(sampler, "period");
+          sampling.every = every.is_none() ? 0 : nb::cast<int64_t>(every);
+          sampling.period = period.is_none() ? 0.0 : nb::cast<double>(period);
+        }
+        multibody_sim::CoreState s;
+        read_state(self, core, store, sampler, control, s);
+        multibody_sim::AdvanceResult result;
+        {
+          nb::gil_scoped_release release;
+          result = self.advance(t_stop, limit, tolerance, sampling, arrays, s);
+        }
+        for (const multibody_sim::StopEvent & ev : result.stops)
+          stops.append(nb::make_tuple(
+            ev.code, ev.row, ev.time, ev.step, ev.dof, ev.count, ev.added, ev.counts[0], ev.counts[1], ev.counts[2],
+            ev.h, ev.minimum, ev.error));
+        write_state(self, core, store, sampler, control, s);
+        return std::make_tuple(result.status, result.taken, result.need);
+      },
+      nb::arg("t_stop"), nb::arg("limit"), nb::arg("tolerance"), nb::arg("core"), nb::arg("store"),
+      nb::arg("sampler").none(), nb::arg("control"), nb::arg("T"), nb::arg("Q"), nb::arg("V"), nb::arg("TAU"),
+      nb::arg("ENERGY"), nb::arg("FLOWS"), nb::arg("COUNTS"), nb::arg("stops"),
+      "Core.advance towards t_stop: reads and writes the core's, store's, sampler's and controller's state "
+      "attributes; rows that stop are appended to `stops` as tuples.")
+    .def(
+      "write_rows",
+      [](
+        Engine & self, int64_t i, std::vector<int64_t> rows, Doubles T, Doubles Q, Doubles V, Doubles TAU,
+        Doubles ENERGY, Doubles FLOWS, Ints COUNTS) {
+        multibody_sim::Store store = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS);
+        if (i < 0 || i >= store.capacity)
+          throw std::invalid_argument("sample index out of the store");
+        for (int64_t b : rows)
+          if (b < 0 || b >= store.B)
+            throw std::invalid_argument("row out of the store");
+        self.write_rows(i, rows, store);
+      })
+    .def("set_torques", &Engine::set_torques)
+    .def("keep", &Engine::keep)
+    .def("running_rows", &Engine::running_rows)
+    .def("running_q", &Engine::running_q)
+    .def("running_v", &Engine::running_v)
+    .def("flows_of", &Engine::flows_of)
+    .def("set_state", &Engine::set_state)
+    .def("revive", &Engine::revive)
+    .def("snapshot_row", &Engine::snapshot_row)
+    .def("restore_row", &Engine::restore_row)
+    .def_prop_ro("running", &Engine::running)
+    .def_rw("t", &Engine::t)
+    .def_rw("k", &Engine::k);
+}

@@ -1,0 +1,216 @@
+// The native stepping kernel: the Python core's loop (core.Core.advance) over rows of one robot, in C++.
+//
+// The Python kernel is the specification (src/multibody_sim/core.py, integrators/explicit_rk.py,
+// integrators/partitioned.py, state.py, step_control.py); this file renders the same arithmetic in the same order
+// where it can (see docs/architecture.md). Everything a method is (its tableau, its error weights, its dense output)
+// arrives as data from Python: no coefficient is written here.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <tuple>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "pinocchio/multibody.hpp"
+
+namespace multibody_sim
+{
+  using Vec = Eigen::VectorXd;
+  using RowMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+
+  // What a method is, from the Python integrator's own arrays.
+  enum class Kind : int
+  {
+    explicit_rk = 0,  // ExplicitRungeKutta: a tableau, fixed steps
+    embedded = 1,     // EmbeddedRungeKutta: error weights e = b - b_hat, dense weights
+    dop853 = 2,       // DormandPrince853: combined error estimate, three extra stages for dense output
+    semi_implicit_euler = 3,
+  };
+
+  struct Method
+  {
+    Kind kind = Kind::explicit_rk;
+    int stages = 0;
+    std::vector<double> a, b, c;  // a: stages x stages, row-major
+    int chart_terms = 0;
+    bool fsal = false;
+    std::vector<double> e;      // embedded: b - b_hat
+    std::vector<double> dense;  // embedded: the quartic term's weights (empty: cubic Hermite)
+    std::vector<double> e5, e3;  // dop853's error weights
+    int extended_stages = 0;     // dop853: the stages with the dense output's extra ones
+    std::vector<double> a_extended, c_extended, dense_weights;  // dense_weights: 4 x extended_stages
+  };
+
+  // One curved block of the chart map (state.ConfigurationSpace._chart_entries): H = xi[start + index] * half_sign.
+  struct ChartBlock
+  {
+    int start = 0, d = 0;
+    std::vector<int> index;
+    std::vector<double> half_sign;
+  };
+
+  // The step-size controller's constants (step_control.ConstantStep, PIController).
+  struct Control
+  {
+    bool adaptive = false;
+    double dt = 0.0, sliver = 0.0;
+    double alpha = 0.0, beta = 0.0, safety = 0.0, factor_min = 0.0, factor_max = 0.0;
+    double max_step = 0.0, first_step = 0.0;
+    double rtol = 0.0, atol = 0.0;
+    double landing = 0.0;  // step_control.LANDING_FRACTION
+  };
+
+  // What the Python core owns and the native loop advances: passed in and out of every advance() call.
+  struct CoreState
+  {
+    double t = 0.0;  // the kernel's time [s] (kernel.t)
+    int64_t k = 0;   // the kernel's accepted steps (kernel.k)
+    int64_t steps = 0, rejected = 0, evaluations = 0;
+    double recorded = 0.0;  // the time of the latest sample
+    int64_t count = 0;      // store.count
+    bool full = false;      // store.full
+    double soft_capacity = 0.0;
+    int64_t next_output = 1;  // Sampler.next_output
+    // ConstantStep: (t0, k, time); PIController: (time, h, previous error, rejected last)
+    double c_t0 = 0.0;
+    int64_t c_k = 0;
+    double c_time = 0.0, c_h = 0.0, c_previous_error = 1.0;
+    bool c_rejected_last = false;
+  };
+
+  // The sample store's arrays (recording.SampleStore), sample-major: X[i, b, :].
+  struct Store
+  {
+    double * T = nullptr;
+    double * Q = nullptr;
+    double * V = nullptr;
+    double * TAU = nullptr;
+    double * ENERGY = nullptr;
+    double * FLOWS = nullptr;
+    int64_t * COUNTS = nullptr;
+    int64_t capacity = 0, B = 0;
+  };
+
+  // A row that stopped inside the loop (core.RowStop's evidence; Python writes the message).
+  struct StopEvent
+  {
+    int code = 0;  // STOP_DIVERGED or STOP_COLLAPSED
+    int64_t row = 0;
+    double time = 0.0;
+    int64_t step = 0;  // the step that failed (steps + 1 then)
+    int64_t dof = 0;   // diverged: the first non-finite velocity coordinate
+    int64_t count = 0;  // store.count when it stopped
+    bool added = false;  // a last sample was written for it at index count
+    int64_t counts[3] = {0, 0, 0};  // its frozen (steps, rejected, evaluations)
+    double h = 0.0, minimum = 0.0, error = 0.0;  // collapsed: the step, the minimum, the error norm (NaN: none)
+  };
+
+  enum Status : int
+  {
+    REACHED = 0,
+    STEPPED = 1,
+    FULL = 2,
+    EMPTY = 3,
+    NEED_ROOM = 4,
+  };
+  enum StopCode : int
+  {
+    STOP_DIVERGED = 1,
+    STOP_COLLAPSED = 2,
+  };
+
+  struct Sampler
+  {
+    bool present = false;
+    int64_t every = 0;  // 0: none
+    double period = 0.0;  // 0: none
+  };
+
+  struct AdvanceResult
+  {
+    int status = REACHED;
+    int64_t taken = 0;  // accepted steps in this call
+    int64_t need = 0;   // NEED_ROOM: samples the store must have room for beyond count
+    std::vector<StopEvent> stops;
+  };
+
+  struct Thread;  // one thread's rows and workspace
+
+  // The kernel of one run: the model, the rows' states, the method and the controller's constants.
+  class Engine
+  {
+  public:
+    Engine(
+      const pinocchio::Model & model,
+      const Method & method,
+      const std::vector<ChartBlock> & blocks,
+      const std::vector<double> & half_series,
+      const Vec & damping,
+      int n_ledger,
+      const Control & control,
+      const RowMatrix & Q0,
+      const RowMatrix & V0,
+      int num_threads);
+    ~Engine();
+
+    // Core.advance towards t_stop, at most `limit` accepted steps (< 0: no limit), with the landing `tolerance`.
+    AdvanceResult advance(
+      double t_stop, int64_t limit, double tolerance, const Sampler & sampler, const Store & store, CoreState & state);
+
+    // Write the current state of run rows `rows` as sample i (Q, V, TAU, FLOWS, ENERGY; the caller writes T, COUNTS).
+    void write_rows(int64_t i, const std::vector<int64_t> & rows, const Store & store);
+
+    void set_torques(const RowMatrix & TAU, bool jump);  // the running rows' torques, in order
+    void keep(const std::vector<bool> & keep);          // the running rows to keep, in order
+    std::vector<int64_t> running_rows() const;
+    RowMatrix running_q() const;
+    RowMatrix running_v() const;
+    Vec flows_of(int64_t row) const;
+    void set_state(int64_t row, const Vec & q, const Vec & v, const Vec & flows);  // by hand: a jump
+    void revive(int64_t row);  // a row stopped by the caller runs again (Stepper's restore)
+    // Row `row`'s whole state (q, v, flows, tau, the solver state's first stage row, whether it holds one), and back
+    // (running again): Stepper's snapshot and restore.
+    std::tuple<Vec, Vec, Vec, Vec, Vec, bool> snapshot_row(int64_t row) const;
+    void restore_row(int64_t row, const Vec & q, const Vec & v, const Vec & flows, const Vec & tau, const Vec & first,
+                     bool has_first);
+    int64_t running() const;
+
+    const pinocchio::Model & model() const
+    {
+      return model_;
+    }
+
+    double t = 0.0;  // the running rows' time [s] (kernel.t)
+    int64_t k = 0;   // accepted steps (kernel.k)
+
+  private:
+    friend struct Thread;
+    pinocchio::Model model_;
+    Method method_;
+    std::vector<ChartBlock> blocks_;
+    std::vector<double> half_series_;
+    Vec damping_;
+    bool damped_;
+    int n_ledger_;
+    Control control_;
+    Vec neutral_;
+    std::vector<std::unique_ptr<Thread>> threads_;
+    struct Pool;
+    std::unique_ptr<Pool> pool_;
+  };
+
+} // namespace multibody_sim
+
+namespace nanobind
+{
+  class module_;
+}
+
+namespace multibody_sim
+{
+  // The kernel's Python bindings (class _native.Kernel over a _native.Model), added by module.cpp.
+  void bind_kernel(nanobind::module_ & m);
+} // namespace multibody_sim

@@ -1,0 +1,318 @@
+"""Contact: the timestepping integrator against closed forms (sliding, resting, bouncing, stacking), its energy
+ledger against energies computed independently, and the refusals and defaults of contact scenes."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+import multibody_sim as ms
+from multibody_sim.exceptions import InvalidArgumentError, SimulationError
+from multibody_sim.integrators.timestepping import TimeStepping
+from multibody_sim.scenes import load_scene, make_scene
+
+G = 9.81
+
+
+def box_scene(*, mu: float = 0.8, velocity: float = 2.0, solver: str = "admm", **extra) -> ms.Scene:
+    """A 1 kg box, 0.2 x 0.2 x 0.1 m, resting on the ground at z = 0 (or sliding along x at `velocity`)."""
+    return make_scene(
+        ground={"friction": mu},
+        contact={"solver": solver},
+        object=[
+            {
+                "name": "box",
+                "shape": "box",
+                "size": [0.2, 0.2, 0.1],
+                "mass": 1.0,
+                "position": [0.0, 0.0, 0.05],
+                "velocity": [velocity, 0, 0, 0, 0, 0],
+            }
+        ],
+        **extra,
+    )
+
+
+def run(scene: ms.Scene, duration: float, dt: float, **options) -> ms.Trajectory:
+    return ms.simulate(
+        scene, scene.q0, scene.v0, duration=duration, dt=dt, integrator="timestepping", progress=False, **options
+    )
+
+
+# ---- closed forms ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("solver", ["admm", "pgs"])
+def test_sliding_box_decelerates_at_mu_g_and_stops_where_coulomb_says(solver):
+    """v(t) = v0 - μ g t until it stops at v0/(μg), having slid v0²/(2μg): every step while sliding changes the
+    velocity by exactly μ g dt (exact Coulomb cones, no regularization)."""
+    mu, v0, dt = 0.8, 2.0, 1e-3
+    traj = run(box_scene(mu=mu, velocity=v0, solver=solver), 0.4, dt)
+    vx = traj.v[:, 0]
+    sliding = np.flatnonzero(vx > mu * G * dt)  # steps that end still sliding
+    decelerations = -np.diff(vx)[sliding[:-1]] / dt
+    np.testing.assert_allclose(decelerations, mu * G, rtol=1e-6)
+    stop = traj.t[np.argmax(vx <= 1e-9)]
+    assert abs(stop - v0 / (mu * G)) <= dt
+    assert abs(traj.q[-1, 0] - v0**2 / (2 * mu * G)) <= v0 * dt
+    assert np.abs(vx[traj.t > stop + dt]).max() < 1e-9  # and stays stopped (stiction)
+    assert np.abs(traj.q[:, 2] - 0.05).max() < 1e-9  # never sinks nor lifts
+
+
+def test_resting_box_drifts_less_than_a_micrometre_in_a_second():
+    traj = run(box_scene(velocity=0.0), 1.0, 1e-3)
+    drift = np.linalg.norm(traj.q[:, :3] - traj.q[0, :3], axis=1).max()
+    assert drift <= 1e-6
+    assert traj.stats["solver_unconverged"] == 0
+
+
+def apex_ratios(traj: ms.Trajectory, radius: float) -> np.ndarray:
+    vz, z = traj.v[:, 2], traj.q[:, 2] - radius
+    apexes = [z[0]] + [z[i] for i in range(1, len(vz)) if vz[i - 1] > 0 >= vz[i]]
+    return np.array(apexes[1:]) / np.array(apexes[:-1])
+
+
+def test_bouncing_ball_apexes_shrink_by_e_squared():
+    """Newton's restitution e = 0.5: each apex is e² = 0.25 of the one before (free flight between bounces)."""
+    scene = load_scene("bouncing_ball")
+    traj = scene.run(duration=1.6)
+    ratios = apex_ratios(traj, 0.05)[:3]  # 1 m -> 0.25 -> 0.0625 -> 0.016
+    assert len(ratios) == 3
+    np.testing.assert_allclose(ratios, 0.25, rtol=0.03)
+    assert np.diff(traj.ledger["contact"].energy).min() >= 0.0
+
+
+@pytest.mark.slow
+def test_bouncing_ball_apexes_within_one_percent_at_a_tenth_of_a_millisecond():
+    traj = load_scene("bouncing_ball").run(duration=1.6, dt=1e-4, output_dt=1e-4)
+    np.testing.assert_allclose(apex_ratios(traj, 0.05)[:4], 0.25, rtol=0.01)
+
+
+def test_stack_ground_carries_the_whole_weight_each_step():
+    """At rest, the ground's normal impulses over one step sum to the stack's weight × dt."""
+    scene = load_scene("box_stack")
+    method = TimeStepping()
+    q, v, state = scene.q0, scene.v0, method.init(scene, scene.q0, scene.v0)
+    dt = 1e-3
+    weight = sum(item.mass for item in scene.spec.objects) * G
+    for _ in range(20):
+        attempt = method.attempt(scene, q, v, np.zeros(scene.nv), dt, 0.0, state)
+        q, v, state = attempt.q, attempt.v, attempt.state
+        problem, impulses = state.active
+        normal = [
+            impulses[3 * c + 2] * point.normal[2] for c, point in enumerate(problem.points) if "ground" in point.bodies
+        ]
+        assert sum(normal) == pytest.approx(weight * dt, rel=1e-9)
+    assert np.abs(v).max() < 1e-9
+
+
+# ---- the ledger ------------------------------------------------------------------------------------------------
+def test_contact_work_of_a_step_is_the_kinetic_energy_the_impulses_change():
+    """W = ½ λᵀJ(v⁺ + v_free) = T(q, v⁺) − T(q, v_free), with v_free from the scene's own forward dynamics and T
+    from its kinetic energy: the ledger's contact entries (dissipated, minus the corrections' work) are −W."""
+    scene = box_scene(velocity=1.0)
+    q = scene.q0.copy()
+    q[2] -= 1e-4  # a little penetration, so the correction's work is not zero
+    v = scene.v0.copy()
+    v[2] = -0.3  # landing while sliding
+    dt = 1e-3
+    tau = np.zeros(scene.nv)
+    attempt = TimeStepping().attempt(scene, q, v, tau, dt, 0.0, None)
+    v_free = v + dt * scene.forward_dynamics(q, v, tau)
+    work = scene.kinetic_energy(q, attempt.v) - scene.kinetic_energy(q, v_free)
+    names = [name for name, _ in scene.ledger_elements]
+    flows = dict(zip(names, attempt.flows, strict=True))
+    assert flows["penetration_correction"] > 0.0
+    assert flows["contact"] > 0.0
+    assert flows["penetration_correction"] + flows["restitution"] - flows["contact"] == pytest.approx(
+        work, rel=1e-12, abs=1e-15
+    )
+
+
+def test_no_other_ledger_element_is_named_contact():
+    scene = load_scene("box_stack")
+    names = [name for name, _ in scene.ledger_elements]
+    assert [name for name in names if "contact" in name] == ["contact"]
+    assert dict(scene.ledger_elements)["contact"] == "dissipated"
+
+
+def test_timestep_error_is_the_free_fall_error_of_semi_implicit_euler():
+    """In free fall a semi-implicit Euler step loses exactly ½ m g² dt² (its own formula books that)."""
+    scene = make_scene(object=[{"name": "ball", "shape": "sphere", "radius": 0.1, "mass": 2.0, "position": [0, 0, 5]}])
+    dt = 1e-3
+    traj = run(scene, 0.1, dt)
+    per_step = np.diff(traj.ledger["timestep_error"].energy)
+    np.testing.assert_allclose(per_step, -0.5 * 2.0 * G**2 * dt**2, rtol=1e-6)
+    assert np.abs(traj.energy_error).max() <= 1e-12 * 2.0 * G * 5
+
+
+# ---- solver failures -------------------------------------------------------------------------------------------
+def test_unconverged_steps_are_counted_and_more_than_one_percent_fails_the_run():
+    """A solver stopped at its cap continues with its best impulses; past 1 % of the steps the run fails, with its
+    samples."""
+    scene = box_scene()
+    capped = TimeStepping(max_iterations=1)
+    with pytest.raises(SimulationError) as info:
+        ms.simulate(scene, scene.q0, scene.v0, duration=0.05, dt=1e-3, integrator=capped, progress=False)
+    error = info.value
+    assert error.status == "solver_failed"
+    traj = error.trajectory
+    assert traj.t[-1] == pytest.approx(0.05)
+    assert 0.01 * traj.stats["steps"] < traj.stats["solver_unconverged"] <= traj.stats["steps"]
+    assert re.match(r"solver_failed: the contact solver did not converge on \d+ of 50 steps", str(error))
+
+
+# ---- scenes, objects and refusals ------------------------------------------------------------------------------
+def test_other_integrators_refuse_contact_scenes_naming_timestepping():
+    scene = box_scene()
+    with pytest.raises(InvalidArgumentError) as info:
+        ms.simulate(scene, scene.q0, scene.v0, duration=0.01, dt=1e-3, integrator="rk4")
+    assert str(info.value) == (
+        "integrator 'rk4' cannot step scene 'objects-scene': it has contact ([ground], [contact] or [[object]]), "
+        "which only integrator 'timestepping' steps"
+    )
+
+
+def test_without_contact_timestepping_is_semi_implicit_euler():
+    robot = ms.load_robot("double_pendulum")
+    q0, v0 = np.array([0.3, -0.2]), np.array([0.1, 0.5])
+    ours = ms.simulate(robot, q0, v0, duration=0.05, dt=1e-3, integrator="timestepping", progress=False)
+    theirs = ms.simulate(robot, q0, v0, duration=0.05, dt=1e-3, integrator="semi_implicit_euler", progress=False)
+    np.testing.assert_array_equal(ours.q, theirs.q)
+    np.testing.assert_array_equal(ours.v, theirs.v)
+
+
+def test_a_contact_scene_without_an_integrator_uses_timestepping():
+    assert box_scene().simulation_settings()["integrator"] == "timestepping"
+    assert load_scene("sliding_box").simulation_settings()["integrator"] == "timestepping"
+
+
+def test_objects_join_the_state_after_the_robot_with_world_velocities():
+    """q: position and scalar-last quaternion; v: Pinocchio's body-frame velocity, from the TOML's world frame."""
+    rpy, linear, angular = [0.3, -0.2, 1.1], [1.0, 2.0, 3.0], [0.5, -0.4, 0.2]
+    scene = make_scene(
+        robot={"source": "double_pendulum"},
+        object=[
+            {
+                "name": "cube",
+                "shape": "box",
+                "size": [0.1, 0.2, 0.3],
+                "mass": 2.0,
+                "position": [1, 2, 3],
+                "rpy": rpy,
+                "velocity": [*linear, *angular],
+            }
+        ],
+    )
+    assert scene.nq == 2 + 7 and scene.nv == 2 + 6
+    assert scene.dof_names[2:] == [f"cube.{c}" for c in ("vx", "vy", "vz", "wx", "wy", "wz")]
+    q, v = scene.q0, scene.v0
+    np.testing.assert_allclose(q[2:5], [1, 2, 3])
+    rotation = pin.Quaternion(q[8], *q[5:8]).matrix()  # (w, x, y, z) constructor, scalar-last storage
+    np.testing.assert_allclose(rotation, pin.rpy.rpyToMatrix(*rpy), atol=1e-15)
+    data = scene.model.createData()
+    pin.forwardKinematics(scene.model, data, q, v)
+    joint = scene.model.getJointId("cube")
+    world = pin.getVelocity(scene.model, data, joint, pin.LOCAL_WORLD_ALIGNED)
+    np.testing.assert_allclose(world.linear, linear, atol=1e-14)
+    np.testing.assert_allclose(world.angular, angular, atol=1e-14)
+    # Uniform density: a box's inertia from its shape.
+    inertia = scene.model.inertias[joint]
+    assert inertia.mass == 2.0
+    np.testing.assert_allclose(
+        np.diag(inertia.inertia), 2.0 / 12 * np.array([0.2**2 + 0.3**2, 0.1**2 + 0.3**2, 0.1**2 + 0.2**2])
+    )
+    tau = np.zeros(scene.nv)
+    tau[5] = 1.0
+    with pytest.raises(InvalidArgumentError, match=re.escape("tau[2:8] acts on the scene's free objects")):
+        scene.check_tau(tau)
+
+
+def test_describe_says_what_is_modelled():
+    text = load_scene("box_stack").describe()
+    assert "contact pairs: ground-bottom, ground-middle, ground-top, bottom-middle, bottom-top, middle-top" in text
+    assert "contact solver: ADMM" in text
+    assert "position limits: reported, not enforced" in text
+    assert "joint dry friction: regularized" in text
+    assert "force elements: none" in text
+
+
+# ---- robots: limits, exact joint friction, feet ------------------------------------------------------------------
+def test_a_joint_driven_into_its_limit_stops_there():
+    """panda_limits drives joint 4 towards −0.5 rad, past its upper limit (−0.0698 rad), with up to its full
+    effort: enforced as a unilateral constraint, the limit is violated by at most 1e-6 rad at any sample."""
+    scene = load_scene("panda_limits")
+    traj = scene.run()
+    upper = scene.upper_limit[3]
+    assert traj.q[-1, 3] == pytest.approx(upper, abs=1e-3)  # it did reach the limit
+    assert scene.limit_excess(traj.q).max() <= 1e-6
+    assert traj.stats["saturated_dofs"].get("panda_joint4", 0) > 0  # pushed as hard as it could
+    text = scene.describe()
+    assert "position limits: enforced as unilateral constraints (9 joints)" in text
+
+
+def friction_scene(F: float) -> ms.Scene:
+    """The double pendulum without gravity or damping, dry friction F on its first joint, exact."""
+    return make_scene(
+        robot={"source": "double_pendulum", "damping": False},
+        gravity=[0.0, 0.0, 0.0],
+        joints={"joint1": {"friction": F}},
+        contact={"friction": "exact"},
+    )
+
+
+@pytest.mark.parametrize(
+    ("v", "tau", "sticks"),
+    [
+        ([0.0, 0.0], [0.3, 0.0], True),
+        ([0.0, 0.0], [-0.49, 0.0], True),
+        ([0.0, 0.0], [0.8, 0.0], False),
+        ([0.0, 0.0], [-0.49, 0.2], False),  # joint 2's torque loads joint 1 through M: it slips
+        ([0.5, 0.2], [0.1, 0.0], False),
+        ([-0.5, 0.2], [0.1, -0.3], True),  # the arm's own dynamics nearly stop joint 1: friction does the rest
+    ],
+)
+def test_exact_joint_friction_sticks_below_its_bound_and_slips_with_coulomb_force(v, tau, sticks):
+    """One step of dry friction F on joint 1 is a one-dimensional complementarity problem with a closed form:
+    with v_free = v + dt M⁻¹(τ − C v) and w = (M⁻¹)₁₁, the impulse that stops the joint is p = −v_free[0] / w; if
+    |p| ≤ F dt the joint sticks (v⁺ = v_free + M⁻¹ e₁ p), else it slips with the full Coulomb torque:
+    v⁺ = v + dt M⁻¹(τ − C v − F sign(v⁺) e₁). The time-stepper agrees to 1e-9."""
+    F, dt = 0.5, 1e-3
+    scene = friction_scene(F)
+    q, v, tau = np.array([0.3, -0.2]), np.array(v), np.array(tau)
+    step = TimeStepping().attempt(scene, q, v, tau, dt, 0.0, None)
+    M, h = scene.mass_matrix(q), scene.nonlinear_effects(q, v)
+    e1 = np.array([1.0, 0.0])
+    v_free = v + dt * np.linalg.solve(M, tau - h)
+    column = np.linalg.solve(M, e1)
+    stop = -v_free[0] / column[0]
+    assert (abs(stop) <= F * dt) == sticks
+    if sticks:
+        expected = v_free + column * stop
+        assert abs(step.v[0]) <= 1e-9
+    else:
+        expected = v + dt * np.linalg.solve(M, tau - h - F * np.sign(v_free[0]) * e1)
+        assert np.sign(expected[0]) == np.sign(v_free[0])
+    np.testing.assert_allclose(step.v, expected, rtol=0, atol=1e-9)
+    assert "joint dry friction: exact (a constraint: stiction), on 1 joints" in scene.describe()
+
+
+def test_solo12_stands_on_its_four_foot_spheres():
+    scene = load_scene("solo12_standing")
+    traj = scene.run(duration=0.5)
+    assert np.abs(traj.q[:, 2] - traj.q[0, 2]).max() < 0.02  # dropped 3 mm, sags under its PD, never falls
+    assert np.abs(traj.q[:, :2] - traj.q[0, :2]).max() < 1e-4  # its feet do not slide
+    assert np.abs(traj.energy_error).max() <= 1e-9 * scene.total_mass * G
+    assert np.diff(traj.ledger["contact"].energy).min() >= 0.0
+
+
+def test_run_solo12_without_a_scene_says_nothing_holds_it_up(capsys):
+    from multibody_sim.cli import main
+
+    assert main(["run", "solo12", "--duration", "0.002"]) == 0
+    out = capsys.readouterr().out
+    assert (
+        "note: nothing holds solo12 up: without a scene there is no ground or contact, so its floating base falls; "
+        "run the shipped scene solo12_standing to stand it on the ground"
+    ) in out
