@@ -77,6 +77,12 @@ PRINTS: dict[str, list[str]] = {
         r"^\('standing', 'straight_standing'\) standing$",
         rf"^{FLOAT}$",
     ],
+    'scene = ms.load_scene("sliding_box.toml")': [
+        r"^  ground: plane z = 0 m, friction 0\.8, restitution 0$",  # its [ground] table
+        r"^status: completed$",
+        r"^steps: 400 ",  # 0.4 s at 1 ms
+        r"^energy \[J\]: T 2 -> ",  # 1 kg at 2 m/s: 2 J
+    ],
     "df = traj.to_dataframe()": [r"^\s+t\s+q\.root_joint\.z\s+v\.root_joint\.vz\s+q\.FL_KFE\s+total_energy$"],
 }
 
