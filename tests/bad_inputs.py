@@ -8,11 +8,15 @@ line that must exit 2, and the values its message template is filled with.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import functools
 import io
 import json
 import os
 import pickle
+import signal
+import socket
 import struct
 import sys
 import xml.etree.ElementTree as ET
@@ -55,11 +59,13 @@ class Trigger:
         call: the Python API call that must raise the entry's error (None for command-line-only entries).
         argv: the command line (after `multibody-sim`) that must exit 2 with the message (None for API-only).
         fields: values for the message template's {placeholders}.
+        during: a context in which both run (a full disk, a signal at a chosen moment), or None.
     """
 
     call: Callable[[], object] | None = None
     argv: list[str] | None = None
     fields: dict[str, str] = field(default_factory=dict)
+    during: Callable[[], contextlib.AbstractContextManager[Any]] | None = None
 
 
 @dataclass(frozen=True)
@@ -74,6 +80,8 @@ class BadInput:
         advice: what to do about it.
         build: makes the input in a fresh folder and says how to trigger the error.
         error: the exception class the API raises.
+        code: the command line's exit code: 2 (bad input), or for a run that ends early 1 (failed) and 130 / 143
+            (SIGINT / SIGTERM), whose line starts "multibody-sim: SIGINT: " instead of "multibody-sim: error: ".
     """
 
     id: str
@@ -83,6 +91,7 @@ class BadInput:
     advice: str
     build: Callable[[Path], Trigger]
     error: type[Exception] = ms.ModelError
+    code: int = 2
 
 
 # ur5's movable joints and the frames on its moving bodies, as the scene errors list them.
@@ -96,6 +105,13 @@ UR5_MOVING_FRAMES = (
 
 # What the table shows for the placeholders (the tests fill in real paths).
 DISPLAY = {
+    "out": "/home/me/run.npz",
+    "target": "/home/me/pipe",
+    "lock": "/home/me/run.npz.lock",
+    "pid": "12345",
+    "parts": "/home/me/run.npz.parts",
+    "other": "9c41d7e2a0b3",
+    "mine": "5f0e8b2c7d16",
     "urdf": "/home/me/robot/robot.urdf",
     "dir": "/home/me/robot",
     "secret": "/home/me/secret/passwords.txt",
@@ -1157,6 +1173,171 @@ def string_wall_time(header: dict[str, Any]) -> None:
     header["stats"]["wall_time"] = "slow"
 
 
+def fifo(tmp: Path, name: str = "run.npz") -> Path:
+    path = tmp / name
+    os.mkfifo(path)
+    return path
+
+
+def unix_socket(tmp: Path, name: str) -> Path:
+    """A socket file (it stays in the folder once the socket is closed)."""
+    path = tmp / name
+    with socket.socket(socket.AF_UNIX) as server:
+        server.bind(str(path))
+    return path
+
+
+def saved_run(tmp: Path) -> Path:
+    return ms.simulate(pendulum(), [1.0], [0.0], duration=0.05, dt=0.01).save(tmp / "saved.npz")
+
+
+def output_api(make: Callable[[Path], Path], call: Callable[[Path], object]) -> Callable[[Path], Trigger]:
+    """An API writer given the output `make` builds; fields: out (and target, for a link)."""
+
+    def build(tmp: Path) -> Trigger:
+        path = make(tmp)
+        return Trigger(call=lambda: call(path), fields={"out": str(path), "target": os.path.realpath(path)})
+
+    return build
+
+
+def to_out(path: Path) -> object:
+    return ms.simulate(pendulum(), [1.0], [0.0], duration=0.05, dt=0.01, out=path)
+
+
+def save_to(path: Path) -> object:
+    return ms.simulate(pendulum(), [1.0], [0.0], duration=0.05, dt=0.01).save(path)
+
+
+def link_to_fifo(tmp: Path) -> Path:
+    link = tmp / "run.npz"
+    link.symlink_to(fifo(tmp, "pipe"))
+    return link
+
+
+def locked(tmp: Path) -> Trigger:
+    """out.lock names a live process (this one): another run is writing out."""
+    out = tmp / "run.npz"
+    lock = tmp / "run.npz.lock"
+    lock.write_text(f"{os.getpid()} {socket.gethostname()} 0123456789abcdef0123456789abcdef\n")
+    fields = {"out": str(out), "lock": str(lock), "pid": str(os.getpid())}
+    return Trigger(call=lambda: to_out(out), fields=fields)
+
+
+def output_cli(option: str, make: Callable[[Path], Path], command: str = "run") -> Callable[[Path], Trigger]:
+    def build(tmp: Path) -> Trigger:
+        path = make(tmp)
+        argv = ["run", "pendulum", "--duration", "0.05", option, str(path)]
+        if command != "run":
+            argv = [command, str(saved_run(tmp)), option, str(path)]
+        return Trigger(argv=argv, fields={"out": str(path)})
+
+    return build
+
+
+def folder(tmp: Path) -> Path:
+    path = tmp / "run.npz"
+    path.mkdir()
+    return path
+
+
+def unmerged_parts(tmp: Path, name: str = "run.npz") -> Path:
+    """A chunked run's parts (6 chunks of 20 samples) left unmerged: its merge found the disk full."""
+    from unittest import mock
+
+    def full(*args: object, **kwargs: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with mock.patch("multibody_sim.driver.merge_parts", full), contextlib.suppress(ms.SimulationError):
+        ms.simulate(pendulum(), [1.0], [0.0], duration=1.0, dt=1e-3, output_dt=1e-2, out=tmp / name, chunk=20)
+    return tmp / f"{name}.parts"
+
+
+def parts_with_a_hole(tmp: Path) -> Trigger:
+    parts = unmerged_parts(tmp)
+    (parts / "chunk_000002.npz").unlink()
+    return npz_trigger(parts, {"parts": str(parts)})
+
+
+def run_id(chunk: Path) -> str:
+    with np.load(chunk) as npz:
+        return str(json.loads(str(npz["header"][()]))["metadata"]["chunk"]["run_id"])[:12]
+
+
+def parts_with_a_stranger(tmp: Path) -> Trigger:
+    parts = unmerged_parts(tmp)
+    stranger = unmerged_parts(tmp, "other.npz") / "chunk_000003.npz"
+    stranger.replace(parts / "chunk_000003.npz")
+    fields = {
+        "parts": str(parts),
+        "other": run_id(parts / "chunk_000003.npz"),
+        "mine": run_id(parts / "chunk_000000.npz"),
+    }
+    return npz_trigger(parts, fields)
+
+
+CHUNKED_RUN = ["run", "pendulum", "--q0", "1", "--output-dt", "0.01", "--chunk", "20"]
+
+
+@contextlib.contextmanager
+def disk_full_from(call: int) -> Any:
+    """Trajectory.save (every chunk and file) finds the disk full from its `call`-th call on."""
+    from unittest import mock
+
+    real = ms.Trajectory.save
+    calls = []
+
+    def save(self: ms.Trajectory, path: Any) -> Any:
+        calls.append(path)
+        if len(calls) >= call:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, path)
+
+    with mock.patch.object(ms.Trajectory, "save", save):
+        yield
+
+
+@contextlib.contextmanager
+def signal_inside(target: str, signum: int, call: int) -> Any:
+    """A real signal sent to this process from inside `target` (module.function), at its `call`-th call."""
+    from unittest import mock
+
+    module, name = target.rsplit(".", 1)
+    real = getattr(__import__(module, fromlist=[name]), name)
+    calls = []
+
+    def signalled(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        if len(calls) == call:
+            os.kill(os.getpid(), signum)
+        return real(*args, **kwargs)
+
+    with mock.patch(target, signalled):
+        yield
+
+
+def runtime(argv: list[str], during: Callable[[], Any], *, chunked: bool = True) -> Callable[[Path], Trigger]:
+    def build(tmp: Path) -> Trigger:
+        out = tmp / "run.npz"
+        fields = {"out": str(out), "parts": f"{out}.parts"}
+        return Trigger(argv=[*argv, "--out", str(out)], fields=fields, during=during)
+
+    return build
+
+
+@contextlib.contextmanager
+def file_size_limit(nbytes: int) -> Any:
+    """RLIMIT_FSIZE (ulimit -f) lowered for the block (the hard limit unchanged, so it can be raised back)."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+
+
 FILES = [
     BadInput(
         "npz-header-nesting-bomb",
@@ -1184,6 +1365,164 @@ FILES = [
         "The file was edited or forged: regenerate it.",
         edited_trajectory(string_wall_time),
         ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "output-fifo",
+        "output file",
+        "a FIFO (named pipe) given as a run's out",
+        "out {out}: is a FIFO (named pipe), only regular files are replaced; give a file name such as run.npz",
+        "Give a file name: outputs are written to a temporary file and renamed over a regular file only.",
+        output_api(fifo, to_out),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "output-link-to-fifo",
+        "output file",
+        "a symbolic link to a FIFO given to Trajectory.save (a link is written through: its target counts)",
+        "out {out} (a symbolic link to {target}): is a FIFO (named pipe), only regular files are replaced; give a "
+        "file name such as run.npz",
+        "Point the link at a regular file (or none yet): the link stays, its target is replaced.",
+        output_api(link_to_fifo, save_to),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "output-socket",
+        "output file",
+        "a socket file given to Trajectory.save",
+        "out {out}: is a socket, only regular files are replaced; give a file name such as run.npz",
+        "Give a file name.",
+        output_api(lambda tmp: unix_socket(tmp, "run.npz"), save_to),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "output-directory",
+        "output file",
+        "a folder given as a run's out",
+        "out {out}: is a directory, expected a file name such as run.npz",
+        "Give a file name inside the folder.",
+        output_api(folder, to_out),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "output-locked",
+        "output file",
+        "a second run given the out another live run is writing (its lock file names a live process)",
+        "out {out}: another run is writing it (process {pid}, lock file {lock}); choose another file, or wait for "
+        "that run to end",
+        "Choose another file. A lock whose process has exited is stale and taken over by the next run.",
+        locked,
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "cli-out-directory",
+        "command line",
+        "`run --out` naming a folder",
+        "--out {out}: is a directory, expected a file name such as run.npz",
+        "Give a file name inside the folder.",
+        output_cli("--out", folder),
+    ),
+    BadInput(
+        "cli-csv-socket",
+        "command line",
+        "`export --csv` naming a socket file",
+        "--csv {out}: is a socket, only regular files are replaced; give a file name such as table.csv",
+        "Give a file name.",
+        output_cli("--csv", lambda tmp: unix_socket(tmp, "table.csv"), "export"),
+    ),
+    BadInput(
+        "cli-html-fifo",
+        "command line",
+        "`play --html` naming a FIFO",
+        "--html {out}: is a FIFO (named pipe), only regular files are replaced; give a file name such as view.html",
+        "Give a file name.",
+        output_cli("--html", lambda tmp: fifo(tmp, "view.html"), "play"),
+    ),
+    BadInput(
+        "parts-missing-chunk",
+        "trajectory file",
+        "a chunked run's parts folder with a chunk missing",
+        "{parts}: chunk_000002.npz is missing: the samples from t = 0.39 s to t = 0.6 s are lost; load the chunk "
+        "files one by one (Trajectory.load(chunk))",
+        "Find the missing chunk; the others load one by one. A trajectory with a hole is never stitched together.",
+        parts_with_a_hole,
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "parts-foreign-chunk",
+        "trajectory file",
+        "a parts folder holding a chunk of another run (same times and shapes)",
+        "{parts}: chunk_000003.npz belongs to another run (run {other}, not {mine} of chunk_000000.npz); move it "
+        "out of the folder",
+        "Move the stranger out; each chunk records the run it belongs to.",
+        parts_with_a_stranger,
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "disk-full-mid-run",
+        "run ending early",
+        "the disk fills up while a chunked run writes its fourth chunk",
+        "could not write {parts}/chunk_000003.npz (No space left on device) at t = 0.79 s: the run stopped; 60 "
+        "samples stay in {parts} (Trajectory.load reads the folder), the last 20 only in memory; partial trajectory "
+        "(80 samples, t = 0..0.79 s) kept in {parts} (`multibody-sim plot`, `export` and Trajectory.load read the "
+        "folder)",
+        "Free some space; the parts load as they are (status incomplete).",
+        runtime([*CHUNKED_RUN, "--duration", "1"], lambda: disk_full_from(4)),
+        ms.SimulationError,
+        code=1,
+    ),
+    BadInput(
+        "disk-full-at-the-end",
+        "run ending early",
+        "the disk is full when a completed in-memory run writes its file",
+        "the run completed, but {out} could not be written (No space left on device); partial trajectory (101 "
+        "samples, t = 0..1 s) not written to {out}: lost when this command exits",
+        "Free some space, or stream long runs to disk as they go (--chunk N): chunks already written stay.",
+        runtime(["run", "pendulum", "--q0", "1", "--output-dt", "0.01", "--duration", "1"], lambda: disk_full_from(1)),
+        ms.SimulationError,
+        code=1,
+    ),
+    BadInput(
+        "sigint-during-merge",
+        "run ending early",
+        "Ctrl-C while a chunked run's chunks are merged into its file",
+        "interrupted while writing the samples, after the run completed at t = 1 s; 101 samples kept; merging the "
+        "chunks was interrupted: 101 samples stay in {parts} (Trajectory.load reads the folder); partial trajectory "
+        "(101 samples, t = 0..1 s) kept in {parts} (`multibody-sim plot`, `export` and Trajectory.load read the "
+        "folder)",
+        "Nothing is lost: the parts load as they are; the half-written file was removed.",
+        runtime(
+            [*CHUNKED_RUN, "--duration", "1"],
+            lambda: signal_inside("numpy.lib.format.write_array_header_2_0", signal.SIGINT, 3),
+        ),
+        ms.SimulationError,
+        code=130,
+    ),
+    BadInput(
+        "sigterm-during-chunk-write",
+        "run ending early",
+        "`kill` (SIGTERM) while a chunk file is being written",
+        "interrupted at t = 0.59 s (step 590); 60 samples kept; partial trajectory (60 samples, t = 0..0.59 s) "
+        "written to {out}",
+        "Nothing is lost: the chunk is completed before the signal takes effect, then the chunks are merged.",
+        runtime(
+            [*CHUNKED_RUN, "--duration", "1"],
+            lambda: signal_inside("multibody_sim.driver.write_chunk", signal.SIGTERM, 3),
+        ),
+        ms.SimulationError,
+        code=143,
+    ),
+    BadInput(
+        "file-size-limit",
+        "run ending early",
+        "a run whose file would outgrow this process's file-size limit (ulimit -f 1000, i.e. 1 MB)",
+        "out {out} would take about 8 MB, more than this process's file-size limit (1 MB, ulimit -f): sample less "
+        "often (output_dt) or raise the limit",
+        "Refused before the run, not cut short at its end: sample less often, stream with --chunk, or raise the limit.",
+        runtime(
+            ["run", "pendulum", "--duration", "100", "--output-dt", "0.001"],
+            lambda: file_size_limit(10**6),
+        ),
+        ms.InvalidArgumentError,
     ),
 ]
 CATALOGUE += FILES

@@ -489,3 +489,35 @@ def test_a_foreign_chunk_dropped_in_during_the_run_stops_the_merge(tmp_path: Pat
         info.value
     )
     assert not out.exists()
+
+
+@pytest.mark.parametrize("where", ["controller", "on_sample"])
+def test_user_code_that_raises_in_a_chunked_run_keeps_every_sample(tmp_path: Path, where: str) -> None:
+    """The user-exception guarantee holds for chunked runs too: status failed, the cause chained, the samples so
+    far merged into out, equal to the in-memory run's."""
+
+    class Boom(Exception):
+        pass
+
+    def controller(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        if where == "controller" and t > 0.4995:
+            raise Boom("controller gave up")
+        return np.zeros(1)
+
+    def on_sample(t: float, q: np.ndarray, v: np.ndarray) -> None:
+        if where == "on_sample" and t > 0.4995:
+            raise Boom("viewer gave up")
+
+    kwargs = dict(duration=1.0, dt=1e-3, output_dt=1e-2, controller=controller, on_sample=on_sample)
+    with pytest.raises(ms.SimulationError) as memory:
+        ms.simulate(ms.load_robot("pendulum"), [1.0], [0.0], **kwargs)
+    out = tmp_path / "run.npz"
+    with pytest.raises(ms.SimulationError) as streamed:
+        ms.simulate(ms.load_robot("pendulum"), [1.0], [0.0], out=out, chunk=7, **kwargs)
+    assert str(streamed.value) == str(memory.value)
+    assert streamed.value.status == "failed" and isinstance(streamed.value.__cause__, Boom)
+    assert streamed.value.saved_to == out
+    same(memory.value.trajectory, streamed.value.trajectory)
+    saved = ms.Trajectory.load(out)
+    same(memory.value.trajectory, saved)
+    assert saved.status == "failed" and sorted(os.listdir(tmp_path)) == ["run.npz"]

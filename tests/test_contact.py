@@ -316,3 +316,26 @@ def test_run_solo12_without_a_scene_says_nothing_holds_it_up(capsys):
         "note: nothing holds solo12 up: without a scene there is no ground or contact, so its floating base falls; "
         "run the shipped scene solo12_standing to stand it on the ground"
     ) in out
+
+
+def test_bench_measures_a_contact_scene_against_timestepping_at_a_much_smaller_step():
+    """A non-smooth system has no higher-order reference: the study says so and measures timestepping against
+    itself at CONTACT_REFERENCE_DT, where its first order shows."""
+    from multibody_sim import bench
+
+    scene = load_scene("sliding_box")
+    study = ms.work_precision(
+        scene, scene.q0, scene.v0, duration=0.1, output_dt=0.02, steps=[0.02, 0.01, 0.005, 0.0025], repeats=1
+    )
+    reference = study.reference
+    assert reference is not None
+    assert (reference.integrator, reference.dt, reference.check_dt) == (
+        "timestepping",
+        bench.CONTACT_REFERENCE_DT,
+        bench.CONTACT_REFERENCE_DT / 2,
+    )
+    assert {m.integrator for m in study.measurements if m.completed} == {"timestepping"}
+    refused = {m.integrator for m in study.measurements if m.status == bench.STATUS_REFUSED}
+    assert refused == set(ms.INTEGRATORS) - {"timestepping"}
+    assert study.orders["timestepping"].observed == pytest.approx(1.0, abs=0.2)
+    assert "the reference is the same integrator at a much smaller step" in study.summary()

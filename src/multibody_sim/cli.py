@@ -769,8 +769,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise _UsageError("--integrators: name at least one integrator (e.g. --integrators rk4,dp54)")
         for name in names:
             ms.get_integrator(name)  # an unknown name is bad input before any work
-    q0 = robot.default_pose() if args.q0 is None else _configuration(robot, args.q0)
-    v0 = [0.0] * robot.nv if args.v0 is None else robot.check_v(args.v0, "v0")
+    scene_start = isinstance(robot, ms.Scene)  # a scene starts where it declares (its objects' velocities too)
+    default_q = robot.q0 if scene_start else robot.default_pose()
+    default_v = robot.v0 if scene_start else [0.0] * robot.nv
+    q0 = default_q if args.q0 is None else _configuration(robot, args.q0)
+    v0 = default_v if args.v0 is None else robot.check_v(args.v0, "v0")
     base = "floating" if robot.floating_base else "fixed"
     started: list[bool] = []
 

@@ -160,6 +160,10 @@ class Trajectory:
             f"steps: {s.get('steps', 0)}  dynamics evaluations: {s.get('evaluations', 0)}  "
             f"wall time: {wall:.3f} s  real-time factor: {rtf:.1f}x",
         ]
+        kernel = self.metadata.get("kernel")
+        if isinstance(kernel, str):  # which stepping kernel ran (driver.kernel_name), and why not the native one
+            why = self.metadata.get("why_not_native")
+            lines.append(f"kernel: {safe_name(kernel)}" + (f" (not native: {safe_name(str(why))})" if why else ""))
         if len(self.t):
             lines += [
                 f"energy [J]: T {self.kinetic_energy[0]:.6g} -> {self.kinetic_energy[-1]:.6g}, "

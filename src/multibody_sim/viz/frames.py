@@ -28,13 +28,19 @@ def robot_from_trajectory(trajectory: Trajectory) -> Robot:
     check_trajectory(trajectory, "trajectory")
     info = trajectory.metadata.get("robot")
     arguments = info.get("load_robot") if isinstance(info, dict) else None
-    if not isinstance(info, dict) or not isinstance(arguments, dict) or not arguments.get("source"):
+    objects_only = isinstance(info, dict) and isinstance(info.get("scene"), dict) and info.get("source") is None
+    if not objects_only and (
+        not isinstance(info, dict) or not isinstance(arguments, dict) or not arguments.get("source")
+    ):
         raise TrajectoryFileError("the trajectory does not record how its robot was loaded (metadata 'robot')")
+    assert isinstance(info, dict)
     if isinstance(info.get("scene"), dict):  # a scene's reduced / modified model: rebuild the scene itself
         from ..scenes import scene_from_metadata
 
         robot: Robot = scene_from_metadata(info["scene"])
         return _checked(robot, info, trajectory)
+    if not isinstance(arguments, dict):  # objects only: handled above
+        raise TrajectoryFileError("the trajectory does not record how its robot was loaded (metadata 'robot')")
     source = str(arguments["source"])
     urdf_path = info.get("urdf_path")
     # A catalog name loads the catalog's URDF; a file loads the recorded absolute path, so that replaying does
