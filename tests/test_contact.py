@@ -370,3 +370,17 @@ def test_the_trajectory_records_each_samples_contacts_compactly(tmp_path):
         ms.load_robot("double_pendulum"), [0.1, 0.2], [0, 0], duration=0.01, dt=1e-3, progress=False
     )
     assert robot_run.contacts is None
+
+
+def test_a_rollout_of_a_contact_scene_steps_each_row_as_simulate_does():
+    """Rows of a rollout carry their own solver state (warm start, landings): each equals its own simulate()."""
+    scene = box_scene()
+    speeds = np.array([0.5, 1.0, 2.0])
+    V0 = np.tile(scene.v0, (3, 1))
+    V0[:, 0] = speeds
+    batch = ms.rollout(scene, np.tile(scene.q0, (3, 1)), V0, duration=0.3, dt=1e-3, integrator="timestepping")
+    assert list(batch.status) == ["completed"] * 3
+    for b in range(3):
+        alone = run(box_scene(velocity=speeds[b]), 0.3, 1e-3)
+        np.testing.assert_array_equal(batch.q[b], alone.q)
+    np.testing.assert_allclose(batch.q[:, -1, 0], speeds**2 / (2 * 0.8 * G), atol=2.0 * 1e-3)

@@ -154,7 +154,6 @@ class ContactProblem:
     landings: dict[int, float] = field(default_factory=dict)
     limit_rows: int = 0
     friction_rows: int = 0
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 def make_shape(kind: str, dimensions: Sequence[float]) -> Any:
