@@ -136,8 +136,7 @@ def simulate(
             if kept.interrupted:  # the signal came while the samples were being written: they were written first
                 raise SimulationInterrupted(
                     f"interrupted while writing the samples, after the run {outcome.status} at t = "
-                    f"{kept.t_end:.6g} s; {kept.samples} samples kept"
-                    + (f"; {kept.problem}" if kept.problem else ""),
+                    f"{kept.t_end:.6g} s; {kept.samples} samples kept" + (f"; {kept.problem}" if kept.problem else ""),
                     trajectory=traj,
                     saved_to=kept.saved_to,
                 )
