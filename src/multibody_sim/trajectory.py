@@ -16,7 +16,7 @@ import numpy as np
 from .exceptions import InvalidArgumentError, TrajectoryFileError
 from .files import write_atomically
 from .safety import ARCHIVE_ERRORS, MAX_JSON_DEPTH, check_npz, json_depth, printable, read_npz, safe_name
-from .validation import sample_times
+from .validation import check_flag, check_path, sample_times
 
 FORMAT = "multibody-sim trajectory"
 FORMAT_VERSION = 1
@@ -286,7 +286,7 @@ class Trajectory:
             InvalidArgumentError: path is a directory, FIFO, socket or device, or its folder is not writable.
             OSError: the write failed (disk full, a file-size limit): any previous file stays, and no temporary file.
         """
-        path = Path(path)
+        path = Path(check_path(path, "path", "a trajectory file (.npz)"))
         arrays = {name: np.asarray(getattr(self, name)) for name in ARRAYS}
         for name, entry in self.ledger.items():
             arrays[_LEDGER_PREFIX + name] = np.asarray(entry.energy)
@@ -317,8 +317,10 @@ class Trajectory:
 
         Raises:
             TrajectoryFileError: the file is missing, truncated, corrupted or not a trajectory.
+            InvalidArgumentError: path is not a path, or mmap not True or False.
         """
-        path = Path(path)
+        path = Path(check_path(path, "path", "a trajectory file (.npz) or a parts folder"))
+        check_flag(mmap, "mmap")
         parts = path if path.is_dir() else path.with_name(path.name + PARTS_SUFFIX)
         if path.is_dir() or (not path.exists() and parts.is_dir()):
             return cls._from_parts(parts)
@@ -414,6 +416,8 @@ class Trajectory:
     @classmethod
     def concatenate(cls, pieces: list[Trajectory]) -> Trajectory:
         """Consecutive pieces of one run as one trajectory (the last piece's status, stats and metadata)."""
+        if not isinstance(pieces, (list, tuple)) or not pieces or not all(isinstance(p, Trajectory) for p in pieces):
+            raise InvalidArgumentError(f"pieces must be a non-empty list of Trajectory, got {pieces!r:.80}")
         last = pieces[-1]
         return cls(
             **{name: np.concatenate([getattr(p, name) for p in pieces]) for name in ARRAYS},

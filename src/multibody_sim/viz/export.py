@@ -12,7 +12,15 @@ import numpy as np
 from ..files import check_output, write_atomically
 from ..robot import Robot
 from ..trajectory import Trajectory
-from ..validation import frame_rate, playback_speed
+from ..validation import (
+    check_flag,
+    check_path,
+    check_system,
+    check_text,
+    check_trajectory,
+    frame_rate,
+    playback_speed,
+)
 from ._deps import check_viewer_dependencies, meshcat_viewer_js
 from .frames import DEFAULT_FPS, resample, robot_from_trajectory
 from .page import standalone_page
@@ -51,7 +59,14 @@ def export_html(
     Returns:
         The path written.
     """
+    check_trajectory(trajectory, "trajectory")
+    check_path(path, "path", "an HTML file")
+    if robot is not None:
+        check_system(robot, "robot")
     fps, speed = frame_rate(fps), playback_speed(speed)
+    check_flag(loop, "loop")
+    check_flag(plot, "plot")
+    check_text(title, "title")
     check_output(path, "out", "view.html")  # before the work: only a regular file is replaced
     check_viewer_dependencies()
     robot = robot_from_trajectory(trajectory) if robot is None else robot
