@@ -10,6 +10,7 @@ import re
 import shutil
 import subprocess
 import sys
+import tempfile
 import textwrap
 import zipfile
 from pathlib import Path
@@ -57,8 +58,10 @@ def build_wheel(
         command = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--wheel-dir", str(out), str(source)]
         if not isolated:
             command.insert(4, "--no-build-isolation")
-    lock = os.environ.get("MULTIBODY_SIM_BUILD_LOCK")  # machines that limit concurrent C++ compiles
-    if lock and shutil.which("flock"):
+    if shutil.which("flock"):  # one C++ build at a time on this machine (scripts/test.sh takes the same lock)
+        lock = os.environ.get("MULTIBODY_SIM_BUILD_LOCK") or str(
+            Path(tempfile.gettempdir(), "multibody-sim-build.lock")
+        )
         command = ["flock", lock, *command]
     return subprocess.run(command, capture_output=True, text=True, timeout=600, env=env)
 

@@ -23,7 +23,8 @@ Bias b (normal rows only; documented choices, each booked in the energy ledger):
   ``u⁺ + d/dt ≥ 0`` lets the bodies close the gap within the step and no further.
 - Penetration correction: a penetration (d < 0) enters as ``PENETRATION_CORRECTION · min(d + s, 0) / dt``: a
   fifth of the penetration beyond the slop s = PENETRATION_SLOP (1 nm, above coal's own round-off) is pushed out
-  per step (Baumgarte's stabilization at the velocity level). The energy this puts in is the ledger's
+  per step (Baumgarte's stabilization at the velocity level), at most MAX_CORRECTION_SPEED (1 m/s) so that a deep
+  penetration comes out over several steps. The energy this puts in is the ledger's
   ``penetration_correction`` (kind "work"): ``-λᵀ b_corr ≥ 0``.
 - Restitution (Newton's law), in two steps so that the bounce starts at the surface: a pair with coefficient
   e > 0 whose gap closes within the step (its speculative row is active) lands exactly on the surface at the
@@ -56,6 +57,9 @@ PENETRATION_CORRECTION = 0.2  # the fraction of a penetration pushed out per ste
 # Penetrations below this are left alone [m]: coal's box–plane distance is off by ~5e-12 m, and pushing that out
 # would jitter resting stacks at 1e-9 m/s.
 PENETRATION_SLOP = 1e-9
+# The correction never pushes faster than this [m/s or rad/s]: a deep penetration (a body placed inside another)
+# comes out over several steps instead of being shot out at depth/dt.
+MAX_CORRECTION_SPEED = 1.0
 # Position limits within this distance of q [rad or m] join the step's problem (speculatively): a joint faster than
 # LIMIT_MARGIN / dt (50 rad/s at 1 ms) may end a step past its limit, which the correction then undoes.
 LIMIT_MARGIN = 0.05
@@ -228,6 +232,7 @@ class ContactModel:
             request.enable_contact = True  # without it box–box normals are NaN
             request.security_margin = SPECULATIVE_MARGIN
         self._ground_coefficients = (ground_friction, ground_restitution)
+        self._body_index = {name: k for k, name in enumerate(self.body_names)}
         self._object_names = {g.body for g in self.geometries if g.joint and model.names[g.joint] == g.body}
         self._coefficients = [
             (ground_friction, ground_restitution)
@@ -256,6 +261,27 @@ class ContactModel:
     def empty(self) -> bool:
         """No pair, no enforced limit, no exact friction: nothing to solve, ever."""
         return not self.pairs and self._limit_model is None and self._friction_model is None
+
+    @property
+    def body_names(self) -> list[str]:
+        """Every body with collision geometry, in the order Trajectory.contacts indexes them."""
+        return list(dict.fromkeys(g.body for g in self.geometries))
+
+    def records(self, problem: ContactProblem, impulses: np.ndarray) -> np.ndarray | None:
+        """The contact points of a solved problem as (k, 11) rows: pair (2 indices into body_names), point (3),
+        normal (3), impulse on body 2 in world axes (3) [N·s]; None without points."""
+        points = problem.points
+        if not points:
+            return None
+        index = self._body_index
+        rows = np.empty((len(points), 11))
+        for c, point in enumerate(points):
+            rotation = pin.Quaternion.FromTwoVectors(_Z, point.normal).matrix()
+            rows[c, 0], rows[c, 1] = index[point.bodies[0]], index[point.bodies[1]]
+            rows[c, 2:5] = point.position
+            rows[c, 5:8] = point.normal
+            rows[c, 8:11] = rotation @ impulses[3 * c : 3 * c + 3]
+        return rows
 
     def pair_names(self) -> list[tuple[str, str]]:
         """The body pairs that may touch (one per pair of bodies, in order)."""
@@ -409,7 +435,8 @@ class ContactModel:
             for c, point in enumerate(points):
                 row, pair = 3 * c + 2, point.key[0]
                 if point.gap < 0.0:
-                    correction[row] = PENETRATION_CORRECTION * min(point.gap + PENETRATION_SLOP, 0.0) / dt
+                    push = PENETRATION_CORRECTION * min(point.gap + PENETRATION_SLOP, 0.0) / dt
+                    correction[row] = max(push, -MAX_CORRECTION_SPEED)
                     bias = correction[row]
                 else:
                     bias = point.gap / dt
@@ -427,7 +454,8 @@ class ContactModel:
             # corrected beyond the slop.
             rows = slice(3 * len(points), 3 * len(points) + limit_rows)
             distance = np.array(datas[len(points)].extract().constraint_residual, dtype=float)
-            correction[rows] = PENETRATION_CORRECTION * np.minimum(distance + PENETRATION_SLOP, 0.0) / dt
+            pushes = PENETRATION_CORRECTION * np.minimum(distance + PENETRATION_SLOP, 0.0) / dt
+            correction[rows] = np.maximum(pushes, -MAX_CORRECTION_SPEED)
             g[rows] += np.where(distance >= 0.0, distance / dt, correction[rows])
         return ContactProblem(
             points=points,
