@@ -339,3 +339,34 @@ def test_bench_measures_a_contact_scene_against_timestepping_at_a_much_smaller_s
     assert refused == set(ms.INTEGRATORS) - {"timestepping"}
     assert study.orders["timestepping"].observed == pytest.approx(1.0, abs=0.2)
     assert "the reference is the same integrator at a much smaller step" in study.summary()
+
+
+# ---- the trajectory's contacts -------------------------------------------------------------------------------------
+def test_the_trajectory_records_each_samples_contacts_compactly(tmp_path):
+    """Sample i holds the contacts of the step that ended there: while the box slides, its four points' impulses
+    sum to (−μ m g dt, 0, m g dt) in world axes, Coulomb's closed form; the record survives save/load and a
+    chunked run (sample indices from the run's start)."""
+    mu, dt = 0.8, 1e-3
+    scene = box_scene(mu=mu)
+    traj = run(scene, 0.2, dt)
+    contacts = traj.contacts
+    assert contacts is not None and contacts.bodies == ["ground", "box"]
+    assert len(contacts.at(0).sample) == 0  # no step ended at the first sample
+    for i in (1, 50, 200):
+        shown = contacts.at(i)
+        assert len(shown.sample) == 4 and (shown.pair == [0, 1]).all()
+        np.testing.assert_allclose(shown.impulse.sum(axis=0), [-mu * G * dt, 0.0, G * dt], rtol=1e-6, atol=1e-15)
+        np.testing.assert_allclose(shown.normal, np.tile([0.0, 0.0, 1.0], (4, 1)), atol=1e-12)
+        np.testing.assert_allclose(shown.point[:, 2], 0.0, atol=1e-9)  # on the ground
+        assert abs(shown.point[:, 0].mean() - traj.q[i - 1, 0]) < 1e-9  # under the box where the step started
+    loaded = ms.Trajectory.load(traj.save(tmp_path / "box.npz"))
+    run(scene, 0.2, dt, out=tmp_path / "chunked.npz", chunk=37)  # six chunk files, merged at the end
+    chunked = ms.Trajectory.load(tmp_path / "chunked.npz")
+    for other in (loaded, chunked):
+        assert other.contacts is not None and other.contacts.bodies == contacts.bodies
+        for part in ("sample", "pair", "point", "normal", "impulse"):
+            np.testing.assert_array_equal(getattr(other.contacts, part), getattr(contacts, part))
+    robot_run = ms.simulate(
+        ms.load_robot("double_pendulum"), [0.1, 0.2], [0, 0], duration=0.01, dt=1e-3, progress=False
+    )
+    assert robot_run.contacts is None

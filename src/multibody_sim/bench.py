@@ -40,7 +40,16 @@ from .robot import Robot
 from .safety import safe_name
 from .simulation import simulate
 from .trajectory import Trajectory
-from .validation import MAX_STEPS, positive_number
+from .validation import (
+    MAX_STEPS,
+    check_callable,
+    check_flag,
+    check_path,
+    check_system,
+    check_text,
+    check_trajectory,
+    positive_number,
+)
 
 FORMAT = "multibody-sim work-precision"
 FORMAT_VERSION = 1
@@ -538,6 +547,7 @@ def work_precision(
         SimulationError: the reference itself failed.
         BenchInterrupted: Ctrl-C; ``.result`` holds what was measured so far.
     """
+    check_system(system)
     q0 = system.check_q(q0, "q0")
     v0 = system.check_v(v0, "v0")
     duration = positive_number(duration, "duration")
@@ -555,6 +565,8 @@ def work_precision(
     if steps is None:
         ladder = [dt for dt in STEP_LADDER if dt <= grid * (1 + 1e-12) and _divides(dt, grid)]
     else:
+        if not isinstance(steps, (list, tuple, np.ndarray)):
+            raise InvalidArgumentError(f"steps must be a list of steps [s], got {type(steps).__name__}")
         ladder = sorted({positive_number(dt, "steps") for dt in steps}, reverse=True)
         for dt in ladder:
             if not _divides(dt, grid):
@@ -575,6 +587,7 @@ def work_precision(
         raise InvalidArgumentError(f"repeats must be a positive integer, got {repeats!r}")
     if not isinstance(max_steps, (int, np.integer)) or isinstance(max_steps, bool) or max_steps < 1:
         raise InvalidArgumentError(f"max_steps must be a positive integer, got {max_steps!r}")
+    check_callable(progress, "progress", "progress(line)")
     say = progress or (lambda line: None)
 
     result = WorkPrecision(
@@ -789,6 +802,8 @@ def _methods(
             raise InvalidArgumentError(
                 f"integrators must be a list of names, got {type(integrators).__name__} (write [{integrators!r}])"
             )
+        if not isinstance(integrators, Iterable):
+            raise InvalidArgumentError(f"integrators must be a list of names, got {type(integrators).__name__}")
         candidates = [get_integrator(i) for i in integrators]
         if not candidates:
             raise InvalidArgumentError("integrators must name at least one integrator, got an empty list")
@@ -821,6 +836,9 @@ def trajectory_error(system: Robot, trajectory: Trajectory, reference: Trajector
     Raises:
         InvalidArgumentError: the trajectories are not sampled at the same times.
     """
+    check_system(system)
+    check_trajectory(trajectory, "trajectory")
+    check_trajectory(reference, "reference")
     return _grid_error(system, trajectory.t, trajectory.q, trajectory.v, reference.t, reference.q, reference.v)
 
 
@@ -855,6 +873,7 @@ def observed_orders(result: WorkPrecision) -> dict[str, OrderFit]:
     Usable: completed, not within REFERENCE_MARGIN of the reference's error, and below 0.1 (larger errors are
     far from the asymptotic regime).
     """
+    _check_study(result)
     fits = {}
     for name in result.integrators():
         method = INTEGRATORS.get(name)
@@ -901,6 +920,11 @@ def observed_orders(result: WorkPrecision) -> dict[str, OrderFit]:
 _COSTS = ("cpu_time", "wall_time", "evaluations")
 
 
+def _check_study(result: Any) -> None:
+    if not isinstance(result, WorkPrecision):
+        raise InvalidArgumentError(f"result must be a WorkPrecision (work_precision's), got {type(result).__name__}")
+
+
 def recommend(result: WorkPrecision, tolerance: float, *, cost: str = "cpu_time") -> Measurement | None:
     """The cheapest measured configuration that meets `tolerance` on this system, or None.
 
@@ -916,6 +940,7 @@ def recommend(result: WorkPrecision, tolerance: float, *, cost: str = "cpu_time"
     Raises:
         InvalidArgumentError: tolerance is not a positive number, or cost is unknown.
     """
+    _check_study(result)
     tolerance = positive_number(tolerance, "tolerance", None)
     if cost not in _COSTS:
         raise InvalidArgumentError(f"cost must be one of {', '.join(map(repr, _COSTS))}, got {cost!r}")
@@ -1005,6 +1030,10 @@ def choose_integrator(
             gives the most accurate one measured).
         BenchInterrupted: Ctrl-C during the pilot.
     """
+    check_system(system)
+    check_flag(cache, "cache")
+    if cache_dir is not None:
+        check_path(cache_dir, "cache_dir", "a folder")
     tolerance = positive_number(tolerance, "tolerance", None)
     q0 = system.check_q(q0, "q0")
     v0 = system.check_v(v0, "v0")
@@ -1100,6 +1129,9 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
     Raises:
         ModuleNotFoundError: matplotlib is missing (the message says which extra installs it).
     """
+    _check_study(result)
+    check_path(path, "path", "a PNG file")
+    check_text(title, "title")
     try:
         import matplotlib
 

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from .safety import check_allocation
-from .trajectory import ConstraintRecord, LedgerEntry, LimitViolations, Trajectory
+from .trajectory import ConstraintRecord, Contacts, LedgerEntry, LimitViolations, Trajectory
 
 # Counters kept per sample and row, so that a run truncated at a sample reports the counts it had there.
 COUNTERS = ("steps", "rejected_steps", "evaluations")
@@ -41,6 +41,8 @@ class SampleStore:
         self.running = np.ones(B, dtype=bool)
         self.soft_capacity: float = capacity
         self.full = False
+        # A contact run's active contacts: row b -> {sample index: rows (k, 11) of pair, point, normal, impulse}.
+        self.contacts: dict[int, dict[int, np.ndarray]] = {}
         self._allocate(capacity)
 
     def _allocate(self, capacity: int) -> None:
@@ -95,6 +97,7 @@ class SampleStore:
         self.count = 0
         self._stopped_samples[:] = 0
         self.full = False
+        self.contacts = {}
 
     def make_room(self, capacity: float) -> None:
         """Let the running rows take samples up to `capacity` before the core returns FULL again."""
@@ -104,6 +107,17 @@ class SampleStore:
     def truncate(self, b: int, n: int) -> None:
         """Row b (stopped) keeps its first n samples."""
         self._stopped_samples[b] = min(int(self._stopped_samples[b]), n)
+        held = self.contacts.get(b)
+        if held:
+            self.contacts[b] = {i: rows for i, rows in held.items() if i < n}
+
+    def write_contacts(self, i: int, b: int, rows: np.ndarray | None) -> None:
+        """Row b's active contacts at sample i: (k, 11) rows of pair (2), point (3), normal (3), impulse (3)."""
+        held = self.contacts.setdefault(b, {})
+        if rows is None or not len(rows):
+            held.pop(i, None)
+        else:
+            held[i] = rows
 
     def trajectory(
         self,
@@ -150,6 +164,27 @@ class SampleStore:
             stats=stats,
             status=status,
             metadata=metadata,
+            contacts=self._contacts(b, n, system),
+        )
+
+    def _contacts(self, b: int, n: int, system: Any) -> Contacts | None:
+        """Row b's contacts over its first n samples as a Contacts record (None without contact)."""
+        contact = getattr(system, "contact", None)
+        if contact is None:
+            return None
+        held = self.contacts.get(b, {})
+        keys = sorted(i for i in held if i < n)
+        if not keys:
+            return Contacts.empty(contact.body_names)
+        rows = np.vstack([held[i] for i in keys])
+        sample = np.repeat(np.array(keys, dtype=np.int64), [len(held[i]) for i in keys])
+        return Contacts(
+            list(contact.body_names),
+            sample,
+            rows[:, :2].astype(np.int64),
+            rows[:, 2:5].copy(),
+            rows[:, 5:8].copy(),
+            rows[:, 8:11].copy(),
         )
 
 

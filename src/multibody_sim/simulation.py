@@ -17,7 +17,15 @@ from .integrators import Integrator, get_integrator
 from .progress import ProgressBar
 from .robot import Robot
 from .trajectory import PARTS_SUFFIX, Trajectory
-from .validation import check_callable, check_options, positive_count, positive_number
+from .validation import (
+    check_callable,
+    check_flag,
+    check_options,
+    check_path,
+    check_system,
+    positive_count,
+    positive_number,
+)
 
 
 class Controller(Protocol):
@@ -79,6 +87,7 @@ def simulate(
             ``.trajectory`` holds every finite sample so far.
         SimulationInterrupted: Ctrl-C; ``.trajectory`` holds every sample so far.
     """
+    check_system(system)
     method = get_integrator(integrator)
     method.check_contract()
     check_options(method, options)
@@ -90,6 +99,7 @@ def simulate(
     method.check_system(system)
     sink = make_sink(out, chunk)
     check_callable(on_sample, "on_sample", "on_sample(t, q, v)")
+    check_flag(progress, "progress", optional=True)
     settings = RunSettings.check(method, duration, dt, options)
     reset = getattr(controller, "reset", None)
     if callable(reset):
@@ -165,6 +175,7 @@ def make_sink(out: str | os.PathLike[str] | None, chunk: Any) -> Sink:
     """
     path = None
     if out is not None:
+        check_path(out, "out", "a trajectory file (.npz)")
         check_output(out, "out")  # a symbolic link is written through (messages name the link)
         path = Path(out)
         check_unlocked(path)

@@ -232,6 +232,7 @@ class ContactModel:
             request.enable_contact = True  # without it box–box normals are NaN
             request.security_margin = SPECULATIVE_MARGIN
         self._ground_coefficients = (ground_friction, ground_restitution)
+        self._body_index = {name: k for k, name in enumerate(self.body_names)}
         self._object_names = {g.body for g in self.geometries if g.joint and model.names[g.joint] == g.body}
         self._coefficients = [
             (ground_friction, ground_restitution)
@@ -260,6 +261,27 @@ class ContactModel:
     def empty(self) -> bool:
         """No pair, no enforced limit, no exact friction: nothing to solve, ever."""
         return not self.pairs and self._limit_model is None and self._friction_model is None
+
+    @property
+    def body_names(self) -> list[str]:
+        """Every body with collision geometry, in the order Trajectory.contacts indexes them."""
+        return list(dict.fromkeys(g.body for g in self.geometries))
+
+    def records(self, problem: ContactProblem, impulses: np.ndarray) -> np.ndarray | None:
+        """The contact points of a solved problem as (k, 11) rows: pair (2 indices into body_names), point (3),
+        normal (3), impulse on body 2 in world axes (3) [N·s]; None without points."""
+        points = problem.points
+        if not points:
+            return None
+        index = self._body_index
+        rows = np.empty((len(points), 11))
+        for c, point in enumerate(points):
+            rotation = pin.Quaternion.FromTwoVectors(_Z, point.normal).matrix()
+            rows[c, 0], rows[c, 1] = index[point.bodies[0]], index[point.bodies[1]]
+            rows[c, 2:5] = point.position
+            rows[c, 5:8] = point.normal
+            rows[c, 8:11] = rotation @ impulses[3 * c : 3 * c + 3]
+        return rows
 
     def pair_names(self) -> list[tuple[str, str]]:
         """The body pairs that may touch (one per pair of bodies, in order)."""
