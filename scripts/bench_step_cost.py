@@ -10,6 +10,12 @@ figure is a median over rounds in which every variant was timed once, under the 
 - MuJoCo as a peer on the same URDF (RK4, dt = 1 ms, what Pinocchio does not model disabled): ``mj_step``
   in a Python loop and ``mujoco.rollout``, plus a check that MuJoCo's accelerations equal Pinocchio's.
 
+The native kernel (the C++ loop that `simulate` and `rollout` take when the extension is built) is timed in its own
+section: `simulate` RK4 per step and `rollout` (B rows, one thread) per state-step, against a floor measured in the
+same rounds, 4 × one ``pin.abaInParallel`` call over B = 1000 states on one thread, per state (what C++ ABA costs
+per state), and against MuJoCo's ``mj_step`` RK4 and ``mujoco.rollout`` over the same B states. The integrator
+columns of the first table run the Python kernel (``MULTIBODY_SIM_NATIVE=0``), whose loop the parts break down.
+
 Then it breaks one RK4 step into its parts (the Pinocchio calls and the robot's hot-path methods timed alone,
 and a cProfile of one robot's loop) and writes the report. MuJoCo is optional (``pip install mujoco``; a
 benchmark-only dependency): without it those columns are skipped with a note.
@@ -21,6 +27,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import cProfile
 import datetime
 import gc
@@ -32,7 +39,7 @@ import pstats
 import statistics
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,7 +47,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from multibody_sim import INTEGRATORS, load_robot, simulate
+from multibody_sim import INTEGRATORS, load_robot, native, rollout, simulate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from mujoco_peer import StateMap, mj_set_state  # noqa: E402, F401  (the shared MuJoCo peer; re-exported for siblings)
@@ -63,6 +70,9 @@ SEED = 0
 V0_SCALE = 0.1  # "small random v0": standard deviation of the Gaussian velocity [rad/s, m/s]
 PROFILED_ROBOT = "solo12"  # a floating base exercises every part of the RK step, the chart map included
 PROFILED_STEPS = 2000
+FLOOR_STATES = 1000  # abaInParallel's batch for the native floor
+ROLLOUT_B = 256  # rows of the timed rollouts (ours and MuJoCo's)
+ROLLOUT_STEPS = 50
 _WORLD = pin.Convention.WORLD
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -101,6 +111,16 @@ class Samples:
     mj_step: list[float] = field(default_factory=list)
     mj_rollout: list[float] = field(default_factory=list)
     cpu_share: list[float] = field(default_factory=list)  # CPU time / wall time of the timed calls
+    native: list[float] = field(default_factory=list)  # native simulate rk4, whole call / steps
+    native_fixed_ms: list[float] = field(default_factory=list)  # a one-step native call [ms]
+    floor_batch: list[float] = field(default_factory=list)  # 4 × abaInParallel per state
+    native_rollout: list[float] = field(default_factory=list)  # rollout rk4 per state-step
+    native_rollout_sparse: list[float] = field(default_factory=list)  # ... recording every 10th step
+    mj_rollout_batch: list[float] = field(default_factory=list)  # mujoco.rollout over ROLLOUT_B states, per state-step
+
+    def native_loop(self, steps: int) -> float:
+        """CPU µs per step of the native loop: the call's cost minus its fixed per-call cost."""
+        return median(self.native) - median(self.native_fixed_ms) * 1e3 / steps
 
     def loop(self, method: str, steps: int) -> float:
         """CPU µs per step of the stepping loop: the call's cost minus its fixed per-call cost."""
@@ -272,14 +292,62 @@ def chart_map_in_use(robot: Any, steps: int = 200, seed: int = SEED) -> dict[str
 
 # ---- timed pieces ------------------------------------------------------------------------------------------
 def time_simulate(
-    robot: Any, q0: np.ndarray, v0: np.ndarray, steps: int, method: str, **options: Any
+    robot: Any, q0: np.ndarray, v0: np.ndarray, steps: int, method: str, *, kernel: str = "python", **options: Any
 ) -> tuple[float, float, float]:
-    """(CPU µs/step of the whole call, wall µs/step of the whole call, stats["wall_time"] µs/step)."""
-    wall0, cpu0 = time.perf_counter(), time.process_time()
-    traj = simulate(robot, q0, v0, duration=steps * DT, dt=DT, integrator=method, **options)
-    cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    """(CPU µs/step of the whole call, wall µs/step of the whole call, stats["wall_time"] µs/step) on the Python
+    kernel or the native one (`kernel`)."""
+    with kernel_env(kernel):
+        wall0, cpu0 = time.perf_counter(), time.process_time()
+        traj = simulate(robot, q0, v0, duration=steps * DT, dt=DT, integrator=method, **options)
+        cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    expected = "native" if kernel == "native" else "python (row)"
+    if traj.metadata["kernel"] != expected:  # a figure under the wrong name would be worse than none
+        raise RuntimeError(f"simulate ran the {traj.metadata['kernel']} kernel, not the {expected} one")
     n = traj.stats["steps"]
     return cpu / n * 1e6, wall / n * 1e6, traj.stats["wall_time"] / n * 1e6
+
+
+@contextlib.contextmanager
+def kernel_env(kernel: str) -> Iterator[None]:
+    """Runs inside take the Python kernel or the native one (MULTIBODY_SIM_NATIVE), as before afterwards."""
+    before = os.environ.get(native.ENV)
+    os.environ[native.ENV] = "1" if kernel == "native" else "0"
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ[native.ENV]
+        else:
+            os.environ[native.ENV] = before
+
+
+def time_native_rollout(robot: Any, Q0: np.ndarray, V0: np.ndarray, steps: int, **options: Any) -> float:
+    """CPU µs per state-step of a native rk4 rollout (one thread; output every step, energies logged, unless
+    options say otherwise)."""
+    with kernel_env("native"):
+        cpu0 = time.process_time()
+        batch = rollout(robot, Q0, V0, duration=steps * DT, dt=DT, integrator="rk4", progress=False, **options)
+        cpu = time.process_time() - cpu0
+    if batch.metadata["kernel"] != "native":
+        raise RuntimeError(f"rollout ran the {batch.metadata['kernel']} kernel, not the native one")
+    return cpu / (len(Q0) * steps) * 1e6
+
+
+def time_floor_batch(robot: Any, pool: Any, Q: np.ndarray, V: np.ndarray, out: np.ndarray) -> float:
+    """µs per state of 4 × one pin.abaInParallel call over the states (columns of Q, V), one thread: what an
+    RK4 step's four ABA passes cost in C++ per state."""
+    tau = np.zeros_like(V)
+    start = time.process_time()
+    for _ in range(4):
+        pin.abaInParallel(1, pool, Q, V, tau, out)
+    return (time.process_time() - start) / Q.shape[1] * 1e6
+
+
+def time_mj_rollout_batch(model: Any, data: Any, states0: np.ndarray, steps: int) -> float:
+    """µs per state-step of mujoco.rollout over many initial states (one thread, every state recorded)."""
+    start = time.process_time()
+    mj_rollout.rollout(model, data, states0, nstep=steps)
+    return (time.process_time() - start) / (len(states0) * steps) * 1e6
 
 
 def time_floor(robot: Any, q: np.ndarray, v: np.ndarray, steps: int) -> float:
@@ -466,10 +534,30 @@ def bench_robot(name: str, repeats: int, steps: int, methods: list[str]) -> Robo
         mujoco.mj_getState(model, data, state0, full)
         mj = (model, data, qpos, qvel, state0)
 
+    # The batches: FLOOR_STATES random states for the floor (columns, as abaInParallel takes them), the first
+    # ROLLOUT_B of them for the rollouts (ours and MuJoCo's).
+    Q_batch = np.array([robot.random_configuration(rng) for _ in range(FLOOR_STATES)])
+    V_batch = rng.normal(scale=V0_SCALE, size=(FLOOR_STATES, robot.nv))
+    pool = pin.ModelPool(robot.model, 1)
+    floor_out = np.zeros((FLOOR_STATES, robot.nv))
+    floor_args = (pool, Q_batch.T, V_batch.T, floor_out.T)
+    Q0s, V0s = Q_batch[:ROLLOUT_B], V_batch[:ROLLOUT_B]
+    mj_states = None
+    if mj and mj_rollout is not None:
+        model, data = mj[0], mj[1]
+        full = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        mj_states = np.empty((ROLLOUT_B, mujoco.mj_stateSize(model, full)))
+        for b in range(ROLLOUT_B):
+            mj_set_state(model, data, *smap.to_mujoco(Q0s[b], V0s[b]))
+            mujoco.mj_getState(model, data, mj_states[b], full)
+
     # An untimed round first: caches, allocators and lazy initialisations of both libraries.
     for method in methods:
         time_simulate(robot, q0, v0, 50, method)
     time_floor(robot, q0, v0, 50)
+    time_simulate(robot, q0, v0, 50, "rk4", kernel="native")
+    time_floor_batch(robot, *floor_args)
+    time_native_rollout(robot, Q0s, V0s, 5)
     if mj:
         time_mj_step(mj[0], mj[1], mj[2], mj[3], 50)
 
@@ -486,6 +574,13 @@ def bench_robot(name: str, repeats: int, steps: int, methods: list[str]) -> Robo
             samples.fixed_ms[method].append(time_simulate(robot, q0, v0, 1, method)[0] * 1e-3)
         samples.rk4_sparse.append(time_simulate(robot, q0, v0, steps, "rk4", output_dt=10 * DT)[0])
         samples.floor.append(time_floor(robot, q0, v0, steps))
+        samples.native.append(time_simulate(robot, q0, v0, steps, "rk4", kernel="native")[0])
+        samples.native_fixed_ms.append(time_simulate(robot, q0, v0, 1, "rk4", kernel="native")[0] * 1e-3)
+        samples.floor_batch.append(time_floor_batch(robot, *floor_args))
+        samples.native_rollout.append(time_native_rollout(robot, Q0s, V0s, ROLLOUT_STEPS))
+        samples.native_rollout_sparse.append(time_native_rollout(robot, Q0s, V0s, ROLLOUT_STEPS, output_dt=10 * DT))
+        if mj_states is not None:
+            samples.mj_rollout_batch.append(time_mj_rollout_batch(mj[0], mj[1], mj_states, ROLLOUT_STEPS))
         if mj:
             samples.mj_step.append(time_mj_step(mj[0], mj[1], mj[2], mj[3], steps))
             if mj_rollout is not None:
@@ -717,6 +812,7 @@ def write_report(
             mimic), joint limits and contacts disabled with `opt.disableflags`; `opt.integrator = RK4`,
             `opt.timestep = {DT:g}`. `mj_step` is called in a Python loop; {rollout}""")
         )
+    lines += native_section(results, steps, mj_on)
     lines += ["", "## Sanity checks (not tests)", ""]
     if mj_on:
         lines += [
@@ -783,6 +879,91 @@ def write_report(
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text, encoding="utf-8")
     return text
+
+
+def native_section(results: list[RobotResult], steps: int, mj_on: bool) -> list[str]:
+    """The native kernel's table: simulate and rollout against the C++ floor and MuJoCo."""
+    head = [
+        "robot",
+        "native simulate rk4",
+        "floor: 4 × abaInParallel per state",
+        "native / floor",
+        "python rk4",
+    ]
+    if mj_on:
+        head += ["MuJoCo mj_step (RK4)", "native / mj_step"]
+    head += [
+        f"native rollout (B = {ROLLOUT_B}) per state-step",
+        "rollout / floor",
+        "rollout recording every 10th step / floor",
+    ]
+    if mj_on:
+        head += [f"mujoco.rollout (B = {ROLLOUT_B}) per state-step", "rollout / mujoco.rollout"]
+    rows = []
+    for r in results:
+        s = r.samples
+        ours, floor, batch = s.native_loop(steps), median(s.floor_batch), median(s.native_rollout)
+        row = [r.name + (" (floating)" if r.floating else ""), fmt(ours, 2), fmt(floor, 2), fmt(ours / floor, 2)]
+        row.append(fmt(s.loop("rk4", steps)))
+        if mj_on:
+            mj_step = median(s.mj_step)
+            row += [fmt(mj_step, 2), fmt(ours / mj_step, 2)]
+        row += [fmt(batch, 2), fmt(batch / floor, 2), fmt(median(s.native_rollout_sparse) / floor, 2)]
+        if mj_on:
+            mj_batch = median(s.mj_rollout_batch)
+            row += [fmt(mj_batch, 2), fmt(batch / mj_batch, 2)]
+        rows.append(row)
+    fixed = ", ".join(f"{r.name} {fmt(median(r.samples.native_fixed_ms), 2)} ms" for r in results)
+
+    def verdict(what: str, ratios: dict[str, float], target: float) -> str:
+        met = [name for name, x in ratios.items() if x <= target]
+        missed = [f"{name} ({x:.2f})" for name, x in ratios.items() if x > target]
+        return f"{what} ≤ {target:g}: " + (
+            f"met on {', '.join(met) or 'none'}" + (f"; missed on {', '.join(missed)}" if missed else "")
+        )
+
+    floors = {r.name: median(r.samples.floor_batch) for r in results}
+    simulate_ratios = {r.name: r.samples.native_loop(steps) / floors[r.name] for r in results}
+    verdicts = [
+        verdict("native simulate / floor", simulate_ratios, 1.3),
+        verdict("rollout / floor", {r.name: median(r.samples.native_rollout) / floors[r.name] for r in results}, 1.1),
+    ]
+    if mj_on:
+        verdicts.append(
+            verdict(
+                "native simulate / mj_step on double_pendulum and ur5",
+                {
+                    r.name: r.samples.native_loop(steps) / median(r.samples.mj_step)
+                    for r in results
+                    if r.name in ("double_pendulum", "ur5")
+                },
+                1.0,
+            )
+        )
+    return [
+        "",
+        "## The native kernel (µs per step, CPU-time medians)",
+        "",
+        *table(head, rows),
+        "",
+        "Issue 15's targets, in this run: " + "; ".join(verdicts) + ".",
+        "",
+        para(f"""- Native simulate rk4: `simulate(..., integrator="rk4")` on the native kernel (the extension's C++
+            loop: the whole run between the driver's events), output every step with its energies and ledger,
+            the CPU time of a {steps}-step call minus that of a one-step call, per step (fixed per-call cost:
+            {fixed}). "python rk4": the same run on the Python kernel (the first table's rk4 column)."""),
+        para(f"""- Floor: four calls of `pin.abaInParallel(1, pool, Q, V, tau, a)` over {FLOOR_STATES} random
+            states on one thread, per state: what four C++ ABA passes cost per state, without Python per call.
+            An RK4 step also integrates four times and records a sample (kinematics and two energies): the
+            ratio says what the loop adds to the four ABA passes."""),
+        para(f"""- Rollout: `rollout(robot, Q0s, V0s, duration={ROLLOUT_STEPS * DT:g}, dt={DT:g},
+            integrator="rk4")`, {ROLLOUT_B} random states, one thread, output every step, the whole call's CPU time
+            per state-step; `mujoco.rollout.rollout(model, data, states0, nstep={ROLLOUT_STEPS})` from the same
+            {ROLLOUT_B} states (its full physics state recorded every step), one thread. "Recording every 10th
+            step": the same rollout with `output_dt={10 * DT:g}`; the difference is what a sample costs (the
+            kinematics pass of its two energies, which the Python kernel computes the same way, and the
+            batch's assembly in Python)."""),
+    ]
 
 
 def interpretation(
@@ -913,6 +1094,9 @@ def main(argv: list[str] | None = None) -> int:
         if mj_rollout is None:
             print("note: mujoco.rollout is not available: its column is skipped")
 
+    if not native.available:
+        raise SystemExit(f"the native kernel is not available here ({native.why_unavailable}): nothing to compare")
+    os.environ[native.ENV] = "0"  # the Python kernel, but where a figure names the native one (kernel_env)
     start = time.perf_counter()
     load_before = load_average()
     names = args.robots.split(",")
@@ -921,10 +1105,13 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         r = bench_robot(name, args.repeats, args.steps, methods)
         results.append(r)
+        s = r.samples
         print(
-            f"{name}: rk4 {r.samples.loop('rk4', args.steps):.1f} µs/step (CPU), "
-            f"floor {median(r.samples.floor):.1f}, "
-            f"mj_step {median(r.samples.mj_step):.1f} ({time.perf_counter() - t0:.0f} s)",
+            f"{name}: python rk4 {s.loop('rk4', args.steps):.1f} µs/step (CPU), "
+            f"native {s.native_loop(args.steps):.2f}, "
+            f"floor 4 × abaInParallel {median(s.floor_batch):.2f}, mj_step {median(s.mj_step):.2f}; rollout "
+            f"{median(s.native_rollout):.2f} µs/state-step, mujoco.rollout {median(s.mj_rollout_batch):.2f} "
+            f"({time.perf_counter() - t0:.0f} s)",
             flush=True,
         )
     profile, call_profile = None, ""

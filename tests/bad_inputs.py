@@ -1702,7 +1702,54 @@ RANGES_AND_NAMES = [
         ms.UnknownNameError,
     ),
 ]
-CATALOGUE += RANGES_AND_NAMES
+TYPES = [
+    BadInput(
+        "trajectory-load-none",
+        "Python API",
+        "`Trajectory.load(None)`",
+        "path must be a path to a trajectory file (.npz) or a parts folder, got NoneType",
+        "Pass the file's path (a str or a pathlib.Path).",
+        api(lambda: ms.Trajectory.load(None)),  # type: ignore[arg-type]
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "system-a-name",
+        "Python API",
+        "`simulate('pendulum', ...)` (a robot's name where the robot goes)",
+        "system must be a Robot or a Scene, got str (load it first: load_robot('pendulum') or load_scene('pendulum'))",
+        "Load the robot first; every function that takes a robot checks this.",
+        api(lambda: ms.simulate("pendulum", [0.0], [0.0], duration=1.0, dt=1e-3)),  # type: ignore[arg-type]
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "q0-strings",
+        "Python API",
+        "`simulate(pendulum, ['a'], [0], ...)` (strings where numbers go)",
+        "q0 must be an array of 1 real numbers, got list",
+        "Give numbers; strings are not converted (they hide mistakes).",
+        api(lambda: ms.simulate(pendulum(), ["a"], [0.0], duration=1.0, dt=1e-3)),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "count-a-float",
+        "Python API",
+        "`rollout(..., num_threads=2.5)` (a float where a whole number goes)",
+        "num_threads must be a positive whole number, got 2.5",
+        "Give a whole number; nothing is rounded for you.",
+        api(lambda: ms.rollout(pendulum(), [[0.0]], [[0.0]], duration=1.0, dt=1e-3, num_threads=2.5)),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "flag-a-string",
+        "Python API",
+        "`Trajectory.load(path, mmap='no')` (a string where True or False goes: 'no' would be true)",
+        "mmap must be True or False, got 'no'",
+        "Pass True or False.",
+        api(lambda: ms.Trajectory.load("run.npz", mmap="no")),  # type: ignore[arg-type]
+        ms.InvalidArgumentError,
+    ),
+]
+CATALOGUE += RANGES_AND_NAMES + TYPES
 
 BY_ID = {entry.id: entry for entry in CATALOGUE}
 assert len(BY_ID) == len(CATALOGUE), "catalogue ids must be unique"

@@ -380,6 +380,11 @@ def _add_view_commands(commands: Any) -> None:
         "--speed", metavar="X", type=float, default=1.0, help="initial playback speed, 1 = real time (default: 1)"
     )
     play.add_argument("--plot", action="store_true", help="show the energy and joint-position plot beside the view")
+    play.add_argument(
+        "--forces",
+        action="store_true",
+        help="draw a contact scene's contact forces as arrows (with --html; the largest force is 20 cm long)",
+    )
     _add_server_options(play, prefix="--")
     video = play.add_argument_group(
         "video (rendered headless in Chromium or Chrome from the same page; --fps and --speed apply)"
@@ -769,8 +774,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise _UsageError("--integrators: name at least one integrator (e.g. --integrators rk4,dp54)")
         for name in names:
             ms.get_integrator(name)  # an unknown name is bad input before any work
-    q0 = robot.default_pose() if args.q0 is None else _configuration(robot, args.q0)
-    v0 = [0.0] * robot.nv if args.v0 is None else robot.check_v(args.v0, "v0")
+    scene_start = isinstance(robot, ms.Scene)  # a scene starts where it declares (its objects' velocities too)
+    default_q = robot.q0 if scene_start else robot.default_pose()
+    default_v = robot.v0 if scene_start else [0.0] * robot.nv
+    q0 = default_q if args.q0 is None else _configuration(robot, args.q0)
+    v0 = default_v if args.v0 is None else robot.check_v(args.v0, "v0")
     base = "floating" if robot.floating_base else "fixed"
     started: list[bool] = []
 
@@ -964,6 +972,8 @@ def _cmd_integrators(args: argparse.Namespace) -> int:
 def _cmd_play(args: argparse.Namespace) -> int:
     viz = _viz()
     html = _check_output(args.html, "--html", "view.html") if args.html else None
+    if args.forces and html is None:
+        raise _UsageError("--forces draws contact forces in the --html export only (not yet live or in videos)")
     if not args.video:  # a video's frame rate has its own range per format (checked with the video's options)
         frame_rate(args.fps, "--fps")
     playback_speed(args.speed, "--speed")
@@ -978,7 +988,15 @@ def _cmd_play(args: argparse.Namespace) -> int:
             started = time.perf_counter()
             try:
                 with _viewer_warnings(viz):
-                    viz.export_html(trajectory, html, robot=robot, fps=args.fps, speed=args.speed, plot=args.plot)
+                    viz.export_html(
+                        trajectory,
+                        html,
+                        robot=robot,
+                        fps=args.fps,
+                        speed=args.speed,
+                        plot=args.plot,
+                        forces=args.forces,
+                    )
             except OSError as exc:
                 raise _UsageError(f"--html {html}: cannot write the page ({exc.strerror or exc})") from None
             size = html.stat().st_size / 1e6

@@ -125,6 +125,8 @@ def scene_from_metadata(scene: dict[str, Any]) -> Scene:
     Raises:
         SceneError: the trajectory was made from a scene built in Python (no TOML text was kept).
     """
+    if not isinstance(scene, dict):
+        raise SceneError(f"scene must be the metadata's robot.scene entry (a dict), got {type(scene).__name__}")
     text = scene.get("toml")
     if not isinstance(text, str):
         raise SceneError(

@@ -275,6 +275,13 @@ class Scene(Robot):
             lines += self.contact.describe()
         return "\n".join(lines)
 
+    def default_pose(self) -> np.ndarray:
+        """The robot's default pose (its SRDF's everyday pose, else neutral), with the scene's objects where it puts
+        them, shape (nq,)."""
+        q = super().default_pose()
+        _place_objects(self.model, self.spec, q)
+        return q
+
     # ---- dynamics (the hot path) ---------------------------------------------------------------------
     def _applied(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float) -> np.ndarray:
         """tau plus the force elements and minus damping: everything but the constraints."""

@@ -13,6 +13,7 @@ from ..exceptions import InvalidArgumentError, ModelError, TrajectoryFileError
 from ..robot import Robot
 from ..safety import check_allocation
 from ..trajectory import Trajectory
+from ..validation import check_system, check_trajectory, finite_number, positive_number
 
 DEFAULT_FPS = 30.0
 
@@ -24,6 +25,7 @@ def robot_from_trajectory(trajectory: Trajectory) -> Robot:
         TrajectoryFileError: the trajectory does not record how its robot was loaded.
         ModelError: the URDF cannot be found, or its SHA-256 differs from the recorded one (the file changed).
     """
+    check_trajectory(trajectory, "trajectory")
     info = trajectory.metadata.get("robot")
     arguments = info.get("load_robot") if isinstance(info, dict) else None
     objects_only = isinstance(info, dict) and isinstance(info.get("scene"), dict) and info.get("source") is None
@@ -83,6 +85,8 @@ def frame_times(t_start: float, t_end: float, fps: float, frame_bytes: int = 8) 
     Args:
         frame_bytes: what the caller will keep per frame [bytes]; the frames must fit in usable_memory().
     """
+    t_start, t_end = finite_number(t_start, "t_start"), finite_number(t_end, "t_end")
+    fps = positive_number(fps, "fps", None)
     count = int(math.floor((t_end - t_start) * fps + 1e-9))
     check_allocation(
         (count + 2) * frame_bytes,
@@ -111,8 +115,12 @@ def resample(robot: Robot, trajectory: Trajectory | Any, fps: float = DEFAULT_FP
         (times, Q): times [s] of shape (m,) from t[0] to t[-1] every 1/fps (the end included) and the
         configurations at those times, shape (m, nq).
     """
-    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
-        raise InvalidArgumentError(f"fps must be a positive number, got {fps!r}")
+    check_system(robot, "robot")
+    positive_number(fps, "fps", None)
+    if not (hasattr(trajectory, "t") and hasattr(trajectory, "q")):
+        raise InvalidArgumentError(
+            f"trajectory must be a Trajectory (or have t and q arrays), got {type(trajectory).__name__}"
+        )
     t = np.asarray(trajectory.t, dtype=float)
     Q = np.asarray(trajectory.q, dtype=float)
     if t.ndim != 1 or len(t) == 0 or Q.shape != (len(t), robot.nq):

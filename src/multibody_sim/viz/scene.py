@@ -20,6 +20,7 @@ import pinocchio as pin
 from ..catalog import CATALOG, catalog_urdf, derived_urdf
 from ..exceptions import InvalidArgumentError, ModelError, UnknownNameError
 from ..robot import Robot
+from ..validation import check_system, check_text
 from ._deps import ViewerWarning, require
 from .meshes import MeshPart, geometry_parts, skeleton_parts
 
@@ -70,7 +71,7 @@ class RobotScene:
     """
 
     def __init__(self, robot: Robot):
-        self.robot = robot
+        self.robot = check_system(robot, "robot")
         self.model = robot.model
         self._data = self.model.createData()
         self.notes: list[str] = []
@@ -238,6 +239,7 @@ class RobotScene:
             UnknownNameError: `view` is not a camera view.
             InvalidArgumentError: position or target is not 3 finite numbers, or they coincide.
         """
+        check_text(view, "camera", optional=False)
         if view not in CAMERA_VIEWS:
             raise UnknownNameError(f"unknown camera view '{view}' (choose from: {', '.join(CAMERA_VIEWS)})")
         fixed_position = None if position is None else _point(position, "camera position")
