@@ -24,7 +24,6 @@ import os
 import signal
 import socket
 import stat
-import tempfile
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -183,6 +182,8 @@ def atomic_path(
     target = check_output(path, what)
     target.parent.mkdir(parents=True, exist_ok=True)
     with signals_held(mode) as hold:
+        import tempfile  # here: it imports shutil, bz2 and lzma, which `import multibody_sim` need not pay
+
         fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=f".tmp{suffix}", dir=target.parent)
         tmp = Path(name)
         try:
@@ -225,6 +226,8 @@ def write_atomically(
     target = check_output(path, what)
     target.parent.mkdir(parents=True, exist_ok=True)
     with signals_held(mode) as hold:
+        import tempfile
+
         fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
         try:
             with os.fdopen(fd, "wb") as f:
@@ -330,6 +333,8 @@ class RunLock:
 
     def acquire(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        import tempfile
+
         fd, name = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
         try:
             with os.fdopen(fd, "w") as f:
