@@ -521,3 +521,44 @@ def test_user_code_that_raises_in_a_chunked_run_keeps_every_sample(tmp_path: Pat
     saved = ms.Trajectory.load(out)
     same(memory.value.trajectory, saved)
     assert saved.status == "failed" and sorted(os.listdir(tmp_path)) == ["run.npz"]
+
+
+ADDRESS_SPACE = """
+import resource, sys
+import multibody_sim as ms
+robot = ms.load_robot("pendulum")
+ms.simulate(robot, [1.0], [0.0], duration=0.01, dt=1e-3, integrator="dp54", rtol=1e-6, atol=1e-8)  # warm up
+used = next(int(line.split()[1]) * 1024 for line in open("/proc/self/status") if line.startswith("VmSize:"))
+resource.setrlimit(resource.RLIMIT_AS, (used + 25 * 2**20, resource.getrlimit(resource.RLIMIT_AS)[1]))
+try:
+    ms.simulate(robot, [1.0], [0.0], duration=1e6, dt=1e-3, integrator="dp54", rtol=1e-12, atol=1e-12,
+                out=sys.argv[1])
+except ms.SimulationError as exc:
+    print(exc.status, len(exc.trajectory), exc.saved_to)
+    print(exc, file=sys.stderr)
+"""
+
+
+def test_a_run_that_outgrows_its_address_space_keeps_its_samples(tmp_path: Path) -> None:
+    """RLIMIT_AS (ulimit -v) 25 MiB above what the child has mapped, and an adaptive run without output_dt (its
+    samples cannot be counted in advance, so the store grows): the store stops growing while there is still room
+    to assemble and write what it holds: SimulationError (status out_of_memory) with every sample, in the file."""
+    out = tmp_path / "run.npz"
+    result = subprocess.run(
+        [sys.executable, "-c", ADDRESS_SPACE, str(out)], capture_output=True, text=True, timeout=600
+    )
+    assert result.returncode == 0, result.stderr
+    match = re.fullmatch(
+        r"ran out of memory at t = (\S+) s: \d+ samples would need \S+ GiB, more than the \S+ GiB available \(this "
+        r"process's address-space limit \(ulimit -v\)\); the run stopped\n",
+        result.stderr,
+    )
+    assert match, result.stderr
+    status, samples, saved_to = result.stdout.split()
+    assert (status, saved_to) == ("out_of_memory", str(out))
+    saved = ms.Trajectory.load(out)
+    assert saved.status == "out_of_memory" and len(saved) == int(samples) > 10_000
+    t_stop = float(match.group(1))  # the state the run reached; its last sample is the one before
+    assert t_stop - 0.1 < saved.t[-1] <= t_stop
+    assert np.all(np.diff(saved.t) > 0) and np.all(np.isfinite(saved.q))
+    assert sorted(os.listdir(tmp_path)) == ["run.npz"]

@@ -370,3 +370,54 @@ def test_the_trajectory_records_each_samples_contacts_compactly(tmp_path):
         ms.load_robot("double_pendulum"), [0.1, 0.2], [0, 0], duration=0.01, dt=1e-3, progress=False
     )
     assert robot_run.contacts is None
+
+
+def test_a_rollout_of_a_contact_scene_steps_each_row_as_simulate_does():
+    """Rows of a rollout carry their own solver state (warm start, landings): each equals its own simulate()."""
+    scene = box_scene()
+    speeds = np.array([0.5, 1.0, 2.0])
+    V0 = np.tile(scene.v0, (3, 1))
+    V0[:, 0] = speeds
+    batch = ms.rollout(scene, np.tile(scene.q0, (3, 1)), V0, duration=0.3, dt=1e-3, integrator="timestepping")
+    assert list(batch.status) == ["completed"] * 3
+    for b in range(3):
+        alone = run(box_scene(velocity=speeds[b]), 0.3, 1e-3)
+        np.testing.assert_array_equal(batch.q[b], alone.q)
+    np.testing.assert_allclose(batch.q[:, -1, 0], speeds**2 / (2 * 0.8 * G), atol=2.0 * 1e-3)
+
+
+def test_a_robot_without_declared_collision_geometry_is_told_so():
+    text = make_scene(robot={"source": "solo12"}, ground={}).describe()
+    assert "robot collision geometry: none declared" in text and "declare [[contact.geometry]]" in text
+    assert "contact pairs: none" in text
+
+
+def test_a_large_patch_keeps_its_extreme_points():
+    """A patch of 24 points on a circle keeps MAX_PATCH_POINTS of them, the extreme ones along its tangent axes."""
+    from multibody_sim.scenes.contact import MAX_PATCH_POINTS, _patch_points
+
+    angles = np.linspace(0.0, 2 * np.pi, 24, endpoint=False)
+
+    class Patch:
+        def size(self) -> int:
+            return len(angles)
+
+        def getPoint(self, i: int) -> np.ndarray:  # noqa: N802 (coal's name)
+            return np.array([np.cos(angles[i]), np.sin(angles[i]), 0.0])
+
+    kept = _patch_points(Patch(), np.eye(3))
+    assert len(kept) == MAX_PATCH_POINTS == 8
+    np.testing.assert_allclose(np.degrees(angles[kept]), [0, 45, 90, 135, 180, 225, 270, 315])
+
+
+def test_stepper_steps_a_contact_scene_as_simulate_does():
+    """Stepper's control intervals restart the solver state as jumps: the time-stepper keeps its warm start there,
+    and the samples equal simulate()'s bit for bit."""
+    scene = load_scene("solo12_standing")
+    controller = scene.make_controller()
+    stepper = ms.Stepper(scene, dt=1e-3, integrator="timestepping", q0=scene.q0, v0=scene.v0)
+    for _ in range(100):
+        stepper.step(controller(stepper.t, stepper.q, stepper.v))
+    traj = scene.run(duration=0.1, progress=False)
+    np.testing.assert_array_equal(stepper.q, traj.q[-1])
+    np.testing.assert_array_equal(stepper.v, traj.v[-1])

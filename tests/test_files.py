@@ -301,3 +301,41 @@ def test_a_lock_of_another_host_is_respected(tmp_path: Path) -> None:
     with pytest.raises(ms.InvalidArgumentError, match="another run is writing it \\(process 1 on host some-other-host"):
         ms.simulate(ms.load_robot("pendulum"), [1.0], [0.0], duration=0.1, dt=1e-2, out=out)
     assert not out.exists()
+
+
+def test_a_killed_runs_lock_and_temporary_files_are_cleaned_by_the_next_run(tmp_path: Path) -> None:
+    """SIGKILL mid-write (no cleanup can run): the lock and a temporary file stay behind; the next run on the same
+    out finds the lock stale, takes it over, removes the dead run's temporary file and writes its file whole."""
+    out = tmp_path / "run.npz"
+    script = textwrap.dedent(f"""
+        import os, signal
+        import numpy as np
+        import multibody_sim as ms
+        real_savez = np.savez
+        def savez_killed(f, **arrays):
+            f.write(b"PK half a file")
+            f.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+        np.savez = savez_killed
+        ms.simulate(ms.load_robot("pendulum"), [1.0], [0.0], duration=0.1, dt=1e-2, out={str(out)!r})
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == -signal.SIGKILL, result.stderr
+    left = sorted(os.listdir(tmp_path))
+    assert left[-1] == "run.npz.lock" and len(left) == 2 and re.fullmatch(r"\.run\.npz\.\w+\.tmp", left[0]), left
+    ms.simulate(ms.load_robot("pendulum"), [0.5], [0.0], duration=0.1, dt=1e-2, out=out)
+    assert sorted(os.listdir(tmp_path)) == ["run.npz"]
+    assert ms.Trajectory.load(out).q[0, 0] == 0.5
+
+
+def test_bench_refuses_a_special_file_where_its_tables_go(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    os.mkfifo(tmp_path / "work_precision.csv")
+    code = main(["bench", "pendulum", "--integrators", "rk4", "--duration", "0.1", "--out", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert (code, out) == (2, "")
+    assert (
+        err
+        == PREFIX
+        + refusal(tmp_path / "work_precision.csv", "a FIFO (named pipe)", "--out", "work_precision.csv")
+        + "\n"
+    )

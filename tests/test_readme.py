@@ -363,7 +363,7 @@ def test_readme_commands_run(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("line", SLOW)
+@pytest.mark.parametrize("line", SLOW, ids=[line.split(" && ")[-1] for line in SLOW])
 def test_long_readme_commands_run_verbatim(
     line: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -831,6 +831,9 @@ def _check_out_dir(name: str) -> Path:
         folder = folder.parent
     if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
         raise _UsageError(f"--out {name}: cannot create files in {folder} (not a writable folder)")
+    for suffix in ("csv", "json", "png"):  # the files it will replace must be regular files (or new names)
+        file = path / f"work_precision.{suffix}"
+        check_output(file, "--out", f"work_precision.{suffix}")
     return path
 
 

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from .safety import check_allocation
+from .safety import check_allocation, memory_room
 from .trajectory import ConstraintRecord, Contacts, LedgerEntry, LimitViolations, Trajectory
 
 # Counters kept per sample and row, so that a run truncated at a sample reports the counts it had there.
@@ -62,6 +62,12 @@ class SampleStore:
         return len(self.T)
 
     @property
+    def sample_bytes(self) -> int:
+        """Bytes a sample of every row takes in the store."""
+        nq, nv, m, e = self._shapes
+        return 8 * self.B * (1 + nq + 2 * nv + 2 + m + e + len(COUNTERS))
+
+    @property
     def n_samples(self) -> np.ndarray:
         """Samples held per row, shape (B,); row b's are the first n_samples[b]."""
         return np.where(self.running, self.count, self._stopped_samples)
@@ -73,8 +79,18 @@ class SampleStore:
         """The index of the next sample of the running rows, growing the arrays if `extra` samples do not fit."""
         i = self.count
         if i + extra > self.capacity:
+            capacity = 2 * i + 16 + extra
+            # The new arrays, and room left to assemble the samples into a trajectory at the end: a run that stops
+            # here for want of memory can still keep every sample it has.
+            needed = 2 * capacity * self.sample_bytes
+            room = memory_room()
+            if needed > room.bytes:
+                raise MemoryError(
+                    f"{capacity} samples would need {needed / 2**30:.3g} GiB, more than the {room.bytes / 2**30:.3g} "
+                    f"GiB available ({room.limit})"
+                )
             old = {name: getattr(self, name) for name in ("T", "Q", "V", "TAU", "ENERGY", "FLOWS", "EXTRA", "COUNTS")}
-            self._allocate(2 * i + 16 + extra)
+            self._allocate(capacity)
             n = min(i + 1, len(old["T"]))  # stopped rows may hold a last sample at index i
             for name, array in old.items():
                 getattr(self, name)[:n] = array[:n]
@@ -128,20 +144,27 @@ class SampleStore:
         status: str,
         stats: dict[str, Any],
         metadata: dict[str, Any],
+        copy: bool = True,
     ) -> Trajectory:
         """Row b's samples as a Trajectory (copies), with the ledger, records and limit violations.
 
         Args:
             initial_energy: H at the run's start [J] (the reference of energy_error; chunks after the first lack it).
+            copy: False: views of the store where possible (a run that ran out of memory keeps its samples without
+                a second copy of them; the store must not be written to afterwards).
         """
         n = self.samples_of(b)
         elements = system.ledger_elements
         is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
-        t = self.T[:n, b].copy()
-        Q = self.Q[:n, b].copy()
-        kinetic, potential = self.ENERGY[:n, b, 0].copy(), self.ENERGY[:n, b, 1].copy()
+
+        def take(array: np.ndarray) -> np.ndarray:
+            return array.copy() if copy else array
+
+        t = take(self.T[:n, b])
+        Q = take(self.Q[:n, b])
+        kinetic, potential = take(self.ENERGY[:n, b, 0]), take(self.ENERGY[:n, b, 1])
         flows = self.FLOWS[:n, b]
-        ledger = {name: LedgerEntry(kind, flows[:, j].copy()) for j, (name, kind) in enumerate(elements)}
+        ledger = {name: LedgerEntry(kind, take(flows[:, j])) for j, (name, kind) in enumerate(elements)}
         potentials, constraints = split_records(system.record_fields, self.EXTRA[:n, b])
         ledger.update(potentials)
         work = flows[:, is_work].sum(axis=1)
@@ -150,8 +173,8 @@ class SampleStore:
         return Trajectory(
             t=t,
             q=Q,
-            v=self.V[:n, b].copy(),
-            tau=self.TAU[:n, b].copy(),
+            v=take(self.V[:n, b]),
+            tau=take(self.TAU[:n, b]),
             kinetic_energy=kinetic,
             potential_energy=potential,
             total_energy=total,

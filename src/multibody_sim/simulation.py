@@ -130,12 +130,11 @@ def simulate(
                 run.execute()
             except KeyboardInterrupt:
                 kept = run.finish()
-                traj = kept.trajectory
                 steps = run.stats(0)["steps"]
                 raise SimulationInterrupted(
-                    f"interrupted at t = {traj.t[-1] if len(traj) else 0.0:.6g} s (step {steps}); {len(traj)} samples "
-                    f"kept" + (f"; {kept.problem}" if kept.problem else ""),
-                    trajectory=traj,
+                    f"interrupted at t = {kept.t_end:.6g} s (step {steps}); {kept.samples} samples kept"
+                    + (f"; {kept.problem}" if kept.problem else ""),
+                    trajectory=kept.trajectory,
                     saved_to=kept.saved_to,
                     signal_name="SIGTERM" if term is not None and term.received else "SIGINT",
                 ) from None
@@ -147,8 +146,7 @@ def simulate(
             if kept.interrupted:  # the signal came while the samples were being written: they were written first
                 raise SimulationInterrupted(
                     f"interrupted while writing the samples, after the run {outcome.status} at t = "
-                    f"{traj.t[-1] if len(traj) else 0.0:.6g} s; {len(traj)} samples kept"
-                    + (f"; {kept.problem}" if kept.problem else ""),
+                    f"{kept.t_end:.6g} s; {kept.samples} samples kept" + (f"; {kept.problem}" if kept.problem else ""),
                     trajectory=traj,
                     saved_to=kept.saved_to,
                 )
@@ -161,6 +159,7 @@ def simulate(
                     trajectory=traj,
                     saved_to=kept.saved_to,
                 )
+            assert traj is not None  # None only with a problem
             return traj
         finally:
             if lock is not None:
