@@ -1717,8 +1717,8 @@ RANGES_AND_NAMES = [
     BadInput(
         "npz-metadata-widens-mesh-folders",
         "Python API",
-        "`viz.robot_from_trajectory(run)` (and `play run.npz`) for a trajectory whose metadata names /etc as its robot's package folder (`play --html` would embed meshes from "
-        "there)",
+        "`viz.robot_from_trajectory(run)` (and `play run.npz`) for a trajectory whose metadata names /etc as its "
+        "robot's package folder (`play --html` would embed meshes from there)",
         "cannot load the trajectory's robot: its metadata names the folder '/etc' (package_dirs), outside the URDF's "
         "folder and the catalog's ({trusted}); to allow it, pass --allow-root /etc (allowed_roots=['/etc'])",
         "A trajectory from elsewhere reads meshes only beside its URDF and in the catalog; allow a folder yourself if "
