@@ -127,6 +127,7 @@ DISPLAY = {
     "numpy": "('EOF in multi-line statement', (2, 0))",
     "scene": "/home/me/scene.toml",
     "roots": "/home/me, <site-packages>/multibody_sim/models, <site-packages>/cmeel.prefix/share",
+    "trusted": "<site-packages>/multibody_sim/models, <site-packages>/cmeel.prefix/share, /home/me/robot",
     "joints": UR5_JOINTS,
     "frames": UR5_MOVING_FRAMES,
 }
@@ -1577,6 +1578,28 @@ def hostile_frame_names(tmp: Path) -> Trigger:
     return Trigger(call=lambda: ms.analysis.frame_placements(robot, run, "tool"))
 
 
+def forged_package_dirs(tmp: Path) -> Trigger:
+    """A run whose metadata was edited to name /etc as its robot's package folder (its page would embed meshes
+    found there)."""
+    folder = tmp / "robot"
+    folder.mkdir()
+    path = folder / "robot.urdf"
+    path.write_text(urdf(ONE_JOINT))
+    run = ms.simulate(ms.load_robot(path), [0.1], [0.0], duration=0.002, dt=1e-3)
+    run.metadata["robot"]["load_robot"]["package_dirs"] = ["/etc"]
+    npz = run.save(tmp / "run.npz")
+    roots = [os.path.realpath(ms.catalog.shipped_models_dir()), str(ms.catalog.example_robot_data_share())]
+    roots.append(os.path.realpath(folder))
+
+    def call() -> object:
+        import multibody_sim.viz as viz
+
+        return viz.robot_from_trajectory(ms.Trajectory.load(npz))
+
+    fields = {"npz": str(npz), "trusted": ", ".join(roots)}
+    return Trigger(call=call, argv=["play", str(npz), "--html", str(tmp / "view.html")], fields=fields)
+
+
 RANGES_AND_NAMES = [
     BadInput(
         "port-above-65535",
@@ -1690,6 +1713,18 @@ RANGES_AND_NAMES = [
         "Put the URDF beside the scene, or allow its folder: `--allow-root DIR`.",
         scene_outside("source"),
         ms.SceneError,
+    ),
+    BadInput(
+        "npz-metadata-widens-mesh-folders",
+        "Python API",
+        "`viz.robot_from_trajectory(run)` (and `play run.npz`) for a trajectory whose metadata names /etc as its "
+        "robot's package folder (`play --html` would embed meshes from there)",
+        "cannot load the trajectory's robot: its metadata names the folder '/etc' (package_dirs), outside the URDF's "
+        "folder and the catalog's ({trusted}); to allow it, pass --allow-root /etc (allowed_roots=['/etc'])",
+        "A trajectory from elsewhere reads meshes only beside its URDF and in the catalog; allow a folder yourself if "
+        "you trust it (`play --allow-root DIR`).",
+        forged_package_dirs,
+        ms.ModelError,
     ),
     BadInput(
         "frame-names-bidi",

@@ -381,6 +381,14 @@ def _add_view_commands(commands: Any) -> None:
     )
     play.add_argument("--plot", action="store_true", help="show the energy and joint-position plot beside the view")
     play.add_argument(
+        "--allow-root",
+        metavar="DIR",
+        action="append",
+        default=[],
+        help="a folder the trajectory's robot may read meshes from besides its URDF's folder and the catalog's, "
+        "when its metadata names one (a trajectory from elsewhere cannot widen them itself; repeat for several)",
+    )
+    play.add_argument(
         "--forces",
         action="store_true",
         help="draw a contact scene's contact forces as arrows (with --html; the largest force is 20 cm long)",
@@ -984,7 +992,7 @@ def _cmd_play(args: argparse.Namespace) -> int:
     video = _check_video(args) if args.video else None
     trajectory = ms.Trajectory.load(args.trajectory)
     try:
-        robot = viz.robot_from_trajectory(trajectory)
+        robot = viz.robot_from_trajectory(trajectory, allowed_roots=args.allow_root or None)
         if video is not None:
             _write_video(viz, trajectory, robot, video, args)
         if html is not None:
