@@ -562,3 +562,18 @@ def test_a_run_that_outgrows_its_address_space_keeps_its_samples(tmp_path: Path)
     assert t_stop - 0.1 < saved.t[-1] <= t_stop
     assert np.all(np.diff(saved.t) > 0) and np.all(np.isfinite(saved.q))
     assert sorted(os.listdir(tmp_path)) == ["run.npz"]
+
+
+def test_a_chunk_that_does_not_continue_the_previous_one_is_refused(tmp_path: Path) -> None:
+    """A chunk of the same run copied over its successor (same run id, the wrong samples): the sample count and
+    the times say it does not continue the previous one."""
+    import shutil
+
+    parts = left_parts(tmp_path)
+    shutil.copyfile(parts / "chunk_000002.npz", parts / "chunk_000003.npz")
+    with pytest.raises(ms.TrajectoryFileError) as info:
+        ms.Trajectory.load(parts)
+    assert str(info.value) == (
+        f"{parts}: chunk_000003.npz does not continue the previous chunk (it starts at sample 40, t = 0.4 s; expected "
+        "sample 60, after t = 0.59 s); move it out of the folder"
+    )

@@ -339,3 +339,59 @@ def test_bench_refuses_a_special_file_where_its_tables_go(tmp_path: Path, capsys
         + refusal(tmp_path / "work_precision.csv", "a FIFO (named pipe)", "--out", "work_precision.csv")
         + "\n"
     )
+
+
+BLOCKED_WRITER = """
+import os, sys, time
+import numpy as np
+from multibody_sim.cli import main
+ready, go = sys.argv[1], sys.argv[2]
+real_savez = np.savez
+def savez_blocked(f, **arrays):
+    f.write(b"PK half")  # half a file on disk: the moment the parent signals
+    open(ready, "w").close()
+    while not os.path.exists(go):
+        time.sleep(0.01)
+    f.seek(0)
+    f.truncate()
+    real_savez(f, **arrays)
+np.savez = savez_blocked
+sys.exit(main(sys.argv[3:]))
+"""
+
+
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_from_outside_while_the_file_is_written(tmp_path: Path, sig: signal.Signals, code: int) -> None:
+    """`multibody-sim run --out` in a child, stopped inside its final write (half the file on disk); the parent
+    sends the signal then lets the write go on: the file is completed, the signal then takes effect (exit 130 /
+    143), one line says what was kept, no temporary file."""
+    out, ready, go = tmp_path / "run.npz", tmp_path / "ready", tmp_path / "go"
+    argv = ["run", "pendulum", "--q0", "1", "--duration", "0.5", "--output-dt", "0.01", "--out", str(out)]
+    child = subprocess.Popen(
+        [sys.executable, "-c", BLOCKED_WRITER, str(ready), str(go), *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        for _ in range(6000):
+            if ready.exists() or child.poll() is not None:
+                break
+            subprocess.run(["sleep", "0.01"], check=True)
+        assert ready.exists(), child.communicate()[1]
+        os.kill(child.pid, sig)  # while the file is half written
+        subprocess.run(["sleep", "0.2"], check=True)
+        assert child.poll() is None  # held off: the process did not die mid-write
+        go.touch()
+        stdout, stderr = child.communicate(timeout=120)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert child.returncode == code, stderr
+    assert stderr == (
+        f"multibody-sim: {sig.name}: interrupted while writing the samples, after the run completed at t = 0.5 s; 51 "
+        f"samples kept; partial trajectory (51 samples, t = 0..0.5 s) written to {out}\n"
+    )
+    saved = ms.Trajectory.load(out)
+    assert saved.status == "completed" and len(saved) == 51
+    assert sorted(os.listdir(tmp_path)) == ["go", "ready", "run.npz"]

@@ -265,11 +265,13 @@ def check_memory(n_samples: int, system: Any, rows: int = 1, advice: str | None 
     The room is safety.usable_memory(): the machine's available memory, the address-space limit (RLIMIT_AS) and
     the cgroup's memory limit, whichever is least.
     """
-    check_allocation(
-        n_samples * sample_bytes(system, rows),
-        f"this run would keep {n_samples:.3g} samples",
-        advice or "sample less often (output_dt) or stream to disk (out= and chunk=; --chunk in the CLI)",
-    )
+    if rows > 1:  # a rollout: no chunks to stream to
+        what = f"this rollout would keep {n_samples:.3g} samples of each of its {rows} elements"
+        default = "sample less often (output_dt) or run the batch in smaller parts"
+    else:
+        what = f"this run would keep {n_samples:.3g} samples"
+        default = "sample less often (output_dt) or stream to disk (out= and chunk=; --chunk in the CLI)"
+    check_allocation(n_samples * sample_bytes(system, rows), what, advice or default)
 
 
 def file_bytes(system: Any) -> int:
