@@ -106,7 +106,8 @@ TARGETS = {
     **{(name, tol): 0.5 for name in ("ur5", "solo12", "talos") for tol in (1e-6, 1e-8)},
 }
 TARGET_MUJOCO = {"double_pendulum": ("RK4",)}  # MuJoCo integrators a target compares with (default: all)
-ROUNDS = 7  # interleaved timing rounds of the target comparisons (median CPU time of each candidate)
+ROUNDS = 11  # interleaved timing rounds of the target comparisons (median CPU time of each candidate)
+RNG = np.random.default_rng(SEED)  # the rounds' orders
 CANDIDATES = 3  # the cheapest few of each side (by the study's timings) are timed again, interleaved
 MUJOCO_INTEGRATORS = ("Euler", "implicitfast", "RK4")
 MUJOCO_EVALUATIONS = {"Euler": 1, "implicitfast": 1, "RK4": 4}  # forward-dynamics passes per step
@@ -330,9 +331,12 @@ def target_rows(
         for x in theirs:
             runs.append((x, lambda x=x: mj.rerun(x.integrator, x.dt)[0]))
         times: dict[int, list[float]] = {i: [] for i in range(len(runs))}
-        for _ in range(rounds):
-            for i, (_, once) in enumerate(runs):
-                times[i].append(once())
+        order = list(range(len(runs)))
+        for _ in range(rounds):  # a new order each round: no candidate always runs right after the same one
+            RNG.shuffle(order)
+            for i in order:
+                runs[i][1]()  # run once untimed: the timed run finds its caches warm, as a loop of calls does
+                times[i].append(runs[i][1]())
         medians = {i: statistics.median(t) for i, t in times.items()}
         best_ours = min(range(len(ours)), key=lambda i: medians[i])
         best_theirs = min(range(len(ours), len(runs)), key=lambda i: medians[i])
@@ -735,9 +739,10 @@ def main(argv: list[str] | None = None) -> int:
             para(f"""Our cheapest explicit run (any method, step or tolerance, on the kernel `simulate` takes for it)
             against MuJoCo's cheapest run reaching the same accuracy (error + the reference's ≤ accuracy; on the
             double pendulum MuJoCo's RK4, elsewhere any of its integrators). The {CANDIDATES} cheapest of each side in
-            the study are timed again in {ROUNDS} interleaved rounds (each round runs every candidate once): CPU
-            time medians, ours of the whole `simulate` call, MuJoCo's of its stepping loop (`mj_step` in a Python
-            loop). Ratio = ours / MuJoCo's."""),
+            the study are timed again in {ROUNDS} interleaved rounds (each round runs every candidate in a new random
+            order, each twice in a row and the second timed: its caches warm as in a loop of calls, not cooled by the
+            candidate before): CPU time medians, ours of the whole `simulate` call, MuJoCo's of its stepping loop
+            (`mj_step` in a Python loop). Ratio = ours / MuJoCo's."""),
             "",
             *targets_table(targets),
             "",
