@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from . import native
-from .exceptions import InvalidArgumentError
 from .core import EMPTY, FULL, REACHED, STEPPED, Core, KernelAttempt, RowStop, collapsed_message, diverged_message
+from .exceptions import InvalidArgumentError
 from .integrators import INTEGRATORS, Integrator
 from .integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
 from .integrators.partitioned import SemiImplicitEuler

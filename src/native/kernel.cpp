@@ -676,7 +676,11 @@ namespace multibody_sim
           res.status = REACHED;
           return;
         }
-        if (pol && t < pol->duration && n_alive)  // driver.Run._loop's control instants
+        // driver.Run._loop's control instants. Every step (adaptive, no control_dt): the driver controls between
+        // its one-step advances, so a sample at t (taken at the end of the previous advance) carries the previous
+        // torque, except at the run's start.
+        const bool each = pol && pol->every_step;
+        if (pol && t < pol->duration && n_alive && !(each && st.steps > 0))
         {
           if (pol->every_step ? t != st.last_control : t == pol->instant(st.instant))
           {
@@ -704,6 +708,12 @@ namespace multibody_sim
           }
           if (due(sampler, t, tolerance))
             record(store);
+        }
+        if (each && st.steps > 0 && t < pol->duration && n_alive && t != st.last_control)
+        {
+          if (!control(store))
+            return;
+          st.last_control = t;
         }
         if (!n_alive)
         {

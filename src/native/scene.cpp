@@ -3,6 +3,7 @@
 #include "scene.hpp"
 #include "model.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
@@ -23,6 +24,8 @@ namespace multibody_sim
   , unscaled(scene.wrenches.size(), Vec::Zero(model.nv))
   , scales(scene.wrenches.size(), 1.0)
   , zeros(Vec::Zero(model.nv))
+  , u(std::max(scene.rough.size(), scene.ledger_rough.size()))
+  , th(u.size())
   {
     for (const pinocchio::Model & push : scene.push_models)
       pushes.emplace_back(push);
@@ -49,13 +52,37 @@ namespace multibody_sim
     return std::sin(2.0 * M_PI * frequency * (t - start) + phase);
   }
 
+  void SceneForces::tanh(const double * x, double * out, std::intptr_t n) const
+  {
+    if (!tanh_loop.function)
+    {
+      for (std::intptr_t i = 0; i < n; ++i)
+        out[i] = std::tanh(x[i]);
+      return;
+    }
+    char * args[2] = {const_cast<char *>(reinterpret_cast<const char *>(x)), reinterpret_cast<char *>(out)};
+    const std::intptr_t steps[2] = {sizeof(double), sizeof(double)};
+    tanh_loop.function(args, &n, steps, tanh_loop.data);
+  }
+
+  double SceneForces::atan2(double y, double x) const
+  {
+    if (!atan2_loop.function)
+      return std::atan2(y, x);
+    double out = 0.0;
+    char * args[3] = {reinterpret_cast<char *>(&y), reinterpret_cast<char *>(&x), reinterpret_cast<char *>(&out)};
+    const std::intptr_t n = 1, steps[3] = {sizeof(double), sizeof(double), sizeof(double)};
+    atan2_loop.function(args, &n, steps, atan2_loop.data);
+    return out;
+  }
+
   namespace
   {
     // np.arctan2(cr s - sr c, cr c + sr s): the angle of (c, s) from the rest angle, wrapped to (-π, π]
-    inline double wrapped(const Vec & q, int ic, double cos_rest, double sin_rest)
+    inline double wrapped(const SceneForces & scene, const Vec & q, int ic, double cos_rest, double sin_rest)
     {
       const double c = q[ic], s = q[ic + 1];
-      return std::atan2(cos_rest * s - sin_rest * c, cos_rest * c + sin_rest * s);
+      return scene.atan2(cos_rest * s - sin_rest * c, cos_rest * c + sin_rest * s);
     }
   } // namespace
 
@@ -68,11 +95,18 @@ namespace multibody_sim
     for (const SpringTerm & s : springs)
       out[s.dof] = (q[s.iq] - s.rest) * s.minus_k;
     for (const CircularTerm & s : circular)
-      out[s.dof] = wrapped(q, s.ic, s.cos_rest, s.sin_rest) * s.minus_k;
+      out[s.dof] = wrapped(*this, q, s.ic, s.cos_rest, s.sin_rest) * s.minus_k;
     for (const CoefficientTerm & d : damped)
       out[d.dof] = out[d.dof] - v[d.dof] * d.c;
-    for (const CoefficientTerm & f : rough)
-      out[f.dof] = out[f.dof] - std::tanh(v[f.dof] * inv_vs) * f.c;
+    if (!rough.empty())
+    {
+      const size_t n = rough.size();
+      for (size_t i = 0; i < n; ++i)
+        work.u[i] = v[rough[i].dof] * inv_vs;
+      tanh(work.u.data(), work.th.data(), static_cast<std::intptr_t>(n));
+      for (size_t i = 0; i < n; ++i)
+        out[rough[i].dof] = out[rough[i].dof] - work.th[i] * rough[i].c;
+    }
     if (wrenches.empty())
       return;
     // elements._Push.forces: -rnea(q, 0, 0) of the point-mass model under the gravity f
@@ -130,7 +164,7 @@ namespace multibody_sim
   }
 
   // ForceElements.powers (_joint_powers, then each wrench's work (Jᵀw)·v, ordered)
-  void SceneForces::powers(const SceneWork & work, const Vec & v, double * out) const
+  void SceneForces::powers(SceneWork & work, const Vec & v, double * out) const
   {
     int i = 0;
     for (const CoefficientTerm & d : ledger_damped)
@@ -138,10 +172,14 @@ namespace multibody_sim
       const double x = v[d.dof];
       out[i++] = x * x * d.c;
     }
-    for (const CoefficientTerm & f : ledger_rough)
+    if (!ledger_rough.empty())
     {
-      const double x = v[f.dof];
-      out[i++] = x * std::tanh(x * inv_vs) * f.c;
+      const size_t n = ledger_rough.size();
+      for (size_t r = 0; r < n; ++r)
+        work.u[r] = v[ledger_rough[r].dof] * inv_vs;
+      tanh(work.u.data(), work.th.data(), static_cast<std::intptr_t>(n));
+      for (size_t r = 0; r < n; ++r)
+        out[i++] = v[ledger_rough[r].dof] * work.th[r] * ledger_rough[r].c;
     }
     for (size_t k = 0; k < wrenches.size(); ++k)
     {
@@ -160,7 +198,7 @@ namespace multibody_sim
     for (size_t i = 0; i < energies.size(); ++i)
     {
       const SpringEnergy & s = energies[i];
-      const double x = s.circular ? wrapped(q, s.iq, s.cos_rest, s.sin_rest) : q[s.iq] - s.rest;
+      const double x = s.circular ? wrapped(*this, q, s.iq, s.cos_rest, s.sin_rest) : q[s.iq] - s.rest;
       const double e = 0.5 * s.k * x * x;
       if (record)
         record[i] = e;
@@ -242,7 +280,39 @@ namespace multibody_sim
 #include <nanobind/stl/tuple.h>
 #include <nanobind/stl/vector.h>
 
+#define NO_IMPORT_ARRAY
+#define NO_IMPORT_UFUNC
+#define NPY_NO_DEPRECATED_API NPY_1_7_API_VERSION
+#include <numpy/ndarraytypes.h>
+#include <numpy/ufuncobject.h>
+
 namespace nb = nanobind;
+
+namespace
+{
+  // numpy.<name>'s inner loop over float64 arguments only (its public PyUFuncObject fields); none: the C library's
+  multibody_sim::NumpyLoop numpy_loop(const char * name)
+  {
+    multibody_sim::NumpyLoop loop;
+    nb::object ufunc = nb::module_::import_("numpy").attr(name);
+    if (std::string(Py_TYPE(ufunc.ptr())->tp_name) != "numpy.ufunc")
+      return loop;
+    const PyUFuncObject * u = reinterpret_cast<const PyUFuncObject *>(ufunc.ptr());
+    for (int i = 0; i < u->ntypes; ++i)
+    {
+      bool doubles = true;
+      for (int k = 0; k < u->nargs; ++k)
+        doubles = doubles && u->types[i * u->nargs + k] == NPY_DOUBLE;
+      if (doubles)
+      {
+        loop.function = reinterpret_cast<multibody_sim::NumpyLoop::Function>(u->functions[i]);
+        loop.data = u->data[i];
+        return loop;
+      }
+    }
+    return loop;
+  }
+} // namespace
 
 void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
 {
@@ -260,6 +330,8 @@ void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
         std::vector<const NativeModel *> push_models,
         std::vector<std::tuple<bool, int, double, double, double, double>> energies) {
         new (self) SceneForces();
+        self->tanh_loop = numpy_loop("tanh");
+        self->atan2_loop = numpy_loop("arctan2");
         const pinocchio::Model & robot = model.model;
         const int nv = robot.nv, nq = robot.nq;
         self->nv = nv;
@@ -333,6 +405,10 @@ void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
       nb::arg("push_models"), nb::arg("energies"))
     .def_prop_ro("n_flows", &SceneForces::n_flows)
     .def_prop_ro("n_records", &SceneForces::n_records)
+    .def_prop_ro(
+      "numpy_functions",
+      [](const SceneForces & self) { return self.tanh_loop.function != nullptr && self.atan2_loop.function != nullptr; },
+      "Whether tanh and arctan2 are NumPy's own loops (else the C library's: agreement to round-off only).")
     .def(
       "evaluate",
       [](const SceneForces & self, NativeModel & model, const Vec & q, const Vec & v, double t) {

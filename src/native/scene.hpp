@@ -65,6 +65,16 @@ namespace multibody_sim
 
   class SceneForces;
 
+  // A NumPy ufunc's float64 inner loop (PyUFuncGenericFunction): the scene's elementary functions are NumPy's
+  // own, as the Python kernel calls them (NumPy's SIMD tanh and arctan2 differ from the C library's in the last
+  // place on some CPUs, e.g. with AVX-512).
+  struct NumpyLoop
+  {
+    using Function = void (*)(char **, const std::intptr_t *, const std::intptr_t *, void *);
+    Function function = nullptr;  // null: the C library's function (agreement to round-off only)
+    void * data = nullptr;
+  };
+
   struct SceneWork  // one thread's workspace
   {
     pinocchio::Data data;                 // the scene model's (frame Jacobians)
@@ -73,6 +83,7 @@ namespace multibody_sim
     std::vector<Vec> unscaled;   // each wrench's Jᵀw at the latest forces() call (elements._wrench_forces)
     std::vector<double> scales;  // each wrench's scale then
     Vec zeros;
+    std::vector<double> u, th;  // the friction terms' v / v_s and tanh of it
 
     SceneWork(const pinocchio::Model & model, const SceneForces & scene);
   };
@@ -92,6 +103,7 @@ namespace multibody_sim
     std::vector<int> others;  // the wrenches that take a frame Jacobian, in order
     std::vector<pinocchio::Model> push_models;
     std::vector<SpringEnergy> energies;
+    NumpyLoop tanh_loop, atan2_loop;  // np.tanh, np.arctan2
 
     int n_flows() const
     {
@@ -108,7 +120,9 @@ namespace multibody_sim
     void forces(SceneWork & work, const pinocchio::Model & model, const Vec & q, const Vec & v, double t,
                 Vec & out) const;
     // ForceElements.powers: the elements' ledger powers at v, with the wrench parts of the latest forces() call.
-    void powers(const SceneWork & work, const Vec & v, double * out) const;
+    void powers(SceneWork & work, const Vec & v, double * out) const;
+    void tanh(const double * x, double * out, std::intptr_t n) const;  // np.tanh of n numbers
+    double atan2(double y, double x) const;                              // np.arctan2
     // The springs' energies into `record` (n_records(), may be null); returns their ordered sum (0 with none).
     double spring_energy(const Vec & q, double * record) const;
   };

@@ -435,7 +435,7 @@ class ForceElements:
             ]
             damped = [(int(i), float(d)) for i, d in zip(self._damped, self._d, strict=True)]
             rough = [(int(i), float(f)) for i, f in zip(self._rough, self._fc, strict=True)]
-        pushes = []
+        pushes: list[object] = []
         wrenches = []
         for k, w in enumerate(self._wrenches):
             push = -1
