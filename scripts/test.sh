@@ -6,7 +6,8 @@
 # pyproject.toml installed in .venv, so the C++ extension's build tree (build/<wheel tag>/) stays valid between
 # runs: a re-run rebuilds only what changed. Environment:
 #   MULTIBODY_SIM_NATIVE=0      skip the C++ build (and run the Python kernel); the native tests then skip.
-#   MULTIBODY_SIM_BUILD_LOCK=F  hold `flock F` while building (machines that limit concurrent C++ compiles).
+#   MULTIBODY_SIM_BUILD_LOCK=F  the lock file held (`flock`) while building, so that checkouts sharing a machine
+#                               compile one at a time (~1 min and ~3 GiB per C++ file); default: a file in /tmp.
 #   CI=true                     a failed C++ build fails the run (elsewhere the install falls back to Python).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -36,7 +37,9 @@ from scikit_build_core.build import get_requires_for_build_editable
 print(" ".join(get_requires_for_build_editable()))')"
   if [ "${#requires[@]}" -gt 0 ]; then quiet "${pip[@]}" "${requires[@]}"; fi
   lock=()
-  if [ -n "${MULTIBODY_SIM_BUILD_LOCK:-}" ]; then lock=(flock "$MULTIBODY_SIM_BUILD_LOCK"); fi
+  if command -v flock >/dev/null 2>&1; then
+    lock=(flock "${MULTIBODY_SIM_BUILD_LOCK:-${TMPDIR:-/tmp}/multibody-sim-build.lock}")
+  fi
   quiet "${lock[@]}" "${pip[@]}" --verbose --no-build-isolation -e ".[test]"  # the build's output, for the log
   # A build that fell back to Python is said in one line (its output is in the log); under CI it fails the run.
   .venv/bin/python -c '

@@ -8,12 +8,17 @@ line that must exit 2, and the values its message template is filled with.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import functools
 import io
 import json
 import os
 import pickle
+import signal
+import socket
 import struct
+import sys
 import xml.etree.ElementTree as ET
 import zipfile
 import zlib
@@ -54,11 +59,13 @@ class Trigger:
         call: the Python API call that must raise the entry's error (None for command-line-only entries).
         argv: the command line (after `multibody-sim`) that must exit 2 with the message (None for API-only).
         fields: values for the message template's {placeholders}.
+        during: a context in which both run (a full disk, a signal at a chosen moment), or None.
     """
 
     call: Callable[[], object] | None = None
     argv: list[str] | None = None
     fields: dict[str, str] = field(default_factory=dict)
+    during: Callable[[], contextlib.AbstractContextManager[Any]] | None = None
 
 
 @dataclass(frozen=True)
@@ -73,6 +80,8 @@ class BadInput:
         advice: what to do about it.
         build: makes the input in a fresh folder and says how to trigger the error.
         error: the exception class the API raises.
+        code: the command line's exit code: 2 (bad input), or for a run that ends early 1 (failed) and 130 / 143
+            (SIGINT / SIGTERM), whose line starts "multibody-sim: SIGINT: " instead of "multibody-sim: error: ".
     """
 
     id: str
@@ -82,6 +91,7 @@ class BadInput:
     advice: str
     build: Callable[[Path], Trigger]
     error: type[Exception] = ms.ModelError
+    code: int = 2
 
 
 # ur5's movable joints and the frames on its moving bodies, as the scene errors list them.
@@ -95,6 +105,13 @@ UR5_MOVING_FRAMES = (
 
 # What the table shows for the placeholders (the tests fill in real paths).
 DISPLAY = {
+    "out": "/home/me/run.npz",
+    "target": "/home/me/pipe",
+    "lock": "/home/me/run.npz.lock",
+    "pid": "12345",
+    "parts": "/home/me/run.npz.parts",
+    "other": "9c41d7e2a0b3",
+    "mine": "5f0e8b2c7d16",
     "urdf": "/home/me/robot/robot.urdf",
     "dir": "/home/me/robot",
     "secret": "/home/me/secret/passwords.txt",
@@ -109,6 +126,8 @@ DISPLAY = {
     "adaptive": "bs32, dop853, dp54",
     "numpy": "('EOF in multi-line statement', (2, 0))",
     "scene": "/home/me/scene.toml",
+    "roots": "/home/me, <site-packages>/multibody_sim/models, <site-packages>/cmeel.prefix/share",
+    "trusted": "<site-packages>/multibody_sim/models, <site-packages>/cmeel.prefix/share, /home/me/robot",
     "joints": UR5_JOINTS,
     "frames": UR5_MOVING_FRAMES,
 }
@@ -1155,6 +1174,171 @@ def string_wall_time(header: dict[str, Any]) -> None:
     header["stats"]["wall_time"] = "slow"
 
 
+def fifo(tmp: Path, name: str = "run.npz") -> Path:
+    path = tmp / name
+    os.mkfifo(path)
+    return path
+
+
+def unix_socket(tmp: Path, name: str) -> Path:
+    """A socket file (it stays in the folder once the socket is closed)."""
+    path = tmp / name
+    with socket.socket(socket.AF_UNIX) as server:
+        server.bind(str(path))
+    return path
+
+
+def saved_run(tmp: Path) -> Path:
+    return ms.simulate(pendulum(), [1.0], [0.0], duration=0.05, dt=0.01).save(tmp / "saved.npz")
+
+
+def output_api(make: Callable[[Path], Path], call: Callable[[Path], object]) -> Callable[[Path], Trigger]:
+    """An API writer given the output `make` builds; fields: out (and target, for a link)."""
+
+    def build(tmp: Path) -> Trigger:
+        path = make(tmp)
+        return Trigger(call=lambda: call(path), fields={"out": str(path), "target": os.path.realpath(path)})
+
+    return build
+
+
+def to_out(path: Path) -> object:
+    return ms.simulate(pendulum(), [1.0], [0.0], duration=0.05, dt=0.01, out=path)
+
+
+def save_to(path: Path) -> object:
+    return ms.simulate(pendulum(), [1.0], [0.0], duration=0.05, dt=0.01).save(path)
+
+
+def link_to_fifo(tmp: Path) -> Path:
+    link = tmp / "run.npz"
+    link.symlink_to(fifo(tmp, "pipe"))
+    return link
+
+
+def locked(tmp: Path) -> Trigger:
+    """out.lock names a live process (this one): another run is writing out."""
+    out = tmp / "run.npz"
+    lock = tmp / "run.npz.lock"
+    lock.write_text(f"{os.getpid()} {socket.gethostname()} 0123456789abcdef0123456789abcdef\n")
+    fields = {"out": str(out), "lock": str(lock), "pid": str(os.getpid())}
+    return Trigger(call=lambda: to_out(out), fields=fields)
+
+
+def output_cli(option: str, make: Callable[[Path], Path], command: str = "run") -> Callable[[Path], Trigger]:
+    def build(tmp: Path) -> Trigger:
+        path = make(tmp)
+        argv = ["run", "pendulum", "--duration", "0.05", option, str(path)]
+        if command != "run":
+            argv = [command, str(saved_run(tmp)), option, str(path)]
+        return Trigger(argv=argv, fields={"out": str(path)})
+
+    return build
+
+
+def folder(tmp: Path) -> Path:
+    path = tmp / "run.npz"
+    path.mkdir()
+    return path
+
+
+def unmerged_parts(tmp: Path, name: str = "run.npz") -> Path:
+    """A chunked run's parts (6 chunks of 20 samples) left unmerged: its merge found the disk full."""
+    from unittest import mock
+
+    def full(*args: object, **kwargs: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with mock.patch("multibody_sim.driver.merge_parts", full), contextlib.suppress(ms.SimulationError):
+        ms.simulate(pendulum(), [1.0], [0.0], duration=1.0, dt=1e-3, output_dt=1e-2, out=tmp / name, chunk=20)
+    return tmp / f"{name}.parts"
+
+
+def parts_with_a_hole(tmp: Path) -> Trigger:
+    parts = unmerged_parts(tmp)
+    (parts / "chunk_000002.npz").unlink()
+    return npz_trigger(parts, {"parts": str(parts)})
+
+
+def run_id(chunk: Path) -> str:
+    with np.load(chunk) as npz:
+        return str(json.loads(str(npz["header"][()]))["metadata"]["chunk"]["run_id"])[:12]
+
+
+def parts_with_a_stranger(tmp: Path) -> Trigger:
+    parts = unmerged_parts(tmp)
+    stranger = unmerged_parts(tmp, "other.npz") / "chunk_000003.npz"
+    stranger.replace(parts / "chunk_000003.npz")
+    fields = {
+        "parts": str(parts),
+        "other": run_id(parts / "chunk_000003.npz"),
+        "mine": run_id(parts / "chunk_000000.npz"),
+    }
+    return npz_trigger(parts, fields)
+
+
+CHUNKED_RUN = ["run", "pendulum", "--q0", "1", "--output-dt", "0.01", "--chunk", "20"]
+
+
+@contextlib.contextmanager
+def disk_full_from(call: int) -> Any:
+    """Trajectory.save (every chunk and file) finds the disk full from its `call`-th call on."""
+    from unittest import mock
+
+    real = ms.Trajectory.save
+    calls = []
+
+    def save(self: ms.Trajectory, path: Any) -> Any:
+        calls.append(path)
+        if len(calls) >= call:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, path)
+
+    with mock.patch.object(ms.Trajectory, "save", save):
+        yield
+
+
+@contextlib.contextmanager
+def signal_inside(target: str, signum: int, call: int) -> Any:
+    """A real signal sent to this process from inside `target` (module.function), at its `call`-th call."""
+    from unittest import mock
+
+    module, name = target.rsplit(".", 1)
+    real = getattr(__import__(module, fromlist=[name]), name)
+    calls = []
+
+    def signalled(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        if len(calls) == call:
+            os.kill(os.getpid(), signum)
+        return real(*args, **kwargs)
+
+    with mock.patch(target, signalled):
+        yield
+
+
+def runtime(argv: list[str], during: Callable[[], Any], *, chunked: bool = True) -> Callable[[Path], Trigger]:
+    def build(tmp: Path) -> Trigger:
+        out = tmp / "run.npz"
+        fields = {"out": str(out), "parts": f"{out}.parts"}
+        return Trigger(argv=[*argv, "--out", str(out)], fields=fields, during=during)
+
+    return build
+
+
+@contextlib.contextmanager
+def file_size_limit(nbytes: int) -> Any:
+    """RLIMIT_FSIZE (ulimit -f) lowered for the block (the hard limit unchanged, so it can be raised back)."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+
+
 FILES = [
     BadInput(
         "npz-header-nesting-bomb",
@@ -1183,8 +1367,424 @@ FILES = [
         edited_trajectory(string_wall_time),
         ms.TrajectoryFileError,
     ),
+    BadInput(
+        "output-fifo",
+        "output file",
+        "a FIFO (named pipe) given as a run's out",
+        "out {out}: is a FIFO (named pipe), only regular files are replaced; give a file name such as run.npz",
+        "Give a file name: outputs are written to a temporary file and renamed over a regular file only.",
+        output_api(fifo, to_out),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "output-link-to-fifo",
+        "output file",
+        "a symbolic link to a FIFO given to Trajectory.save (a link is written through: its target counts)",
+        "out {out} (a symbolic link to {target}): is a FIFO (named pipe), only regular files are replaced; give a "
+        "file name such as run.npz",
+        "Point the link at a regular file (or none yet): the link stays, its target is replaced.",
+        output_api(link_to_fifo, save_to),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "output-socket",
+        "output file",
+        "a socket file given to Trajectory.save",
+        "out {out}: is a socket, only regular files are replaced; give a file name such as run.npz",
+        "Give a file name.",
+        output_api(lambda tmp: unix_socket(tmp, "run.npz"), save_to),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "output-directory",
+        "output file",
+        "a folder given as a run's out",
+        "out {out}: is a directory, expected a file name such as run.npz",
+        "Give a file name inside the folder.",
+        output_api(folder, to_out),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "output-locked",
+        "output file",
+        "a second run given the out another live run is writing (its lock file names a live process)",
+        "out {out}: another run is writing it (process {pid}, lock file {lock}); choose another file, or wait for "
+        "that run to end",
+        "Choose another file. A lock whose process has exited is stale and taken over by the next run.",
+        locked,
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "cli-out-directory",
+        "command line",
+        "`run --out` naming a folder",
+        "--out {out}: is a directory, expected a file name such as run.npz",
+        "Give a file name inside the folder.",
+        output_cli("--out", folder),
+    ),
+    BadInput(
+        "cli-csv-socket",
+        "command line",
+        "`export --csv` naming a socket file",
+        "--csv {out}: is a socket, only regular files are replaced; give a file name such as table.csv",
+        "Give a file name.",
+        output_cli("--csv", lambda tmp: unix_socket(tmp, "table.csv"), "export"),
+    ),
+    BadInput(
+        "cli-html-fifo",
+        "command line",
+        "`play --html` naming a FIFO",
+        "--html {out}: is a FIFO (named pipe), only regular files are replaced; give a file name such as view.html",
+        "Give a file name.",
+        output_cli("--html", lambda tmp: fifo(tmp, "view.html"), "play"),
+    ),
+    BadInput(
+        "parts-missing-chunk",
+        "trajectory file",
+        "a chunked run's parts folder with a chunk missing",
+        "{parts}: chunk_000002.npz is missing: the samples from t = 0.39 s to t = 0.6 s are lost; load the chunk "
+        "files one by one (Trajectory.load(chunk))",
+        "Find the missing chunk; the others load one by one. A trajectory with a hole is never stitched together.",
+        parts_with_a_hole,
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "parts-foreign-chunk",
+        "trajectory file",
+        "a parts folder holding a chunk of another run (same times and shapes)",
+        "{parts}: chunk_000003.npz belongs to another run (run {other}, not {mine} of chunk_000000.npz); move it "
+        "out of the folder",
+        "Move the stranger out; each chunk records the run it belongs to.",
+        parts_with_a_stranger,
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "disk-full-mid-run",
+        "run ending early",
+        "the disk fills up while a chunked run writes its fourth chunk",
+        "could not write {parts}/chunk_000003.npz (No space left on device) at t = 0.79 s: the run stopped; 60 "
+        "samples stay in {parts} (Trajectory.load reads the folder), the last 20 only in memory; partial trajectory "
+        "(80 samples, t = 0..0.79 s) kept in {parts} (`multibody-sim plot`, `export` and Trajectory.load read the "
+        "folder)",
+        "Free some space; the parts load as they are (status incomplete).",
+        runtime([*CHUNKED_RUN, "--duration", "1"], lambda: disk_full_from(4)),
+        ms.SimulationError,
+        code=1,
+    ),
+    BadInput(
+        "disk-full-at-the-end",
+        "run ending early",
+        "the disk is full when a completed in-memory run writes its file",
+        "the run completed, but {out} could not be written (No space left on device); partial trajectory (101 "
+        "samples, t = 0..1 s) not written to {out}: lost when this command exits",
+        "Free some space, or stream long runs to disk as they go (--chunk N): chunks already written stay.",
+        runtime(["run", "pendulum", "--q0", "1", "--output-dt", "0.01", "--duration", "1"], lambda: disk_full_from(1)),
+        ms.SimulationError,
+        code=1,
+    ),
+    BadInput(
+        "sigint-during-merge",
+        "run ending early",
+        "Ctrl-C while a chunked run's chunks are merged into its file",
+        "interrupted while writing the samples, after the run completed at t = 1 s; 101 samples kept; merging the "
+        "chunks was interrupted: 101 samples stay in {parts} (Trajectory.load reads the folder); partial trajectory "
+        "(101 samples, t = 0..1 s) kept in {parts} (`multibody-sim plot`, `export` and Trajectory.load read the "
+        "folder)",
+        "Nothing is lost: the parts load as they are; the half-written file was removed.",
+        runtime(
+            [*CHUNKED_RUN, "--duration", "1"],
+            lambda: signal_inside("numpy.lib.format.write_array_header_2_0", signal.SIGINT, 3),
+        ),
+        ms.SimulationError,
+        code=130,
+    ),
+    BadInput(
+        "sigterm-during-chunk-write",
+        "run ending early",
+        "`kill` (SIGTERM) while a chunk file is being written",
+        "interrupted at t = 0.59 s (step 590); 60 samples kept; partial trajectory (60 samples, t = 0..0.59 s) "
+        "written to {out}",
+        "Nothing is lost: the chunk is completed before the signal takes effect, then the chunks are merged.",
+        runtime(
+            [*CHUNKED_RUN, "--duration", "1"],
+            lambda: signal_inside("multibody_sim.driver.write_chunk", signal.SIGTERM, 3),
+        ),
+        ms.SimulationError,
+        code=143,
+    ),
+    BadInput(
+        "file-size-limit",
+        "run ending early",
+        "a run whose file would outgrow this process's file-size limit (ulimit -f 1000, i.e. 1 MB)",
+        "out {out} would take about 8 MB, more than this process's file-size limit (1 MB, ulimit -f): sample less "
+        "often (output_dt) or raise the limit",
+        "Refused before the run, not cut short at its end: sample less often, stream with --chunk, or raise the limit.",
+        runtime(
+            ["run", "pendulum", "--duration", "100", "--output-dt", "0.001"],
+            lambda: file_size_limit(10**6),
+        ),
+        ms.InvalidArgumentError,
+    ),
 ]
 CATALOGUE += FILES
+
+
+# ---- numbers, names, scene folders (issue 17: ranges in validation.py, safe_name, scene roots) ------------
+SUBNORMAL = "9.99989e-321"  # how 1e-320 (a subnormal double) reads back
+COUNT_LIMIT = "is more than 2**53, the most a run can count exactly"
+
+
+def scene_outside(key: str) -> Callable[[Path], Trigger]:
+    """A scene file in scenes/ whose robot file or package_dirs lie in a folder beside it (or in /etc)."""
+
+    def build(tmp: Path) -> Trigger:
+        folder, outside = tmp / "scenes", tmp / "elsewhere"
+        folder.mkdir()
+        outside.mkdir()
+        (folder / "robot.urdf").write_text(urdf(ONE_JOINT))
+        (outside / "robot.urdf").write_text(urdf(ONE_JOINT))
+        if key == "source":
+            text, value = f'[robot]\nsource = "{outside / "robot.urdf"}"\n', str(outside / "robot.urdf")
+        else:
+            text, value = '[robot]\nsource = "robot.urdf"\npackage_dirs = ["/etc"]\n', "/etc"
+        path = folder / "scene.toml"
+        path.write_text(text)
+        roots = [os.path.realpath(folder), os.path.realpath(ms.catalog.shipped_models_dir())]
+        roots.append(str(ms.catalog.example_robot_data_share()))
+        fields = {"scene": str(path), "value": value, "roots": ", ".join(roots)}
+        return Trigger(call=lambda: ms.load_scene(path), argv=["run", str(path)], fields=fields)
+
+    return build
+
+
+def forged_times(times: list[float]) -> Callable[[Path], Trigger]:
+    """A saved run whose sample times were rewritten."""
+
+    def build(tmp: Path) -> Trigger:
+        run = ms.simulate(pendulum(), [0.1], [0.0], duration=0.003, dt=1e-3)
+        run.t = np.array(times)
+        path = run.save(tmp / "run.npz")
+        return npz_trigger(path)
+
+    return build
+
+
+def hostile_frame_names(tmp: Path) -> Trigger:
+    """A robot whose link names hold a right-to-left override and a CSI, asked for a frame it lacks."""
+    path = tmp / "robot.urdf"
+    path.write_text(urdf(BASE, link("arm&#x202e;&#x9b;2J"), joint("j1", "base", "arm&#x202e;&#x9b;2J")))
+    robot = ms.load_robot(path)
+    run = ms.simulate(robot, [0.0], [0.0], duration=0.002, dt=1e-3)
+    return Trigger(call=lambda: ms.analysis.frame_placements(robot, run, "tool"))
+
+
+def forged_package_dirs(tmp: Path) -> Trigger:
+    """A run whose metadata was edited to name /etc as its robot's package folder (its page would embed meshes
+    found there)."""
+    folder = tmp / "robot"
+    folder.mkdir()
+    path = folder / "robot.urdf"
+    path.write_text(urdf(ONE_JOINT))
+    run = ms.simulate(ms.load_robot(path), [0.1], [0.0], duration=0.002, dt=1e-3)
+    run.metadata["robot"]["load_robot"]["package_dirs"] = ["/etc"]
+    npz = run.save(tmp / "run.npz")
+    roots = [os.path.realpath(ms.catalog.shipped_models_dir()), str(ms.catalog.example_robot_data_share())]
+    roots.append(os.path.realpath(folder))
+
+    def call() -> object:
+        import multibody_sim.viz as viz
+
+        return viz.robot_from_trajectory(ms.Trajectory.load(npz))
+
+    fields = {"npz": str(npz), "trusted": ", ".join(roots)}
+    return Trigger(call=call, argv=["play", str(npz), "--html", str(tmp / "view.html")], fields=fields)
+
+
+RANGES_AND_NAMES = [
+    BadInput(
+        "port-above-65535",
+        "command line",
+        "`run pendulum --view --view-port 70000` (a port that would wrap to 4464)",
+        "--view-port must be a whole number from 0 to 65535 (0: any free port), got 70000",
+        "Give a port from 1024 to 65535, or 0 for any free one.",
+        cli("run", "pendulum", "--view", "--view-port", "70000"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "dt-subnormal",
+        "command line",
+        "`run pendulum --dt 1e-320` (a step that underflows below the smallest normal double)",
+        f"duration / dt = 1 s / {SUBNORMAL} s = inf {COUNT_LIMIT}: choose a larger dt or a smaller duration",
+        "Give a step the run can take: duration / dt must be at most 2**53.",
+        cli("run", "pendulum", "--dt", "1e-320"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "step-count-overflow",
+        "command line",
+        "`run pendulum --duration 1e300 --dt 1e-300` (the number of steps overflows)",
+        f"duration / dt = 1e+300 s / 1e-300 s = inf {COUNT_LIMIT}: choose a larger dt or a smaller duration",
+        "Times are t0 + k dt with k counted: a run has at most 2**53 steps.",
+        cli("run", "pendulum", "--duration", "1e300", "--dt", "1e-300"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "rtol-below-epsilon",
+        "command line",
+        "`run pendulum --integrator dp54 --rtol 1e-320`",
+        f"rtol must be a number from {sys.float_info.epsilon:g} to 1 (1 excluded), got {SUBNORMAL}",
+        "No step can meet a relative tolerance below machine epsilon; use 1e-14 or more.",
+        cli("run", "pendulum", "--integrator", "dp54", "--rtol", "1e-320"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "view-speed-nan",
+        "command line",
+        "`run pendulum --view --view-speed nan`",
+        "--view-speed must be a number from 0.001 to 1000 (1 = real time), got nan",
+        "Give a playback speed from 0.001 to 1000.",
+        cli("run", "pendulum", "--view", "--view-speed", "nan"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "play-fps-huge",
+        "command line",
+        "`play run.npz --fps 1e9`",
+        "--fps must be a number from 1 to 1000 frames per second, got 1e+09",
+        "Give a frame rate from 1 to 1000 (30 is plenty for a screen).",
+        lambda tmp: Trigger(argv=["play", str(tmp / "run.npz"), "--fps", "1e9"]),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "chunk-beyond-2-53",
+        "Python API",
+        "`simulate(..., out='run.npz', chunk=2**60)`",
+        f"chunk must be at most 2**53 = {2**53}, got {2**60}",
+        "Give a chunk of a few thousand samples: it is held in memory.",
+        lambda tmp: Trigger(
+            call=lambda: ms.simulate(pendulum(), [0.0], [0.0], duration=1.0, dt=1e-3, out=tmp / "r.npz", chunk=2**60)
+        ),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "stepper-advance-overflow",
+        "Python API",
+        "`Stepper(robot, dt=1e-10).advance_to(1e300)`",
+        f"(t - current time) / control_dt = 1e+300 s / 1e-10 s = inf {COUNT_LIMIT}: choose a larger control_dt or "
+        "a smaller (t - current time)",
+        "Advance by spans the stepper can count in steps.",
+        api(lambda: ms.Stepper(pendulum(), dt=1e-10).advance_to(1e300)),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "npz-times-go-back",
+        "trajectory file",
+        "a trajectory whose sample times go back",
+        "{npz}: sample times: t must be strictly increasing, got 0.002 then 0.001 at indices 1 and 2",
+        "The file was edited or forged: regenerate it.",
+        forged_times([0.0, 0.002, 0.001, 0.003]),
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "npz-time-nan",
+        "trajectory file",
+        "a trajectory with a NaN sample time",
+        "{npz}: sample times: t must hold finite times, got nan at index 2",
+        "The file was edited or forged: regenerate it.",
+        forged_times([0.0, 0.001, float("nan"), 0.003]),
+        ms.TrajectoryFileError,
+    ),
+    BadInput(
+        "scene-package-dirs-etc",
+        "scene file",
+        "a scene from elsewhere whose `package_dirs` point at /etc",
+        "{scene}: robot.package_dirs[0]: '{value}' is outside the folders a scene may read from (its own folder "
+        "and the catalog's: {roots}); to allow it, pass --allow-root DIR (allowed_roots=[DIR] in load_scene)",
+        "A scene reads meshes from its own folder and the catalog only; allow another folder yourself if you trust it.",
+        scene_outside("package_dirs"),
+        ms.SceneError,
+    ),
+    BadInput(
+        "scene-robot-outside",
+        "scene file",
+        "a scene whose robot file lies in a folder beside the scene's",
+        "{scene}: robot.source: '{value}' is outside the folders a scene may read from (its own folder and the "
+        "catalog's: {roots}); to allow it, pass --allow-root DIR (allowed_roots=[DIR] in load_scene)",
+        "Put the URDF beside the scene, or allow its folder: `--allow-root DIR`.",
+        scene_outside("source"),
+        ms.SceneError,
+    ),
+    BadInput(
+        "npz-metadata-widens-mesh-folders",
+        "Python API",
+        "`viz.robot_from_trajectory(run)` (and `play run.npz`) for a trajectory whose metadata names /etc as its "
+        "robot's package folder (`play --html` would embed meshes from there)",
+        "cannot load the trajectory's robot: its metadata names the folder '/etc' (package_dirs), outside the URDF's "
+        "folder and the catalog's ({trusted}); to allow it, pass --allow-root /etc (allowed_roots=['/etc'])",
+        "A trajectory from elsewhere reads meshes only beside its URDF and in the catalog; allow a folder yourself if "
+        "you trust it (`play --allow-root DIR`).",
+        forged_package_dirs,
+        ms.ModelError,
+    ),
+    BadInput(
+        "frame-names-bidi",
+        "Python API",
+        "asking a robot whose link names hold a right-to-left override and a CSI for a frame it lacks",
+        "robot 'robot' has no frame 'tool' (its 4 frames: universe, base, j1, arm\\u202e\\x9b2J; "
+        "multibody_sim.analysis.frame_names(robot) lists them)",
+        "Names from files are escaped in every message and printout: they cannot reorder or recolour your terminal.",
+        hostile_frame_names,
+        ms.UnknownNameError,
+    ),
+]
+TYPES = [
+    BadInput(
+        "trajectory-load-none",
+        "Python API",
+        "`Trajectory.load(None)`",
+        "path must be a path to a trajectory file (.npz) or a parts folder, got NoneType",
+        "Pass the file's path (a str or a pathlib.Path).",
+        api(lambda: ms.Trajectory.load(None)),  # type: ignore[arg-type]
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "system-a-name",
+        "Python API",
+        "`simulate('pendulum', ...)` (a robot's name where the robot goes)",
+        "system must be a Robot or a Scene, got str (load it first: load_robot('pendulum') or load_scene('pendulum'))",
+        "Load the robot first; every function that takes a robot checks this.",
+        api(lambda: ms.simulate("pendulum", [0.0], [0.0], duration=1.0, dt=1e-3)),  # type: ignore[arg-type]
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "q0-strings",
+        "Python API",
+        "`simulate(pendulum, ['a'], [0], ...)` (strings where numbers go)",
+        "q0 must be an array of 1 real numbers, got list",
+        "Give numbers; strings are not converted (they hide mistakes).",
+        api(lambda: ms.simulate(pendulum(), ["a"], [0.0], duration=1.0, dt=1e-3)),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "count-a-float",
+        "Python API",
+        "`rollout(..., num_threads=2.5)` (a float where a whole number goes)",
+        "num_threads must be a positive whole number, got 2.5",
+        "Give a whole number; nothing is rounded for you.",
+        api(lambda: ms.rollout(pendulum(), [[0.0]], [[0.0]], duration=1.0, dt=1e-3, num_threads=2.5)),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "flag-a-string",
+        "Python API",
+        "`Trajectory.load(path, mmap='no')` (a string where True or False goes: 'no' would be true)",
+        "mmap must be True or False, got 'no'",
+        "Pass True or False.",
+        api(lambda: ms.Trajectory.load("run.npz", mmap="no")),  # type: ignore[arg-type]
+        ms.InvalidArgumentError,
+    ),
+]
+CATALOGUE += RANGES_AND_NAMES + TYPES
 
 BY_ID = {entry.id: entry for entry in CATALOGUE}
 assert len(BY_ID) == len(CATALOGUE), "catalogue ids must be unique"
@@ -1206,4 +1806,7 @@ def display_fields(entry: BadInput) -> dict[str, Any]:
         fields["omitted"] = "998175"
     if entry.id == "not-xml":
         fields["libxml2"] = "Start tag expected, '<' not found, line 1, column 1"
+    fields["value"] = {"scene-package-dirs-etc": "/etc", "scene-robot-outside": "/home/elsewhere/robot.urdf"}.get(
+        entry.id, ""
+    )
     return fields

@@ -489,3 +489,91 @@ def test_a_foreign_chunk_dropped_in_during_the_run_stops_the_merge(tmp_path: Pat
         info.value
     )
     assert not out.exists()
+
+
+@pytest.mark.parametrize("where", ["controller", "on_sample"])
+def test_user_code_that_raises_in_a_chunked_run_keeps_every_sample(tmp_path: Path, where: str) -> None:
+    """The user-exception guarantee holds for chunked runs too: status failed, the cause chained, the samples so
+    far merged into out, equal to the in-memory run's."""
+
+    class Boom(Exception):
+        pass
+
+    def controller(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        if where == "controller" and t > 0.4995:
+            raise Boom("controller gave up")
+        return np.zeros(1)
+
+    def on_sample(t: float, q: np.ndarray, v: np.ndarray) -> None:
+        if where == "on_sample" and t > 0.4995:
+            raise Boom("viewer gave up")
+
+    kwargs = dict(duration=1.0, dt=1e-3, output_dt=1e-2, controller=controller, on_sample=on_sample)
+    with pytest.raises(ms.SimulationError) as memory:
+        ms.simulate(ms.load_robot("pendulum"), [1.0], [0.0], **kwargs)
+    out = tmp_path / "run.npz"
+    with pytest.raises(ms.SimulationError) as streamed:
+        ms.simulate(ms.load_robot("pendulum"), [1.0], [0.0], out=out, chunk=7, **kwargs)
+    assert str(streamed.value) == str(memory.value)
+    assert streamed.value.status == "failed" and isinstance(streamed.value.__cause__, Boom)
+    assert streamed.value.saved_to == out
+    same(memory.value.trajectory, streamed.value.trajectory)
+    saved = ms.Trajectory.load(out)
+    same(memory.value.trajectory, saved)
+    assert saved.status == "failed" and sorted(os.listdir(tmp_path)) == ["run.npz"]
+
+
+ADDRESS_SPACE = """
+import resource, sys
+import multibody_sim as ms
+robot = ms.load_robot("pendulum")
+ms.simulate(robot, [1.0], [0.0], duration=0.01, dt=1e-3, integrator="dp54", rtol=1e-6, atol=1e-8)  # warm up
+used = next(int(line.split()[1]) * 1024 for line in open("/proc/self/status") if line.startswith("VmSize:"))
+resource.setrlimit(resource.RLIMIT_AS, (used + 25 * 2**20, resource.getrlimit(resource.RLIMIT_AS)[1]))
+try:
+    ms.simulate(robot, [1.0], [0.0], duration=1e6, dt=1e-3, integrator="dp54", rtol=1e-12, atol=1e-12,
+                out=sys.argv[1])
+except ms.SimulationError as exc:
+    print(exc.status, len(exc.trajectory), exc.saved_to)
+    print(exc, file=sys.stderr)
+"""
+
+
+def test_a_run_that_outgrows_its_address_space_keeps_its_samples(tmp_path: Path) -> None:
+    """RLIMIT_AS (ulimit -v) 25 MiB above what the child has mapped, and an adaptive run without output_dt (its
+    samples cannot be counted in advance, so the store grows): the store stops growing while there is still room
+    to assemble and write what it holds: SimulationError (status out_of_memory) with every sample, in the file."""
+    out = tmp_path / "run.npz"
+    result = subprocess.run(
+        [sys.executable, "-c", ADDRESS_SPACE, str(out)], capture_output=True, text=True, timeout=600
+    )
+    assert result.returncode == 0, result.stderr
+    match = re.fullmatch(
+        r"ran out of memory at t = (\S+) s: \d+ samples would need \S+ GiB, more than the \S+ GiB available \(this "
+        r"process's address-space limit \(ulimit -v\)\); the run stopped\n",
+        result.stderr,
+    )
+    assert match, result.stderr
+    status, samples, saved_to = result.stdout.split()
+    assert (status, saved_to) == ("out_of_memory", str(out))
+    saved = ms.Trajectory.load(out)
+    assert saved.status == "out_of_memory" and len(saved) == int(samples) > 10_000
+    t_stop = float(match.group(1))  # the state the run reached; its last sample is the one before
+    assert t_stop - 0.1 < saved.t[-1] <= t_stop
+    assert np.all(np.diff(saved.t) > 0) and np.all(np.isfinite(saved.q))
+    assert sorted(os.listdir(tmp_path)) == ["run.npz"]
+
+
+def test_a_chunk_that_does_not_continue_the_previous_one_is_refused(tmp_path: Path) -> None:
+    """A chunk of the same run copied over its successor (same run id, the wrong samples): the sample count and
+    the times say it does not continue the previous one."""
+    import shutil
+
+    parts = left_parts(tmp_path)
+    shutil.copyfile(parts / "chunk_000002.npz", parts / "chunk_000003.npz")
+    with pytest.raises(ms.TrajectoryFileError) as info:
+        ms.Trajectory.load(parts)
+    assert str(info.value) == (
+        f"{parts}: chunk_000003.npz does not continue the previous chunk (it starts at sample 40, t = 0.4 s; expected "
+        "sample 60, after t = 0.59 s); move it out of the folder"
+    )

@@ -316,3 +316,108 @@ def test_run_solo12_without_a_scene_says_nothing_holds_it_up(capsys):
         "note: nothing holds solo12 up: without a scene there is no ground or contact, so its floating base falls; "
         "run the shipped scene solo12_standing to stand it on the ground"
     ) in out
+
+
+def test_bench_measures_a_contact_scene_against_timestepping_at_a_much_smaller_step():
+    """A non-smooth system has no higher-order reference: the study says so and measures timestepping against
+    itself at CONTACT_REFERENCE_DT, where its first order shows."""
+    from multibody_sim import bench
+
+    scene = load_scene("sliding_box")
+    study = ms.work_precision(
+        scene, scene.q0, scene.v0, duration=0.1, output_dt=0.02, steps=[0.02, 0.01, 0.005, 0.0025], repeats=1
+    )
+    reference = study.reference
+    assert reference is not None
+    assert (reference.integrator, reference.dt, reference.check_dt) == (
+        "timestepping",
+        bench.CONTACT_REFERENCE_DT,
+        bench.CONTACT_REFERENCE_DT / 2,
+    )
+    assert {m.integrator for m in study.measurements if m.completed} == {"timestepping"}
+    refused = {m.integrator for m in study.measurements if m.status == bench.STATUS_REFUSED}
+    assert refused == set(ms.INTEGRATORS) - {"timestepping"}
+    assert study.orders["timestepping"].observed == pytest.approx(1.0, abs=0.2)
+    assert "the reference is the same integrator at a much smaller step" in study.summary()
+
+
+# ---- the trajectory's contacts -------------------------------------------------------------------------------------
+def test_the_trajectory_records_each_samples_contacts_compactly(tmp_path):
+    """Sample i holds the contacts of the step that ended there: while the box slides, its four points' impulses
+    sum to (−μ m g dt, 0, m g dt) in world axes, Coulomb's closed form; the record survives save/load and a
+    chunked run (sample indices from the run's start)."""
+    mu, dt = 0.8, 1e-3
+    scene = box_scene(mu=mu)
+    traj = run(scene, 0.2, dt)
+    contacts = traj.contacts
+    assert contacts is not None and contacts.bodies == ["ground", "box"]
+    assert len(contacts.at(0).sample) == 0  # no step ended at the first sample
+    for i in (1, 50, 200):
+        shown = contacts.at(i)
+        assert len(shown.sample) == 4 and (shown.pair == [0, 1]).all()
+        np.testing.assert_allclose(shown.impulse.sum(axis=0), [-mu * G * dt, 0.0, G * dt], rtol=1e-6, atol=1e-15)
+        np.testing.assert_allclose(shown.normal, np.tile([0.0, 0.0, 1.0], (4, 1)), atol=1e-12)
+        np.testing.assert_allclose(shown.point[:, 2], 0.0, atol=1e-9)  # on the ground
+        assert abs(shown.point[:, 0].mean() - traj.q[i - 1, 0]) < 1e-9  # under the box where the step started
+    loaded = ms.Trajectory.load(traj.save(tmp_path / "box.npz"))
+    run(scene, 0.2, dt, out=tmp_path / "chunked.npz", chunk=37)  # six chunk files, merged at the end
+    chunked = ms.Trajectory.load(tmp_path / "chunked.npz")
+    for other in (loaded, chunked):
+        assert other.contacts is not None and other.contacts.bodies == contacts.bodies
+        for part in ("sample", "pair", "point", "normal", "impulse"):
+            np.testing.assert_array_equal(getattr(other.contacts, part), getattr(contacts, part))
+    robot_run = ms.simulate(
+        ms.load_robot("double_pendulum"), [0.1, 0.2], [0, 0], duration=0.01, dt=1e-3, progress=False
+    )
+    assert robot_run.contacts is None
+
+
+def test_a_rollout_of_a_contact_scene_steps_each_row_as_simulate_does():
+    """Rows of a rollout carry their own solver state (warm start, landings): each equals its own simulate()."""
+    scene = box_scene()
+    speeds = np.array([0.5, 1.0, 2.0])
+    V0 = np.tile(scene.v0, (3, 1))
+    V0[:, 0] = speeds
+    batch = ms.rollout(scene, np.tile(scene.q0, (3, 1)), V0, duration=0.3, dt=1e-3, integrator="timestepping")
+    assert list(batch.status) == ["completed"] * 3
+    for b in range(3):
+        alone = run(box_scene(velocity=speeds[b]), 0.3, 1e-3)
+        np.testing.assert_array_equal(batch.q[b], alone.q)
+    np.testing.assert_allclose(batch.q[:, -1, 0], speeds**2 / (2 * 0.8 * G), atol=2.0 * 1e-3)
+
+
+def test_a_robot_without_declared_collision_geometry_is_told_so():
+    text = make_scene(robot={"source": "solo12"}, ground={}).describe()
+    assert "robot collision geometry: none declared" in text and "declare [[contact.geometry]]" in text
+    assert "contact pairs: none" in text
+
+
+def test_a_large_patch_keeps_its_extreme_points():
+    """A patch of 24 points on a circle keeps MAX_PATCH_POINTS of them, the extreme ones along its tangent axes."""
+    from multibody_sim.scenes.contact import MAX_PATCH_POINTS, _patch_points
+
+    angles = np.linspace(0.0, 2 * np.pi, 24, endpoint=False)
+
+    class Patch:
+        def size(self) -> int:
+            return len(angles)
+
+        def getPoint(self, i: int) -> np.ndarray:  # noqa: N802 (coal's name)
+            return np.array([np.cos(angles[i]), np.sin(angles[i]), 0.0])
+
+    kept = _patch_points(Patch(), np.eye(3))
+    assert len(kept) == MAX_PATCH_POINTS == 8
+    np.testing.assert_allclose(np.degrees(angles[kept]), [0, 45, 90, 135, 180, 225, 270, 315])
+
+
+def test_stepper_steps_a_contact_scene_as_simulate_does():
+    """Stepper's control intervals restart the solver state as jumps: the time-stepper keeps its warm start there,
+    and the samples equal simulate()'s bit for bit."""
+    scene = load_scene("solo12_standing")
+    controller = scene.make_controller()
+    stepper = ms.Stepper(scene, dt=1e-3, integrator="timestepping", q0=scene.q0, v0=scene.v0)
+    for _ in range(100):
+        stepper.step(controller(stepper.t, stepper.q, stepper.v))
+    traj = scene.run(duration=0.1, progress=False)
+    np.testing.assert_array_equal(stepper.q, traj.q[-1])
+    np.testing.assert_array_equal(stepper.v, traj.v[-1])

@@ -301,3 +301,97 @@ def test_a_lock_of_another_host_is_respected(tmp_path: Path) -> None:
     with pytest.raises(ms.InvalidArgumentError, match="another run is writing it \\(process 1 on host some-other-host"):
         ms.simulate(ms.load_robot("pendulum"), [1.0], [0.0], duration=0.1, dt=1e-2, out=out)
     assert not out.exists()
+
+
+def test_a_killed_runs_lock_and_temporary_files_are_cleaned_by_the_next_run(tmp_path: Path) -> None:
+    """SIGKILL mid-write (no cleanup can run): the lock and a temporary file stay behind; the next run on the same
+    out finds the lock stale, takes it over, removes the dead run's temporary file and writes its file whole."""
+    out = tmp_path / "run.npz"
+    script = textwrap.dedent(f"""
+        import os, signal
+        import numpy as np
+        import multibody_sim as ms
+        real_savez = np.savez
+        def savez_killed(f, **arrays):
+            f.write(b"PK half a file")
+            f.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+        np.savez = savez_killed
+        ms.simulate(ms.load_robot("pendulum"), [1.0], [0.0], duration=0.1, dt=1e-2, out={str(out)!r})
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == -signal.SIGKILL, result.stderr
+    left = sorted(os.listdir(tmp_path))
+    assert left[-1] == "run.npz.lock" and len(left) == 2 and re.fullmatch(r"\.run\.npz\.\w+\.tmp", left[0]), left
+    ms.simulate(ms.load_robot("pendulum"), [0.5], [0.0], duration=0.1, dt=1e-2, out=out)
+    assert sorted(os.listdir(tmp_path)) == ["run.npz"]
+    assert ms.Trajectory.load(out).q[0, 0] == 0.5
+
+
+def test_bench_refuses_a_special_file_where_its_tables_go(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    os.mkfifo(tmp_path / "work_precision.csv")
+    code = main(["bench", "pendulum", "--integrators", "rk4", "--duration", "0.1", "--out", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert (code, out) == (2, "")
+    assert (
+        err
+        == PREFIX
+        + refusal(tmp_path / "work_precision.csv", "a FIFO (named pipe)", "--out", "work_precision.csv")
+        + "\n"
+    )
+
+
+BLOCKED_WRITER = """
+import os, sys, time
+import numpy as np
+from multibody_sim.cli import main
+ready, go = sys.argv[1], sys.argv[2]
+real_savez = np.savez
+def savez_blocked(f, **arrays):
+    f.write(b"PK half")  # half a file on disk: the moment the parent signals
+    open(ready, "w").close()
+    while not os.path.exists(go):
+        time.sleep(0.01)
+    f.seek(0)
+    f.truncate()
+    real_savez(f, **arrays)
+np.savez = savez_blocked
+sys.exit(main(sys.argv[3:]))
+"""
+
+
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_from_outside_while_the_file_is_written(tmp_path: Path, sig: signal.Signals, code: int) -> None:
+    """`multibody-sim run --out` in a child, stopped inside its final write (half the file on disk); the parent
+    sends the signal then lets the write go on: the file is completed, the signal then takes effect (exit 130 /
+    143), one line says what was kept, no temporary file."""
+    out, ready, go = tmp_path / "run.npz", tmp_path / "ready", tmp_path / "go"
+    argv = ["run", "pendulum", "--q0", "1", "--duration", "0.5", "--output-dt", "0.01", "--out", str(out)]
+    child = subprocess.Popen(
+        [sys.executable, "-c", BLOCKED_WRITER, str(ready), str(go), *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        for _ in range(6000):
+            if ready.exists() or child.poll() is not None:
+                break
+            subprocess.run(["sleep", "0.01"], check=True)
+        assert ready.exists(), child.communicate()[1]
+        os.kill(child.pid, sig)  # while the file is half written
+        subprocess.run(["sleep", "0.2"], check=True)
+        assert child.poll() is None  # held off: the process did not die mid-write
+        go.touch()
+        stdout, stderr = child.communicate(timeout=120)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert child.returncode == code, stderr
+    assert stderr == (
+        f"multibody-sim: {sig.name}: interrupted while writing the samples, after the run completed at t = 0.5 s; 51 "
+        f"samples kept; partial trajectory (51 samples, t = 0..0.5 s) written to {out}\n"
+    )
+    saved = ms.Trajectory.load(out)
+    assert saved.status == "completed" and len(saved) == 51
+    assert sorted(os.listdir(tmp_path)) == ["go", "ready", "run.npz"]

@@ -1,11 +1,15 @@
 """Fuzzing the loaders of untrusted files: whatever the bytes, only the project's own errors come out.
 
-Slow (run by scripts/fuzz.py, which sets the case budget): hypothesis mutates valid URDFs (attribute values
+Each fuzzer runs twice: its first SMOKE_CASES cases in the default suite (a few seconds), and MBS_FUZZ_CASES in
+the slow tier (scripts/fuzz.py sets that budget). Hypothesis mutates valid URDFs (attribute values
 including NaN, inf, huge, negative and path tricks; deleted, duplicated, moved and renamed elements; random
 bytes; truncation) and valid trajectory files (byte flips and cuts in the zip structures, rewritten members,
 random JSON headers), and feeds them to load_robot and Trajectory.load. A model that loads must be usable
 (finite, positive-definite mass matrix); a refusal must be a MultibodySimError with a one-line message that
 starts with the file's path, and must leave nothing on stderr (file descriptor 2: C++ logging included).
+Scene files are mutated the same way (every key given hostile numbers, names, paths and shapes, keys deleted and
+added, damaged bytes) and a scene that loads runs a few steps with its own settings; the command line's numeric
+options get hostile numbers, and must exit 0, 1 or 2 with a one-line refusal and never a traceback.
 
 Environment: MBS_FUZZ_CASES (examples per fuzzer, default 200), MBS_FUZZ_REPORT (a file to which each fuzzer
 appends one JSON line: its name, the cases it ran, and the failures it saw).
@@ -37,22 +41,28 @@ import multibody_sim as ms
 from multibody_sim.catalog import CATALOG, catalog_urdf
 
 hypothesis = pytest.importorskip("hypothesis")
-from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import HealthCheck, example, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from lxml import etree  # noqa: E402
 
-pytestmark = pytest.mark.slow
-
 CASES = int(os.environ.get("MBS_FUZZ_CASES", "200"))
+# The default suite runs every fuzzer on its first SMOKE_CASES cases (a few seconds each); the slow tier (and
+# scripts/fuzz.py) on CASES. Seeded: the smoke's cases are the full run's first ones.
+SMOKE_CASES = 25
+BUDGETS = [pytest.param(SMOKE_CASES, id="smoke"), pytest.param(CASES, id="full", marks=pytest.mark.slow)]
 REPORT = os.environ.get("MBS_FUZZ_REPORT")
-FUZZ_SETTINGS = settings(
-    max_examples=CASES,
-    deadline=None,
-    derandomize=True,  # seeded: the same cases on every run
-    database=None,  # nothing written into the repository
-    suppress_health_check=list(HealthCheck),
-    print_blob=True,
-)
+
+
+def fuzz_settings(cases: int) -> Any:
+    """hypothesis settings for a fuzzer run of `cases` examples."""
+    return settings(
+        max_examples=cases,
+        deadline=None,
+        derandomize=True,  # seeded: the same cases on every run
+        database=None,  # nothing written into the repository
+        suppress_health_check=list(HealthCheck),
+        print_blob=True,
+    )
 
 
 # ---- bookkeeping -----------------------------------------------------------------------------------------
@@ -250,7 +260,10 @@ def load_case(tally: Tally, path: Path, data: bytes, dirs: list[str], stderr: Ca
 
 
 def run_fuzzer(
-    name: str, body: Callable[[Tally, Callable[[], str]], None], known: Callable[[str], bool] | None = None
+    name: str,
+    body: Callable[[Tally, Callable[[], str]], None],
+    known: Callable[[str], bool] | None = None,
+    cases: int = CASES,
 ) -> None:
     """Run body with stderr watched; fail on any failure, unless every one is a known, reported bug."""
     tally = Tally(name)
@@ -260,30 +273,32 @@ def run_fuzzer(
         finally:
             tally.known = bool(tally.failures) and known is not None and all(known(f) for f in tally.failures)
             tally.write()
-    assert tally.cases >= min(CASES, 50), f"{name} ran only {tally.cases} cases"
+    assert tally.cases >= min(cases // 2, 50), f"{name} ran only {tally.cases} cases"
     if tally.known:
         pytest.xfail(f"{len(tally.failures)} failures, all of a known bug: {tally.failures[0].splitlines()[0]}")
     assert not tally.failures, "\n\n".join(tally.failures)
 
 
-def test_fuzz_urdf_mutations(tmp_path_factory: pytest.TempPathFactory):
+@pytest.mark.parametrize("cases", BUDGETS)
+def test_fuzz_urdf_mutations(tmp_path_factory: pytest.TempPathFactory, cases: int):
     folder = tmp_path_factory.mktemp("fuzz-urdf")
     (folder / "meshes").mkdir()
     (folder / "meshes" / "bob.stl").write_text("solid bob\nendsolid bob\n")
     path = folder / "robot.urdf"
 
     def body(tally: Tally, stderr: Callable[[], str]) -> None:
-        @FUZZ_SETTINGS
+        @fuzz_settings(cases)
         @given(mutated_urdf())
         def case(example: tuple[bytes, list[str]]) -> None:
             load_case(tally, path, example[0], example[1], stderr)
 
         case()
 
-    run_fuzzer("urdf-mutations", body)
+    run_fuzzer("urdf-mutations", body, cases=cases)
 
 
-def test_fuzz_urdf_random_bytes(tmp_path_factory: pytest.TempPathFactory):
+@pytest.mark.parametrize("cases", BUDGETS)
+def test_fuzz_urdf_random_bytes(tmp_path_factory: pytest.TempPathFactory, cases: int):
     """Bytes from nowhere, and valid URDFs with random bytes after a random-length prefix."""
     path = tmp_path_factory.mktemp("fuzz-bytes") / "robot.urdf"
 
@@ -294,14 +309,14 @@ def test_fuzz_urdf_random_bytes(tmp_path_factory: pytest.TempPathFactory):
         return text[:cut] + draw(st.binary(max_size=256))
 
     def body(tally: Tally, stderr: Callable[[], str]) -> None:
-        @FUZZ_SETTINGS
+        @fuzz_settings(cases)
         @given(st.one_of(st.binary(max_size=2048), spliced()))
         def case(data: bytes) -> None:
             load_case(tally, path, data, [], stderr)
 
         case()
 
-    run_fuzzer("urdf-bytes", body)
+    run_fuzzer("urdf-bytes", body, cases=cases)
 
 
 # ---- trajectory files ------------------------------------------------------------------------------------
@@ -403,13 +418,14 @@ def _npy_header(header: dict[str, Any]) -> bytes:
     return buffer.getvalue()
 
 
-def test_fuzz_trajectory_files(tmp_path_factory: pytest.TempPathFactory):
+@pytest.mark.parametrize("cases", BUDGETS)
+def test_fuzz_trajectory_files(tmp_path_factory: pytest.TempPathFactory, cases: int):
     folder = tmp_path_factory.mktemp("fuzz-npz")
     seeds = seed_trajectories(folder)
     path = folder / "fuzzed.npz"
 
     def body(tally: Tally, stderr: Callable[[], str]) -> None:
-        @FUZZ_SETTINGS
+        @fuzz_settings(cases)
         @given(mutated_npz(seeds), st.booleans())
         def case(data: bytes, mmap: bool) -> None:
             path.write_bytes(data)
@@ -427,10 +443,252 @@ def test_fuzz_trajectory_files(tmp_path_factory: pytest.TempPathFactory):
 
         case()
 
-    run_fuzzer("trajectory-files", body)
+    run_fuzzer("trajectory-files", body, cases=cases)
+
+
+# ---- scene files ------------------------------------------------------------------------------------------
+SCENE_SEEDS = ["spring_chain", "double_pendulum_spring_friction", "four_bar", "free_body_torqued", "panda_payload"]
+SCENE_VALUES = [
+    float("nan"), float("inf"), float("-inf"), 1e308, -1e308, 1e-320, -1.0, 0.0, 0, -1, 2**63 - 1, -(2**63), True,
+    "", "x" * 5000, "a\nb", "\u202eevil", "/etc", "../../..", "/etc/passwd", "ur5", "nope", [], [1.0], [1.0] * 50,
+    [[1.0, 2.0]], {}, {"x": 1.0}, ["a"],
+]  # fmt: skip
+TOML_BARE = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def toml_text(value: Any) -> str:
+    """A value as TOML (inline tables and arrays; nan and inf are TOML words)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return (
+            "nan"
+            if value != value
+            else ("inf" if value == float("inf") else "-inf" if value == -float("inf") else repr(value))
+        )
+    if isinstance(value, str):
+        return json.dumps(value)  # JSON's string escapes are TOML's basic-string escapes
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_text(v) for v in value) + "]"
+    items = ", ".join(f"{_toml_key(k)} = {toml_text(v)}" for k, v in value.items())
+    return "{" + items + "}"
+
+
+def _toml_key(key: str) -> str:
+    return key if TOML_BARE.match(key) else json.dumps(key)
+
+
+def toml_document(data: dict[str, Any]) -> str:
+    return "".join(f"{_toml_key(k)} = {toml_text(v)}\n" for k, v in data.items())
+
+
+def seed_scenes() -> list[dict[str, Any]]:
+    from multibody_sim.scenes import shipped_scenes
+
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python < 3.11
+        import tomli as tomllib  # type: ignore[no-redef]
+
+    shipped = shipped_scenes()
+    return [tomllib.loads(shipped[name].read_text()) for name in SCENE_SEEDS]
+
+
+def _paths(value: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
+    """Every key path into nested tables and arrays."""
+    found = [prefix] if prefix else []
+    if isinstance(value, dict):
+        for key, item in value.items():
+            found += _paths(item, (*prefix, key))
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            found += _paths(item, (*prefix, i))
+    return found
+
+
+@st.composite
+def mutated_scene(draw: st.DrawFn, seeds: list[dict[str, Any]]) -> bytes:
+    data = copy.deepcopy(draw(st.sampled_from(seeds)))
+    for _ in range(draw(st.integers(1, 3))):
+        paths = _paths(data)
+        path = draw(st.sampled_from(paths))
+        parent: Any = data
+        for key in path[:-1]:
+            parent = parent[key]
+        action = draw(st.sampled_from(["value", "value", "value", "delete", "add"]))
+        if action == "value":
+            parent[path[-1]] = draw(st.sampled_from(SCENE_VALUES) | st.floats() | st.integers() | st.text(max_size=8))
+        elif action == "delete":
+            del parent[path[-1]]
+        elif isinstance(parent, dict):
+            parent[draw(st.text(min_size=1, max_size=8))] = draw(st.sampled_from(SCENE_VALUES))
+    text = toml_document(data).encode()
+    if draw(st.integers(0, 9)) == 0:  # and now and then damaged bytes, for the TOML parser and the size checks
+        at = draw(st.integers(0, len(text)))
+        text = text[:at] + draw(st.binary(min_size=1, max_size=16)) + text[at:]
+    return text
+
+
+@pytest.mark.parametrize("cases", BUDGETS)
+def test_fuzz_scene_files(tmp_path_factory: pytest.TempPathFactory, cases: int):
+    """Mutated shipped scenes (hostile numbers, names, paths and shapes in every key; deleted and unknown keys;
+    damaged bytes): load_scene raises only our errors, in one line, with nothing on stderr; a scene that loads
+    runs three steps or stops with our error."""
+    folder = tmp_path_factory.mktemp("fuzz-scenes")
+    path = folder / "scene.toml"
+    seeds = seed_scenes()
+
+    def body(tally: Tally, stderr: Callable[[], str]) -> None:
+        @fuzz_settings(cases)
+        @given(mutated_scene(seeds))
+        def case(data: bytes) -> None:
+            path.write_bytes(data)
+            stderr()
+            try:
+                with warnings.catch_warnings(record=True) as caught, time_limit(2.0):
+                    warnings.simplefilter("always")
+                    scene = ms.load_scene(path)
+                    tally.count("loaded")
+                    scene.describe()
+                    scene.run(duration=3e-3)  # its own [simulation] settings: dt, integrator, periods
+            except KeyboardInterrupt:  # the case's time ran out (a tiny dt, a slow model): not a finding
+                tally.count("interrupted")
+                return
+            except Exception as exc:
+                tally.count(type(exc).__name__)
+                problem = None
+                if not isinstance(exc, ms.MultibodySimError):
+                    problem = f"raw {type(exc).__name__}: {exc!s:.300}"
+                elif "\n" in str(exc):
+                    problem = f"multi-line message: {str(exc)!r:.300}"
+                if problem is not None:
+                    trace = "".join(traceback.format_exception(exc))[-1500:]
+                    tally.fail(f"{problem}\n  input: {data[:600]!r}\n  {trace}")
+                return
+            if log := stderr():
+                tally.fail(f"output on stderr: {log!r:.300}\n  input: {data[:600]!r}")
+            if [w for w in caught if not issubclass(w.category, RuntimeWarning)]:
+                tally.fail(f"a warning: {caught[0].message!s:.300}\n  input: {data[:600]!r}")
+
+        case()
+
+    run_fuzzer("scene-files", body, cases=cases)
+
+
+# ---- command-line numbers ----------------------------------------------------------------------------------
+NUMBER_WORDS = [
+    "nan", "NaN", "inf", "-inf", "1e309", "-1e309", "1e308", "1e-320", "1e-400", "-0", "0", "-1", "1", "0.5",
+    "1e300", "1e-300", "2e-16", "99999999999999999999999", "65535", "65536", "70000", "-65536", "0x10", "1_000",
+    "", " ", "1e", "abc", "\u202e1",
+]  # fmt: skip
+# (command, option, the rest of a command line that runs quickly when the option's value is accepted)
+NUMERIC_OPTIONS = [
+    ("run", "--dt", ["--duration", "0.01"]),
+    ("run", "--duration", ["--dt", "0.005"]),
+    ("run", "--output-dt", ["--duration", "0.01"]),
+    ("run", "--control-dt", ["--duration", "0.01"]),
+    ("run", "--rtol", ["--integrator", "dp54", "--duration", "0.01"]),
+    ("run", "--atol", ["--integrator", "dp54", "--duration", "0.01"]),
+    ("run", "--max-step", ["--integrator", "dp54", "--duration", "0.01"]),
+    ("run", "--view-speed", ["--duration", "0.01"]),
+    ("run", "--view-port", ["--duration", "0.01"]),
+    ("run", "--chunk", ["--duration", "0.01", "--out", "{tmp}/run.npz"]),
+    ("run", "--q0", ["--duration", "0.01"]),
+    ("run", "--tolerance", ["--duration", "0.02"]),
+    ("play", "--fps", ["--html", "{tmp}/view.html"]),
+    ("play", "--speed", ["--html", "{tmp}/view.html"]),
+    ("play", "--port", []),
+    ("play", "--width", ["--video", "{tmp}/v.mp4"]),
+    ("bench", "--duration", ["--integrators", "euler", "--out", "{tmp}"]),
+]
+
+
+def _option(command: str, flag: str) -> tuple[str, str, list[str]]:
+    return next(o for o in NUMERIC_OPTIONS if o[:2] == (command, flag))
+
+
+# Inputs that once printed a traceback or were silently changed (issue 17): every run tries them first.
+CLI_REGRESSIONS = [
+    (("run", "--dt"), "1e-320"),  # OverflowError: duration / dt
+    (("run", "--control-dt"), "1e308"),  # OverflowError: control_dt / dt
+    (("run", "--output-dt"), "1e300"),
+    (("run", "--view-port"), "70000"),  # wrapped to port 4464
+    (("run", "--chunk"), "99999999999999999999999"),  # numpy: maximum allowed dimension exceeded
+    (("run", "--rtol"), "1e-320"),  # silently accepted
+    (("play", "--fps"), "1e9"),
+    (("bench", "--duration"), "1e-320"),
+]
+
+
+def cli_regressions(test: Callable[..., None]) -> Callable[..., None]:
+    for (command, flag), word in reversed(CLI_REGRESSIONS):
+        test = example(_option(command, flag), word)(test)
+    return test
+
+
+@contextmanager
+def time_limit(seconds: float) -> Iterator[None]:
+    """Raise KeyboardInterrupt in the block after `seconds` (a run's own Ctrl-C path: an accepted input that runs
+    long ends a case; it does not fail it)."""
+    import signal
+
+    def expire(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.mark.parametrize("cases", BUDGETS)
+def test_fuzz_command_line_numbers(tmp_path_factory: pytest.TempPathFactory, cases: int):
+    """Every numeric option of run, play and bench given hostile numbers (NaN, infinities, subnormals, overflows,
+    ports beyond 65535, hex, words): the command exits 0, 1 or 2 (130 if the case's 2-second budget ran out), a
+    refusal is exactly one line on stderr, and no traceback is ever printed."""
+    from multibody_sim.cli import main
+
+    folder = tmp_path_factory.mktemp("fuzz-cli")
+    missing = folder / "none.npz"
+
+    def body(tally: Tally, stderr: Callable[[], str]) -> None:
+        @fuzz_settings(cases)
+        @given(st.sampled_from(NUMERIC_OPTIONS), st.sampled_from(NUMBER_WORDS) | st.floats().map(repr))
+        @cli_regressions
+        def case(option: tuple[str, str, list[str]], word: str) -> None:
+            command, flag, rest = option
+            target = [str(missing)] if command == "play" else ["pendulum"]
+            argv = [command, *target, flag, word, *(r.replace("{tmp}", str(folder)) for r in rest)]
+            out, err = io.StringIO(), io.StringIO()
+            stderr()
+            try:
+                with time_limit(2.0), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                    code = main(argv)
+            except BaseException as exc:  # main() returns its exit code; anything raised is the finding
+                tally.count(type(exc).__name__)
+                tally.fail(f"raised {type(exc).__name__}: {exc!s:.300}\n  argv: {argv!r}")
+                return
+            text = err.getvalue() + stderr()
+            tally.count(f"exit {code}")
+            if code not in (0, 1, 2, 130):
+                tally.fail(f"exit code {code}\n  argv: {argv!r}\n  stderr: {text[-500:]!r}")
+            elif "Traceback" in text or "Traceback" in out.getvalue():
+                tally.fail(f"a traceback\n  argv: {argv!r}\n  stderr: {text[-1500:]}")
+            elif code == 2 and (text.count("\n") != 1 or not text.startswith("multibody-sim: error: ")):
+                tally.fail(f"a refusal that is not one line\n  argv: {argv!r}\n  stderr: {text[-800:]!r}")
+
+        case()
+
+    run_fuzzer("command-line-numbers", body, cases=cases)
 
 
 # ---- atheris (coverage-guided), when it installs -----------------------------------------------------------
+@pytest.mark.slow
 def test_atheris_fuzzes_the_urdf_loader(tmp_path: Path):
     """A short coverage-guided run of scripts/fuzz.py's atheris harness (libFuzzer): no crash, no raw exception."""
     pytest.importorskip("atheris")

@@ -295,8 +295,12 @@ def test_why_a_run_is_not_native(robot, monkeypatch):
     assert why_not_native(system, ms.INTEGRATORS["implicit_euler"]) == (
         "integrator 'implicit_euler' is not an explicit method of the registry"
     )
+    assert "\nkernel: native\n" in ms.simulate(system, system.neutral(), np.zeros(6), duration=0.01, dt=1e-3).summary()
     monkeypatch.setenv("MULTIBODY_SIM_NATIVE", "0")
     assert why_not_native(system, ms.INTEGRATORS["rk4"]) == "MULTIBODY_SIM_NATIVE=0"
+    traj = ms.simulate(system, system.neutral(), np.zeros(6), duration=0.01, dt=1e-3)
+    assert traj.metadata["why_not_native"] == "MULTIBODY_SIM_NATIVE=0"
+    assert "\nkernel: python (row) (not native: MULTIBODY_SIM_NATIVE=0)\n" in traj.summary()
     monkeypatch.delenv("MULTIBODY_SIM_NATIVE")
     wrapped = ms.load_robot("ur5")
     wrapped.unchecked_forward_dynamics = wrapped.unchecked_forward_dynamics
@@ -306,3 +310,29 @@ def test_why_a_run_is_not_native(robot, monkeypatch):
     Q0, V0 = system.neutral()[None, :], np.zeros((1, system.nv))
     assert isinstance(choose_kernel(system, ms.INTEGRATORS["rk4"], Q0, V0), NativeKernel)
     assert not isinstance(choose_kernel(wrapped, ms.INTEGRATORS["rk4"], Q0, V0), NativeKernel)
+
+
+def test_ctrl_c_in_a_batch_on_two_threads_keeps_every_sample(robot, monkeypatch):
+    """SIGINT while two threads step their rows: every element keeps the same samples, each one simulate()'s."""
+    system = robot("panda")
+    rng = np.random.default_rng(5)
+    B = 4
+    Q0 = np.array([system.random_configuration(rng) for _ in range(B)])
+    V0 = 0.1 * rng.normal(size=(B, system.nv))
+    monkeypatch.setenv("MULTIBODY_SIM_NATIVE", "1")
+    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    try:
+        with pytest.raises(ms.SimulationInterrupted) as info:
+            ms.rollout(system, Q0, V0, duration=1e4, dt=1e-3, output_dt=0.01, num_threads=2, progress=False)
+    finally:
+        timer.cancel()
+    batch = info.value.trajectory
+    assert list(batch.status) == ["interrupted"] * B
+    n = int(batch.n_samples[0])
+    assert n > 10 and (batch.n_samples == n).all()
+    for b in (0, B - 1):  # one row of each thread
+        alone = ms.simulate(system, Q0[b], V0[b], duration=float(batch.t[b, n - 2]), dt=1e-3, output_dt=0.01)
+        assert len(alone) == n - 1
+        for field in FIELDS:
+            np.testing.assert_array_equal(getattr(batch, field)[b, : n - 1], getattr(alone, field), err_msg=field)

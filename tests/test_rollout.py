@@ -578,3 +578,17 @@ def test_ray_backend_splits_the_batch_into_chunks_and_gives_the_local_result(mon
         np.testing.assert_array_equal(getattr(distributed, name), getattr(local, name))
     for name in COUNTS:
         np.testing.assert_array_equal(distributed.stats[name], local.stats[name])
+
+
+def test_a_batch_that_cannot_fit_in_memory_is_refused_before_it_is_allocated() -> None:
+    """B x samples x width checked against usable_memory() (free memory, ulimit -v, the cgroup's limit) up front:
+    10^5 elements of 10^5 samples are ~1.3 TB."""
+    pendulum = ms.load_robot("pendulum")
+    B = 100_000
+    with pytest.raises(
+        ms.InvalidArgumentError,
+        match=r"^this rollout would keep 1e\+05 samples of each of its 100000 elements \([0-9.e+]+ GiB\) in memory, "
+        r"more than the [0-9.]+ GiB available \(.+\): sample less often \(output_dt\) or run the batch in smaller "
+        r"parts$",
+    ):
+        ms.rollout(pendulum, np.zeros((B, 1)), np.zeros((B, 1)), duration=100.0, dt=1e-3)

@@ -124,12 +124,59 @@ def test_an_allowed_root_that_does_not_exist_is_bad_input(layout: dict[str, Path
         ms.load_scene(scene, allowed_roots=["/nonexistent/x"])
 
 
-def test_a_replayed_scene_keeps_its_allowed_roots(layout: dict[str, Path], tmp_path: Path):
-    """The folders allowed at load time are recorded: `play` rebuilds the scene from the trajectory's metadata."""
-    from multibody_sim.scenes import scene_from_metadata
+def test_a_replayed_scene_needs_the_folder_allowed_again(layout: dict[str, Path], capfd: pytest.CaptureFixture[str]):
+    """The folders allowed at load time are recorded but not trusted from the file: `play` (and
+    robot_from_trajectory) rebuild the scene only with the folder allowed again."""
+    pytest.importorskip("meshcat")
+    import multibody_sim.viz as viz
 
     scene_path = write_scene(layout["scene"], "robot.urdf", [str(layout["outside"])])
     scene = ms.load_scene(scene_path, allowed_roots=[layout["outside"]])
-    run = ms.simulate(scene, scene.q0, scene.v0, duration=0.01, dt=1e-3)
-    again = scene_from_metadata(run.metadata["robot"]["scene"])
-    assert again.nv == 1 and again.spec.allowed_roots == scene.spec.allowed_roots
+    out = ms.simulate(scene, scene.q0, scene.v0, duration=0.01, dt=1e-3).save(layout["root"] / "run.npz")
+    run = ms.Trajectory.load(out)
+    message = outside_message(scene_path, "robot.package_dirs[0]", str(layout["outside"]))
+    with pytest.raises(ms.SceneError, match=f"^{re.escape(message)}$"):
+        viz.robot_from_trajectory(run)
+    assert viz.robot_from_trajectory(run, allowed_roots=[layout["outside"]]).nv == 1
+    html = layout["root"] / "view.html"
+    capfd.readouterr()
+    assert main(["play", str(out), "--html", str(html)]) == 2
+    assert capfd.readouterr().err == f"{PREFIX}{message}\n" and not html.exists()
+    assert main(["play", str(out), "--html", str(html), "--allow-root", str(layout["outside"])]) == 0
+    assert html.exists()
+
+
+def forged_metadata_run(layout: dict[str, Path], folder: str) -> Path:
+    """A run of the scene folder's own URDF whose metadata was edited to name `folder` as a package folder (the
+    URDF names package://pkg/bob.stl: with /etc it would read /etc/pkg/bob.stl, with outside/ its STL)."""
+    robot = ms.load_robot(layout["scene"] / "robot.urdf", package_dirs=[layout["outside"]])
+    run = ms.simulate(robot, [0.1], [0.0], duration=0.01, dt=1e-3)
+    run.metadata["robot"]["load_robot"]["package_dirs"] = [folder]
+    return run.save(layout["root"] / "forged.npz")
+
+
+@pytest.mark.parametrize("target", ["/etc", "outside"])
+def test_a_trajectory_from_elsewhere_cannot_widen_the_mesh_folders(
+    layout: dict[str, Path], target: str, capfd: pytest.CaptureFixture[str]
+):
+    """A trajectory's metadata names its package folders: outside the URDF's folder and the catalog's they are
+    refused (its page would embed their files) unless the user allows them."""
+    pytest.importorskip("meshcat")
+    import multibody_sim.viz as viz
+
+    folder = "/etc" if target == "/etc" else str(layout["outside"])
+    out = forged_metadata_run(layout, folder)
+    run = ms.Trajectory.load(out)
+    with pytest.raises(ms.ModelError, match=f"its metadata names the folder '{re.escape(folder)}' \\(package_dirs\\)"):
+        viz.robot_from_trajectory(run)
+    html = layout["root"] / "view.html"
+    with pytest.raises(ms.ModelError, match="outside the URDF's folder and the catalog's"):
+        viz.export_html(run, html)
+    capfd.readouterr()
+    assert main(["play", str(out), "--html", str(html)]) == 2
+    err = capfd.readouterr().err
+    assert err.startswith(f"{PREFIX}cannot load the trajectory's robot: its metadata names the folder '{folder}'")
+    assert err.count("\n") == 1 and not html.exists()
+    if target == "outside":  # allowed by the user, the page is written with the STL in it
+        assert main(["play", str(out), "--html", str(html), "--allow-root", folder]) == 0
+        assert html.exists()

@@ -67,19 +67,23 @@ def test_the_catalogue_covers_files_command_line_and_api():
 @pytest.mark.parametrize("entry", CATALOGUE, ids=[entry.id for entry in CATALOGUE])
 def test_a_bad_input_gets_its_one_exact_error(entry: BadInput, tmp_path: Path, capfd: pytest.CaptureFixture[str]):
     """The API raises the entry's error with the exact message; the command line prints that message as its
-    only line on stderr (file descriptor 2, so C++ logging would show) and exits 2."""
+    only line on stderr (file descriptor 2, so C++ logging would show) and exits with the entry's code (2 for bad
+    input; 1, 130 or 143 for a run that ends early)."""
     trigger = entry.build(tmp_path)
     message = render(entry.message, trigger.fields)
     seen = [message]
+    during = trigger.during or contextlib.nullcontext
     if trigger.call is not None:
-        with pytest.raises(entry.error, match=exact(message)) as info:
+        with during(), pytest.raises(entry.error, match=exact(message)) as info:
             trigger.call()
         assert isinstance(info.value, ms.MultibodySimError)
     if trigger.argv is not None:
         capfd.readouterr()
-        code = main(trigger.argv)
+        with during():
+            code = main(trigger.argv)
         out, err = capfd.readouterr()
-        assert (code, err) == (2, f"{PREFIX}{message}\n")
+        prefix = {130: "multibody-sim: SIGINT: ", 143: "multibody-sim: SIGTERM: "}.get(entry.code, PREFIX)
+        assert (code, err) == (entry.code, f"{prefix}{message}\n")
         seen += [out, err]
     assert not any(MARKER in text for text in seen)
 

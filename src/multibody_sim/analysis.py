@@ -11,6 +11,7 @@ import pinocchio as pin
 
 from .exceptions import InvalidArgumentError, UnknownNameError
 from .robot import Robot
+from .validation import check_system
 
 _LOCAL_WORLD_ALIGNED = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _LISTED = 12  # frame names an unknown-frame error lists when none is close
@@ -19,6 +20,7 @@ _LISTED = 12  # frame names an unknown-frame error lists when none is close
 def frame_names(robot: Robot) -> list[str]:
     """The names of the robot's frames (links, joints and fixed frames such as tool0), in Pinocchio's order,
     without duplicates."""
+    check_system(robot, "robot")
     return list(dict.fromkeys(frame.name for frame in robot.model.frames))
 
 
@@ -38,6 +40,7 @@ def frame_placements(robot: Robot, traj: Any, frame: str) -> np.ndarray:
         UnknownNameError: no frame has that name (the message lists close matches).
         InvalidArgumentError: traj.q has the wrong shape or non-finite entries.
     """
+    check_system(robot, "robot")
     frame_id = _frame_id(robot, frame)
     Q = _configurations(robot, traj)
     model, data = robot.model, robot.data
@@ -66,6 +69,7 @@ def frame_velocities(robot: Robot, traj: Any, frame: str) -> np.ndarray:
         UnknownNameError: no frame has that name (the message lists close matches).
         InvalidArgumentError: traj.q or traj.v has the wrong shape or non-finite entries.
     """
+    check_system(robot, "robot")
     frame_id = _frame_id(robot, frame)
     Q, V = _configurations(robot, traj), _velocities(robot, traj)
     model, data = robot.model, robot.data
@@ -84,6 +88,7 @@ def center_of_mass(robot: Robot, traj: Any) -> np.ndarray:
         robot: the robot the trajectory belongs to.
         traj: a Trajectory, or anything with a ``q`` array of shape (..., nq).
     """
+    check_system(robot, "robot")
     Q = _configurations(robot, traj)
     model, data = robot.model, robot.data
     out = np.empty((len(Q), 3))
@@ -99,6 +104,7 @@ def center_of_mass_velocity(robot: Robot, traj: Any) -> np.ndarray:
         robot: the robot the trajectory belongs to.
         traj: a Trajectory, or anything with ``q`` (..., nq) and ``v`` (..., nv) arrays.
     """
+    check_system(robot, "robot")
     Q, V = _configurations(robot, traj), _velocities(robot, traj)
     model, data = robot.model, robot.data
     out = np.empty((len(Q), 3))
@@ -120,6 +126,7 @@ def centroidal_momentum(robot: Robot, traj: Any) -> np.ndarray:
         robot: the robot the trajectory belongs to.
         traj: a Trajectory, or anything with ``q`` (..., nq) and ``v`` (..., nv) arrays.
     """
+    check_system(robot, "robot")
     Q, V = _configurations(robot, traj), _velocities(robot, traj)
     model, data = robot.model, robot.data
     out = np.empty((len(Q), 6))

@@ -40,7 +40,16 @@ from .robot import Robot
 from .safety import safe_name
 from .simulation import simulate
 from .trajectory import Trajectory
-from .validation import positive_number
+from .validation import (
+    MAX_STEPS,
+    check_callable,
+    check_flag,
+    check_path,
+    check_system,
+    check_text,
+    check_trajectory,
+    positive_number,
+)
 
 FORMAT = "multibody-sim work-precision"
 FORMAT_VERSION = 1
@@ -58,6 +67,9 @@ ADAPTIVE_FIRST_STEP = 1e-3  # [s] an adaptive run's first trial step (what `run`
 # check there, at about the cost of dp54 at 1e-12 (800 against 860 evaluations over 1 s).
 REFERENCE_INTEGRATOR = "dop853"
 REFERENCE_TOLERANCE = 1e-14  # rtol = atol of the reference; the check runs `refinement` times tighter
+# A contact scene is not smooth: no higher-order method converges faster on it, and only timestepping steps it.
+# Its reference is the same integrator at a much smaller step, checked at half that step.
+CONTACT_REFERENCE_DT = 2e-5
 REFINEMENT = 10.0
 # Errors within this factor of the reference's estimated error may be the reference's: flagged, not fitted.
 REFERENCE_MARGIN = 10.0
@@ -181,9 +193,10 @@ class Reference:
     """The reference solution and its check.
 
     Attributes:
-        integrator: the reference's integrator (dop853).
-        rtol, atol: its tolerances.
+        integrator: the reference's integrator (dop853; timestepping for a contact scene).
+        rtol, atol: its tolerances (nan for a fixed-step reference).
         check_rtol, check_atol: the refined check's tolerances.
+        dt, check_dt: a fixed-step reference's step and its check's (nan for dop853).
         error: its estimated error: max over the grid of the state difference to the refined check.
         evaluations, wall_time: the reference run's cost.
         t, q, v: its samples on the grid (not stored in JSON files).
@@ -197,6 +210,8 @@ class Reference:
     error: float
     evaluations: int
     wall_time: float
+    dt: float = math.nan
+    check_dt: float = math.nan
     t: np.ndarray | None = None
     q: np.ndarray | None = None
     v: np.ndarray | None = None
@@ -415,10 +430,17 @@ class WorkPrecision:
         ]
         if self.reference is not None:
             r = self.reference
-            lines.append(
-                f"reference: {r.integrator} rtol {r.rtol:.0e}, atol {r.atol:.0e}; checked against rtol "
-                f"{r.check_rtol:.0e}: estimated error {r.error:.1e}"
-            )
+            if math.isnan(r.dt):
+                lines.append(
+                    f"reference: {r.integrator} rtol {r.rtol:.0e}, atol {r.atol:.0e}; checked against rtol "
+                    f"{r.check_rtol:.0e}: estimated error {r.error:.1e}"
+                )
+            else:
+                lines.append(
+                    f"reference: {r.integrator} at dt {r.dt:g} s, checked against dt {r.check_dt:g} s: estimated "
+                    f"error {r.error:.1e} (a contact scene is not smooth: it has no higher-order reference, so the "
+                    "reference is the same integrator at a much smaller step)"
+                )
         lines += ["", self.orders_table(), ""]
         done = [m for m in self.measurements if m.completed]
         if done and all(m.below_reference for m in done):
@@ -525,9 +547,17 @@ def work_precision(
         SimulationError: the reference itself failed.
         BenchInterrupted: Ctrl-C; ``.result`` holds what was measured so far.
     """
+    check_system(system)
     q0 = system.check_q(q0, "q0")
     v0 = system.check_v(v0, "v0")
     duration = positive_number(duration, "duration")
+    if steps is None:  # the ladder's finest step must fit in the run, and the run's steps must stay countable
+        finest = STEP_LADDER[-1]
+        if not finest <= duration <= MAX_STEPS * finest:
+            raise InvalidArgumentError(
+                f"duration must be from {finest:g} s (the finest step of the bench's ladder) to "
+                f"{MAX_STEPS * finest:.4g} s (2**53 of those steps), got {duration:g} s"
+            )
     methods, refused = _methods(system, integrators)
     grid = min(OUTPUT_DT, duration) if output_dt is None else positive_number(output_dt, "output_dt")
     if grid > duration * (1 + 1e-12):
@@ -535,6 +565,8 @@ def work_precision(
     if steps is None:
         ladder = [dt for dt in STEP_LADDER if dt <= grid * (1 + 1e-12) and _divides(dt, grid)]
     else:
+        if not isinstance(steps, (list, tuple, np.ndarray)):
+            raise InvalidArgumentError(f"steps must be a list of steps [s], got {type(steps).__name__}")
         ladder = sorted({positive_number(dt, "steps") for dt in steps}, reverse=True)
         for dt in ladder:
             if not _divides(dt, grid):
@@ -555,6 +587,7 @@ def work_precision(
         raise InvalidArgumentError(f"repeats must be a positive integer, got {repeats!r}")
     if not isinstance(max_steps, (int, np.integer)) or isinstance(max_steps, bool) or max_steps < 1:
         raise InvalidArgumentError(f"max_steps must be a positive integer, got {max_steps!r}")
+    check_callable(progress, "progress", "progress(line)")
     say = progress or (lambda line: None)
 
     result = WorkPrecision(
@@ -583,10 +616,19 @@ def work_precision(
         complete=False,
     )
     study = _Study(system, q0, v0, duration, grid, result, say, int(repeats), max_run_time)
-    say(
-        f"measuring {len(methods)} integrators over {duration:g} s against a {REFERENCE_INTEGRATOR} reference at "
-        f"rtol {reference_tolerance:.0e} (checked at {reference_tolerance / refinement:.0e}) ..."
-    )
+    if study.contact:
+        say(
+            f"measuring {len(methods)} integrator(s) over {duration:g} s against timestepping at dt "
+            f"{CONTACT_REFERENCE_DT:g} s (checked at {CONTACT_REFERENCE_DT / 2:g} s): a contact scene is not smooth, "
+            "so its reference is the same integrator at a much smaller step ..."
+        )
+        ladder = [dt for dt in ladder if dt >= 2 * CONTACT_REFERENCE_DT]
+        result.settings["steps"] = ladder
+    else:
+        say(
+            f"measuring {len(methods)} integrators over {duration:g} s against a {REFERENCE_INTEGRATOR} reference at "
+            f"rtol {reference_tolerance:.0e} (checked at {reference_tolerance / refinement:.0e}) ..."
+        )
     try:
         result.reference = study.reference(reference_tolerance, refinement)
         say(f"reference: estimated error {result.reference.error:.1e}")
@@ -625,8 +667,28 @@ class _Study:
         self.duration, self.grid = duration, grid
         self.result, self.say = result, say
         self.repeats, self.max_run_time = repeats, max_run_time
+        self.contact = getattr(system, "contact", None) is not None
 
     def reference(self, tolerance: float, refinement: float) -> Reference:
+        if self.contact:  # no smooth reference: the same method at a much smaller step, checked at half of it
+            dt = CONTACT_REFERENCE_DT
+            run = self._simulate("timestepping", dt, None)
+            check = self._simulate("timestepping", dt / 2, None)
+            return Reference(
+                integrator="timestepping",
+                rtol=math.nan,
+                atol=math.nan,
+                check_rtol=math.nan,
+                check_atol=math.nan,
+                error=trajectory_error(self.system, run, check),
+                evaluations=int(run.stats["evaluations"]),
+                wall_time=float(run.stats["wall_time"]),
+                dt=dt,
+                check_dt=dt / 2,
+                t=run.t,
+                q=run.q,
+                v=run.v,
+            )
         run = self._simulate(REFERENCE_INTEGRATOR, ADAPTIVE_FIRST_STEP, tolerance)
         check = self._simulate(REFERENCE_INTEGRATOR, ADAPTIVE_FIRST_STEP, tolerance / refinement)
         return Reference(
@@ -740,6 +802,8 @@ def _methods(
             raise InvalidArgumentError(
                 f"integrators must be a list of names, got {type(integrators).__name__} (write [{integrators!r}])"
             )
+        if not isinstance(integrators, Iterable):
+            raise InvalidArgumentError(f"integrators must be a list of names, got {type(integrators).__name__}")
         candidates = [get_integrator(i) for i in integrators]
         if not candidates:
             raise InvalidArgumentError("integrators must name at least one integrator, got an empty list")
@@ -772,6 +836,9 @@ def trajectory_error(system: Robot, trajectory: Trajectory, reference: Trajector
     Raises:
         InvalidArgumentError: the trajectories are not sampled at the same times.
     """
+    check_system(system)
+    check_trajectory(trajectory, "trajectory")
+    check_trajectory(reference, "reference")
     return _grid_error(system, trajectory.t, trajectory.q, trajectory.v, reference.t, reference.q, reference.v)
 
 
@@ -806,6 +873,7 @@ def observed_orders(result: WorkPrecision) -> dict[str, OrderFit]:
     Usable: completed, not within REFERENCE_MARGIN of the reference's error, and below 0.1 (larger errors are
     far from the asymptotic regime).
     """
+    _check_study(result)
     fits = {}
     for name in result.integrators():
         method = INTEGRATORS.get(name)
@@ -852,6 +920,11 @@ def observed_orders(result: WorkPrecision) -> dict[str, OrderFit]:
 _COSTS = ("cpu_time", "wall_time", "evaluations")
 
 
+def _check_study(result: Any) -> None:
+    if not isinstance(result, WorkPrecision):
+        raise InvalidArgumentError(f"result must be a WorkPrecision (work_precision's), got {type(result).__name__}")
+
+
 def recommend(result: WorkPrecision, tolerance: float, *, cost: str = "cpu_time") -> Measurement | None:
     """The cheapest measured configuration that meets `tolerance` on this system, or None.
 
@@ -867,6 +940,7 @@ def recommend(result: WorkPrecision, tolerance: float, *, cost: str = "cpu_time"
     Raises:
         InvalidArgumentError: tolerance is not a positive number, or cost is unknown.
     """
+    _check_study(result)
     tolerance = positive_number(tolerance, "tolerance", None)
     if cost not in _COSTS:
         raise InvalidArgumentError(f"cost must be one of {', '.join(map(repr, _COSTS))}, got {cost!r}")
@@ -909,6 +983,17 @@ class Choice:
             f"({source}: error {m.error:.2e} + reference {self.study.reference_error:.0e}, "
             f"max |energy_error| {m.energy_error:.2e} J, {m.evaluations} dynamics evaluations, "
             f"{m.cpu_time:.3g} s CPU; cheapest of {len(ran)} runs of {len({r.integrator for r in ran})} integrators)"
+            + self._reference_note()
+        )
+
+    def _reference_note(self) -> str:
+        """For a contact scene: what the reference was (the same integrator, at a much smaller step)."""
+        r = self.study.reference
+        if r is None or math.isnan(r.dt):
+            return ""
+        return (
+            f"; reference: {r.integrator} at dt {r.dt:g} s (a contact scene is not smooth: no higher-order reference, "
+            "the same integrator at a much smaller step)"
         )
 
 
@@ -945,6 +1030,10 @@ def choose_integrator(
             gives the most accurate one measured).
         BenchInterrupted: Ctrl-C during the pilot.
     """
+    check_system(system)
+    check_flag(cache, "cache")
+    if cache_dir is not None:
+        check_path(cache_dir, "cache_dir", "a folder")
     tolerance = positive_number(tolerance, "tolerance", None)
     q0 = system.check_q(q0, "q0")
     v0 = system.check_v(v0, "v0")
@@ -1009,6 +1098,7 @@ def _cache_key(system: Robot, q0: np.ndarray, v0: np.ndarray, horizon: float, na
             TOLERANCE_LADDER,
             REFERENCE_INTEGRATOR,
             REFERENCE_TOLERANCE,
+            CONTACT_REFERENCE_DT,
             REFINEMENT,
             PILOT_MAX_RUN_TIME,
         ],
@@ -1039,6 +1129,9 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
     Raises:
         ModuleNotFoundError: matplotlib is missing (the message says which extra installs it).
     """
+    _check_study(result)
+    check_path(path, "path", "a PNG file")
+    check_text(title, "title")
     try:
         import matplotlib
 

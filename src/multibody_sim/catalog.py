@@ -5,12 +5,10 @@ from __future__ import annotations
 import contextlib
 import difflib
 import hashlib
-import importlib.resources
 import math
 import os
 import stat
 import sys
-import tempfile
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -533,6 +531,8 @@ def example_robot_data_share() -> Path:
 
 def shipped_models_dir() -> Path:
     """The repository's models/ folder, as installed in the package (multibody_sim.models)."""
+    import importlib.resources  # here, as tempfile below: what `import multibody_sim` need not pay
+
     return Path(str(importlib.resources.files("multibody_sim.models")))
 
 
@@ -1342,6 +1342,8 @@ def _captured_stderr() -> Iterator[list[str]]:
     except (OSError, ValueError, AttributeError):  # no usable fd 2 (embedded interpreters): do not capture
         yield captured
         return
+    import tempfile
+
     try:
         with tempfile.TemporaryFile() as sink:
             os.dup2(sink.fileno(), 2)

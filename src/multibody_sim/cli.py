@@ -380,6 +380,19 @@ def _add_view_commands(commands: Any) -> None:
         "--speed", metavar="X", type=float, default=1.0, help="initial playback speed, 1 = real time (default: 1)"
     )
     play.add_argument("--plot", action="store_true", help="show the energy and joint-position plot beside the view")
+    play.add_argument(
+        "--allow-root",
+        metavar="DIR",
+        action="append",
+        default=[],
+        help="a folder the trajectory's robot may read meshes from besides its URDF's folder and the catalog's, "
+        "when its metadata names one (a trajectory from elsewhere cannot widen them itself; repeat for several)",
+    )
+    play.add_argument(
+        "--forces",
+        action="store_true",
+        help="draw a contact scene's contact forces as arrows (with --html; the largest force is 20 cm long)",
+    )
     _add_server_options(play, prefix="--")
     video = play.add_argument_group(
         "video (rendered headless in Chromium or Chrome from the same page; --fps and --speed apply)"
@@ -769,8 +782,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise _UsageError("--integrators: name at least one integrator (e.g. --integrators rk4,dp54)")
         for name in names:
             ms.get_integrator(name)  # an unknown name is bad input before any work
-    q0 = robot.default_pose() if args.q0 is None else _configuration(robot, args.q0)
-    v0 = [0.0] * robot.nv if args.v0 is None else robot.check_v(args.v0, "v0")
+    scene_start = isinstance(robot, ms.Scene)  # a scene starts where it declares (its objects' velocities too)
+    default_q = robot.q0 if scene_start else robot.default_pose()
+    default_v = robot.v0 if scene_start else [0.0] * robot.nv
+    q0 = default_q if args.q0 is None else _configuration(robot, args.q0)
+    v0 = default_v if args.v0 is None else robot.check_v(args.v0, "v0")
     base = "floating" if robot.floating_base else "fixed"
     started: list[bool] = []
 
@@ -815,6 +831,9 @@ def _check_out_dir(name: str) -> Path:
         folder = folder.parent
     if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
         raise _UsageError(f"--out {name}: cannot create files in {folder} (not a writable folder)")
+    for suffix in ("csv", "json", "png"):  # the files it will replace must be regular files (or new names)
+        file = path / f"work_precision.{suffix}"
+        check_output(file, "--out", f"work_precision.{suffix}")
     return path
 
 
@@ -855,8 +874,15 @@ def _poses_cell(row: dict[str, Any]) -> str:
 
 def _savings(scene: Any) -> str:
     measured = scene.measure_savings()
+    if math.isnan(measured["full_us"]):  # objects only: no robot to compare with
+        return (
+            f"cost ({measured['integrator']}, CPU-time medians of 5 x 200 steps): scene {measured['scene_us']:.1f} "
+            "µs/step (objects only: no robot model to compare with)"
+        )
     return (
-        f"savings (RK4, CPU-time medians of 5 x 200 steps): scene {measured['scene_us']:.1f} µs/step, full robot "
+        f"savings ({'RK4' if measured['integrator'] == 'rk4' else measured['integrator']}, CPU-time medians of 5 x "
+        f"200 steps): scene {measured['scene_us']:.1f} "
+        f"µs/step, full robot "
         f"model {measured['full_us']:.1f} µs/step: {measured['ratio']:.2f}x the full model's cost"
     )
 
@@ -957,6 +983,8 @@ def _cmd_integrators(args: argparse.Namespace) -> int:
 def _cmd_play(args: argparse.Namespace) -> int:
     viz = _viz()
     html = _check_output(args.html, "--html", "view.html") if args.html else None
+    if args.forces and html is None:
+        raise _UsageError("--forces draws contact forces in the --html export only (not yet live or in videos)")
     if not args.video:  # a video's frame rate has its own range per format (checked with the video's options)
         frame_rate(args.fps, "--fps")
     playback_speed(args.speed, "--speed")
@@ -964,14 +992,22 @@ def _cmd_play(args: argparse.Namespace) -> int:
     video = _check_video(args) if args.video else None
     trajectory = ms.Trajectory.load(args.trajectory)
     try:
-        robot = viz.robot_from_trajectory(trajectory)
+        robot = viz.robot_from_trajectory(trajectory, allowed_roots=args.allow_root or None)
         if video is not None:
             _write_video(viz, trajectory, robot, video, args)
         if html is not None:
             started = time.perf_counter()
             try:
                 with _viewer_warnings(viz):
-                    viz.export_html(trajectory, html, robot=robot, fps=args.fps, speed=args.speed, plot=args.plot)
+                    viz.export_html(
+                        trajectory,
+                        html,
+                        robot=robot,
+                        fps=args.fps,
+                        speed=args.speed,
+                        plot=args.plot,
+                        forces=args.forces,
+                    )
             except OSError as exc:
                 raise _UsageError(f"--html {html}: cannot write the page ({exc.strerror or exc})") from None
             size = html.stat().st_size / 1e6

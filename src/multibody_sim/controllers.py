@@ -27,6 +27,7 @@ import pinocchio as pin
 from .exceptions import InvalidArgumentError, UnknownNameError
 from .robot import Robot
 from .safety import safe_name
+from .validation import check_system, check_text
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 
@@ -38,7 +39,7 @@ def _real_array(value: Any, name: str) -> np.ndarray:
         raw = np.asarray(value)
     except ValueError:  # ragged nesting
         raw = None
-    if raw is None or raw.dtype.kind not in "biuf":
+    if raw is None or raw.dtype.kind not in "iuf":  # a bool is no gain or position
         got = type(value).__name__
         raise InvalidArgumentError(f"{name} must be real numbers, got {got}")
     arr = np.array(raw, dtype=float)
@@ -80,10 +81,12 @@ def _n_base(robot: Robot) -> int:
 
 def _actuated(robot: Robot) -> slice:
     """The actuated velocity coordinates: after a floating base, before a scene's free objects."""
+    check_system(robot, "robot")  # every controller's first look at its robot
     return getattr(robot, "actuated", slice(_n_base(robot), robot.nv))
 
 
 def _refuse_floating_base(robot: Robot, what: str) -> None:
+    check_system(robot, "robot")
     if robot.floating_base:
         raise InvalidArgumentError(
             f"{what} needs every velocity coordinate actuated, but robot '{robot.name}' has a floating base whose 6 "
@@ -654,6 +657,11 @@ def _norm(a: np.ndarray) -> float:
 
 def _obstacles(obstacles: Any, d: int) -> tuple[np.ndarray, np.ndarray]:
     """(centers (m, d), radii (m,)) from pairs (center, radius) or rows of d + 1 numbers."""
+    if not isinstance(obstacles, (list, tuple, np.ndarray)):
+        raise InvalidArgumentError(
+            f"obstacles must be a list of (center, radius) pairs or rows of {d + 1} numbers, "
+            f"got {type(obstacles).__name__}"
+        )
     centers, radii = [], []
     for i, item in enumerate(obstacles):
         if isinstance(item, tuple) and len(item) == 2 and np.ndim(item[0]) == 1:
@@ -858,6 +866,10 @@ def make_controller(name: str, robot: Robot, params: Sequence[str] = ()) -> Any:
         InvalidArgumentError: a malformed, unknown, repeated, missing or invalid parameter (the message names
             it and lists the valid ones).
     """
+    check_text(name, "name", optional=False)
+    check_system(robot, "robot")
+    if isinstance(params, (str, bytes)) or not isinstance(params, (list, tuple)):
+        raise InvalidArgumentError(f"params must be a list of KEY=VALUE strings, got {type(params).__name__}")
     spec = CONTROLLERS.get(name)
     if spec is None:
         close = difflib.get_close_matches(name, CONTROLLERS, n=1, cutoff=0.5)

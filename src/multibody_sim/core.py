@@ -421,6 +421,9 @@ class RowKernel:
         self.now: tuple[list[Any], list[Any], list[Any], list[Any], float, int] = (q, v, flows, states, 0.0, 0)
         self.pending: list[Attempt] = []
         self.record_width = sum(width for _, _, width in system.record_fields)
+        # The time-stepper of a contact scene records the contacts of each step (Trajectory.contacts).
+        has_contact = getattr(system, "contact", None) is not None
+        self._contact_records = getattr(method, "contact_records", None) if has_contact else None
 
     @property
     def n(self) -> int:
@@ -538,15 +541,23 @@ class RowKernel:
         return self.now[0], self.now[1]  # never modified in place: a step makes new arrays
 
     def write_sample(self, store: SampleStore, i: int, index: Any, js: np.ndarray | None = None) -> None:
-        q, v, flows, _, t, _ = self.now
+        q, v, flows, states, t, _ = self.now
         if type(index) is int:  # one row
             j = 0 if js is None else int(js[0])
             self._write(store, i, index, q[j], v[j], flows[j], self.tau[j], t)
+            self._write_contacts(store, i, index, states[j])
             return
         rows = np.arange(store.B)[index] if isinstance(index, slice) else index
         positions = range(len(q)) if js is None else js.tolist()
         for j, b in zip(positions, rows.tolist(), strict=True):
             self._write(store, i, b, q[j], v[j], flows[j], self.tau[j], t)
+            self._write_contacts(store, i, b, states[j])
+
+    def _write_contacts(self, store: SampleStore, i: int, b: int, state: Any) -> None:
+        """A contact method's active contacts (those of the step that ended at this sample) into the store."""
+        records = self._contact_records
+        if records is not None:
+            store.write_contacts(i, b, records(self.system, state))
 
     def write_dense(self, store: SampleStore, i: int, index: Any, theta: float, h: float, t_out: float) -> int:
         q, v, flows, _, _, _ = self.now

@@ -9,7 +9,7 @@ import numpy as np
 from .exceptions import InvalidArgumentError, SimulationError
 from .integrators import Integrator, StepFailure, get_integrator
 from .robot import Robot
-from .validation import finite_number, positive_number
+from .validation import check_system, finite_number, positive_number
 
 _SUPPORTED = (
     "the explicit Runge–Kutta methods (euler, midpoint, rk4, bs32, dp54, dop853), semi_implicit_euler, "
@@ -73,6 +73,7 @@ def linearize(
         SimulationError: the step itself failed (Newton did not converge: status "newton_failed"; non-finite:
             status "diverged").
     """
+    check_system(system)
     method = get_integrator(integrator)
     q = system.check_q(q)
     v = system.check_v(v)

@@ -346,16 +346,25 @@ class Kept:
     """What a run's end kept, and where.
 
     Attributes:
-        trajectory: every sample kept (from memory, the file or the parts).
+        trajectory: every sample kept (from memory, the file or the parts); None when memory ran out even for them.
         saved_to: the file (or parts folder) that holds them, or None.
         problem: what could not be written and why ("" when all went well).
         interrupted: SIGINT or SIGTERM arrived while the samples were being written (they were written first).
     """
 
-    trajectory: Trajectory
+    trajectory: Trajectory | None
     saved_to: Path | None = None
     problem: str = ""
     interrupted: bool = False
+
+    @property
+    def samples(self) -> int:
+        return len(self.trajectory) if self.trajectory is not None else 0
+
+    @property
+    def t_end(self) -> float:
+        """The last sample's time [s] (0 without samples)."""
+        return float(self.trajectory.t[-1]) if self.trajectory is not None and self.samples else 0.0
 
 
 @dataclass
@@ -554,9 +563,10 @@ class Run:
             self._stop_running("interrupted")
             raise
         except MemoryError as exc:  # the samples so far are kept (and written by finish) as for any early stop
-            detail = f" ({exc})" if str(exc) else ""
+            where = f"ran out of memory at t = {self.core.t:.6g} s"
             self._stop_running(
-                "out_of_memory", f"ran out of memory at t = {self.core.t:.6g} s (MemoryError{detail}): the run stopped"
+                "out_of_memory",
+                f"{where}: {exc}; the run stopped" if str(exc) else f"{where} (MemoryError): the run stopped",
             )
         finally:
             self.wall_time = time.perf_counter() - start
@@ -808,8 +818,8 @@ class Run:
             **({"why_not_native": self.why_not_native} if self.why_not_native else {}),
         }
 
-    def trajectory(self, b: int, *, status: str | None = None) -> Trajectory:
-        """Row b's samples in memory as a Trajectory."""
+    def trajectory(self, b: int, *, status: str | None = None, copy: bool = True) -> Trajectory:
+        """Row b's samples in memory as a Trajectory (copy=False: views of the store, see SampleStore.trajectory)."""
         return self.store.trajectory(
             b,
             system=self.system,
@@ -817,7 +827,20 @@ class Run:
             status=status or self.outcomes[b].status,
             stats=self.stats(b),
             metadata=self.metadata(),
+            copy=copy,
         )
+
+    def _assemble(self, b: int) -> Trajectory | None:
+        """Row b's samples at the end of the run: copies (compact), else, when memory is short, views of the store;
+        None when not even those fit."""
+        try:
+            return self.trajectory(b)
+        except MemoryError:
+            pass
+        try:
+            return self.trajectory(b, copy=False)
+        except MemoryError:
+            return None
 
     def finish(self, b: int = 0) -> Kept:
         """Row b's whole trajectory, also written to the sink's file (merging its chunks) when there is one.
@@ -827,7 +850,10 @@ class Run:
         """
         sink, out = self.sink, self.sink.out
         if sink.chunk is None:
-            traj = self.trajectory(b)
+            traj = self._assemble(b)
+            if traj is None:
+                lost = self.store.samples_of(b)
+                return Kept(None, None, f"its {lost} samples could not be assembled (out of memory)")
             if out is None:
                 return Kept(traj)
             try:
@@ -868,7 +894,9 @@ class Run:
             except TrajectoryFileError:  # a stranger's chunk in the folder: the message names it (write_error)
                 sink.samples = 0
         if self.store.samples_of(b):
-            pieces.append(self.trajectory(b))
+            memory = self._assemble(b)
+            if memory is not None:
+                pieces.append(memory)
         traj = Trajectory.concatenate(pieces) if pieces else self.trajectory(b)
         traj.status = self.outcomes[b].status
         on_disk = f"{sink.samples} samples stay in {sink.parts} (Trajectory.load reads the folder)"

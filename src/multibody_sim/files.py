@@ -24,7 +24,6 @@ import os
 import signal
 import socket
 import stat
-import tempfile
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -183,6 +182,8 @@ def atomic_path(
     target = check_output(path, what)
     target.parent.mkdir(parents=True, exist_ok=True)
     with signals_held(mode) as hold:
+        import tempfile  # here: it imports shutil, bz2 and lzma, which `import multibody_sim` need not pay
+
         fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=f".tmp{suffix}", dir=target.parent)
         tmp = Path(name)
         try:
@@ -225,6 +226,8 @@ def write_atomically(
     target = check_output(path, what)
     target.parent.mkdir(parents=True, exist_ok=True)
     with signals_held(mode) as hold:
+        import tempfile
+
         fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
         try:
             with os.fdopen(fd, "wb") as f:
@@ -291,11 +294,32 @@ def check_unlocked(out: Path, what: str = "out") -> None:
         )
 
 
+def remove_stale_temporaries(out: Path) -> list[Path]:
+    """Remove the temporary files a run on `out` left when it was killed outright (SIGKILL, a power cut: no
+    cleanup ran): .out.XXXX.tmp beside it and .chunk_NNNNNN.npz.XXXX.tmp in its parts folder. Called when its stale
+    lock is taken over, so their writer is known to be gone.
+
+    Returns:
+        The files removed.
+    """
+    patterns = [(out.parent, f".{out.name}.*.tmp"), (out.with_name(out.name + ".parts"), ".chunk_*.npz.*.tmp")]
+    removed = []
+    for folder, pattern in patterns:
+        for path in folder.glob(pattern):
+            if path.name.startswith(f".{out.name}{LOCK_SUFFIX}."):
+                continue  # the lock's own temporary file (the new owner's, being linked into place)
+            with contextlib.suppress(OSError):
+                path.unlink()
+                removed.append(path)
+    return removed
+
+
 class RunLock:
     """out.lock, held while a run writes `out` (its chunks and their merge included).
 
     The lock file holds "pid host run_id" and is created whole (a complete temporary file hard-linked into
-    place), so a reader never sees a half-written lock. A lock whose process is gone is stale and taken over.
+    place), so a reader never sees a half-written lock. A lock whose process is gone is stale and taken over, and
+    the temporary files that process left are removed.
 
     Attributes:
         run_id: a fresh identifier of the run (also written into its chunk files).
@@ -309,6 +333,8 @@ class RunLock:
 
     def acquire(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        import tempfile
+
         fd, name = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
         try:
             with os.fdopen(fd, "w") as f:
@@ -321,6 +347,7 @@ class RunLock:
                 except FileExistsError:
                     check_unlocked(self.out, self.what)  # a live owner: refused
                     self.path.unlink(missing_ok=True)  # a stale lock: taken over
+                    remove_stale_temporaries(self.out)
             check_unlocked(self.out, self.what)
             raise InvalidArgumentError(f"{self.what} {self.out}: could not take the lock file {self.path}")
         finally:

@@ -25,7 +25,7 @@ from .exceptions import InvalidArgumentError, MissingDependencyError, Simulation
 from .integrators import Integrator
 from .robot import Robot
 from .stepper import BatchStepper, Stepper
-from .validation import check_callable, positive_number
+from .validation import check_callable, is_number, positive_number
 
 try:
     import gymnasium
@@ -94,7 +94,7 @@ class _Task:
         dt = control_dt if dt is None else positive_number(dt, "dt")
         noise_q = _non_negative(reset_noise_q, "reset_noise_q")
         noise_v = _non_negative(reset_noise_v, "reset_noise_v")
-        failure = float(failure_reward)
+        failure = float(failure_reward) if is_number(failure_reward) else math.nan
         if not math.isfinite(failure):
             raise InvalidArgumentError(f"failure_reward must be a finite number, got {failure_reward!r}")
         q = system.default_pose() if initial_q is None else system.check_q(initial_q, "initial_q")

@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from .safety import check_allocation
-from .trajectory import ConstraintRecord, LedgerEntry, LimitViolations, Trajectory
+from .safety import check_allocation, memory_room
+from .trajectory import ConstraintRecord, Contacts, LedgerEntry, LimitViolations, Trajectory
 
 # Counters kept per sample and row, so that a run truncated at a sample reports the counts it had there.
 COUNTERS = ("steps", "rejected_steps", "evaluations")
@@ -41,6 +41,8 @@ class SampleStore:
         self.running = np.ones(B, dtype=bool)
         self.soft_capacity: float = capacity
         self.full = False
+        # A contact run's active contacts: row b -> {sample index: rows (k, 11) of pair, point, normal, impulse}.
+        self.contacts: dict[int, dict[int, np.ndarray]] = {}
         self._allocate(capacity)
 
     def _allocate(self, capacity: int) -> None:
@@ -60,6 +62,12 @@ class SampleStore:
         return len(self.T)
 
     @property
+    def sample_bytes(self) -> int:
+        """Bytes a sample of every row takes in the store."""
+        nq, nv, m, e = self._shapes
+        return 8 * self.B * (1 + nq + 2 * nv + 2 + m + e + len(COUNTERS))
+
+    @property
     def n_samples(self) -> np.ndarray:
         """Samples held per row, shape (B,); row b's are the first n_samples[b]."""
         return np.where(self.running, self.count, self._stopped_samples)
@@ -71,8 +79,18 @@ class SampleStore:
         """The index of the next sample of the running rows, growing the arrays if `extra` samples do not fit."""
         i = self.count
         if i + extra > self.capacity:
+            capacity = 2 * i + 16 + extra
+            # The new arrays, and room left to assemble the samples into a trajectory at the end: a run that stops
+            # here for want of memory can still keep every sample it has.
+            needed = 2 * capacity * self.sample_bytes
+            room = memory_room()
+            if needed > room.bytes:
+                raise MemoryError(
+                    f"{capacity} samples would need {needed / 2**30:.3g} GiB, more than the {room.bytes / 2**30:.3g} "
+                    f"GiB available ({room.limit})"
+                )
             old = {name: getattr(self, name) for name in ("T", "Q", "V", "TAU", "ENERGY", "FLOWS", "EXTRA", "COUNTS")}
-            self._allocate(2 * i + 16 + extra)
+            self._allocate(capacity)
             n = min(i + 1, len(old["T"]))  # stopped rows may hold a last sample at index i
             for name, array in old.items():
                 getattr(self, name)[:n] = array[:n]
@@ -95,6 +113,7 @@ class SampleStore:
         self.count = 0
         self._stopped_samples[:] = 0
         self.full = False
+        self.contacts = {}
 
     def make_room(self, capacity: float) -> None:
         """Let the running rows take samples up to `capacity` before the core returns FULL again."""
@@ -104,6 +123,17 @@ class SampleStore:
     def truncate(self, b: int, n: int) -> None:
         """Row b (stopped) keeps its first n samples."""
         self._stopped_samples[b] = min(int(self._stopped_samples[b]), n)
+        held = self.contacts.get(b)
+        if held:
+            self.contacts[b] = {i: rows for i, rows in held.items() if i < n}
+
+    def write_contacts(self, i: int, b: int, rows: np.ndarray | None) -> None:
+        """Row b's active contacts at sample i: (k, 11) rows of pair (2), point (3), normal (3), impulse (3)."""
+        held = self.contacts.setdefault(b, {})
+        if rows is None or not len(rows):
+            held.pop(i, None)
+        else:
+            held[i] = rows
 
     def trajectory(
         self,
@@ -114,20 +144,27 @@ class SampleStore:
         status: str,
         stats: dict[str, Any],
         metadata: dict[str, Any],
+        copy: bool = True,
     ) -> Trajectory:
         """Row b's samples as a Trajectory (copies), with the ledger, records and limit violations.
 
         Args:
             initial_energy: H at the run's start [J] (the reference of energy_error; chunks after the first lack it).
+            copy: False: views of the store where possible (a run that ran out of memory keeps its samples without
+                a second copy of them; the store must not be written to afterwards).
         """
         n = self.samples_of(b)
         elements = system.ledger_elements
         is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
-        t = self.T[:n, b].copy()
-        Q = self.Q[:n, b].copy()
-        kinetic, potential = self.ENERGY[:n, b, 0].copy(), self.ENERGY[:n, b, 1].copy()
+
+        def take(array: np.ndarray) -> np.ndarray:
+            return array.copy() if copy else array
+
+        t = take(self.T[:n, b])
+        Q = take(self.Q[:n, b])
+        kinetic, potential = take(self.ENERGY[:n, b, 0]), take(self.ENERGY[:n, b, 1])
         flows = self.FLOWS[:n, b]
-        ledger = {name: LedgerEntry(kind, flows[:, j].copy()) for j, (name, kind) in enumerate(elements)}
+        ledger = {name: LedgerEntry(kind, take(flows[:, j])) for j, (name, kind) in enumerate(elements)}
         potentials, constraints = split_records(system.record_fields, self.EXTRA[:n, b])
         ledger.update(potentials)
         work = flows[:, is_work].sum(axis=1)
@@ -136,8 +173,8 @@ class SampleStore:
         return Trajectory(
             t=t,
             q=Q,
-            v=self.V[:n, b].copy(),
-            tau=self.TAU[:n, b].copy(),
+            v=take(self.V[:n, b]),
+            tau=take(self.TAU[:n, b]),
             kinetic_energy=kinetic,
             potential_energy=potential,
             total_energy=total,
@@ -150,6 +187,27 @@ class SampleStore:
             stats=stats,
             status=status,
             metadata=metadata,
+            contacts=self._contacts(b, n, system),
+        )
+
+    def _contacts(self, b: int, n: int, system: Any) -> Contacts | None:
+        """Row b's contacts over its first n samples as a Contacts record (None without contact)."""
+        contact = getattr(system, "contact", None)
+        if contact is None:
+            return None
+        held = self.contacts.get(b, {})
+        keys = sorted(i for i in held if i < n)
+        if not keys:
+            return Contacts.empty(contact.body_names)
+        rows = np.vstack([held[i] for i in keys])
+        sample = np.repeat(np.array(keys, dtype=np.int64), [len(held[i]) for i in keys])
+        return Contacts(
+            list(contact.body_names),
+            sample,
+            rows[:, :2].astype(np.int64),
+            rows[:, 2:5].copy(),
+            rows[:, 5:8].copy(),
+            rows[:, 8:11].copy(),
         )
 
 
@@ -207,11 +265,13 @@ def check_memory(n_samples: int, system: Any, rows: int = 1, advice: str | None 
     The room is safety.usable_memory(): the machine's available memory, the address-space limit (RLIMIT_AS) and
     the cgroup's memory limit, whichever is least.
     """
-    check_allocation(
-        n_samples * sample_bytes(system, rows),
-        f"this run would keep {n_samples:.3g} samples",
-        advice or "sample less often (output_dt) or stream to disk (out= and chunk=; --chunk in the CLI)",
-    )
+    if rows > 1:  # a rollout: no chunks to stream to
+        what = f"this rollout would keep {n_samples:.3g} samples of each of its {rows} elements"
+        default = "sample less often (output_dt) or run the batch in smaller parts"
+    else:
+        what = f"this run would keep {n_samples:.3g} samples"
+        default = "sample less often (output_dt) or stream to disk (out= and chunk=; --chunk in the CLI)"
+    check_allocation(n_samples * sample_bytes(system, rows), what, advice or default)
 
 
 def file_bytes(system: Any) -> int:

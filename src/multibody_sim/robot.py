@@ -107,6 +107,8 @@ class Robot:
         Raises:
             UnknownNameError: no pose of that name (the message lists the valid ones).
         """
+        if not isinstance(name, str):
+            raise InvalidArgumentError(f"name must be a pose name (a string), got {type(name).__name__}")
         if name not in self._poses and not self._poses:
             raise UnknownNameError(
                 f"unknown pose '{name}': {self.name} has no named poses (they come from an SRDF: srdf=FILE in "
@@ -134,6 +136,8 @@ class Robot:
         Uniform within finite joint limits and in [-pi, pi] where there is none; a uniformly random unit
         quaternion for spherical joints and the floating base, whose position is uniform in [-1, 1]^3 m.
         """
+        if not (rng is None or isinstance(rng, np.random.Generator) or type(rng) is int or isinstance(rng, np.integer)):
+            raise InvalidArgumentError(f"rng must be a numpy Generator, a whole-number seed or None, got {rng!r}")
         rng = np.random.default_rng(rng)
         q = self.neutral()
         for joint in self.model.joints[1:]:

@@ -27,7 +27,7 @@ from .progress import ProgressBar
 from .recording import find_limit_violations, split_records
 from .robot import Robot, real_array
 from .trajectory import ARRAYS, ConstraintRecord, LedgerEntry, LimitViolations, Trajectory
-from .validation import check_options, positive_count, positive_number
+from .validation import check_options, check_system, positive_count, positive_number
 
 _RECORD_PARTS = ("force", "drift", "velocity_drift")  # a ConstraintRecord's arrays
 _COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls")
@@ -104,6 +104,8 @@ class BatchTrajectory:
 
     def element(self, b: int) -> Trajectory:
         """Element b as a Trajectory (its real samples only); ``stats["wall_time"]`` is its share of the batch's."""
+        if isinstance(b, (bool, np.bool_)) or not isinstance(b, (int, np.integer)):
+            raise InvalidArgumentError(f"b must be a whole number (an element's index), got {b!r}")
         if not -len(self) <= b < len(self):
             raise IndexError(f"element {b} out of range for a batch of {len(self)}")
         n = int(self.n_samples[b])
@@ -209,6 +211,7 @@ def rollout(
         SimulationInterrupted: Ctrl-C; ``.trajectory`` holds the BatchTrajectory so far (interrupted elements
             have status "interrupted"; on Ray it is None: the unfinished chunks are cancelled).
     """
+    check_system(system)
     method = get_integrator(integrator)
     method.check_contract()
     check_options(method, options)

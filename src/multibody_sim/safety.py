@@ -291,9 +291,7 @@ def usable_memory() -> int:
     return memory_room().bytes
 
 
-def memory_room(
-    *, cgroup_root: Path = Path("/sys/fs/cgroup"), proc_cgroup: Path = Path("/proc/self/cgroup")
-) -> Room:
+def memory_room(*, cgroup_root: Path = Path("/sys/fs/cgroup"), proc_cgroup: Path = Path("/proc/self/cgroup")) -> Room:
     """usable_memory() with the limit that binds (the paths are parameters for tests)."""
     rooms = [Room(_available_memory(), "the machine's available memory")]
     address_space = _address_space_room()

@@ -17,7 +17,15 @@ from .integrators import Integrator, get_integrator
 from .progress import ProgressBar
 from .robot import Robot
 from .trajectory import PARTS_SUFFIX, Trajectory
-from .validation import check_callable, check_options, positive_count, positive_number
+from .validation import (
+    check_callable,
+    check_flag,
+    check_options,
+    check_path,
+    check_system,
+    positive_count,
+    positive_number,
+)
 
 
 class Controller(Protocol):
@@ -79,6 +87,7 @@ def simulate(
             ``.trajectory`` holds every finite sample so far.
         SimulationInterrupted: Ctrl-C; ``.trajectory`` holds every sample so far.
     """
+    check_system(system)
     method = get_integrator(integrator)
     method.check_contract()
     check_options(method, options)
@@ -90,6 +99,7 @@ def simulate(
     method.check_system(system)
     sink = make_sink(out, chunk)
     check_callable(on_sample, "on_sample", "on_sample(t, q, v)")
+    check_flag(progress, "progress", optional=True)
     settings = RunSettings.check(method, duration, dt, options)
     reset = getattr(controller, "reset", None)
     if callable(reset):
@@ -120,12 +130,11 @@ def simulate(
                 run.execute()
             except KeyboardInterrupt:
                 kept = run.finish()
-                traj = kept.trajectory
                 steps = run.stats(0)["steps"]
                 raise SimulationInterrupted(
-                    f"interrupted at t = {traj.t[-1] if len(traj) else 0.0:.6g} s (step {steps}); {len(traj)} samples "
-                    f"kept" + (f"; {kept.problem}" if kept.problem else ""),
-                    trajectory=traj,
+                    f"interrupted at t = {kept.t_end:.6g} s (step {steps}); {kept.samples} samples kept"
+                    + (f"; {kept.problem}" if kept.problem else ""),
+                    trajectory=kept.trajectory,
                     saved_to=kept.saved_to,
                     signal_name="SIGTERM" if term is not None and term.received else "SIGINT",
                 ) from None
@@ -137,8 +146,7 @@ def simulate(
             if kept.interrupted:  # the signal came while the samples were being written: they were written first
                 raise SimulationInterrupted(
                     f"interrupted while writing the samples, after the run {outcome.status} at t = "
-                    f"{traj.t[-1] if len(traj) else 0.0:.6g} s; {len(traj)} samples kept"
-                    + (f"; {kept.problem}" if kept.problem else ""),
+                    f"{kept.t_end:.6g} s; {kept.samples} samples kept" + (f"; {kept.problem}" if kept.problem else ""),
                     trajectory=traj,
                     saved_to=kept.saved_to,
                 )
@@ -151,6 +159,7 @@ def simulate(
                     trajectory=traj,
                     saved_to=kept.saved_to,
                 )
+            assert traj is not None  # None only with a problem
             return traj
         finally:
             if lock is not None:
@@ -165,6 +174,7 @@ def make_sink(out: str | os.PathLike[str] | None, chunk: Any) -> Sink:
     """
     path = None
     if out is not None:
+        check_path(out, "out", "a trajectory file (.npz)")
         check_output(out, "out")  # a symbolic link is written through (messages name the link)
         path = Path(out)
         check_unlocked(path)

@@ -15,7 +15,7 @@ from .integrators import Integrator, get_integrator
 from .robot import Robot
 from .simulation import simulate
 from .trajectory import Trajectory
-from .validation import positive_number
+from .validation import check_system, positive_number
 
 # A mode decays when Re λ < -DECAY_TOLERANCE · max|λ|. The undamped modes of an equilibrium come out of LAPACK
 # with real parts of round-off size: at most 5e-14 of max|λ| on catalog robots and on arms whose mass matrix has a
@@ -51,6 +51,7 @@ def linearization(system: Robot, q: Any, v: Any, tau: Any = None) -> np.ndarray:
     Raises:
         InvalidArgumentError: q, v or tau has the wrong shape or is not finite.
     """
+    check_system(system)
     q = system.check_q(q)
     v = system.check_v(v)
     tau = np.zeros(system.nv) if tau is None else system.check_tau(tau)
@@ -268,6 +269,7 @@ def largest_stable_dt(
     Raises:
         InvalidArgumentError: a bad argument, or an adaptive integrator.
     """
+    check_system(system)
     method = get_integrator(integrator)
     if method.adaptive:
         raise InvalidArgumentError(

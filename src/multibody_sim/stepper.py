@@ -21,9 +21,12 @@ from .step_control import SLIVER, ConstantStep, PIController
 from .trajectory import LedgerEntry, Trajectory
 from .validation import (
     check_callable,
+    check_flag,
     check_options,
     check_ratio,
+    check_system,
     finite_number,
+    positive_count,
     positive_number,
     relative_tolerance,
     steps_per,
@@ -125,7 +128,7 @@ class Stepper:
         self._q0 = system.check_q(q0, "q0") if q0 is not None else system.neutral()
         self._v0 = system.check_v(v0, "v0") if v0 is not None else np.zeros(system.nv)
         self._t0_initial = finite_number(t0, "t0")
-        self.check_energy = bool(check_energy)
+        self.check_energy = bool(check_flag(check_energy, "check_energy"))
         elements = system.ledger_elements
         self._element_names = [name for name, _ in elements]
         self._kinds = [kind for _, kind in elements]
@@ -516,8 +519,8 @@ class BatchStepper:
             system, integrator, dt, control_dt, options
         )
         self.system, self.integrator, self.options = system, method, dict(options)
-        self.check_energy = bool(check_energy)
-        self._num_threads = num_threads
+        self.check_energy = bool(check_flag(check_energy, "check_energy"))
+        self._num_threads = positive_count(num_threads, "num_threads")
         Q, V = self._check_states(Q0, V0, "Q0", "V0")
         self.B = len(Q)
         self._alone: list[Stepper] | None = None
@@ -727,6 +730,7 @@ def _check_settings(
     system: Robot, integrator: str | Integrator, dt: float, control_dt: float | None, options: dict[str, Any]
 ) -> tuple[Integrator, float, float, int]:
     """The checked method, dt, control interval and steps per interval (0: adaptive) of a stepper."""
+    check_system(system)
     method = get_integrator(integrator)
     method.check_contract()
     check_options(method, options, fixed_step=(), adaptive_only=_ADAPTIVE_OPTIONS)

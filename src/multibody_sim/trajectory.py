@@ -16,7 +16,7 @@ import numpy as np
 from .exceptions import InvalidArgumentError, TrajectoryFileError
 from .files import write_atomically
 from .safety import ARCHIVE_ERRORS, MAX_JSON_DEPTH, check_npz, json_depth, printable, read_npz, safe_name
-from .validation import sample_times
+from .validation import check_flag, check_path, sample_times
 
 FORMAT = "multibody-sim trajectory"
 FORMAT_VERSION = 1
@@ -50,6 +50,57 @@ class LedgerEntry:
 
     kind: str
     energy: np.ndarray
+
+
+@dataclass(frozen=True)
+class Contacts:
+    """The active contacts of a contact scene's run, compactly: one row per contact point per sample.
+
+    The contacts of sample i are those of the step that ended there (for sample 0: none); rows are sorted by
+    sample. Impulses are what the time-stepper applied over that step, on the second body, in world axes.
+
+    Attributes:
+        bodies: body names the rows index ("ground", objects, declared collision frames).
+        sample: the sample each row belongs to, shape (m,), int.
+        pair: the two bodies of each row (indices into `bodies`; the impulse acts on the second), shape (m, 2), int.
+        point: the contact point midway between the shapes, world [m], shape (m, 3).
+        normal: the unit normal from body 1 to body 2, world, shape (m, 3).
+        impulse: the impulse on body 2 over the step, world [N·s], shape (m, 3).
+    """
+
+    bodies: list[str]
+    sample: np.ndarray
+    pair: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+    impulse: np.ndarray
+
+    def at(self, i: int) -> Contacts:
+        """The contacts of sample i (a Contacts with only its rows)."""
+        lo, hi = np.searchsorted(self.sample, [i, i + 1])
+        return Contacts(
+            self.bodies,
+            self.sample[lo:hi],
+            self.pair[lo:hi],
+            self.point[lo:hi],
+            self.normal[lo:hi],
+            self.impulse[lo:hi],
+        )
+
+    @staticmethod
+    def empty(bodies: list[str]) -> Contacts:
+        return Contacts(
+            list(bodies),
+            np.zeros(0, dtype=np.int64),
+            np.zeros((0, 2), dtype=np.int64),
+            np.zeros((0, 3)),
+            np.zeros((0, 3)),
+            np.zeros((0, 3)),
+        )
+
+
+CONTACT_PARTS = ("sample", "pair", "point", "normal", "impulse")
+_CONTACT_PREFIX = "contacts/"
 
 
 @dataclass(frozen=True)
@@ -114,6 +165,7 @@ class Trajectory:
         stats: steps, rejected_steps, evaluations (forward dynamics), controller_calls, wall_time [s].
         status: "completed", or why the run stopped early ("diverged", "interrupted", ...).
         metadata: package versions, how the robot was loaded, integrator and options (JSON-serializable).
+        contacts: a contact scene's active contacts per sample (points, normals, impulses), else None.
     """
 
     t: np.ndarray
@@ -132,6 +184,7 @@ class Trajectory:
     stats: dict[str, Any] = field(default_factory=dict)
     status: str = "completed"
     metadata: dict[str, Any] = field(default_factory=dict)
+    contacts: Contacts | None = None
 
     def __len__(self) -> int:
         return len(self.t)
@@ -160,6 +213,10 @@ class Trajectory:
             f"steps: {s.get('steps', 0)}  dynamics evaluations: {s.get('evaluations', 0)}  "
             f"wall time: {wall:.3f} s  real-time factor: {rtf:.1f}x",
         ]
+        kernel = self.metadata.get("kernel")
+        if isinstance(kernel, str):  # which stepping kernel ran (driver.kernel_name), and why not the native one
+            why = self.metadata.get("why_not_native")
+            lines.append(f"kernel: {safe_name(kernel)}" + (f" (not native: {safe_name(str(why))})" if why else ""))
         if len(self.t):
             lines += [
                 f"energy [J]: T {self.kinetic_energy[0]:.6g} -> {self.kinetic_energy[-1]:.6g}, "
@@ -282,13 +339,16 @@ class Trajectory:
             InvalidArgumentError: path is a directory, FIFO, socket or device, or its folder is not writable.
             OSError: the write failed (disk full, a file-size limit): any previous file stays, and no temporary file.
         """
-        path = Path(path)
+        path = Path(check_path(path, "path", "a trajectory file (.npz)"))
         arrays = {name: np.asarray(getattr(self, name)) for name in ARRAYS}
         for name, entry in self.ledger.items():
             arrays[_LEDGER_PREFIX + name] = np.asarray(entry.energy)
         for name, record in self.constraints.items():
             for part in ("force", "drift", "velocity_drift"):
                 arrays[f"{_CONSTRAINT_PREFIX}{name}/{part}"] = np.asarray(getattr(record, part))
+        if self.contacts is not None:
+            for part in CONTACT_PARTS:
+                arrays[_CONTACT_PREFIX + part] = np.asarray(getattr(self.contacts, part))
         header = {
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
@@ -299,6 +359,8 @@ class Trajectory:
             "limit_violations": self.limit_violations.__dict__,
             "metadata": self.metadata,
         }
+        if self.contacts is not None:
+            header["contact_bodies"] = list(self.contacts.bodies)
         arrays["header"] = np.array(json.dumps(header, default=_json_default))
         write_atomically(path, lambda f: np.savez(f, **arrays), mode="finish")  # type: ignore[arg-type]
         return path
@@ -313,8 +375,10 @@ class Trajectory:
 
         Raises:
             TrajectoryFileError: the file is missing, truncated, corrupted or not a trajectory.
+            InvalidArgumentError: path is not a path, or mmap not True or False.
         """
-        path = Path(path)
+        path = Path(check_path(path, "path", "a trajectory file (.npz) or a parts folder"))
+        check_flag(mmap, "mmap")
         parts = path if path.is_dir() else path.with_name(path.name + PARTS_SUFFIX)
         if path.is_dir() or (not path.exists() and parts.is_dir()):
             return cls._from_parts(parts)
@@ -396,6 +460,7 @@ class Trajectory:
             stats=dict(header["stats"]),
             status=header["status"],
             metadata=dict(header["metadata"]),
+            contacts=_read_contacts(contents, header, n, path),
         )
 
     @classmethod
@@ -410,6 +475,8 @@ class Trajectory:
     @classmethod
     def concatenate(cls, pieces: list[Trajectory]) -> Trajectory:
         """Consecutive pieces of one run as one trajectory (the last piece's status, stats and metadata)."""
+        if not isinstance(pieces, (list, tuple)) or not pieces or not all(isinstance(p, Trajectory) for p in pieces):
+            raise InvalidArgumentError(f"pieces must be a non-empty list of Trajectory, got {pieces!r:.80}")
         last = pieces[-1]
         return cls(
             **{name: np.concatenate([getattr(p, name) for p in pieces]) for name in ARRAYS},
@@ -430,7 +497,46 @@ class Trajectory:
             stats=last.stats,
             status=last.status,
             metadata={k: v for k, v in last.metadata.items() if k != "chunk"},
+            contacts=_joined_contacts(pieces),
         )
+
+
+def _read_contacts(contents: dict[str, np.ndarray], header: dict[str, Any], n: int, path: Path) -> Contacts | None:
+    """The contacts record of a file (checked: shapes, dtypes, sample indices within the n samples), or None."""
+    bodies = header.get("contact_bodies")
+    if bodies is None:
+        return None
+    parts = {part: contents.get(_CONTACT_PREFIX + part) for part in CONTACT_PARTS}
+    sample, pair = parts["sample"], parts["pair"]
+    if sample is None or pair is None or sample.ndim != 1 or sample.dtype.kind not in "iu":
+        raise TrajectoryFileError(f"{path}: the contacts record is missing or malformed")
+    m = len(sample)
+    shapes_ok = pair.shape == (m, 2) and pair.dtype.kind in "iu"
+    for part in ("point", "normal", "impulse"):
+        array = parts[part]
+        shapes_ok = shapes_ok and array is not None and array.shape == (m, 3) and array.dtype.kind == "f"
+    if not shapes_ok:
+        raise TrajectoryFileError(f"{path}: the contacts record is missing or malformed")
+    if m and (sample.min() < 0 or sample.max() >= n or np.any(np.diff(sample) < 0)):
+        raise TrajectoryFileError(f"{path}: the contacts record names samples outside the trajectory's {n}")
+    if m and (pair.min() < 0 or pair.max() >= len(bodies)):
+        raise TrajectoryFileError(f"{path}: the contacts record names bodies outside its {len(bodies)}")
+    return Contacts(list(bodies), *(parts[part] for part in CONTACT_PARTS))  # type: ignore[arg-type]
+
+
+def _joined_contacts(pieces: list[Trajectory]) -> Contacts | None:
+    """The pieces' contacts as one record, sample indices shifted by the samples before each piece."""
+    records = [p.contacts for p in pieces]
+    if all(r is None for r in records):
+        return None
+    last = next(r for r in reversed(records) if r is not None)
+    offsets = np.cumsum([0] + [len(p.t) for p in pieces[:-1]])
+    held = [(r, o) for r, o in zip(records, offsets, strict=True) if r is not None]
+    return Contacts(
+        list(last.bodies),
+        np.concatenate([r.sample + o for r, o in held]),
+        *(np.concatenate([getattr(r, part) for r, _ in held]) for part in CONTACT_PARTS[1:]),
+    )
 
 
 _PER_DOF = ("q", "v", "tau")
@@ -503,6 +609,9 @@ def _read_header(contents: dict[str, np.ndarray], path: Path) -> dict[str, Any]:
     names = header.setdefault("constraints", [])
     if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
         raise malformed("constraints", "a list of names")
+    bodies = header.get("contact_bodies")
+    if bodies is not None and (not isinstance(bodies, list) or not all(isinstance(name, str) for name in bodies)):
+        raise malformed("contact_bodies", "a list of names")
     violations = header["limit_violations"]
     for key, value in violations.items():
         if key not in _VIOLATION_FIELDS:
@@ -562,15 +671,23 @@ def merge_parts(out: Path, *, status: str, stats: dict[str, Any], limit_violatio
         with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
             for name in names:
                 shape = (sum(s[0] for s in shapes[name]), *shapes[name][0][1:])
+                # The contacts' sample and pair indices stay integers; sample indices count from the run's start.
+                integer = name in (_CONTACT_PREFIX + "sample", _CONTACT_PREFIX + "pair")
+                dtype = np.dtype(np.int64 if integer else float)
                 with archive.open(name + ".npy", "w", force_zip64=True) as member:
                     np.lib.format.write_array_header_2_0(
-                        member, {"descr": np.dtype(float).str, "fortran_order": False, "shape": shape}
+                        member, {"descr": dtype.str, "fortran_order": False, "shape": shape}
                     )
-                    for chunk in chunks:
+                    offset = 0
+                    for k, chunk in enumerate(chunks):
                         with np.load(chunk, allow_pickle=False) as npz:
-                            member.write(np.ascontiguousarray(npz[name], dtype=float).tobytes())
+                            array = np.ascontiguousarray(npz[name], dtype=dtype)
+                            if name == _CONTACT_PREFIX + "sample":
+                                array = array + offset
+                            member.write(array.tobytes())
                             if name == "energy_error":
                                 largest[0] = max(largest[0], _max_abs(npz[name]))
+                        offset += shapes["t"][k][0]
             header["stats"] = {**header["stats"], "max_abs_energy_error": largest[0]}
             with archive.open("header.npy", "w") as member:
                 np.lib.format.write_array(member, np.array(json.dumps(header, default=_json_default)))

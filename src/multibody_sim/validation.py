@@ -210,12 +210,13 @@ def sample_times(t: np.ndarray, name: str = "t") -> None:
     """Sample times must be finite and strictly increasing (one row per distinct time)."""
     bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
-        raise InvalidArgumentError(f"{name} must hold finite times, got {t[bad[0]]!r} at index {bad[0]}")
+        raise InvalidArgumentError(f"{name} must hold finite times, got {float(t[bad[0]])!r} at index {bad[0]}")
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         i = int(back[0])
         raise InvalidArgumentError(
-            f"{name} must be strictly increasing, got {t[i]!r} then {t[i + 1]!r} at indices {i} and {i + 1}"
+            f"{name} must be strictly increasing, got {float(t[i])!r} then {float(t[i + 1])!r} at indices {i} and "
+            f"{i + 1}"
         )
 
 
@@ -223,4 +224,56 @@ def choose_from(value: Any, name: str, options: Sequence[str]) -> str:
     """value if it is one of the names in options, else InvalidArgumentError listing them."""
     if not isinstance(value, str) or value not in options:
         raise InvalidArgumentError(f"{name} must be one of {', '.join(options)}, got {value!r}")
+    return value
+
+
+# ---- types at the public boundary: one wrong-typed argument is one InvalidArgumentError naming it ------------
+def check_system(value: Any, name: str = "system") -> Any:
+    """value if it is a Robot (a Scene is one), else InvalidArgumentError (a robot's name is not the robot)."""
+    from .robot import Robot
+
+    if not isinstance(value, Robot):
+        hint = f" (load it first: load_robot({value!r}) or load_scene({value!r}))" if isinstance(value, str) else ""
+        raise InvalidArgumentError(f"{name} must be a Robot or a Scene, got {type(value).__name__}{hint}")
+    return value
+
+
+def check_trajectory(value: Any, name: str = "trajectory") -> Any:
+    """value if it is a Trajectory (or a BatchTrajectory), else InvalidArgumentError (a file name is not one)."""
+    from .rollout import BatchTrajectory
+    from .trajectory import Trajectory
+
+    if not isinstance(value, (Trajectory, BatchTrajectory)):
+        hint = f" (load it first: Trajectory.load({value!r}))" if isinstance(value, str) else ""
+        raise InvalidArgumentError(f"{name} must be a Trajectory, got {type(value).__name__}{hint}")
+    return value
+
+
+def check_path(value: Any, name: str, what: str = "a file") -> Any:
+    """value if it is a path (str or os.PathLike), else InvalidArgumentError."""
+    import os
+
+    if not isinstance(value, (str, os.PathLike)) or (isinstance(value, str) and not value):
+        raise InvalidArgumentError(f"{name} must be a path to {what}, got {type(value).__name__}")
+    return value
+
+
+def check_flag(value: Any, name: str, *, optional: bool = False) -> bool | None:
+    """value as a bool if it is True or False (None too when optional), else InvalidArgumentError (a string such as
+    "no" would be true)."""
+    if value is None and optional:
+        return None
+    if not isinstance(value, (bool, np.bool_)):
+        raise InvalidArgumentError(f"{name} must be True or False{' or None' if optional else ''}, got {value!r}")
+    return bool(value)
+
+
+def check_text(value: Any, name: str, *, optional: bool = True) -> str | None:
+    """value if it is a string (or None when optional), else InvalidArgumentError."""
+    if value is None and optional:
+        return None
+    if not isinstance(value, str):
+        raise InvalidArgumentError(
+            f"{name} must be a string{' or None' if optional else ''}, got {type(value).__name__}"
+        )
     return value

@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
+#include <exception>
 #include <functional>
 #include <limits>
 #include <mutex>
@@ -848,6 +849,7 @@ namespace multibody_sim
     uint64_t generation = 0;
     size_t pending = 0;
     bool quit = false;
+    std::exception_ptr error;  // the first exception a worker raised in this run
 
     explicit Pool(size_t n)
     {
@@ -880,9 +882,19 @@ namespace multibody_sim
           seen = generation;
           task = job;
         }
-        task(i);
+        std::exception_ptr failure;
+        try
+        {
+          task(i);
+        }
+        catch (...)  // an exception must not end a worker thread (std::terminate): the caller rethrows it
+        {
+          failure = std::current_exception();
+        }
         {
           std::lock_guard<std::mutex> lock(mutex);
+          if (failure && !error)
+            error = failure;
           if (--pending == 0)
             done.notify_one();
         }
@@ -898,9 +910,22 @@ namespace multibody_sim
         ++generation;
       }
       start.notify_all();
-      f(0);
+      std::exception_ptr failure;
+      try
+      {
+        f(0);
+      }
+      catch (...)
+      {
+        failure = std::current_exception();
+      }
       std::unique_lock<std::mutex> lock(mutex);
       done.wait(lock, [&] { return pending == 0; });
+      if (!failure)
+        failure = error;
+      error = nullptr;
+      if (failure)
+        std::rethrow_exception(failure);
     }
   };
 

@@ -128,6 +128,14 @@ class TimeStepping(Integrator):
         """A new torque does not invalidate the impulses: the warm start and counts carry over."""
         return state if isinstance(state, ContactState) else self.init(system, q, v)
 
+    def contact_records(self, system: System, state: Any) -> np.ndarray | None:
+        """The active contacts of the step that produced this state: (k, 11) rows of pair (2 body indices), point
+        (3), normal (3) and impulse on body 2 (3, world, [N·s]); None when there were none."""
+        if not isinstance(state, ContactState) or state.active is None:
+            return None
+        problem, impulses = state.active
+        return system.contact.records(problem, impulses)  # type: ignore[attr-defined]
+
     def jacobians(
         self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, t: float
     ) -> tuple[np.ndarray, np.ndarray] | None:

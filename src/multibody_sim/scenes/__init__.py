@@ -119,12 +119,19 @@ def make_scene(**tables: Any) -> Scene:
     return Scene(parse_scene(tables, "<scene>", base_dir=None))
 
 
-def scene_from_metadata(scene: dict[str, Any]) -> Scene:
+def scene_from_metadata(scene: dict[str, Any], *, allowed_roots: list[str | os.PathLike[str]] | None = None) -> Scene:
     """Rebuild the Scene a trajectory was computed with, from its metadata's ``robot.scene`` entry.
 
+    A trajectory may come from a stranger: the scene's robot file and package_dirs must lie in its recorded folder
+    or the catalog's, as for load_scene; the folders allowed when it was recorded are not trusted from the file,
+    only `allowed_roots` (the CLI's `play --allow-root`).
+
     Raises:
-        SceneError: the trajectory was made from a scene built in Python (no TOML text was kept).
+        SceneError: the trajectory was made from a scene built in Python (no TOML text was kept), or its scene
+            reaches outside the allowed folders.
     """
+    if not isinstance(scene, dict):
+        raise SceneError(f"scene must be the metadata's robot.scene entry (a dict), got {type(scene).__name__}")
     text = scene.get("toml")
     if not isinstance(text, str):
         raise SceneError(
@@ -140,6 +147,6 @@ def scene_from_metadata(scene: dict[str, Any]) -> Scene:
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{scene.get('source', '<scene>')}: stored scene text is not TOML ({exc})") from None
     spec = parse_scene(data, str(scene.get("source", "<scene>")), base_dir=Path(base_dir) if base_dir else None)
-    roots = scene.get("allowed_roots")
-    roots = tuple(str(r) for r in roots) if isinstance(roots, list) else ()
-    return Scene(dataclasses.replace(spec, text=text, allowed_roots=roots))
+    roots = folder_list("allowed_roots", allowed_roots)
+    check_scene_roots(spec, roots)
+    return Scene(dataclasses.replace(spec, text=text, allowed_roots=tuple(str(r) for r in roots)))

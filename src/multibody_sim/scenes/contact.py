@@ -23,7 +23,8 @@ Bias b (normal rows only; documented choices, each booked in the energy ledger):
   ``u⁺ + d/dt ≥ 0`` lets the bodies close the gap within the step and no further.
 - Penetration correction: a penetration (d < 0) enters as ``PENETRATION_CORRECTION · min(d + s, 0) / dt``: a
   fifth of the penetration beyond the slop s = PENETRATION_SLOP (1 nm, above coal's own round-off) is pushed out
-  per step (Baumgarte's stabilization at the velocity level). The energy this puts in is the ledger's
+  per step (Baumgarte's stabilization at the velocity level), at most MAX_CORRECTION_SPEED (1 m/s) so that a deep
+  penetration comes out over several steps. The energy this puts in is the ledger's
   ``penetration_correction`` (kind "work"): ``-λᵀ b_corr ≥ 0``.
 - Restitution (Newton's law), in two steps so that the bounce starts at the surface: a pair with coefficient
   e > 0 whose gap closes within the step (its speculative row is active) lands exactly on the surface at the
@@ -56,9 +57,15 @@ PENETRATION_CORRECTION = 0.2  # the fraction of a penetration pushed out per ste
 # Penetrations below this are left alone [m]: coal's box–plane distance is off by ~5e-12 m, and pushing that out
 # would jitter resting stacks at 1e-9 m/s.
 PENETRATION_SLOP = 1e-9
+# The correction never pushes faster than this [m/s or rad/s]: a deep penetration (a body placed inside another)
+# comes out over several steps instead of being shot out at depth/dt.
+MAX_CORRECTION_SPEED = 1.0
 # Position limits within this distance of q [rad or m] join the step's problem (speculatively): a joint faster than
 # LIMIT_MARGIN / dt (50 rad/s at 1 ms) may end a step past its limit, which the correction then undoes.
 LIMIT_MARGIN = 0.05
+# A contact patch keeps at most this many points (its extreme ones): a mesh's convex hull flat on the ground gives
+# dozens of coplanar points, redundant rows that slow the solver without changing the wrench it can apply.
+MAX_PATCH_POINTS = 8
 TOUCHING = 1e-6  # [m]: a gap below this is a touching contact (restitution applies)
 # Cholesky regularization of the Delassus operator (keeps G's factorization defined on redundant contacts, such
 # as the 4 corners of a box on the ground: 12 rows on 6 dofs). Its effect on the impulses is ~1e-12 relative.
@@ -150,7 +157,6 @@ class ContactProblem:
     landings: dict[int, float] = field(default_factory=dict)
     limit_rows: int = 0
     friction_rows: int = 0
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 def make_shape(kind: str, dimensions: Sequence[float]) -> Any:
@@ -187,6 +193,7 @@ class ContactModel:
         friction: "exact" or "regularized" (joint dry friction).
         limited_joints: joint ids whose position limits are enforced (limits = "enforce").
         friction_joints: (joint id, F [N·m or N]) of joints with exact dry friction.
+        has_robot: the scene has a robot (describe() then says whether it has collision geometry).
     """
 
     def __init__(
@@ -204,6 +211,7 @@ class ContactModel:
         friction: str = "regularized",
         limited_joints: Sequence[int] = (),
         friction_joints: Sequence[tuple[int, float]] = (),
+        has_robot: bool = False,
     ):
         self.model = model
         self.data = model.createData()
@@ -228,6 +236,8 @@ class ContactModel:
             request.enable_contact = True  # without it box–box normals are NaN
             request.security_margin = SPECULATIVE_MARGIN
         self._ground_coefficients = (ground_friction, ground_restitution)
+        self.has_robot = has_robot
+        self._body_index = {name: k for k, name in enumerate(self.body_names)}
         self._object_names = {g.body for g in self.geometries if g.joint and model.names[g.joint] == g.body}
         self._coefficients = [
             (ground_friction, ground_restitution)
@@ -257,6 +267,27 @@ class ContactModel:
         """No pair, no enforced limit, no exact friction: nothing to solve, ever."""
         return not self.pairs and self._limit_model is None and self._friction_model is None
 
+    @property
+    def body_names(self) -> list[str]:
+        """Every body with collision geometry, in the order Trajectory.contacts indexes them."""
+        return list(dict.fromkeys(g.body for g in self.geometries))
+
+    def records(self, problem: ContactProblem, impulses: np.ndarray) -> np.ndarray | None:
+        """The contact points of a solved problem as (k, 11) rows: pair (2 indices into body_names), point (3),
+        normal (3), impulse on body 2 in world axes (3) [N·s]; None without points."""
+        points = problem.points
+        if not points:
+            return None
+        index = self._body_index
+        rows = np.empty((len(points), 11))
+        for c, point in enumerate(points):
+            rotation = pin.Quaternion.FromTwoVectors(_Z, point.normal).matrix()
+            rows[c, 0], rows[c, 1] = index[point.bodies[0]], index[point.bodies[1]]
+            rows[c, 2:5] = point.position
+            rows[c, 5:8] = point.normal
+            rows[c, 8:11] = rotation @ impulses[3 * c : 3 * c + 3]
+        return rows
+
     def pair_names(self) -> list[tuple[str, str]]:
         """The body pairs that may touch (one per pair of bodies, in order)."""
         seen: list[tuple[str, str]] = []
@@ -278,6 +309,12 @@ class ContactModel:
         robot_bodies = sorted({g.body for g in self.geometries if g.joint and g.body not in self._object_names})
         if robot_bodies:
             lines.append("  robot collision geometry (declared): " + ", ".join(map(safe_name, robot_bodies)))
+        elif self.has_robot:
+            lines.append(
+                "  robot collision geometry: none declared: the URDF's collision meshes are not used (their convex "
+                "hulls give dozens of contact points per link); declare [[contact.geometry]] (spheres on feet, boxes "
+                "on soles), or the robot passes through everything"
+            )
         pairs = self.pair_names()
         shown = ", ".join(f"{safe_name(a)}-{safe_name(b)}" for a, b in pairs[:12]) + (
             f" (+{len(pairs) - 12} more)" if len(pairs) > 12 else ""
@@ -324,7 +361,7 @@ class ContactModel:
             rotation = pin.Quaternion.FromTwoVectors(_Z, normal).matrix()
             g1, g2 = self.geometries[a], self.geometries[b]
             friction, restitution = self._coefficients[k]
-            for i in range(patch.size()):
+            for i in _patch_points(patch, rotation):
                 p1 = np.array(patch.getPointShape1(i), dtype=float)
                 p2 = np.array(patch.getPointShape2(i), dtype=float)
                 frame1 = data.oMi[g1.joint].actInv(pin.SE3(rotation, p1))
@@ -409,7 +446,8 @@ class ContactModel:
             for c, point in enumerate(points):
                 row, pair = 3 * c + 2, point.key[0]
                 if point.gap < 0.0:
-                    correction[row] = PENETRATION_CORRECTION * min(point.gap + PENETRATION_SLOP, 0.0) / dt
+                    push = PENETRATION_CORRECTION * min(point.gap + PENETRATION_SLOP, 0.0) / dt
+                    correction[row] = max(push, -MAX_CORRECTION_SPEED)
                     bias = correction[row]
                 else:
                     bias = point.gap / dt
@@ -427,7 +465,8 @@ class ContactModel:
             # corrected beyond the slop.
             rows = slice(3 * len(points), 3 * len(points) + limit_rows)
             distance = np.array(datas[len(points)].extract().constraint_residual, dtype=float)
-            correction[rows] = PENETRATION_CORRECTION * np.minimum(distance + PENETRATION_SLOP, 0.0) / dt
+            pushes = PENETRATION_CORRECTION * np.minimum(distance + PENETRATION_SLOP, 0.0) / dt
+            correction[rows] = np.maximum(pushes, -MAX_CORRECTION_SPEED)
             g[rows] += np.where(distance >= 0.0, distance / dt, correction[rows])
         return ContactProblem(
             points=points,
@@ -531,7 +570,26 @@ def build_contact(scene: Any, spec: Any, exact_friction: Sequence[tuple[int, flo
         friction=settings.friction if settings is not None else "regularized",
         limited_joints=limited,
         friction_joints=exact_friction,
+        has_robot=spec.robot is not None,
     )
+
+
+def _patch_points(patch: Any, rotation: np.ndarray) -> list[int]:
+    """The indices of a patch's points the constraint uses: all of them up to MAX_PATCH_POINTS, else the extreme
+    ones along the patch's two tangent axes and their diagonals (a polygon's support: the same resultant wrench
+    range, far fewer redundant rows for the solver; a mesh's hull on the ground gives dozens of points)."""
+    n = patch.size()
+    if n <= MAX_PATCH_POINTS:
+        return list(range(n))
+    tangent = np.array([rotation.T @ np.asarray(patch.getPoint(i), dtype=float) for i in range(n)])[:, :2]
+    chosen: list[int] = []
+    for direction in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
+        best = int(np.argmax(tangent @ np.array(direction, dtype=float)))
+        if best not in chosen:
+            chosen.append(best)
+        if len(chosen) == MAX_PATCH_POINTS:
+            break
+    return sorted(chosen)
 
 
 def _adjacent(model: pin.Model, a: int, b: int) -> bool:

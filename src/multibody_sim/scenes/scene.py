@@ -275,6 +275,13 @@ class Scene(Robot):
             lines += self.contact.describe()
         return "\n".join(lines)
 
+    def default_pose(self) -> np.ndarray:
+        """The robot's default pose (its SRDF's everyday pose, else neutral), with the scene's objects where it puts
+        them, shape (nq,)."""
+        q = super().default_pose()
+        _place_objects(self.model, self.spec, q)
+        return q
+
     # ---- dynamics (the hot path) ---------------------------------------------------------------------
     def _applied(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float) -> np.ndarray:
         """tau plus the force elements and minus damping: everything but the constraints."""
@@ -495,35 +502,46 @@ class Scene(Robot):
             raise SceneError(f"{self.spec.source}: controller: {exc}") from None
 
     # ---- savings -------------------------------------------------------------------------------------
-    def measure_savings(self, steps: int = 200, repeats: int = 5) -> dict[str, float]:
-        """Time per RK4 step of this scene against its full robot (nothing locked, no elements): a short side
-        benchmark, run only when asked (`--report-savings`, `inspect`).
+    def measure_savings(self, steps: int = 200, repeats: int = 5) -> dict[str, Any]:
+        """Time per step of this scene against its full robot (nothing locked, no elements): a short side
+        benchmark, run only when asked (`--report-savings`, `inspect`). RK4 at 1 ms; a contact scene with its
+        integrator, timestepping, against the bare robot with the same integrator (semi-implicit Euler there).
 
         Returns:
-            {"scene_us": median µs per step, "full_us": median µs per step of the full model, "ratio": scene/full}.
+            {"scene_us": median µs per step, "full_us": median µs per step of the full model (nan for a scene of
+            objects only: there is no robot), "ratio": scene/full, "integrator": the integrator's name}.
         """
         from ..simulation import simulate
+
+        integrator = CONTACT_INTEGRATOR if self.contact is not None else "rk4"
 
         def per_step(system: Robot, q0: np.ndarray) -> float:
             times = []
             for _ in range(repeats):
                 start = time.process_time()
                 simulate(
-                    system, q0, np.zeros(system.nv), duration=steps * 1e-3, dt=1e-3, progress=False, output_dt=0.01
+                    system,
+                    q0,
+                    self.v0 if system is self else np.zeros(system.nv),
+                    duration=steps * 1e-3,
+                    dt=1e-3,
+                    integrator=integrator,
+                    progress=False,
+                    output_dt=0.01,
                 )
                 times.append((time.process_time() - start) / steps * 1e6)
             return float(np.median(times))
 
         full = self.full_robot
         scene_us = per_step(self, self.q0)
-        full_us = per_step(full, self.full_configuration(self.q0))
-        return {"scene_us": scene_us, "full_us": full_us, "ratio": scene_us / full_us}
+        full_us = per_step(full, self.full_configuration(self.q0)) if full.nv else math.nan
+        return {"scene_us": scene_us, "full_us": full_us, "ratio": scene_us / full_us, "integrator": integrator}
 
     def full_configuration(self, q: np.ndarray) -> np.ndarray:
         """The full robot's configuration for a scene configuration q: locked joints at their lock positions,
         mimic followers at scaling · leader + offset."""
         full, model = self.full_robot.model, self.model
-        out = pin.neutral(full)
+        out = pin.neutral(full)  # a scene's objects are not the robot's: left out
         for jid in range(1, full.njoints):
             name, joint = full.names[jid], full.joints[jid]
             i, n = joint.idx_q, joint.nq

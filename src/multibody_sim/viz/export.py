@@ -12,7 +12,15 @@ import numpy as np
 from ..files import check_output, write_atomically
 from ..robot import Robot
 from ..trajectory import Trajectory
-from ..validation import frame_rate, playback_speed
+from ..validation import (
+    check_flag,
+    check_path,
+    check_system,
+    check_text,
+    check_trajectory,
+    frame_rate,
+    playback_speed,
+)
 from ._deps import check_viewer_dependencies, meshcat_viewer_js
 from .frames import DEFAULT_FPS, resample, robot_from_trajectory
 from .page import standalone_page
@@ -29,6 +37,7 @@ def export_html(
     loop: bool = True,
     plot: bool = False,
     title: str | None = None,
+    forces: bool = False,
 ) -> Path:
     """Write a trajectory as one HTML file that plays it in meshcat's viewer, offline, from disk.
 
@@ -47,11 +56,19 @@ def export_html(
         loop: repeat the animation.
         plot: show the energy and joint-position plot beside the view.
         title: the page title (default: the robot's name and the integrator).
+        forces: draw the contact forces as arrows (a contact scene's run: see viz/forces.py).
 
     Returns:
         The path written.
     """
+    check_trajectory(trajectory, "trajectory")
+    check_path(path, "path", "an HTML file")
+    if robot is not None:
+        check_system(robot, "robot")
     fps, speed = frame_rate(fps), playback_speed(speed)
+    check_flag(loop, "loop")
+    check_flag(plot, "plot")
+    check_text(title, "title")
     check_output(path, "out", "view.html")  # before the work: only a regular file is replaced
     check_viewer_dependencies()
     robot = robot_from_trajectory(trajectory) if robot is None else robot
@@ -61,8 +78,20 @@ def export_html(
         from .plot import plot_command
 
         extra.append(plot_command(trajectory, robot=robot))
+    arrows = None
+    if forces:
+        from .forces import force_arrows
+
+        arrows = force_arrows(trajectory, times)
     page = recording_page(
-        robot, times, Q, title=title or page_title(trajectory, robot), loop=loop, speed=speed, extra=extra
+        robot,
+        times,
+        Q,
+        title=title or page_title(trajectory, robot),
+        loop=loop,
+        speed=speed,
+        extra=extra,
+        arrows=arrows,
     )
     target = Path(path)
     write_atomically(target, lambda f: f.write(page.encode("utf-8")))
@@ -82,6 +111,7 @@ def recording_page(
     camera: dict[str, Any] | None = None,
     extra: Sequence[dict[str, Any]] = (),
     scene: RobotScene | None = None,
+    arrows: tuple[list[dict[str, Any]], list[dict[str, Any]]] | None = None,
 ) -> str:
     """The self-contained page of a recording (what export_html writes, notebooks embed and videos film).
 
@@ -93,12 +123,17 @@ def recording_page(
         camera: a camera command (RobotScene.camera_command); None frames the whole motion.
         extra: commands applied after the animation (the plot beside the view).
         scene: the robot's RobotScene if already built (it loads the meshes).
+        arrows: (setup commands, animation entries) of contact-force arrows (viz.forces.force_arrows), or None.
     """
     scene = RobotScene(robot) if scene is None else scene
     commands: list[dict[str, Any]] = scene.setup_commands()
     commands.append(scene.camera_command(Q) if camera is None else camera)
     commands += scene.pose_commands(Q[0])
-    commands.append(scene.animation_command(times, Q, play=play, loop=loop, speed=speed, seek=seek))
+    animation = scene.animation_command(times, Q, play=play, loop=loop, speed=speed, seek=seek)
+    if arrows is not None:  # one animation for everything: the arrows keep time with the motion
+        commands += arrows[0]
+        animation["animations"] += arrows[1]
+    commands.append(animation)
     commands += extra
     commands.append({"type": "multibody_sim_ready", "path": ""})
     return standalone_page(title, meshcat_viewer_js().read_text(encoding="utf-8"), [pack(c) for c in commands])

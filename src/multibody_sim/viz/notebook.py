@@ -9,7 +9,7 @@ from typing import Any
 from ..exceptions import InvalidArgumentError, MissingDependencyError
 from ..robot import Robot
 from ..trajectory import Trajectory
-from ..validation import frame_rate, playback_speed
+from ..validation import check_flag, check_system, check_trajectory, frame_rate, playback_speed
 from ._deps import check_viewer_dependencies
 from .export import page_title, recording_page
 from .frames import DEFAULT_FPS, resample, robot_from_trajectory
@@ -57,7 +57,11 @@ def inline_view(
         height: the output's height [px]; it spans the cell's width.
         plot: show the energy and joint-position plot beside the view.
     """
+    check_trajectory(trajectory, "trajectory")
+    if robot is not None:
+        check_system(robot, "robot")
     fps, speed = frame_rate(fps), playback_speed(speed)
+    check_flag(plot, "plot")
     check_viewer_dependencies()
     height = _height(height)
     robot = robot_from_trajectory(trajectory) if robot is None else robot

@@ -13,11 +13,12 @@ from typing import Any
 
 import numpy as np
 
-from ..exceptions import ModelError, TrajectoryFileError, UnknownNameError
+from ..exceptions import InvalidArgumentError, ModelError, TrajectoryFileError, UnknownNameError
 from ..files import check_output, write_atomically
 from ..robot import Robot
 from ..safety import check_allocation, safe_name
 from ..trajectory import Trajectory
+from ..validation import check_path, check_system, check_text, check_trajectory, positive_count
 from ._deps import require
 
 PANEL_HEIGHT = 2.4  # [in]
@@ -72,8 +73,16 @@ def plot_trajectory(
 
     Raises:
         UnknownNameError: a name in `joints` is not a joint of the robot (the message lists close matches).
+        InvalidArgumentError: an argument of the wrong type.
     """
+    _check_plot_arguments(trajectory, robot)
+    names = [joints] if isinstance(joints, str) else joints
+    if names is not None and (not isinstance(names, (list, tuple)) or not all(isinstance(j, str) for j in names)):
+        raise InvalidArgumentError(f"joints must be a list of joint names, got {joints!r:.80}")
+    check_text(title, "title")
+    positive_count(dpi, "dpi", "dots per inch")  # its canvas's size is checked against memory when drawn
     if path is not None:
+        check_path(path, "path", "a PNG file")
         check_output(path, "out", "plot.png")  # before drawing: only a regular file is replaced
     figure_module = require("matplotlib.figure", "plots")
     t = np.asarray(trajectory.t, dtype=float)
@@ -139,6 +148,7 @@ def plot_trajectory(
 
 def plot_png(trajectory: Trajectory, *, robot: Robot | None = None) -> bytes:
     """The plot_trajectory figure as PNG bytes."""
+    _check_plot_arguments(trajectory, robot)
     return plot_command(trajectory, robot=robot)["png"]
 
 
@@ -155,6 +165,12 @@ def plot_command(trajectory: Trajectory, *, robot: Robot | None = None) -> dict[
     t0, t1 = fig.axes[0].get_xlim()
     cursor = {"t0": t0, "t1": t1, "left": first.x0, "right": first.x1, "top": 1.0 - first.y1, "bottom": 1.0 - last.y0}
     return {"type": "multibody_sim_plot", "path": "", "png": buffer.getvalue(), "cursor": cursor}
+
+
+def _check_plot_arguments(trajectory: Any, robot: Any) -> None:
+    check_trajectory(trajectory, "trajectory")
+    if robot is not None:
+        check_system(robot, "robot")
 
 
 def _ledger_lines(axis: Any, t: np.ndarray, trajectory: Trajectory) -> None:

@@ -20,6 +20,7 @@ import pinocchio as pin
 from ..catalog import CATALOG, catalog_urdf, derived_urdf
 from ..exceptions import InvalidArgumentError, ModelError, UnknownNameError
 from ..robot import Robot
+from ..validation import check_system, check_text
 from ._deps import ViewerWarning, require
 from .meshes import MeshPart, geometry_parts, skeleton_parts
 
@@ -70,17 +71,25 @@ class RobotScene:
     """
 
     def __init__(self, robot: Robot):
-        self.robot = robot
+        self.robot = check_system(robot, "robot")
         self.model = robot.model
         self._data = self.model.createData()
         self.notes: list[str] = []
-        visuals = self._visuals()
-        if not any(v.parts for v in visuals):
+        contact = getattr(robot, "contact", None)
+        objects_only = getattr(getattr(robot, "spec", None), "robot", False) is None  # a scene of objects only
+        visuals = [] if objects_only else self._visuals()
+        if not objects_only and not any(v.parts for v in visuals):
             if not self.notes:
                 self.notes.append(f"{robot.name}: the URDF has no visual geometry; drawing a skeleton of its joints")
             visuals = self._skeleton()
         for note in self.notes:
             warnings.warn(note, MissingVisualsWarning, stacklevel=2)
+        # A contact scene's objects and declared collision geometry move with their bodies; the ground is a fixture
+        # (drawn, never framed by the camera: it would shrink the robot to a dot).
+        self.fixtures: list[_Visual] = []
+        if contact is not None:
+            moving, self.fixtures = _contact_visuals(self.model, contact)
+            visuals = list(visuals) + moving
         self.visuals = [v for v in visuals if v.parts]
         self.joints = sorted({v.joint for v in self.visuals})
         self.body_paths = [f"{ROOT}/{_node_name(self.model.names[j])}" for j in self.joints]
@@ -155,7 +164,7 @@ class RobotScene:
         """Clear the robot's node, then create every mesh under its body node, in a fixed order."""
         umsgpack = require("umsgpack", "the meshcat viewer")
         commands: list[dict[str, Any]] = [{"type": "delete", "path": ROOT}]
-        for visual in self.visuals:
+        for visual in [*self.visuals, *self.fixtures]:
             commands.append(transform_command(visual.path, visual.placement))
             for k, part in enumerate(visual.parts):
                 commands.append(_mesh_command(umsgpack, f"{visual.path}/{k}", part))
@@ -230,6 +239,7 @@ class RobotScene:
             UnknownNameError: `view` is not a camera view.
             InvalidArgumentError: position or target is not 3 finite numbers, or they coincide.
         """
+        check_text(view, "camera", optional=False)
         if view not in CAMERA_VIEWS:
             raise UnknownNameError(f"unknown camera view '{view}' (choose from: {', '.join(CAMERA_VIEWS)})")
         fixed_position = None if position is None else _point(position, "camera position")
@@ -276,6 +286,43 @@ class RobotScene:
             "near": distance / 100,
             "far": 20 * distance + radius,
         }
+
+
+# Colours of contact geometry: objects (a warm grey-blue), declared robot collision shapes (translucent orange), the
+# ground (a light grey slab GROUND_SIZE wide, GROUND_THICKNESS thick, its top face on the plane).
+_OBJECT_COLOR = (0.35, 0.45, 0.6, 1.0)
+_COLLISION_COLOR = (0.95, 0.55, 0.1, 0.6)
+_GROUND_COLOR = (0.82, 0.82, 0.8, 1.0)
+GROUND_SIZE = 6.0
+GROUND_THICKNESS = 0.01
+
+
+def _contact_visuals(model: pin.Model, contact: Any) -> tuple[list[_Visual], list[_Visual]]:
+    """(moving, fixtures): a contact scene's objects and declared collision shapes on their bodies, and the ground."""
+    import coal
+
+    moving, fixtures = [], []
+    for index, geometry in enumerate(contact.geometries):
+        if geometry.kind == "halfspace":
+            height = geometry.dimensions[0]
+            shape = coal.Box(GROUND_SIZE, GROUND_SIZE, GROUND_THICKNESS)
+            placement = pin.SE3(np.eye(3), np.array([0.0, 0.0, height - GROUND_THICKNESS / 2]))
+            obj = pin.GeometryObject("ground", 0, 0, placement, shape)
+            obj.meshColor = np.array(_GROUND_COLOR)
+            fixtures.append(
+                _Visual(f"{ROOT}/ground/{index:03d}", 0, np.asarray(placement.homogeneous), geometry_parts(obj, []))
+            )
+            continue
+        obj = pin.GeometryObject(geometry.body, geometry.joint, geometry.joint, geometry.placement, geometry.shape)
+        is_object = model.names[geometry.joint] == geometry.body
+        obj.meshColor = np.array(_OBJECT_COLOR if is_object else _COLLISION_COLOR)
+        name = f"{_node_name(model.names[geometry.joint])}/contact_{index:03d}_{_node_name(geometry.body)}"
+        moving.append(
+            _Visual(
+                f"{ROOT}/{name}", geometry.joint, np.asarray(geometry.placement.homogeneous), geometry_parts(obj, [])
+            )
+        )
+    return moving, fixtures
 
 
 def _cheap_mesh_loader() -> dict[str, Any]:

@@ -17,7 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 from ..exceptions import InvalidArgumentError
-from ..validation import port_number
+from ..validation import check_text, port_number
 from ._deps import ViewerWarning, meshcat_viewer_js, require
 from .page import live_page
 from .scene import pack
@@ -49,6 +49,7 @@ class MeshcatServer:
         if not isinstance(host, str):
             raise InvalidArgumentError(f"host must be an address such as {DEFAULT_HOST!r}, got {type(host).__name__}")
         port = port_number(port)
+        check_text(title, "title", optional=False)
         tornado_web = require("tornado.web", "the meshcat viewer")
         tornado_websocket = require("tornado.websocket", "the meshcat viewer")
         tornado_netutil = require("tornado.netutil", "the meshcat viewer")

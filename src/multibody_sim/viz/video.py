@@ -26,7 +26,7 @@ from ..files import atomic_path, check_output
 from ..robot import Robot
 from ..safety import check_allocation
 from ..trajectory import Trajectory
-from ..validation import playback_speed
+from ..validation import check_path, check_text, check_trajectory, playback_speed
 from ._deps import check_viewer_dependencies, require
 from .export import page_title, recording_page
 from .frames import resample, robot_from_trajectory
@@ -108,6 +108,8 @@ def export_video(
         EmptyFrameError: a frame shows no robot (nothing is written).
         MissingDependencyError: no browser, or a package of the viz extra is missing.
     """
+    check_trajectory(trajectory, "trajectory")
+    check_text(camera, "camera", optional=False)
     target, fps = check_video_options(path, fps=fps, speed=speed, width=width, height=height)
     suffix = target.suffix.lower()
     if suffix == ".gif":  # a GIF is assembled in memory: one palette byte per pixel per frame
@@ -158,7 +160,7 @@ def check_video_options(
     Raises:
         InvalidArgumentError: unknown extension, fps, speed or size out of range.
     """
-    target = Path(path)
+    target = Path(check_path(path, "path", "a video file (.mp4 or .gif)"))
     suffix = target.suffix.lower()
     label = f"{prefix}video {target}" if prefix else str(target)
     check_output(target, f"{prefix}video", "motion.mp4")  # only a regular file is replaced

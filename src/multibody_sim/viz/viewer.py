@@ -10,7 +10,7 @@ import numpy as np
 
 from ..robot import Robot
 from ..trajectory import Trajectory
-from ..validation import frame_rate, playback_speed
+from ..validation import check_system, frame_rate, playback_speed
 from ._deps import check_viewer_dependencies
 from .frames import DEFAULT_FPS, resample
 from .scene import RobotScene, frame_marker
@@ -39,6 +39,7 @@ class Viewer:
     """
 
     def __init__(self, robot: Robot, *, host: str = DEFAULT_HOST, port: int | None = None, announce: bool = True):
+        check_system(robot, "robot")
         check_viewer_dependencies()
         self.robot = robot
         self.scene = RobotScene(robot)

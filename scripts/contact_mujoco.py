@@ -1,0 +1,353 @@
+"""Contact side by side with MuJoCo: the sliding and resting boxes and a solo12 drop built from the same geometry,
+and the cost per step of solo12_standing against the sum of Pinocchio's C++ calls for that step and against
+mj_step, measured in the same run. Writes docs/contact.md. A benchmark-only dependency (`pip install mujoco`).
+
+    python scripts/contact_mujoco.py [--rounds 7] [--steps 300]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+import pinocchio as pin
+
+import multibody_sim as ms
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from mujoco_peer import StateMap, mujoco_model  # noqa: E402
+
+G = 9.81
+DT = 1e-3
+
+
+# ---- MuJoCo models from the same geometry -------------------------------------------------------------------
+def box_xml(mu: float, velocity: float) -> str:
+    """A 1 kg box 0.2 x 0.2 x 0.1 m on a plane, both with friction mu (MuJoCo combines by max), elliptic cones."""
+    return f"""
+<mujoco>
+  <option timestep="{DT}" cone="elliptic" integrator="Euler"/>
+  <worldbody>
+    <geom type="plane" size="5 5 0.1" friction="{mu} 0.005 0.0001"/>
+    <body name="box" pos="0 0 0.05">
+      <freejoint/>
+      <geom type="box" size="0.1 0.1 0.05" mass="1" friction="{mu} 0.005 0.0001"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+
+
+def mujoco_box(mu: float, velocity: float, duration: float) -> np.ndarray:
+    """MuJoCo's box: samples (t, x, vx, z) at every step."""
+    model = mujoco.MjModel.from_xml_string(box_xml(mu, velocity))
+    data = mujoco.MjData(model)
+    data.qvel[0] = velocity
+    rows = [(0.0, data.qpos[0], data.qvel[0], data.qpos[2])]
+    for _ in range(round(duration / DT)):
+        mujoco.mj_step(model, data)
+        rows.append((data.time, data.qpos[0], data.qvel[0], data.qpos[2]))
+    return np.array(rows)
+
+
+def ours_box(mu: float, velocity: float, duration: float) -> np.ndarray:
+    scene = ms.make_scene(
+        ground={"friction": mu},
+        object=[
+            {
+                "name": "box",
+                "shape": "box",
+                "size": [0.2, 0.2, 0.1],
+                "mass": 1.0,
+                "position": [0, 0, 0.05],
+                "velocity": [velocity, 0, 0, 0, 0, 0],
+            }
+        ],
+    )
+    traj = scene.run(duration=duration, dt=DT, progress=False)
+    return np.column_stack([traj.t, traj.q[:, 0], traj.v[:, 0], traj.q[:, 2]])
+
+
+def sliding_facts(rows: np.ndarray, v0: float) -> dict[str, float]:
+    """Deceleration while sliding (mean over the first 0.1 s), stop time, stop distance."""
+    t, x, vx = rows[:, 0], rows[:, 1], rows[:, 2]
+    early = (t > 0.0) & (t <= 0.1)
+    decel = -np.polyfit(t[early], vx[early], 1)[0]
+    stopped = np.flatnonzero(vx <= 1e-6)
+    stop = t[stopped[0]] if len(stopped) else float("nan")
+    return {"deceleration": decel, "stop_time": stop, "distance": x[-1] - x[0], "creep": abs(vx[-1])}
+
+
+def solo12_mujoco(scene: Any) -> tuple[Any, Any, StateMap]:
+    """solo12's URDF in MuJoCo (free joint, no URDF geometry), with the scene's four foot spheres and a plane,
+    friction 0.8, elliptic cones, Euler at 1 ms, contact and limits as our scene has them (limits off)."""
+    robot = scene.full_robot
+    model = mujoco_model(robot)  # for its body names only (contacts are disabled there)
+    spec = mujoco.MjSpec.from_string(mujoco_xml_of(robot))
+    spec.worldbody.first_body().add_freejoint()
+    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[5, 5, 0.1], friction=[0.8, 0.005, 0.0001])
+    for declared in scene.spec.contact.geometry:
+        frame = robot.model.frames[robot.model.getFrameId(declared.frame)]
+        joint_name = robot.model.names[frame.parentJoint]
+        body = spec.body(model.body(model.jnt_bodyid[model.joint(joint_name).id]).name)
+        offset = frame.placement * pin.SE3(pin.rpy.rpyToMatrix(*declared.rpy), np.array(declared.position))
+        body.add_geom(
+            type=mujoco.mjtGeom.mjGEOM_SPHERE,
+            size=[declared.shape.radius, 0, 0],
+            pos=offset.translation,
+            friction=[0.8, 0.005, 0.0001],
+            mass=0.0,
+        )
+    mj = spec.compile()
+    mj.opt.timestep = DT
+    mj.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    mj.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
+    mj.dof_damping[:] = 0.0
+    mj.dof_armature[:] = 0.0
+    mj.dof_frictionloss[:] = 0.0
+    mj.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT) | int(mujoco.mjtDisableBit.mjDSBL_EQUALITY)
+    return mj, mujoco.MjData(mj), StateMap(robot, mj)
+
+
+def mujoco_xml_of(robot: Any) -> str:
+    import xml.etree.ElementTree as ET
+
+    tree = ET.parse(robot.source["urdf_path"])
+    for parent in tree.getroot().iter():
+        for child in list(parent):
+            if child.tag in ("visual", "collision", "transmission", "gazebo"):
+                parent.remove(child)
+    return ET.tostring(tree.getroot(), encoding="unicode")
+
+
+def solo12_drop(scene: Any, duration: float) -> tuple[np.ndarray, np.ndarray]:
+    """Base height over time, ours and MuJoCo's, both under the scene's PD + gravity compensation."""
+    ours = scene.run(duration=duration, dt=DT, progress=False)
+    mj, data, states = solo12_mujoco(scene)
+    qpos, qvel = states.to_mujoco(scene.q0, scene.v0)
+    data.qpos[:], data.qvel[:] = qpos, qvel
+    controller = scene.make_controller()
+    heights = [data.qpos[2]]
+    for _ in range(round(duration / DT)):
+        q, v = states.to_pinocchio(data.qpos, data.qvel)
+        tau = controller(data.time, q, v)
+        for kind, _, iv, _, jv in states.joints:
+            if kind != "free":
+                data.qfrc_applied[jv] = tau[iv]
+        mujoco.mj_step(mj, data)
+        heights.append(data.qpos[2])
+    return ours.q[:, 2], np.array(heights)
+
+
+# ---- cost per step ---------------------------------------------------------------------------------------------
+def pinocchio_calls(scene: Any, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> dict[str, Any]:
+    """Each Pinocchio C++ call of one timestepping step at (q, v), as closures on fresh workspaces."""
+    model, contact = scene.model, scene.contact
+    data = model.createData()
+    gm = contact.geometry_model
+    gd = pin.GeometryData(gm)
+    for request in gd.collisionRequests:
+        request.enable_contact = True
+        request.security_margin = 0.01
+    a = pin.aba(model, data, q, v, tau, pin.Convention.WORLD)
+    v_free = v + DT * a
+    problem = contact.problem(q, v, v_free, DT)
+    models, datas = problem.models, problem.datas
+    pairs = range(len(gm.collisionPairs))
+    pin.updateGeometryPlacements(model, data, gm, gd, q)
+    pin.computeCollisions(gm, gd, False)
+    pin.crba(model, data, q, pin.Convention.WORLD)
+    for cm, cd in zip(models, datas, strict=True):
+        cm.calc(model, data, cd)
+    chol = pin.ConstraintCholeskyDecomposition(model, data, models, datas)
+    settings = ms.integrators.timestepping.admm_settings()
+    solver, result = pin.ADMMConstraintSolver(), pin.ADMMSolverResult()
+    chol.compute(model, data, models, datas, 1e-12)
+    delassus = chol.getDelassusOperatorCholeskyExpression()
+    solver.solve(delassus, problem.g, models, datas, settings, result)
+    guess = np.array(result.retrieveConstraintImpulses())
+    generalized = problem.jacobian.T @ guess
+
+    def solve() -> None:
+        result.setConstraintImpulseGuess(guess)
+        solver.solve(delassus, problem.g, models, datas, settings, result)
+
+    def patches() -> None:
+        for k in pairs:
+            pin.computeContactPatch(gm, gd, k)
+
+    def calcs() -> None:
+        for cm, cd in zip(models, datas, strict=True):
+            cm.calc(model, data, cd)
+
+    def minv() -> None:
+        pin.cholesky.decompose(model, data)
+        pin.cholesky.solve(model, data, generalized)
+
+    return {
+        "aba (v_free)": lambda: pin.aba(model, data, q, v, tau, pin.Convention.WORLD),
+        "updateGeometryPlacements": lambda: pin.updateGeometryPlacements(model, data, gm, gd, q),
+        "computeCollisions": lambda: pin.computeCollisions(gm, gd, False),
+        "computeContactPatch x4": patches,
+        "crba (WORLD)": lambda: pin.crba(model, data, q, pin.Convention.WORLD),
+        "constraint calc x4": calcs,
+        "Delassus Cholesky": lambda: chol.compute(model, data, models, datas, 1e-12),
+        "getConstraintsJacobian": lambda: pin.getConstraintsJacobian(model, data, models, datas),
+        "ADMM solve (warm)": solve,
+        "M^-1 J^T lambda (cholesky)": minv,
+        "integrate": lambda: pin.integrate(model, q, DT * v_free),
+        "ledger energies x4": lambda: [
+            (pin.computeKineticEnergy(model, data, q, v), pin.computePotentialEnergy(model, data)) for _ in range(4)
+        ],
+    }
+
+
+def cpu_us(fn: Any, n: int) -> float:
+    start = time.process_time()
+    for _ in range(n):
+        fn()
+    return (time.process_time() - start) / n * 1e6
+
+
+def step_costs(rounds: int, steps: int) -> dict[str, Any]:
+    """CPU-time medians over interleaved rounds: our step, each Pinocchio call of it, mj_step (4 foot contacts)."""
+    scene = ms.load_scene("solo12_standing")
+    settled = scene.run(duration=0.3, dt=DT, progress=False)  # standing, four feet in contact
+    q, v = settled.q[-1], settled.v[-1]
+    tau = settled.tau[-1]
+    method = ms.get_integrator("timestepping")
+    calls = pinocchio_calls(scene, q, v, tau)
+    mj, data, states = solo12_mujoco(scene)
+    qpos, qvel = states.to_mujoco(q, v)
+
+    def ours() -> None:
+        state = method.init(scene, q, v)
+        qq, vv = q, v
+        for _ in range(steps):
+            attempt = method.attempt(scene, qq, vv, tau, DT, 0.0, state)
+            qq, vv, state = attempt.q, attempt.v, attempt.state
+
+    def theirs() -> None:
+        data.qpos[:], data.qvel[:] = qpos, qvel
+        for kind, _, iv, _, jv in states.joints:
+            if kind != "free":
+                data.qfrc_applied[jv] = tau[iv]
+        for _ in range(steps):
+            mujoco.mj_step(mj, data)
+
+    samples: dict[str, list[float]] = {"ours": [], "mujoco": [], **{name: [] for name in calls}}
+    for _ in range(rounds):
+        samples["ours"].append(cpu_us(ours, 1) / steps)
+        for name, fn in calls.items():
+            samples[name].append(cpu_us(fn, steps))
+        samples["mujoco"].append(cpu_us(theirs, 1) / steps)
+    medians = {name: float(np.median(values)) for name, values in samples.items()}
+    theirs()  # the contacts MuJoCo holds once standing on its (soft) feet
+    medians["mujoco_contacts"] = int(data.ncon)
+    return medians
+
+
+# ---- the report --------------------------------------------------------------------------------------------------
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "contact.md"))
+    args = parser.parse_args()
+    mu, v0 = 0.8, 2.0
+    runs = (("ours", ours_box(mu, v0, 0.5)), ("mujoco", mujoco_box(mu, v0, 0.5)))
+    slide = {name: sliding_facts(rows, v0) for name, rows in runs}
+    rest = {"ours": ours_box(mu, 0.0, 1.0), "mujoco": mujoco_box(mu, 0.0, 1.0)}
+    solo = ms.load_scene("solo12_standing")
+    ours_z, mj_z = solo12_drop(solo, 1.0)
+    costs = step_costs(args.rounds, args.steps)
+    pin_sum = sum(costs[name] for name in costs if name not in ("ours", "mujoco", "mujoco_contacts"))
+    pin_solver = pin_sum - costs["ledger energies x4"]
+    print(costs, flush=True)
+    lines = [
+        "# Contact: our time-stepper beside MuJoCo",
+        "",
+        "Generated by `python scripts/contact_mujoco.py` "
+        f"(rounds {args.rounds}, {args.steps} steps each; pin {pin.__version__}, mujoco {mujoco.__version__}, "
+        f"Python {platform.python_version()}, load average {os.getloadavg()[0]:.1f} at the end on a shared "
+        "2-core machine). MuJoCo models are built from the same geometry: the same box, the same URDF with the "
+        "scene's four foot spheres, friction 0.8 on every geom (MuJoCo combines by max), elliptic cones, Euler at "
+        "1 ms, joint limits off as in our scene.",
+        "",
+        "## A box sliding at 2 m/s, μ = 0.8 (closed form: μg = 7.848 m/s², stops at 0.2548 s after 0.2548 m)",
+        "",
+        "| | deceleration [m/s²] | relative to μg | stop time [s] | distance [m] | speed at 0.5 s [m/s] |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, facts in slide.items():
+        lines.append(
+            f"| {name} | {facts['deceleration']:.5f} | {facts['deceleration'] / (mu * G) - 1:+.2e} | "
+            f"{facts['stop_time']:.4f} | {facts['distance']:.5f} | {facts['creep']:.2e} |"
+        )
+    lines += [
+        "",
+        "## A box resting on the ground for 1 s",
+        "",
+        "| | drift of its centre [m] | height change [m] |",
+        "|---|---|---|",
+    ]
+    for name, rows in rest.items():
+        drift = float(np.abs(rows[:, 1] - rows[0, 1]).max())
+        sink = float(rows[-1, 3] - rows[0, 3])
+        lines.append(f"| {name} | {drift:.2e} | {sink:+.2e} |")
+    lines += [
+        "",
+        "## solo12 dropped onto four foot spheres, held by the scene's PD + gravity compensation",
+        "",
+        "| t [s] | base height, ours [m] | MuJoCo [m] |",
+        "|---|---|---|",
+    ]
+    for t in (0.0, 0.01, 0.05, 0.1, 0.3, 0.6, 1.0):
+        i = round(t / DT)
+        lines.append(f"| {t:g} | {ours_z[i]:.5f} | {mj_z[i]:.5f} |")
+    lines += [
+        "",
+        "## Cost per step, solo12_standing (4 foot contacts), CPU-time medians over interleaved rounds",
+        "",
+        "| what | µs per step |",
+        "|---|---|",
+        f"| our timestepping step (Python kernel: `TimeStepping.attempt`) | {costs['ours']:.1f} |",
+        *(
+            f"| Pinocchio: {name} | {costs[name]:.2f} |"
+            for name in costs
+            if name not in ("ours", "mujoco", "mujoco_contacts")
+        ),
+        f"| **sum of Pinocchio's calls** | **{pin_sum:.1f}** ({pin_solver:.1f} without the ledger's energies) |",
+        f"| MuJoCo `mj_step` ({costs['mujoco_contacts']} contacts) | {costs['mujoco']:.1f} |",
+        "",
+        f"Ratios: our step / Pinocchio's calls = {costs['ours'] / pin_sum:.2f}; Pinocchio's calls / mj_step = "
+        f"{pin_sum / costs['mujoco']:.2f} ({pin_solver / costs['mujoco']:.2f} without the ledger's energies); our "
+        f"step / mj_step = {costs['ours'] / costs['mujoco']:.1f}. Each Pinocchio call is timed alone through its "
+        "Python binding (a few tenths of a µs of binding overhead each); the step's per-contact allocations (building "
+        "four constraint models and the Cholesky object, which a compiled kernel would reuse) are not in the sum. "
+        "The issue's target (≤ 1.3x the sum of "
+        "Pinocchio's calls) is for the compiled kernel, whose contact hot path is a later step: the Python kernel "
+        "above is the specification it will render.",
+        "",
+        "## Differences",
+        "",
+        "- Friction: ours is exact Coulomb (a cone constraint on impulses): the box decelerates at μg to the "
+        "solver's tolerance and stops dead. MuJoCo's contact is soft (a regularized, compliant constraint): its "
+        "deceleration is below μg and its box creeps, as the tables show.",
+        "- Resting: ours holds a box still to round-off (speculative contacts, no penetration); MuJoCo's soft "
+        "contact lets it sink into the ground until the constraint's spring carries the weight.",
+        "- The solo12 drop: both settle on their feet; heights differ by MuJoCo's penetration and by the joints' "
+        "sag under the same PD gains.",
+    ]
+    Path(args.out).write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
