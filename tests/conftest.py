@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import functools
+import signal
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 import multibody_sim as ms
+
+# The tests stand for a user at a terminal, where Ctrl-C interrupts. A suite started in the background by a
+# non-interactive shell (`cmd &`) inherits SIGINT ignored, which Python then keeps (no KeyboardInterrupt, and the
+# children it starts ignore SIGINT too): give it back its default handler, which children reset to SIG_DFL.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @functools.cache
