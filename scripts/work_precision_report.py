@@ -28,8 +28,10 @@ import platform
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 import numpy as np
@@ -63,9 +65,19 @@ class System:
     spin: float
     kind: str
     note: str = ""  # what the numbers alone do not say (physics, not measurements)
+    q0: tuple[float, ...] | None = None  # a fixed initial state (q0, zero velocity) instead of the seeded random one
+    at_end: bool = False  # the error is the one at t = duration only (the sample grid is the whole run)
 
 
 SYSTEMS = {
+    "double_pendulum": System(
+        "double_pendulum",
+        None,
+        0.0,
+        "double pendulum released from q = (π/2, 0), v = 0: error at t = 1 s",
+        q0=(math.pi / 2, 0.0),
+        at_end=True,
+    ),
     "ur5": System("ur5", None, 0.0, "arm, fixed base"),
     "panda": System("panda", None, 0.0, "arm, fixed base"),
     "solo12": System("solo12", True, 5.0, "legged robot, floating base"),
@@ -84,7 +96,18 @@ SYSTEMS = {
         is exactly this system's stiffness.""",
     ),
 }
-DEFAULT_SYSTEMS = ("ur5", "solo12", "talos", "stiff_arm")
+DEFAULT_SYSTEMS = ("double_pendulum", "ur5", "solo12", "talos", "stiff_arm")
+# Issue 15's accuracy-per-cost targets: (system, accuracy) -> the largest ratio of our cheapest explicit run's CPU time
+# to MuJoCo's cheapest run reaching the same accuracy (on the double pendulum MuJoCo's RK4, elsewhere any of its
+# integrators).
+TARGETS = {
+    ("double_pendulum", 1e-6): 0.6,
+    ("double_pendulum", 1e-8): 0.3,
+    **{(name, tol): 0.5 for name in ("ur5", "solo12", "talos") for tol in (1e-6, 1e-8)},
+}
+TARGET_MUJOCO = {"double_pendulum": ("RK4",)}  # MuJoCo integrators a target compares with (default: all)
+ROUNDS = 7  # interleaved timing rounds of the target comparisons (median CPU time of each candidate)
+CANDIDATES = 3  # the cheapest few of each side (by the study's timings) are timed again, interleaved
 MUJOCO_INTEGRATORS = ("Euler", "implicitfast", "RK4")
 MUJOCO_EVALUATIONS = {"Euler": 1, "implicitfast": 1, "RK4": 4}  # forward-dynamics passes per step
 DIVERGED_ERROR = 1e3
@@ -93,8 +116,12 @@ RUNTIME_WARNINGS: list[str] = []  # and while stepping (unstable runs: counted a
 
 
 # ---- the state -------------------------------------------------------------------------------------------------
-def initial_state(robot: ms.Robot, spin: float) -> tuple[np.ndarray, np.ndarray]:
-    """A seeded random configuration within the limits, joint velocities in [-1, 1]; a floating base spins."""
+def initial_state(robot: ms.Robot, system: System) -> tuple[np.ndarray, np.ndarray]:
+    """The system's fixed state, else a seeded random configuration within the limits, joint velocities in [-1, 1];
+    a floating base spins at `system.spin`."""
+    if system.q0 is not None:
+        return np.array(system.q0), np.zeros(robot.nv)
+    spin = system.spin
     rng = np.random.default_rng(SEED)
     q0 = robot.random_configuration(rng)
     v0 = rng.uniform(-1.0, 1.0, robot.nv)
@@ -121,6 +148,29 @@ class MujocoStudy:
     qacc_error: float = math.nan  # max |a_MuJoCo − a_Pinocchio| at the initial state
     qacc_scale: float = math.nan
     note: str = ""
+    # (integrator, dt) -> (CPU time of the stepping loop [s], samples): one more run, as the study timed them
+    rerun: Any = None
+
+
+def mujoco_run(
+    model: Any, data: Any, start_state: tuple[np.ndarray, np.ndarray], integrator: str, dt: float, duration: float,
+    output_dt: float,
+) -> tuple[float, list[tuple[np.ndarray, np.ndarray]]]:  # fmt: skip
+    """One MuJoCo run from start_state = (qpos, qvel): the CPU time of its stepping loop [s] and its samples
+    (qpos, qvel) every output_dt and at the end."""
+    model.opt.integrator = int(getattr(mujoco.mjtIntegrator, f"mjINT_{integrator.upper()}"))
+    model.opt.timestep = dt
+    n_steps = math.ceil(duration / dt - 1e-9)
+    every = round(output_dt / dt)
+    mujoco.mj_resetData(model, data)
+    data.qpos[:], data.qvel[:] = start_state
+    samples = [(data.qpos.copy(), data.qvel.copy())]
+    start = time.process_time()
+    for k in range(1, n_steps + 1):
+        mujoco.mj_step(model, data)
+        if k % every == 0 or k == n_steps:
+            samples.append((data.qpos.copy(), data.qvel.copy()))
+    return time.process_time() - start, samples
 
 
 def mujoco_study(robot: ms.Robot, result: ms.WorkPrecision, max_run_time: float) -> MujocoStudy:
@@ -157,27 +207,18 @@ def mujoco_study(robot: ms.Robot, result: ms.WorkPrecision, max_run_time: float)
     assert reference is not None and reference.t is not None
     floor = max(result.settings["min_error"], bench.REFERENCE_MARGIN * reference.error)
     bad_qacc = int(mujoco.mjtWarning.mjWARN_BADQACC)
+    study.rerun = lambda name, dt: mujoco_run(model, data, (qpos0, qvel0), name, dt, result.duration, result.output_dt)
     for name in MUJOCO_INTEGRATORS:
-        model.opt.integrator = int(getattr(mujoco.mjtIntegrator, f"mjINT_{name.upper()}"))
         per_step = math.nan
         for dt in result.settings["steps"]:
             n_steps = math.ceil(result.duration / dt - 1e-9)
             if per_step * n_steps > max_run_time:
                 break
-            every = round(result.output_dt / dt)
-            model.opt.timestep = dt
             times = []
             run = MujocoRun(name, dt, "completed", evaluations=MUJOCO_EVALUATIONS[name] * n_steps)
             for _ in range(3):  # repeated while short, as the study times ours: the median CPU time
-                mujoco.mj_resetData(model, data)
-                data.qpos[:], data.qvel[:] = qpos0, qvel0
-                samples = [(data.qpos.copy(), data.qvel.copy())]
-                start = time.process_time()
-                for k in range(1, n_steps + 1):
-                    mujoco.mj_step(model, data)
-                    if k % every == 0 or k == n_steps:
-                        samples.append((data.qpos.copy(), data.qvel.copy()))
-                times.append(time.process_time() - start)
+                cpu, samples = study.rerun(name, dt)
+                times.append(cpu)
                 if sum(times) > bench.REPEAT_BELOW:
                     break
             run.cpu_time = statistics.median(times)
@@ -226,6 +267,121 @@ def cheapest_mujoco(study: MujocoStudy, tolerance: float, reference_error: float
     return min(meeting, key=lambda r: r.cpu_time) if meeting else None
 
 
+# ---- issue 15's targets: our cheapest explicit run against MuJoCo's cheapest, timed again in interleaved rounds ----
+@dataclass
+class TargetRow:
+    system: str
+    tolerance: float
+    target: float  # the largest ratio ours / MuJoCo's that meets the target
+    ours: bench.Measurement | None = None
+    ours_cpu: float = math.nan  # median CPU time over the interleaved rounds [s]
+    theirs: MujocoRun | None = None
+    theirs_cpu: float = math.nan
+    note: str = ""
+
+    @property
+    def ratio(self) -> float:
+        return self.ours_cpu / self.theirs_cpu
+
+    @property
+    def met(self) -> bool:
+        return bool(self.ratio <= self.target)
+
+
+def target_rows(
+    name: str, robot: ms.Robot, result: ms.WorkPrecision, mj: MujocoStudy | None, rounds: int = ROUNDS
+) -> list[TargetRow]:
+    """Issue 15's accuracy-per-cost targets for this system: the CANDIDATES cheapest explicit runs of ours and of
+    MuJoCo's (by the study's timings) that reach each accuracy are timed again, ROUNDS rounds interleaved (each
+    round runs every candidate once), and each side's least median CPU time is compared."""
+    r = result.reference
+    assert r is not None
+    rows = []
+    q0, v0 = np.array(result.q0), np.array(result.v0)
+    for (system, tol), target in TARGETS.items():
+        if system != name:
+            continue
+        row = TargetRow(name, tol, target)
+        rows.append(row)
+        ours = sorted(
+            (m for m in result.measurements if m.completed and not ms.INTEGRATORS[m.integrator].implicit
+             and m.error + r.error <= tol),
+            key=lambda m: m.cpu_time,
+        )[:CANDIDATES]  # fmt: skip
+        allowed = TARGET_MUJOCO.get(name, MUJOCO_INTEGRATORS)
+        theirs = sorted(
+            (x for x in (mj.runs if mj else []) if x.integrator in allowed and x.status == "completed"
+             and x.error + r.error <= tol),
+            key=lambda x: x.cpu_time,
+        )[:CANDIDATES]  # fmt: skip
+        if not ours or not theirs or mj is None:
+            row.note = "ours reached no such accuracy" if not ours else "MuJoCo reached no such accuracy"
+            continue
+        runs: list[tuple[Any, Callable[[], float]]] = []
+        for m in ours:
+            options = m.simulate_options()
+
+            def simulate_once(options: dict[str, Any] = options) -> float:
+                start = time.process_time()
+                ms.simulate(robot, q0, v0, duration=result.duration, output_dt=result.output_dt, **options)
+                return time.process_time() - start
+
+            runs.append((m, simulate_once))
+        for x in theirs:
+            runs.append((x, lambda x=x: mj.rerun(x.integrator, x.dt)[0]))
+        times: dict[int, list[float]] = {i: [] for i in range(len(runs))}
+        for _ in range(rounds):
+            for i, (_, once) in enumerate(runs):
+                times[i].append(once())
+        medians = {i: statistics.median(t) for i, t in times.items()}
+        best_ours = min(range(len(ours)), key=lambda i: medians[i])
+        best_theirs = min(range(len(ours), len(runs)), key=lambda i: medians[i])
+        row.ours, row.ours_cpu = ours[best_ours], medians[best_ours]
+        row.theirs, row.theirs_cpu = theirs[best_theirs - len(ours)], medians[best_theirs]
+    return rows
+
+
+def targets_table(rows: list[TargetRow]) -> list[str]:
+    """The targets as a Markdown table: accuracy, our cheapest and MuJoCo's with their CPU times, ratio, met."""
+    cells = []
+    for row in rows:
+        if row.ours is None or row.theirs is None:
+            cells.append([row.system, f"{row.tolerance:.0e}", "—", "—", "—", "—", "—", "—", f"≤ {row.target:g}",
+                          f"not measured ({row.note})"])  # fmt: skip
+            continue
+        m, x = row.ours, row.theirs
+        cells.append(
+            [
+                row.system,
+                f"{row.tolerance:.0e}",
+                f"{m.integrator}, {m.settings()} ({m.kernel or '?'}; error {m.error:.1e})",
+                f"{row.ours_cpu * 1e3:.2f}",
+                f"{x.integrator}, dt {x.dt:g} s (error {x.error:.1e})",
+                f"{row.theirs_cpu * 1e3:.2f}",
+                f"{row.ratio:.2f}",
+                f"{row.ours_cpu / m.evaluations * 1e6:.2f} / {row.theirs_cpu / x.evaluations * 1e6:.2f}",
+                f"≤ {row.target:g}",
+                "**met**" if row.met else "**missed**",
+            ]
+        )
+    return table(
+        ["system", "accuracy", "ours: cheapest explicit run (kernel; error)", "CPU [ms]", "MuJoCo: cheapest run",
+         "CPU [ms]", "ratio", "µs per evaluation (ours / MuJoCo)", "target", "result"],
+        cells,
+    )  # fmt: skip
+
+
+def per_call_cost(rounds: int = 21) -> float:
+    """simulate()'s fixed cost per call [s]: the median CPU time of a one-step rk4 run of the double pendulum."""
+    robot = ms.load_robot("double_pendulum")
+    times = []
+    for _ in range(rounds):
+        start = time.process_time()
+        ms.simulate(robot, [0.1, 0.0], [0.0, 0.0], duration=1e-3, dt=1e-3, integrator="rk4")
+        times.append(time.process_time() - start)
+    return statistics.median(times)
+
+
 # ---- pictures ------------------------------------------------------------------------------------------------------
 def plot_mujoco(path: Path, result: ms.WorkPrecision, study: MujocoStudy) -> None:
     fig, ax = plt.subplots(figsize=(7.5, 5.2))
@@ -268,6 +424,17 @@ def table(headers: list[str], rows: list[list[str]]) -> list[str]:
     return lines
 
 
+def start_text(system: System, result: ms.WorkPrecision) -> str:
+    """How the study starts, and where its error is measured."""
+    if system.q0 is not None:
+        start = f"From q0 = ({', '.join(f'{x:.6g}' for x in result.q0)}) rad at rest"
+    else:
+        start = "Seeded random state" + (f", base spinning at {system.spin:g} rad/s" if system.spin else "")
+    if system.at_end:
+        start += f"; the error is the one at t = {result.duration:g} s only (the runs record only their end)"
+    return start
+
+
 def section(name: str, system: System, robot: ms.Robot, result: ms.WorkPrecision, mj: MujocoStudy | None,
             elapsed: float) -> list[str]:  # fmt: skip
     r = result.reference
@@ -275,8 +442,8 @@ def section(name: str, system: System, robot: ms.Robot, result: ms.WorkPrecision
     lines = [
         f"## {name} ({system.kind}; nq {robot.nq}, nv {robot.nv})",
         "",
-        para(f"""Seeded random state{f", base spinning at {system.spin:g} rad/s" if system.spin else ""}; no torque,
-        the URDF's damping (max {robot.damping.max():g}); {result.duration:g} s. Reference: {r.integrator} at rtol =
+        para(f"""{start_text(system, result)}; no torque, the URDF's damping (max {robot.damping.max():g});
+        {result.duration:g} s. Reference: {r.integrator} at rtol =
         atol = {r.rtol:.0e}, {r.evaluations} evaluations; against its refinement at {r.check_rtol:.0e} its estimated
         error is {r.error:.1e}. Study time {elapsed:.0f} s."""),
         "",
@@ -490,12 +657,21 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
     body: list[str] = []
+    targets: list[TargetRow] = []
+    call_cost = per_call_cost()
     for name in args.systems.split(","):
         system = SYSTEMS[name]
         robot = ms.load_robot(name, floating_base=system.floating_base)
-        q0, v0 = initial_state(robot, system.spin)
+        q0, v0 = initial_state(robot, system)
         t0 = time.perf_counter()
-        result = ms.work_precision(robot, q0, v0, duration=args.duration, max_run_time=args.max_run_time)
+        result = ms.work_precision(
+            robot,
+            q0,
+            v0,
+            duration=args.duration,
+            output_dt=args.duration if system.at_end else None,
+            max_run_time=args.max_run_time,
+        )
         ms.plot_work_precision(result, args.out_dir / f"work_precision_{name}.png")
         mj = None
         if mujoco is not None:
@@ -504,6 +680,8 @@ def main(argv: list[str] | None = None) -> int:
                 plot_mujoco(args.out_dir / f"work_precision_{name}_mujoco.png", result, mj)
             except (ValueError, NotImplementedError) as exc:  # a URDF MuJoCo cannot load, or a joint not mapped
                 print(f"{name}: MuJoCo skipped: {exc}")
+        rows = target_rows(name, robot, result, mj)
+        targets += rows
         elapsed = time.perf_counter() - t0
         body += section(name, system, robot, result, mj, elapsed)
         picks = ", ".join(
@@ -541,18 +719,35 @@ def main(argv: list[str] | None = None) -> int:
         time among runs whose error plus the reference's estimated error is within the accuracy; `run
         --tolerance` makes the same choice from a pruned pilot study over min(duration, 1 s)."""),
         "",
-        para("""**MuJoCo** runs the same URDF from the same state (`mj_step` in a Python loop; contacts, joint
+        para(f"""**MuJoCo** runs the same URDF from the same state (`mj_step` in a Python loop; contacts, joint
         limits and equality constraints off, armature and friction loss zeroed, joint damping set to ours; a free
         joint added on a floating robot's root), its states mapped to Pinocchio's convention joint by joint
         (quaternion w-first → scalar-last, free-joint linear velocity world → base frame) and measured against the
         same reference on the same grid. Its cost is the CPU time of the stepping loop alone (our runs include
-        `simulate`'s fixed per-call cost, ~1 ms)."""),
+        `simulate`'s fixed per-call cost, measured here: {call_cost * 1e3:.2f} ms, the median of a one-step
+        run)."""),
         "",
     ]
+    if targets:
+        head += [
+            "## Accuracy per cost against MuJoCo (issue 15's targets)",
+            "",
+            para(f"""Our cheapest explicit run (any method, step or tolerance, on the kernel `simulate` takes for it)
+            against MuJoCo's cheapest run reaching the same accuracy (error + the reference's ≤ accuracy; on the
+            double pendulum MuJoCo's RK4, elsewhere any of its integrators). The {CANDIDATES} cheapest of each side in
+            the study are timed again in {ROUNDS} interleaved rounds (each round runs every candidate once): CPU
+            time medians, ours of the whole `simulate` call, MuJoCo's of its stepping loop (`mj_step` in a Python
+            loop). Ratio = ours / MuJoCo's."""),
+            "",
+            *targets_table(targets),
+            "",
+        ]
     if mujoco is None:
         head += ["MuJoCo is not installed (`pip install mujoco`): its comparison was skipped.", ""]
     elif IMPORT_WARNINGS:
         head += ["MuJoCo's URDF importer warned: " + "; ".join(sorted(set(IMPORT_WARNINGS))), ""]
+    if targets:
+        print("\n".join(targets_table(targets)))
     text = "\n".join(head + body)
     path = args.out_dir / "work_precision.md"
     path.write_text(text, encoding="utf-8")

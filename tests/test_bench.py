@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import re
 import signal
 import subprocess
@@ -23,7 +24,7 @@ from PIL import Image
 from scipy.integrate import solve_ivp
 
 import multibody_sim as ms
-from multibody_sim import bench
+from multibody_sim import bench, native
 from multibody_sim.cli import main
 
 PREFIX = "multibody-sim: error: "
@@ -471,6 +472,34 @@ def test_pilot_cache_is_read_and_a_corrupt_entry_is_rebuilt(
     # A different initial state is a different entry.
     other = ms.choose_integrator(system, [2.0, 0.4], V0_DP, **{**kwargs, "tolerance": 1e-2})
     assert not other.cached and other.cache_path != first.cache_path
+
+
+@pytest.mark.skipif(
+    not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
+    reason=f"the native kernel is not available here: {native.why_unavailable}",
+)
+def test_the_pilot_measures_on_the_kernel_the_run_takes_and_caches_each_apart(
+    tmp_path: Path, robot: Callable, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A pilot measured on the Python kernel (MULTIBODY_SIM_NATIVE=0) does not answer for a native run, nor the
+    reverse: each kernel has its own cache entry, and each study's runs say which kernel ran them."""
+    system = robot("double_pendulum")
+    kwargs = {"tolerance": 1e-3, "duration": 0.1, "cache_dir": tmp_path, "integrators": ["rk4", "dp54"]}
+    monkeypatch.setenv(native.ENV, "0")
+    python = ms.choose_integrator(system, Q0_DP, V0_DP, **kwargs)
+    monkeypatch.setenv(native.ENV, "1")
+    compiled = ms.choose_integrator(system, Q0_DP, V0_DP, **kwargs)
+    assert not python.cached and not compiled.cached and compiled.cache_path != python.cache_path
+    assert {m.kernel for m in python.study.measurements} == {"python (row)"}
+    assert {m.kernel for m in compiled.study.measurements} == {"native"}
+    assert " s CPU on the native kernel; cheapest of " in compiled.describe()
+    assert " s CPU on the python (row) kernel; cheapest of " in python.describe()
+    monkeypatch.setenv(native.ENV, "0")
+    again = ms.choose_integrator(system, Q0_DP, V0_DP, **kwargs)
+    assert again.cached and again.cache_path == python.cache_path
+    said = "kernel measured (the one each run takes): python (row) for rk4, dp54 (not native: MULTIBODY_SIM_NATIVE=0)"
+    assert said in again.study.summary().splitlines()
+    assert "kernel measured (the one each run takes): native for rk4, dp54" in compiled.study.summary().splitlines()
 
 
 def test_an_unreachable_tolerance_is_a_clear_error(tmp_path: Path, robot: Callable) -> None:

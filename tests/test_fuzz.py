@@ -531,6 +531,27 @@ def mutated_scene(draw: st.DrawFn, seeds: list[dict[str, Any]]) -> bytes:
     return text
 
 
+def scene_regressions(seeds: list[dict[str, Any]]) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """Scenes that once printed a traceback (issue 17), tried first by every run: the first seed (spring_chain)
+    with a subnormal step, a step count beyond 2**53, an output period that overflows its count (scene.run
+    keeps the scene's step and periods and shortens the duration)."""
+
+    def variant(**simulation: Any) -> bytes:
+        data = copy.deepcopy(seeds[0])
+        settings = {k: v for k, v in data.get("simulation", {}).items() if k != "output_dt"}
+        data["simulation"] = {**settings, "integrator": "rk4", **simulation}
+        return toml_document(data).encode()
+
+    cases = [variant(dt=1e-320), variant(duration=1e300, dt=1e-300), variant(dt=1e-10, output_dt=1e300)]
+
+    def decorate(test: Callable[..., None]) -> Callable[..., None]:
+        for data in reversed(cases):
+            test = example(data)(test)
+        return test
+
+    return decorate
+
+
 @pytest.mark.parametrize("cases", BUDGETS)
 def test_fuzz_scene_files(tmp_path_factory: pytest.TempPathFactory, cases: int):
     """Mutated shipped scenes (hostile numbers, names, paths and shapes in every key; deleted and unknown keys;
@@ -543,6 +564,7 @@ def test_fuzz_scene_files(tmp_path_factory: pytest.TempPathFactory, cases: int):
     def body(tally: Tally, stderr: Callable[[], str]) -> None:
         @fuzz_settings(cases)
         @given(mutated_scene(seeds))
+        @scene_regressions(seeds)
         def case(data: bytes) -> None:
             path.write_bytes(data)
             stderr()

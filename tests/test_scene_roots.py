@@ -180,3 +180,29 @@ def test_a_trajectory_from_elsewhere_cannot_widen_the_mesh_folders(
     if target == "outside":  # allowed by the user, the page is written with the STL in it
         assert main(["play", str(out), "--html", str(html), "--allow-root", folder]) == 0
         assert html.exists()
+
+
+def test_a_trajectory_cannot_name_a_folder_of_its_own_as_the_scene_folder(layout: dict[str, Path]):
+    """A scene run's metadata records the scene's folder; a stranger could point it at any folder holding a copy
+    of the URDF and meshes of their choice. The folder is trusted only while it holds the recorded scene file."""
+    pytest.importorskip("meshcat")
+    import shutil
+
+    import multibody_sim.viz as viz
+
+    (layout["scene"] / "pkg").mkdir()
+    (layout["scene"] / "pkg" / "bob.stl").write_text(STL)
+    scene_path = write_scene(layout["scene"], "robot.urdf", ["."])
+    scene = ms.load_scene(scene_path)
+    run = ms.simulate(scene, scene.q0, scene.v0, duration=0.01, dt=1e-3)
+    assert viz.robot_from_trajectory(run).nv == 1  # the user's own run: the scene file is there, unchanged
+    elsewhere = layout["root"] / "elsewhere"
+    shutil.copytree(layout["scene"], elsewhere, ignore=shutil.ignore_patterns("scene.toml"))
+    run.metadata["robot"]["scene"]["base_dir"] = str(elsewhere)  # forged: the same URDF, meshes of their own
+    with pytest.raises(ms.SceneError, match=f"robot.source: '{re.escape(str(elsewhere / 'robot.urdf'))}' is outside"):
+        viz.robot_from_trajectory(run)
+    assert viz.robot_from_trajectory(run, allowed_roots=[elsewhere]).nv == 1  # the user may allow it
+    (layout["scene"] / "scene.toml").write_text("# edited since\n" + scene_path.read_text())
+    run.metadata["robot"]["scene"]["base_dir"] = str(layout["scene"])
+    with pytest.raises(ms.SceneError, match="robot.source: .* is outside"):  # no longer the recorded scene
+        viz.robot_from_trajectory(run)

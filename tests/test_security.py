@@ -645,6 +645,28 @@ def rlimited(kind: str, size: int, *argv: str) -> subprocess.CompletedProcess[st
     )
 
 
+def test_a_short_run_does_not_read_the_memory_room_and_a_large_one_is_refused(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Reading the memory room (/proc/meminfo, the cgroup's files) costs as much as a short native run: a run keeping
+    a few samples is let through unread, while one keeping more than a MiB is still checked and refused."""
+    from multibody_sim import safety
+
+    read: list[int] = []
+
+    def no_room() -> safety.Room:
+        read.append(1)
+        return safety.Room(0, "a test's limit")
+
+    monkeypatch.setattr(safety, "memory_room", no_room)
+    robot = ms.load_robot("pendulum")
+    traj = ms.simulate(robot, [0.5], [0.0], duration=0.1, dt=1e-3, integrator="rk4")
+    assert len(traj) == 101 and not read
+    with pytest.raises(ms.InvalidArgumentError, match=r"in memory, more than the 0 GiB available \(a test's limit\)"):
+        ms.simulate(robot, [0.5], [0.0], duration=100.0, dt=1e-3, integrator="rk4")  # 1e5 samples: > 1 MiB
+    assert read
+
+
 def test_the_address_space_limit_is_honoured(tmp_path: Path) -> None:
     """A run whose samples need ~4 GB, in a process allowed 1 GiB more than it has mapped (ulimit -v; room for
     the imports and threads a run starts): refused before any allocation, in one line naming that limit, not the

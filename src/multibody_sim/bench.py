@@ -36,6 +36,7 @@ from .exceptions import InvalidArgumentError, SimulationError, SimulationInterru
 from .files import write_atomically
 from .integrators import INTEGRATORS, Integrator, get_integrator
 from .metadata import versions
+from .native_core import why_not_native
 from .robot import Robot
 from .safety import safe_name
 from .simulation import simulate
@@ -106,6 +107,7 @@ CSV_COLUMNS = (
     "rejected_steps",
     "cpu_time",
     "wall_time",
+    "kernel",
     "message",
 )
 STATUS_COMPLETED = "completed"
@@ -144,6 +146,8 @@ class Measurement:
         wall_times: every wall timing of this run [s].
         below_reference: the error is within REFERENCE_MARGIN times the reference's estimated error, so it may
             be the reference's: left out of order fits.
+        kernel: the stepping kernel that ran it (the run's metadata["kernel"]: "native", "python (row)", ...), the
+            one `simulate` takes for this system and integrator; "" when unknown (a refused integrator).
         message: why the run stopped early, if it did.
     """
 
@@ -162,6 +166,7 @@ class Measurement:
     wall_time: float = math.nan
     wall_times: list[float] = field(default_factory=list)
     below_reference: bool = False
+    kernel: str = ""
     message: str = ""
 
     @property
@@ -312,6 +317,7 @@ class WorkPrecision:
                         "rejected_steps": m.rejected_steps,
                         "cpu_time": m.cpu_time,
                         "wall_time": m.wall_time,
+                        "kernel": m.kernel,
                         "message": m.message,
                     }
                 )
@@ -421,6 +427,23 @@ class WorkPrecision:
         headers = ["integrator", "order", "observed (vs dt)", "effective (vs evaluations)", "flag", "best error"]
         return _text_table([*headers, "notes"], rows)
 
+    def kernels_line(self) -> str:
+        """Which stepping kernel measured which integrators, in one line ("" when no run says)."""
+        reasons = self.metadata.get("why_not_native", {})
+        groups: dict[tuple[str, str], list[str]] = {}
+        for name in self.integrators():
+            ran = {m.kernel for m in self.measurements if m.integrator == name and m.kernel}
+            why = str(reasons.get(name, "")).replace(f"integrator '{name}'", "the integrator")
+            for kernel in sorted(ran):
+                groups.setdefault((kernel, "" if kernel == "native" else why), []).append(name)
+        if not groups:
+            return ""
+        parts = [
+            f"{kernel} for {', '.join(names)}" + (f" (not native: {why})" if why else "")
+            for (kernel, why), names in groups.items()
+        ]
+        return "kernel measured (the one each run takes): " + "; ".join(parts)
+
     def summary(self, tolerances: Sequence[float] = (1e-2, 1e-4, 1e-6, 1e-8)) -> str:
         """What the `bench` command prints: the reference, the orders and the recommendations."""
         lines = [
@@ -441,6 +464,9 @@ class WorkPrecision:
                     f"error {r.error:.1e} (a contact scene is not smooth: it has no higher-order reference, so the "
                     "reference is the same integrator at a much smaller step)"
                 )
+        kernels = self.kernels_line()
+        if kernels:
+            lines.append(kernels)
         lines += ["", self.orders_table(), ""]
         done = [m for m in self.measurements if m.completed]
         if done and all(m.below_reference for m in done):
@@ -762,6 +788,7 @@ class _Study:
             m.status, m.message = exc.status, str(exc).splitlines()[0]
             partial = exc.trajectory
             if partial is not None:
+                m.kernel = str(partial.metadata.get("kernel", ""))
                 m.steps = int(partial.stats.get("steps", 0))
                 m.evaluations = int(partial.stats.get("evaluations", 0))
                 m.wall_time = float(partial.stats.get("wall_time", math.nan))
@@ -769,6 +796,10 @@ class _Study:
             return m
         m.cpu_times = [time.process_time() - start]
         m.wall_times = [float(traj.stats["wall_time"])]
+        m.kernel = str(traj.metadata.get("kernel", ""))
+        why = traj.metadata.get("why_not_native")
+        if why:
+            self.result.metadata.setdefault("why_not_native", {})[method.name] = str(why)
         # Repeat only short runs: their timing is the noisiest, and repeating them costs little.
         while len(m.cpu_times) < self.repeats and sum(m.cpu_times) < REPEAT_BELOW:
             start = time.process_time()
@@ -982,8 +1013,8 @@ class Choice:
             f"tolerance {self.tolerance:g} over the first {self.horizon:g} s: chose {m.integrator}, {m.settings()} "
             f"({source}: error {m.error:.2e} + reference {self.study.reference_error:.0e}, "
             f"max |energy_error| {m.energy_error:.2e} J, {m.evaluations} dynamics evaluations, "
-            f"{m.cpu_time:.3g} s CPU; cheapest of {len(ran)} runs of {len({r.integrator for r in ran})} integrators)"
-            + self._reference_note()
+            f"{m.cpu_time:.3g} s CPU on the {m.kernel or 'unrecorded'} kernel; cheapest of {len(ran)} runs of "
+            f"{len({r.integrator for r in ran})} integrators)" + self._reference_note()
         )
 
     def _reference_note(self) -> str:
@@ -1022,8 +1053,9 @@ def choose_integrator(
 
     The pilot is a pruned work_precision study whose ladders stop at min(tolerance, PILOT_MIN_ERROR). It is
     cached in `cache_dir` (default default_cache_dir()/pilot) under a key made of how the system was loaded
-    (load_robot arguments and the URDF's SHA-256), the initial state, the horizon and the integrator set; an
-    entry is reused when its ladders went down to the tolerance asked for, and an unreadable entry is rebuilt.
+    (load_robot arguments and the URDF's SHA-256), the initial state, the horizon, the integrator set and the
+    kernel each integrator runs on (native or Python: the costs differ, so does the choice); an entry is reused
+    when its ladders went down to the tolerance asked for, and an unreadable entry is rebuilt.
 
     Raises:
         InvalidArgumentError: a bad argument, or no measured configuration meets the tolerance (the message
@@ -1081,8 +1113,11 @@ def choose_integrator(
 
 
 def _cache_key(system: Robot, q0: np.ndarray, v0: np.ndarray, horizon: float, names: list[str] | None) -> str:
-    """SHA-256 of everything a pilot study depends on (floats by repr, which round-trips exactly)."""
+    """SHA-256 of everything a pilot study depends on (floats by repr, which round-trips exactly), the kernel each
+    integrator runs on included: costs measured on the Python kernel must not choose for a native run, nor the
+    reverse."""
     source = dict(getattr(system, "source", {}))
+    methods = INTEGRATORS.values() if names is None else [get_integrator(n) for n in names]
     content = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -1091,6 +1126,7 @@ def _cache_key(system: Robot, q0: np.ndarray, v0: np.ndarray, horizon: float, na
         "v0": [repr(float(x)) for x in v0],
         "horizon": repr(horizon),
         "integrators": "all" if names is None else sorted(names),
+        "kernels": {m.name: "python" if why_not_native(system, m) else "native" for m in methods},
         "versions": dict(versions()),
         "study": [
             OUTPUT_DT,

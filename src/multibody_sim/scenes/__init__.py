@@ -122,9 +122,10 @@ def make_scene(**tables: Any) -> Scene:
 def scene_from_metadata(scene: dict[str, Any], *, allowed_roots: list[str | os.PathLike[str]] | None = None) -> Scene:
     """Rebuild the Scene a trajectory was computed with, from its metadata's ``robot.scene`` entry.
 
-    A trajectory may come from a stranger: the scene's robot file and package_dirs must lie in its recorded folder
-    or the catalog's, as for load_scene; the folders allowed when it was recorded are not trusted from the file,
-    only `allowed_roots` (the CLI's `play --allow-root`).
+    A trajectory may come from a stranger: the scene's robot file and package_dirs must lie in the catalog's
+    folders, or in the scene's recorded folder while that folder still holds the recorded scene file unchanged, as
+    for load_scene; the folders allowed when it was recorded are not trusted from the file, only `allowed_roots`
+    (the CLI's `play --allow-root`).
 
     Raises:
         SceneError: the trajectory was made from a scene built in Python (no TOML text was kept), or its scene
@@ -148,5 +149,21 @@ def scene_from_metadata(scene: dict[str, Any], *, allowed_roots: list[str | os.P
         raise SceneError(f"{scene.get('source', '<scene>')}: stored scene text is not TOML ({exc})") from None
     spec = parse_scene(data, str(scene.get("source", "<scene>")), base_dir=Path(base_dir) if base_dir else None)
     roots = folder_list("allowed_roots", allowed_roots)
-    check_scene_roots(spec, roots)
+    # The recorded folder is the file's say: trusted only while it holds the recorded scene file, unchanged (then
+    # the user has that scene; a stranger's trajectory cannot name a folder of theirs as the scene's).
+    trusted = spec if _recorded_scene_file(scene, text) else dataclasses.replace(spec, base_dir=None)
+    check_scene_roots(trusted, roots)
     return Scene(dataclasses.replace(spec, text=text, allowed_roots=tuple(str(r) for r in roots)))
+
+
+def _recorded_scene_file(scene: dict[str, Any], text: str) -> bool:
+    """Whether the recorded base_dir holds the recorded scene file with the recorded text."""
+    base_dir, source = scene.get("base_dir"), scene.get("source")
+    if not isinstance(base_dir, str) or not isinstance(source, str) or not base_dir:
+        return False
+    path = Path(base_dir) / Path(source).name
+    try:
+        with open(path, "rb") as stream:
+            return stream.read(len(text.encode()) + 1) == text.encode()
+    except OSError:
+        return False

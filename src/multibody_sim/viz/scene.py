@@ -20,6 +20,7 @@ import pinocchio as pin
 from ..catalog import CATALOG, catalog_urdf, derived_urdf
 from ..exceptions import InvalidArgumentError, ModelError, UnknownNameError
 from ..robot import Robot
+from ..safety import printable
 from ..validation import check_system, check_text
 from ._deps import ViewerWarning, require
 from .meshes import MeshPart, geometry_parts, skeleton_parts
@@ -82,8 +83,8 @@ class RobotScene:
             if not self.notes:
                 self.notes.append(f"{robot.name}: the URDF has no visual geometry; drawing a skeleton of its joints")
             visuals = self._skeleton()
-        for note in self.notes:
-            warnings.warn(note, MissingVisualsWarning, stacklevel=2)
+        for note in self.notes:  # they quote names and mesh paths from the URDF: escaped for any terminal
+            warnings.warn(printable(note), MissingVisualsWarning, stacklevel=2)
         # A contact scene's objects and declared collision geometry move with their bodies; the ground is a fixture
         # (drawn, never framed by the camera: it would shrink the robot to a dot).
         self.fixtures: list[_Visual] = []
