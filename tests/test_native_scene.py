@@ -294,3 +294,22 @@ def test_why_a_scene_is_not_native(monkeypatch):
     assert "constraints" in why_not_native(ms.load_scene("ur5_pinned_tool"), RK4)
     assert "mimic" in why_not_native(ms.load_scene("panda_mimic"), RK4)
     assert native_core._scene_reason(ms.load_scene("panda_payload")) is None
+
+
+def test_a_native_controller_output_that_is_not_finite_fails_as_on_python(monkeypatch):
+    robot = ms.load_robot("ur5")
+    q0, v0 = robot.default_pose(), np.zeros(robot.nv)
+    v0[2] = 1e300  # kd · v overflows: the output is not a torque
+
+    def run():
+        with pytest.raises(ms.ControllerOutputError) as caught:
+            ms.simulate(robot, q0, v0, duration=0.01, dt=1e-3, controller=PD(robot, q0, kp=1.0, kd=1e10),
+                        progress=False)  # fmt: skip
+        return caught.value
+
+    a, b = both(run, monkeypatch)
+    assert str(a) == str(b) == "controller output at t = 0 s: tau must be finite, got non-finite entries at indices [2]"
+    assert a.status == b.status == "failed"
+    for name in ("t", "q", "v"):
+        np.testing.assert_array_equal(getattr(a.trajectory, name), getattr(b.trajectory, name))
+    assert a.trajectory.stats == {**b.trajectory.stats, "wall_time": a.trajectory.stats["wall_time"]}

@@ -669,8 +669,10 @@ class Run:
                 outcome.status, outcome.message, outcome.cause = stop.status, stop.message, stop.cause
                 outcome.bad_output = stop.bad_output
                 outcome.counts = self._core_counts(b)
-                if stop.added and not np.isfinite(store.ENERGY[stop.sample, b]).all():
-                    store.truncate(b, stop.sample)  # only finite samples are kept; the stop's reason stands
+                # only finite samples are kept; the stop's reason stands (a refused controller output keeps the state
+                # it was given, as _control does)
+                if stop.added and not stop.bad_output and not np.isfinite(store.ENERGY[stop.sample, b]).all():
+                    store.truncate(b, stop.sample)
         self._show(rows)
         self.checked = store.count
 
