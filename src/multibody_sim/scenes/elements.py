@@ -248,6 +248,7 @@ class ForceElements:
         }
         self._other_wrenches = [k for k in range(len(self._wrenches)) if k not in self._pushes]
         self._wrench_forces_of: dict[int, np.ndarray] = {}  # per number of rows: each wrench's unscaled Jᵀw
+        self._jacobians_of: dict[int, np.ndarray] = {}  # per number of rows: the frame Jacobians behind them
         self._model_g0: pin.Model | None = None  # built on the first jacobians() call with wrenches
 
     # ---- the hot path ---------------------------------------------------------------------------------
@@ -320,17 +321,23 @@ class ForceElements:
         others = self._other_wrenches
         if others:
             model, data = self._model, self._data
-            for b, q in enumerate(Q):
+            jacobians = self._jacobians_of.get(n)  # each other wrench's frame Jacobian per row, (n_others, n, 6, nv)
+            if jacobians is None:
+                if len(self._jacobians_of) >= 8:
+                    del self._jacobians_of[next(iter(self._jacobians_of))]
+                jacobians = self._jacobians_of[n] = np.zeros((len(others), n, 6, self.nv))
+            for b, q in enumerate(Q):  # J is (6, nv), but flat (6,) when nv = 1
                 if len(others) == 1:  # kinematics along the frame's support only: cheaper than all joints
                     k = others[0]
                     J = pin.computeFrameJacobian(model, data, q, self._wrenches[k].frame_id, self._refs[k])
-                    # wᵀJ in a fixed order (the native kernel's); J is (6, nv), but flat (6,) when nv = 1
-                    ordered_sum(self._w6[k], J.reshape(6, -1), out=forces[k, b])
+                    jacobians[0, b] = J.reshape(6, -1)
                     continue
                 pin.computeJointJacobians(model, data, q)  # one kinematics pass for every wrench
-                for k in others:
+                for m, k in enumerate(others):
                     J = pin.getFrameJacobian(model, data, self._wrenches[k].frame_id, self._refs[k])
-                    ordered_sum(self._w6[k], J.reshape(6, -1), out=forces[k, b])
+                    jacobians[m, b] = J.reshape(6, -1)
+            for m, k in enumerate(others):  # wᵀJ of every row, in a fixed order (the native kernel's)
+                ordered_sum(self._w6[k], jacobians[m], axis=1, out=forces[k])
         for k, scale in self._scaled:
             self._scales[k] = scale(t)
         return forces
