@@ -448,7 +448,7 @@ def scene_report(name: str, costs: dict[str, tuple[float, float, float, float]],
         "",
         para(f"""A scene's physics runs elementwise over the batch (one code path for one row and many). rollout
         of {name} with springs, viscous damping and Coulomb friction on every joint, then with a world-frame force
-        at the tool added (batched as a point mass's gravity: one rneaInParallel per stage), or instead a force and
+        at the tool added (as a point mass's gravity: one RNEA per row and stage), or instead a force and
         torque fixed in the tool's frame (a frame Jacobian per row and stage), against the bare robot, output
         every 10 steps; CPU µs per state-step, ratios as medians of per-round ratios (IQR in brackets). The
         kernel is the one the run takes (native where eligible)."""),

@@ -3,12 +3,14 @@ choice (MULTIBODY_SIM_NATIVE, --version) and the version pin."""
 
 from __future__ import annotations
 
+import importlib
 import importlib.metadata
 import importlib.util
 import os
 import re
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -124,6 +126,25 @@ def test_an_extension_built_against_another_pinocchio_is_refused_with_one_line(m
     assert why == (
         f"the C++ extension was built against Pinocchio {built} but Pinocchio 4.0.9 is "
         "installed (no ABI promise across versions): reinstall multibody-sim"
+    )
+
+
+@pytest.mark.skipif(not BUILT, reason="the C++ extension is not built here")
+def test_an_extension_built_without_the_kernel_is_refused_with_one_line(monkeypatch):
+    """A stale build (an editable install whose sources gained the kernel since) runs the Python kernel and
+    says why, instead of failing inside the first run."""
+    real = importlib.import_module
+
+    def without_kernel(name: str, *args: object) -> object:
+        module = real(name, *args)
+        if name.endswith("._native"):
+            return types.SimpleNamespace(**{k: v for k, v in vars(module).items() if k != "Kernel"})
+        return module
+
+    monkeypatch.setattr(importlib, "import_module", without_kernel)
+    assert native._load() == (
+        None,
+        "the C++ extension was built without the stepping kernel: reinstall multibody-sim",
     )
 
 

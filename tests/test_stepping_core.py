@@ -121,8 +121,10 @@ def test_stepper_and_rollout_give_simulates_samples_at_every_control_instant(sys
         np.testing.assert_allclose(first.ledger[name_].energy, entry.energy, rtol=1e-13, atol=1e-13)
 
 
-def test_a_scene_with_springs_friction_and_a_wrench_batches(systems) -> None:
-    """Scenes take the batch kernel too (no more element by element): the metadata names the kernel."""
+def test_a_scene_with_springs_friction_and_a_wrench_batches(systems, monkeypatch) -> None:
+    """Scenes take the batch kernel too (no more element by element): the metadata names the kernel. (The native
+    kernel takes them where it is built: tests/test_native_scene.py; here the Python kernels.)"""
+    monkeypatch.setenv("MULTIBODY_SIM_NATIVE", "0")
     scene = systems["scene"]
     Q0 = np.array([start(scene, s)[0] for s in range(4)])
     batch = ms.rollout(scene, Q0, np.zeros((4, scene.nv)), duration=0.01, dt=DT)

@@ -49,6 +49,7 @@ class RowStop:
     sample: int
     added: bool
     cause: BaseException | None = None
+    bad_output: bool = False  # "failed" on a controller output that is not a torque (native controllers)
 
 
 class Kernel(Protocol):

@@ -542,6 +542,11 @@ class Run:
         self.monitor = Monitor(system, B)
         self.saturation = Saturation(system, B)
         self.controller_calls = np.zeros(B, dtype=np.int64)
+        # Built-in controllers and open-loop torques run inside the native kernel, at its control instants (no
+        # return to Python per instant); the counts land in controller_calls and saturation.
+        self.native_control = isinstance(kernel, NativeKernel) and kernel.control_natively(
+            torques, settings, self.saturation, self.controller_calls
+        )
         self.outcomes = [RowOutcome() for _ in range(B)]
         self.checked = 0  # samples of the running rows the monitor has seen
         self.wall_time = 0.0
@@ -568,11 +573,12 @@ class Run:
 
     def _loop(self) -> None:
         settings, core, torques = self.settings, self.core, self.torques
-        controlled = torques.kind != "none"
+        controlled = torques.kind != "none" and not self.native_control  # natively: the kernel's own instants
         every_step = controlled and settings.adaptive and settings.control_dt is None
         # Control instants: where a controller is called, and where adaptive steps land (given control_dt) even
         # without one.
-        instants = not every_step and (controlled or (settings.adaptive and settings.control_dt is not None))
+        instants = not every_step and not self.native_control
+        instants = instants and (controlled or (settings.adaptive and settings.control_dt is not None))
         instant = 0  # the next control instant's number
         target = settings.control_instant(0) if instants else settings.duration
         passed = math.nan  # the time of the latest control instant
@@ -661,9 +667,12 @@ class Run:
             if stop is not None:
                 outcome = self.outcomes[b]
                 outcome.status, outcome.message, outcome.cause = stop.status, stop.message, stop.cause
+                outcome.bad_output = stop.bad_output
                 outcome.counts = self._core_counts(b)
-                if stop.added and not np.isfinite(store.ENERGY[stop.sample, b]).all():
-                    store.truncate(b, stop.sample)  # only finite samples are kept; the stop's reason stands
+                # only finite samples are kept; the stop's reason stands (a refused controller output keeps the state
+                # it was given, as _control does)
+                if stop.added and not stop.bad_output and not np.isfinite(store.ENERGY[stop.sample, b]).all():
+                    store.truncate(b, stop.sample)
         self._show(rows)
         self.checked = store.count
 

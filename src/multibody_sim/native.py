@@ -44,6 +44,10 @@ def _load() -> tuple[ModuleType | None, str | None]:
         extension = importlib.import_module(f"{__package__}._native")
     except ImportError as exc:
         return None, f"the C++ extension does not load: {exc}"
+    if not hasattr(extension, "Kernel"):  # an older build of the sources (e.g. an editable install not rebuilt)
+        return None, "the C++ extension was built without the stepping kernel: reinstall multibody-sim"
+    if not hasattr(extension, "SceneForces"):  # ... built before the scenes' elements joined it (scene.cpp)
+        return None, "the C++ extension was built without the scenes' elements: reinstall multibody-sim"
     return extension, None
 
 

@@ -19,11 +19,13 @@ import numpy as np
 
 from . import native
 from .core import EMPTY, FULL, REACHED, STEPPED, Core, KernelAttempt, RowStop, collapsed_message, diverged_message
+from .exceptions import InvalidArgumentError
 from .integrators import INTEGRATORS, Integrator
 from .integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
 from .integrators.partitioned import SemiImplicitEuler
 from .recording import SampleStore
 from .robot import Robot
+from .scenes.scene import Scene
 from .state import _HALF_SERIES
 from .step_control import LANDING_FRACTION, SLIVER, ConstantStep, PIController
 
@@ -38,7 +40,7 @@ NATIVE_METHODS = {
 BUDGET_SECONDS = 0.03
 _STATUSES = (REACHED, STEPPED, FULL, EMPTY)
 _NEED_ROOM = 4
-_DIVERGED, _COLLAPSED = 1, 2
+_DIVERGED, _COLLAPSED, _CONTROL = 1, 2, 3
 
 
 def why_not_native(system: Any, method: Integrator) -> str | None:
@@ -48,16 +50,40 @@ def why_not_native(system: Any, method: Integrator) -> str | None:
         return f"{native.ENV}=0"
     if not native.available:
         return native.why_unavailable
-    if type(system) is not Robot:
-        return "a scene's physics runs on the Python kernel"
     if type(method) not in NATIVE_METHODS or INTEGRATORS.get(method.name) is not method:
         return f"integrator '{method.name}' is not an explicit method of the registry"
-    if system.record_fields:
+    if type(system) is Scene:
+        reason = _scene_reason(system)
+        if reason is not None:
+            return reason
+    elif type(system) is not Robot:
+        return f"the system is a {type(system).__name__}, not a Robot or a Scene"
+    elif system.record_fields:
         return "the system records fields per sample"
     replaced = [name for name in _SYSTEM_HOOKS if name in vars(system)]
     replaced += [f"space.{name}" for name in _SPACE_HOOKS if name in vars(system.space)]
     if replaced:  # e.g. a test or a study that wraps the dynamics: the engine would not call it
         return f"the system's {', '.join(replaced)} replaced in Python"
+    return None
+
+
+def _scene_reason(scene: Scene) -> str | None:
+    """Why the native kernel cannot render this scene's physics (constraints, contact, mimic joints, a force whose
+    shape is Python code), or None."""
+    if scene.contact is not None:
+        return "the scene has contact (the timestepping integrator's)"
+    if scene.constraints is not None:
+        return f"the scene has constraints ({', '.join(scene.constraints.names)}), which run on the Python kernel"
+    if scene.mimic:
+        return "the scene honours mimic joints (forward dynamics by CRBA), which run on the Python kernel"
+    elements = scene.elements
+    if elements is not None:
+        reason = elements.native_reason()
+        if reason is not None:
+            return reason
+        replaced = [name for name in ("evaluate", "powers", "potential_energies") if name in vars(elements)]
+        if replaced:
+            return f"the scene's elements.{', elements.'.join(replaced)} replaced in Python"
     return None
 
 
@@ -143,6 +169,8 @@ class NativeKernel:
         self._start = (0.0, 0)  # (t, k) until the engine exists
         self.engine: Any = None
         self.method_data = method_data(method)
+        self.torques: Any = None  # native control: the driver's Torques (the Python controllers, for messages)
+        self._keep: tuple[Any, ...] = ()  # arrays the engine writes or reads for the run
 
     def bind(self, control: ConstantStep | PIController) -> None:
         """Make the engine for this controller."""
@@ -197,6 +225,42 @@ class NativeKernel:
             self.num_threads,
         )
         self.engine.t, self.engine.k = self._start
+        elements = getattr(system, "elements", None)
+        if elements is not None:  # a Scene's force elements (why_not_native said they render)
+            data = elements.native_data(native.load_model)
+            self.engine.set_scene(
+                native.module.SceneForces(  # type: ignore[union-attr]
+                    native.load_model(system.model),
+                    data["zero_all"],
+                    data["inv_vs"],
+                    data["springs"],
+                    data["circular"],
+                    data["damped"],
+                    data["rough"],
+                    data["ledger_damped"],
+                    data["ledger_rough"],
+                    data["wrenches"],
+                    data["push_models"],
+                    data["energies"],
+                )
+            )
+
+    def control_natively(self, torques: Any, settings: Any, saturation: Any, calls: np.ndarray) -> bool:
+        """Hand the run's torques to the engine when it renders them (native_policies): it then computes them at its
+        own control instants, counted into `calls` and `saturation`'s arrays. Returns whether it does."""
+        policies = native_policies(self.system, torques, settings)
+        if policies is None:
+            return False
+        taus = policies.pop("taus")
+        self.engine.set_policies(
+            native.module.Policies(taus=taus, **policies),  # type: ignore[union-attr]
+            calls,
+            saturation.calls,
+            saturation.dofs,
+        )
+        self.torques = torques
+        self._keep = (taus, calls, saturation.calls, saturation.dofs)
+        return True
 
     # ---- the Kernel interface (core.py) ----------------------------------------------------------------------------
     @property
@@ -281,9 +345,68 @@ class NativeKernel:
         raise AssertionError("the native kernel writes its dense output itself")  # pragma: no cover
 
 
+def native_policies(system: Any, torques: Any, settings: Any) -> dict[str, Any] | None:
+    """The run's torques as _native.Policies takes them, when the engine renders them: open-loop sequences (taus), or
+    one built-in controller per row (PD, GravityCompensation, PDGravity, made for this very system); else None (a
+    Python controller, called by the driver at its control instants)."""
+    from .controllers import PD, GravityCompensation, PDGravity
+
+    nv, actuated = system.nv, system.actuated
+    n = actuated.stop - actuated.start
+    rows: list[tuple[Any, ...]] = []
+    taus = np.zeros((0, 0, 0))
+    if torques.kind == "taus":
+        taus = np.ascontiguousarray(torques.taus, dtype=float)
+    elif torques.kind == "callables":
+        for controller in torques.callables:
+            kind = type(controller)
+            if kind not in (PD, GravityCompensation, PDGravity) or "__call__" in vars(controller):
+                return None
+            if controller.robot is not system:
+                return None
+            if kind is GravityCompensation:
+                if controller._model is not system.model or controller._a != actuated:
+                    return None
+                rows.append((1, system.neutral(), np.zeros(nv), np.zeros(n), np.zeros(n)))
+                continue
+            pd = controller if kind is PD else controller.pd
+            if kind is PDGravity and (
+                type(pd) is not PD
+                or type(controller.gravity) is not GravityCompensation
+                or "__call__" in vars(pd)
+                or "__call__" in vars(controller.gravity)
+                or controller.gravity._model is not system.model
+                or controller.gravity._a != actuated
+            ):
+                return None
+            if pd._model is not system.model or pd._a != actuated:
+                return None
+            rows.append((0 if kind is PD else 2, pd.q_ref, pd.v_ref, pd.kp, pd.kd))
+    else:
+        return None
+    limited = np.isfinite(system.effort_limit)
+    adaptive = bool(settings.adaptive)
+    return {
+        "nv": nv,
+        "a_start": actuated.start,
+        "a_stop": actuated.stop,
+        "rows": rows,
+        "taus": taus,
+        "effort": np.array(system.effort_limit, dtype=float),
+        "saturate": bool(limited.any()),
+        "adaptive": adaptive,
+        "every_step": adaptive and settings.control_dt is None,
+        "dt": float(settings.dt),
+        "duration": float(settings.duration),
+        "period": float(settings.control_dt) if settings.control_dt is not None else 0.0,
+        "every": int(settings.control_every),
+        "n_steps": int(settings.n_steps),
+    }
+
+
 def store_arrays(store: SampleStore) -> tuple[np.ndarray, ...]:
     """The store's arrays as the engine takes them (the store may have grown since the last call)."""
-    return store.T, store.Q, store.V, store.TAU, store.ENERGY, store.FLOWS, store.COUNTS
+    return store.T, store.Q, store.V, store.TAU, store.ENERGY, store.FLOWS, store.COUNTS, store.EXTRA
 
 
 class NativeCore(Core):
@@ -327,6 +450,18 @@ class NativeCore(Core):
                 continue  # the budget, not the caller's limit: Python runs here (signals), then the engine again
             return reason
 
+    def _control_failure(self, row: int, t: float) -> InvalidArgumentError:
+        """Why row `row`'s native controller output at t was refused: its Python controller's output at the row's
+        state, checked as the driver checks it (driver.check_torque)."""
+        from .driver import check_torque
+
+        q, v = self.kernel.engine.snapshot_row(row)[:2]
+        try:
+            check_torque(self.system, self.kernel.torques.callables[row](t, q, v), t)
+        except InvalidArgumentError as exc:
+            return exc
+        return InvalidArgumentError(f"controller output at t = {t:.6g} s: tau must be finite")
+
     def take_stops(self) -> list[RowStop]:
         self._take_pending()
         return super().take_stops()
@@ -336,14 +471,20 @@ class NativeCore(Core):
         counts and last samples, as Core._note_stops and Core.stop record them. Each is taken whole or again."""
         while self._pending:
             code, row, when, step, dof, count, added, steps, rejected, evaluations, h, minimum, error = self._pending[0]
+            cause: BaseException | None = None
             if code == _DIVERGED:
                 status, message = "diverged", diverged_message(self.system, when, step, dof, self.dt_hint)
+            elif code == _CONTROL:
+                status, cause = "failed", self._control_failure(row, when)
+                message = str(cause)
             else:
                 status = "step_collapsed"
                 norm = None if math.isnan(error) else error
                 message = collapsed_message(self.system, when, step, h, minimum, norm)
             if row in self.rows:
-                self.stops.append(RowStop(int(row), status, message, when, count + added - 1, bool(added)))
+                self.stops.append(
+                    RowStop(int(row), status, message, when, count + added - 1, bool(added), cause, cause is not None)
+                )
                 self.stopped_counts[row] = (steps, rejected, evaluations)
                 self.store.stop(np.array([row]), bool(added), count=count)
                 keep = self.rows != row

@@ -50,6 +50,9 @@ namespace multibody_sim
     RowMatrix K;  // stage derivatives (xi', v', ledger power), one row per stage
     Vec y, applied, acc, dv, xi, vs, qs, inc, chart_y, chart_t, q_last, v_last, size, diff, q_finite, yd, qd, vd;
     RowMatrix H, F;
+    std::unique_ptr<SceneWork> sw;   // a scene's workspace (set_scene)
+    std::unique_ptr<PolicyWork> pw;  // the native controllers' (set_policies)
+    Vec fx, pbuf, tau_control;
     bool dense_ready = false;
     int extra_evaluations = 0;
     CoreState st;
@@ -89,19 +92,36 @@ namespace multibody_sim
       size = Vec::Zero(2 * nv);
       H = RowMatrix::Zero(6, 6);
       F = RowMatrix::Zero(7, w);
+      fx = tau_control = Vec::Zero(nv);
+      pbuf = Vec::Zero(std::max(m, 1));
     }
 
-    // ---- the dynamics of a stage: Robot.unchecked_forward_dynamics and Robot.ledger_power ----------------------
-    void evaluate(const Vec & qx, const Vec & vx, const Vec & tx, int stage)
+    // ---- the generalized forces ABA is given: Robot (tau - D v) or Scene._applied (tau + f(q, v, t) - D v) ------
+    void applied_at(const Vec & qx, const Vec & vx, const Vec & tx, double ts)
     {
-      const pinocchio::Model & model = e.model_;
-      if (e.damped_)
+      if (e.scene_)
+      {
+        e.scene_->forces(*sw, e.model_, qx, vx, ts, fx);
+        for (int i = 0; i < nv; ++i)
+          applied[i] = tx[i] + fx[i];
+        if (e.damped_)
+          for (int i = 0; i < nv; ++i)
+            applied[i] = applied[i] - e.damping_[i] * vx[i];
+      }
+      else if (e.damped_)
       {
         for (int i = 0; i < nv; ++i)
           applied[i] = tx[i] - e.damping_[i] * vx[i];
       }
       else
         applied = tx;
+    }
+
+    // ---- the dynamics of a stage: Robot.unchecked_forward_dynamics and Robot.ledger_power ----------------------
+    void evaluate(const Vec & qx, const Vec & vx, const Vec & tx, int stage, double ts)
+    {
+      const pinocchio::Model & model = e.model_;
+      applied_at(qx, vx, tx, ts);
       const Vec & a = pinocchio::aba(
         model, data, ConstRef(qx), ConstRef(vx), ConstRef(applied), pinocchio::Convention::WORLD);
       double * row = K.row(stage).data();
@@ -123,6 +143,8 @@ namespace multibody_sim
           d += vx[i] * (e.damping_[i] * vx[i]);
         out[1] = d;
       }
+      if (e.scene_)  // Scene.ledger_power: the elements' powers after the robot's
+        e.scene_->powers(*sw, vx, out + e.n_robot_flows_);
     }
 
     // ---- ConfigurationSpace.chart_velocity: Σ c_n Hⁿ v by Horner's rule on each curved block -------------------
@@ -166,8 +188,8 @@ namespace multibody_sim
     }
 
     // ---- explicit_rk._fill_stages: stages start..stop-1 from the rows before them ------------------------------
-    void fill_stages(
-      int start, int stop, const double * a, int lda, const Vec & q0, const Vec & v0, const Vec & tx, double h)
+    void fill_stages(int start, int stop, const double * a, const double * c, int lda, const Vec & q0,
+                     const Vec & v0, const Vec & tx, double h, double t)
     {
       const bool flat = e.blocks_.empty();
       for (int i = start; i < stop; ++i)
@@ -192,7 +214,7 @@ namespace multibody_sim
             row[r] = vs[r];
         else
           chart_velocity(xi, vs, row);
-        evaluate(qs, vs, tx, i);
+        evaluate(qs, vs, tx, i, t + c[i] * h);
       }
     }
 
@@ -209,29 +231,30 @@ namespace multibody_sim
     }
 
     // ---- ExplicitRungeKutta.attempt / SemiImplicitEuler.attempt on row j: the pending state in qn, vn, fn -------
-    int attempt_fixed(size_t j, double h)
+    int attempt_fixed(size_t j, double h, double t)
     {
       const Method & me = e.method_;
       const Vec &qj = q[j], &vj = v[j], &tj = tau[j];
       if (me.kind == Kind::semi_implicit_euler)
       {
-        evaluate_acceleration(qj, vj, tj);
+        evaluate_acceleration(qj, vj, tj, t);
         for (int i = 0; i < nv; ++i)
           vn[j][i] = vj[i] + h * acc[i];
         for (int i = 0; i < nv; ++i)
           dv[i] = h * vn[j][i];
         pinocchio::integrate(e.model_, qj, dv, qn[j]);
-        double p[2];
-        power(vn[j], tj, p);
+        if (e.scene_ && !e.scene_->wrenches.empty())  // Scene.ledger_power at a new point: the wrenches' parts there
+          e.scene_->forces(*sw, e.model_, qn[j], vn[j], t + h, fx);
+        power(vn[j], tj, pbuf.data());
         for (int i = 0; i < m; ++i)
-          fn[j][i] = h * p[i];
+          fn[j][i] = h * pbuf[i];
         return 1;
       }
       const int s = me.stages;
       for (int r = 0; r < nv; ++r)
         K(0, r) = vj[r];
-      evaluate(qj, vj, tj, 0);
-      fill_stages(1, s, me.a.data(), s, qj, vj, tj, h);
+      evaluate(qj, vj, tj, 0, t);
+      fill_stages(1, s, me.a.data(), me.c.data(), s, qj, vj, tj, h, t);
       combine(me.b.data(), s, h, inc);
       for (int r = 0; r < nv; ++r)
       {
@@ -244,21 +267,15 @@ namespace multibody_sim
       return s;
     }
 
-    void evaluate_acceleration(const Vec & qx, const Vec & vx, const Vec & tx)
+    void evaluate_acceleration(const Vec & qx, const Vec & vx, const Vec & tx, double t)
     {
-      if (e.damped_)
-      {
-        for (int i = 0; i < nv; ++i)
-          applied[i] = tx[i] - e.damping_[i] * vx[i];
-      }
-      else
-        applied = tx;
+      applied_at(qx, vx, tx, t);
       acc = pinocchio::aba(
         e.model_, data, ConstRef(qx), ConstRef(vx), ConstRef(applied), pinocchio::Convention::WORLD);
     }
 
     // ---- AdaptiveRungeKutta.attempt on row 0: the error norm; the pending state in qn, vn, fn -------------------
-    double attempt_adaptive(double h, int & evaluations)
+    double attempt_adaptive(double h, double t, int & evaluations)
     {
       const Method & me = e.method_;
       const Control & ctl = e.control_;
@@ -271,8 +288,8 @@ namespace multibody_sim
         for (int col = nv; col < w; ++col)
           K(0, col) = first[j][col];
       else
-        evaluate(qj, vj, tj, 0);
-      fill_stages(1, s, me.a.data(), s, qj, vj, tj, h);
+        evaluate(qj, vj, tj, 0, t);
+      fill_stages(1, s, me.a.data(), me.c.data(), s, qj, vj, tj, h, t);
       combine(me.b.data(), s, h, inc);
       if (me.fsal)
       {
@@ -342,7 +359,7 @@ namespace multibody_sim
     }
 
     // ---- dense output at t + θh of the pending step of row 0 (EmbeddedRungeKutta / DormandPrince853) -----------
-    void dense(double h, double theta)
+    void dense(double h, double t, double theta)
     {
       const Method & me = e.method_;
       const size_t j = 0;
@@ -352,7 +369,8 @@ namespace multibody_sim
       {
         if (!dense_ready)
         {
-          fill_stages(s, me.extended_stages, me.a_extended.data(), me.extended_stages, qj, vj, tau[j], h);
+          fill_stages(s, me.extended_stages, me.a_extended.data(), me.c_extended.data(), me.extended_stages, qj, vj,
+                      tau[j], h, t);
           extra_evaluations = me.extended_stages - s;
           combine(me.b.data(), s, h, yd);  // delta
           for (int col = 0; col < w; ++col)
@@ -424,7 +442,9 @@ namespace multibody_sim
       std::copy(tx.data(), tx.data() + nv, store.TAU + at * nv);
       std::copy(fl, fl + m, store.FLOWS + at * m);
       const double kinetic = pinocchio::computeKineticEnergy(e.model_, data, qx, vx);
-      const double potential = pinocchio::computePotentialEnergy(e.model_, data);
+      double potential = pinocchio::computePotentialEnergy(e.model_, data);
+      if (e.scene_ && e.scene_->n_records())  // Scene.unchecked_energies and unchecked_record: the springs'
+        potential = potential + e.scene_->spring_energy(qx, store.EXTRA + at * store.extra_width);
       store.ENERGY[at * 2] = kinetic;
       store.ENERGY[at * 2 + 1] = potential;
     }
@@ -607,18 +627,77 @@ namespace multibody_sim
     }
 
     // ---- Core.advance over this thread's rows --------------------------------------------------------------
+    // driver.Run._control at a control instant, natively: every running row's torque from the policies, counted
+    // and saturated; a row whose output is not finite stops (STOP_CONTROL). Returns false when the store needs room.
+    bool control(const Store & store)
+    {
+      const Policies & pol = *e.policies_;
+      if (st.count + 1 > store.capacity)  // a failing row's last sample
+      {
+        res.status = NEED_ROOM;
+        res.need = 1;
+        return false;
+      }
+      for (size_t j = 0; j < rows.size(); ++j)
+      {
+        if (!alive[j])
+          continue;
+        const int64_t b = rows[j];
+        e.calls_[b] += 1;
+        if (!pol.torque(*pw, e.model_, b, st.instant, q[j], v[j], tau_control))
+        {
+          const std::vector<size_t> js{j};
+          const bool added = record_stopping(store, js);
+          stop_event(STOP_CONTROL, j, st.t, added, st.steps);
+          kill(j);
+          continue;
+        }
+        bool clipped = false;
+        pol.clip(tau_control, e.saturated_dofs_ + b * nv, clipped);
+        if (clipped)
+          e.saturated_[b] += 1;
+        tau[j] = tau_control;
+        has_first[j] = 0;  // a torque given at a control instant is a jump
+      }
+      return true;
+    }
+
     void run(double t_stop, int64_t limit, double tolerance, const Sampler & sampler, const Store & store)
     {
       res = AdvanceResult();
       const bool adaptive = e.control_.adaptive;
+      const Policies * pol = e.policies_.get();
+      const double t_end = t_stop;
       std::vector<size_t> bad;
       while (true)
       {
         const double t = st.t;
-        if (t >= t_stop)
+        if (t >= t_end)
         {
           res.status = REACHED;
           return;
+        }
+        // driver.Run._loop's control instants. Every step (adaptive, no control_dt): the driver controls between
+        // its one-step advances, so a sample at t (taken at the end of the previous advance) carries the previous
+        // torque, except at the run's start.
+        const bool each = pol && pol->every_step;
+        if (pol && t < pol->duration && n_alive && !(each && st.steps > 0))
+        {
+          if (pol->every_step ? t != st.last_control : t == pol->instant(st.instant))
+          {
+            if (!control(store))
+              return;
+            if (pol->every_step)
+              st.last_control = t;
+            else
+              st.instant += 1;
+          }
+          if (!pol->every_step)  // the steps land on the next instant, as the driver's advance(target) does
+          {
+            t_stop = std::min(t_end, pol->instant(st.instant));
+            if (adaptive)
+              tolerance = e.control_.landing * std::max(e.control_.first_step, std::abs(t_stop));
+          }
         }
         if (sampler.present && st.recorded != t && n_alive)
         {
@@ -630,6 +709,12 @@ namespace multibody_sim
           }
           if (due(sampler, t, tolerance))
             record(store);
+        }
+        if (each && st.steps > 0 && t < pol->duration && n_alive && t != st.last_control)
+        {
+          if (!control(store))
+            return;
+          st.last_control = t;
         }
         if (!n_alive)
         {
@@ -658,7 +743,7 @@ namespace multibody_sim
         if (adaptive)
         {
           int evaluations = 0;
-          const double error = attempt_adaptive(h, evaluations);
+          const double error = attempt_adaptive(h, t, evaluations);
           st.evaluations += evaluations;
           if (!judge(h, error))
           {
@@ -685,7 +770,7 @@ namespace multibody_sim
               const double t_out = static_cast<double>(st.next_output) * sampler.period;
               const int64_t i = st.count;
               stamp(store, i, rows[0], t_out);
-              dense(h, (t_out - t) / h);
+              dense(h, t, (t_out - t) / h);
               for (int r = 0; r < m; ++r)
                 y[r] = flows[0][r] + yd[2 * nv + r];
               write(store, i, rows[0], qd, vd, tau[0], y.data());
@@ -701,7 +786,7 @@ namespace multibody_sim
           int evaluations = 0;
           for (size_t j = 0; j < rows.size(); ++j)
             if (alive[j])
-              evaluations = attempt_fixed(j, h);
+              evaluations = attempt_fixed(j, h, t);
           st.evaluations += evaluations;
         }
         bad.clear();
@@ -864,6 +949,7 @@ namespace multibody_sim
   , damped_(damping.size() && (damping.array() != 0.0).any())
   , n_ledger_(n_ledger)
   , control_(control)
+  , n_robot_flows_(damped_ ? 2 : 1)
   {
     neutral_ = pinocchio::neutral(model_);
     const int64_t B = Q0.rows();
@@ -880,6 +966,28 @@ namespace multibody_sim
   }
 
   Engine::~Engine() = default;
+
+  void Engine::set_scene(std::shared_ptr<const SceneForces> scene)
+  {
+    if (scene && (scene->nv != model_.nv || n_robot_flows_ + scene->n_flows() != n_ledger_))
+      throw std::invalid_argument("the scene's elements disagree with the model's sizes or the ledger");
+    scene_ = scene;
+    for (auto & th : threads_)
+      th->sw = scene ? scene->workspace(model_) : nullptr;
+  }
+
+  void Engine::set_policies(
+    std::shared_ptr<const Policies> policies, int64_t * calls, int64_t * saturated, int64_t * saturated_dofs)
+  {
+    if (policies && policies->nv != model_.nv)
+      throw std::invalid_argument("the controllers disagree with the model's sizes");
+    policies_ = policies;
+    calls_ = calls;
+    saturated_ = saturated;
+    saturated_dofs_ = saturated_dofs;
+    for (auto & th : threads_)
+      th->pw = policies ? policies->workspace(model_) : nullptr;
+  }
 
   AdvanceResult Engine::advance(
     double t_stop, int64_t limit, double tolerance, const Sampler & sampler, const Store & store, CoreState & state)
@@ -1068,6 +1176,7 @@ namespace multibody_sim
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/string.h>
 #include <nanobind/stl/tuple.h>
+#include <nanobind/stl/shared_ptr.h>
 #include <nanobind/stl/vector.h>
 
 namespace nb = nanobind;
@@ -1076,7 +1185,8 @@ namespace
 {
   using Doubles = nb::ndarray<double, nb::c_contig, nb::device::cpu>;
   using Ints = nb::ndarray<int64_t, nb::c_contig, nb::device::cpu>;
-  multibody_sim::Store store_of(Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY, Doubles FLOWS, Ints COUNTS)
+  multibody_sim::Store store_of(
+    Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY, Doubles FLOWS, Ints COUNTS, Doubles EXTRA)
   {
     multibody_sim::Store s;
     s.T = T.data();
@@ -1086,11 +1196,14 @@ namespace
     s.ENERGY = ENERGY.data();
     s.FLOWS = FLOWS.data();
     s.COUNTS = COUNTS.data();
+    s.EXTRA = EXTRA.data();
+    s.extra_width = EXTRA.ndim() == 3 ? static_cast<int64_t>(EXTRA.shape(2)) : 0;
     s.capacity = static_cast<int64_t>(T.shape(0));
     s.B = static_cast<int64_t>(T.shape(1));
     const size_t cells = T.shape(0) * T.shape(1);
     if (COUNTS.size() != 3 * cells || ENERGY.size() != 2 * cells || Q.shape(0) != T.shape(0) || V.shape(0) != T.shape(0)
-        || TAU.shape(0) != T.shape(0) || FLOWS.shape(0) != T.shape(0))
+        || TAU.shape(0) != T.shape(0) || FLOWS.shape(0) != T.shape(0) || EXTRA.ndim() != 3
+        || EXTRA.shape(0) != T.shape(0) || EXTRA.shape(1) != T.shape(1))
       throw std::invalid_argument("the sample store's arrays disagree in shape");
     return s;
   }
@@ -1109,6 +1222,8 @@ namespace
   {
     s.t = engine.t;
     s.k = engine.k;
+    s.instant = engine.instant;
+    s.last_control = engine.last_control;
     s.steps = get<int64_t>(core, "steps");
     s.rejected = get<int64_t>(core, "rejected");
     s.evaluations = get<int64_t>(core, "evaluations");
@@ -1140,6 +1255,8 @@ namespace
   {
     engine.t = s.t;
     engine.k = s.k;
+    engine.instant = s.instant;
+    engine.last_control = s.last_control;
     nb::setattr(core, "steps", nb::int_(s.steps));
     nb::setattr(core, "rejected", nb::int_(s.rejected));
     nb::setattr(core, "evaluations", nb::int_(s.evaluations));
@@ -1238,8 +1355,8 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
       [](
         Engine & self, double t_stop, int64_t limit, double tolerance, nb::handle core, nb::handle store,
         nb::handle sampler, nb::handle control, Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY,
-        Doubles FLOWS, Ints COUNTS, nb::list stops) {
-        multibody_sim::Store arrays = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS);
+        Doubles FLOWS, Ints COUNTS, Doubles EXTRA, nb::list stops) {
+        multibody_sim::Store arrays = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS, EXTRA);
         multibody_sim::Sampler sampling;
         if (!sampler.is_none())
         {
@@ -1264,15 +1381,15 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
       },
       nb::arg("t_stop"), nb::arg("limit"), nb::arg("tolerance"), nb::arg("core"), nb::arg("store"),
       nb::arg("sampler").none(), nb::arg("control"), nb::arg("T"), nb::arg("Q"), nb::arg("V"), nb::arg("TAU"),
-      nb::arg("ENERGY"), nb::arg("FLOWS"), nb::arg("COUNTS"), nb::arg("stops"),
+      nb::arg("ENERGY"), nb::arg("FLOWS"), nb::arg("COUNTS"), nb::arg("EXTRA"), nb::arg("stops"),
       "Core.advance towards t_stop: reads and writes the core's, store's, sampler's and controller's state "
       "attributes; rows that stop are appended to `stops` as tuples.")
     .def(
       "write_rows",
       [](
         Engine & self, int64_t i, std::vector<int64_t> rows, Doubles T, Doubles Q, Doubles V, Doubles TAU,
-        Doubles ENERGY, Doubles FLOWS, Ints COUNTS) {
-        multibody_sim::Store store = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS);
+        Doubles ENERGY, Doubles FLOWS, Ints COUNTS, Doubles EXTRA) {
+        multibody_sim::Store store = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS, EXTRA);
         if (i < 0 || i >= store.capacity)
           throw std::invalid_argument("sample index out of the store");
         for (int64_t b : rows)
@@ -1280,6 +1397,21 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
             throw std::invalid_argument("row out of the store");
         self.write_rows(i, rows, store);
       })
+    .def(
+      "set_scene", [](Engine & self, std::shared_ptr<multibody_sim::SceneForces> scene) { self.set_scene(scene); },
+      nb::arg("scene"), "A scene's force elements (_native.SceneForces) join the dynamics (scene.cpp).")
+    .def(
+      "set_policies",
+      [](Engine & self, std::shared_ptr<multibody_sim::Policies> policies, Ints calls, Ints saturated,
+         Ints saturated_dofs) {
+        const size_t B = static_cast<size_t>(self.running());
+        if (calls.size() != B || saturated.size() != B || saturated_dofs.size() != B * self.model().nv)
+          throw std::invalid_argument("set_policies: the count arrays must have shapes (B,), (B,), (B, nv)");
+        self.set_policies(policies, calls.data(), saturated.data(), saturated_dofs.data());
+      },
+      nb::arg("policies"), nb::arg("calls"), nb::arg("saturated"), nb::arg("saturated_dofs"),
+      "Torques from native controllers at the control instants (scene.cpp); the count arrays stay alive for the "
+      "run (native_core keeps them).")
     .def("set_torques", &Engine::set_torques)
     .def("keep", &Engine::keep)
     .def("running_rows", &Engine::running_rows)

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <memory>
 #include <string>
 #include <tuple>
@@ -15,6 +16,8 @@
 #include <Eigen/Core>
 
 #include "pinocchio/multibody.hpp"
+
+#include "scene.hpp"  // a scene's force elements and the built-in controllers (scene.cpp)
 
 namespace multibody_sim
 {
@@ -79,6 +82,8 @@ namespace multibody_sim
     int64_t c_k = 0;
     double c_time = 0.0, c_h = 0.0, c_previous_error = 1.0;
     bool c_rejected_last = false;
+    int64_t instant = 0;  // native control: the next control instant's number (driver.Run._loop's `instant`)
+    double last_control = std::numeric_limits<double>::quiet_NaN();  // ... every step: the latest (`passed`)
   };
 
   // The sample store's arrays (recording.SampleStore), sample-major: X[i, b, :].
@@ -91,7 +96,8 @@ namespace multibody_sim
     double * ENERGY = nullptr;
     double * FLOWS = nullptr;
     int64_t * COUNTS = nullptr;
-    int64_t capacity = 0, B = 0;
+    double * EXTRA = nullptr;  // (capacity, B, extra_width): the system's records (a scene's spring energies)
+    int64_t capacity = 0, B = 0, extra_width = 0;
   };
 
   // A row that stopped inside the loop (core.RowStop's evidence; Python writes the message).
@@ -120,6 +126,7 @@ namespace multibody_sim
   {
     STOP_DIVERGED = 1,
     STOP_COLLAPSED = 2,
+    STOP_CONTROL = 3,  // a native controller's output is not finite (Python says why)
   };
 
   struct Sampler
@@ -178,6 +185,13 @@ namespace multibody_sim
                      bool has_first);
     int64_t running() const;
 
+    // A scene's force elements join the dynamics, ledger and energies (before the first advance()).
+    void set_scene(std::shared_ptr<const SceneForces> scene);
+    // Torques come from `policies` at its control instants, inside advance() (no return to Python per instant);
+    // counted per run row into calls (B,), saturated (B,) and saturated_dofs (B, nv) (driver.Run's arrays).
+    void set_policies(
+      std::shared_ptr<const Policies> policies, int64_t * calls, int64_t * saturated, int64_t * saturated_dofs);
+
     const pinocchio::Model & model() const
     {
       return model_;
@@ -185,6 +199,8 @@ namespace multibody_sim
 
     double t = 0.0;  // the running rows' time [s] (kernel.t)
     int64_t k = 0;   // accepted steps (kernel.k)
+    int64_t instant = 0;  // native control (CoreState.instant, last_control)
+    double last_control = std::numeric_limits<double>::quiet_NaN();
 
   private:
     friend struct Thread;
@@ -197,6 +213,10 @@ namespace multibody_sim
     int n_ledger_;
     Control control_;
     Vec neutral_;
+    std::shared_ptr<const SceneForces> scene_;
+    std::shared_ptr<const Policies> policies_;
+    int64_t *calls_ = nullptr, *saturated_ = nullptr, *saturated_dofs_ = nullptr;
+    int n_robot_flows_ = 1;  // the robot's ledger entries before the scene's (joint torques, joint damping)
     std::vector<std::unique_ptr<Thread>> threads_;
     struct Pool;
     std::unique_ptr<Pool> pool_;

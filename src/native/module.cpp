@@ -29,6 +29,7 @@ namespace multibody_sim
 {
 #ifdef MULTIBODY_SIM_WITH_KERNEL
   void bind_kernel(nb::module_ & m); // src/native/kernel.cpp
+  void bind_scene(nb::module_ & m);  // src/native/scene.cpp
 #endif
 
   namespace
@@ -163,6 +164,7 @@ NB_MODULE(_native, m)
       "(q, v) after n RK4 steps of dt seconds under constant tau: the C++ floor of an RK4 step.");
 
 #ifdef MULTIBODY_SIM_WITH_KERNEL
+  multibody_sim::bind_scene(m);  // before the kernel, whose set_scene and set_policies take its classes
   multibody_sim::bind_kernel(m);
 #endif
 }

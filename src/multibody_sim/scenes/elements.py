@@ -57,7 +57,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..exceptions import InvalidArgumentError
-from ..robot import rowdot
+from ..ordered import ordered_dot, ordered_sum
 from ..state import indexer
 
 _REFERENCES = {"world": pin.LOCAL_WORLD_ALIGNED, "local": pin.LOCAL}
@@ -248,6 +248,7 @@ class ForceElements:
         }
         self._other_wrenches = [k for k in range(len(self._wrenches)) if k not in self._pushes]
         self._wrench_forces_of: dict[int, np.ndarray] = {}  # per number of rows: each wrench's unscaled Jᵀw
+        self._jacobians_of: dict[int, np.ndarray] = {}  # per number of rows: the frame Jacobians behind them
         self._model_g0: pin.Model | None = None  # built on the first jacobians() call with wrenches
 
     # ---- the hot path ---------------------------------------------------------------------------------
@@ -320,17 +321,23 @@ class ForceElements:
         others = self._other_wrenches
         if others:
             model, data = self._model, self._data
-            for b, q in enumerate(Q):
+            jacobians = self._jacobians_of.get(n)  # each other wrench's frame Jacobian per row, (n_others, n, 6, nv)
+            if jacobians is None:
+                if len(self._jacobians_of) >= 8:
+                    del self._jacobians_of[next(iter(self._jacobians_of))]
+                jacobians = self._jacobians_of[n] = np.zeros((len(others), n, 6, self.nv))
+            for b, q in enumerate(Q):  # J is (6, nv), but flat (6,) when nv = 1
                 if len(others) == 1:  # kinematics along the frame's support only: cheaper than all joints
                     k = others[0]
                     J = pin.computeFrameJacobian(model, data, q, self._wrenches[k].frame_id, self._refs[k])
-                    # (6, nv), but Pinocchio returns a flat (6,) when nv = 1
-                    np.dot(self._w6[k], J.reshape(6, -1), out=forces[k, b])
+                    jacobians[0, b] = J.reshape(6, -1)
                     continue
                 pin.computeJointJacobians(model, data, q)  # one kinematics pass for every wrench
-                for k in others:
+                for m, k in enumerate(others):
                     J = pin.getFrameJacobian(model, data, self._wrenches[k].frame_id, self._refs[k])
-                    np.dot(self._w6[k], J.reshape(6, -1), out=forces[k, b])
+                    jacobians[m, b] = J.reshape(6, -1)
+            for m, k in enumerate(others):  # wᵀJ of every row, in a fixed order (the native kernel's)
+                ordered_sum(self._w6[k], jacobians[m], axis=1, out=forces[k])
         for k, scale in self._scaled:
             self._scales[k] = scale(t)
         return forces
@@ -346,7 +353,7 @@ class ForceElements:
         if self._wrenches:
             forces, nf = self._wrench_forces_of[1], self._n_flow_joint
             for k in range(len(self._wrenches)):
-                work = forces[k, 0] @ v  # as rowdot computes each row
+                work = ordered_dot(forces[k, 0], v)  # as powers_rows computes each row
                 out[nf + k] = work if self._scales[k] == 1.0 else work * self._scales[k]
 
     def powers_rows(self, V: np.ndarray, out: np.ndarray) -> None:
@@ -357,7 +364,7 @@ class ForceElements:
             forces, nf = self._wrench_forces_of[len(V)], self._n_flow_joint
             for k in range(len(self._wrenches)):
                 work = out[:, nf + k]
-                rowdot(forces[k], V, out=work)
+                work[:] = np.add.accumulate(forces[k] * V, axis=1)[:, -1]  # ordered_dot, row by row
                 if self._scales[k] != 1.0:
                     np.multiply(work, self._scales[k], out=work)
 
@@ -389,6 +396,86 @@ class ForceElements:
         """Energy stored in each spring, ½ k (q ⊖ rest)² [J], shape (..., len(potentials)) for q (..., nq)."""
         x = self.spring_displacements(q)
         return 0.5 * self._k * x * x
+
+    def potential_energy(self, q: np.ndarray) -> np.ndarray:
+        """The springs' total stored energy [J], shape (...) for q (..., nq): potential_energies summed in order
+        (the native kernel's order), 0 without springs."""
+        energies = self.potential_energies(q)
+        if not energies.shape[-1]:
+            return np.zeros(energies.shape[:-1])
+        return np.add.accumulate(energies, axis=-1)[..., -1]
+
+    # ---- the native kernel's data (src/native/scene.cpp) ------------------------------------------------
+    def native_reason(self) -> str | None:
+        """Why the native kernel cannot render these elements (a wrench whose scale is Python code), or None."""
+        for w in self._wrenches:
+            if _shape_data(w) is None:
+                return f"force '{w.name}' has a Python callable shape"
+        return None
+
+    def native_data(self, load_model: Callable[[pin.Model], object]) -> dict[str, object]:
+        """The elements as _native.SceneForces takes them: each term of evaluate(), powers() and
+        potential_energies() with its coefficients, in their arithmetic order (`load_model` hands a Pinocchio model
+        to C++: the point-mass models of world forces)."""
+        nv = self.nv
+        springs, circular, damped, rough = [], [], [], []
+        zero_all = True
+        if self._span is not None:
+            at, q_at, rest, minus_k, d, fc, whole = self._span
+            zero_all = not whole
+            dofs = range(at.start, at.stop)
+            springs = [(i, q_at.start + n, float(rest[n]), float(minus_k[n])) for n, i in enumerate(dofs)]
+            if d is not None:
+                damped = [(i, float(d[n])) for n, i in enumerate(dofs)]
+            if fc is not None:
+                rough = [(i, float(fc[n])) for n, i in enumerate(dofs)]
+        else:
+            springs = [
+                (int(i), int(j), float(r), float(-k))
+                for i, j, r, k in zip(self._plain, self._plain_q, self._plain_rest, self._plain_k, strict=True)
+            ]
+            circular = [
+                (int(i), int(c), float(cr), float(sr), float(-k))
+                for i, c, cr, sr, k in zip(
+                    self._circular, self._cos_q, self._cos_rest, self._sin_rest, self._circular_k, strict=True
+                )
+            ]
+            damped = [(int(i), float(d)) for i, d in zip(self._damped, self._d, strict=True)]
+            rough = [(int(i), float(f)) for i, f in zip(self._rough, self._fc, strict=True)]
+        pushes: list[object] = []
+        wrenches = []
+        for k, w in enumerate(self._wrenches):
+            push = -1
+            if k in self._pushes:
+                push = len(pushes)
+                pushes.append(load_model(self._pushes[k].model))
+            shape = _shape_data(w)
+            assert shape is not None, "native_reason() says why"
+            wrenches.append((push, w.frame_id, w.reference == "local", self._w6[k].tolist(), *shape))
+        energies = []
+        plain_rest = dict(zip(self._plain.tolist(), self._plain_rest.tolist(), strict=True))
+        circular_at = {int(i): n for n, i in enumerate(self._circular)}
+        for i, k in zip(self._sprung.tolist(), self._k.tolist(), strict=True):
+            if i in circular_at:
+                n = circular_at[i]
+                energies.append((True, int(self._cos_q[n]), 0.0, float(self._cos_rest[n]), float(self._sin_rest[n]), k))
+            else:
+                q_index = int(self._plain_q[list(self._plain).index(i)])
+                energies.append((False, q_index, plain_rest[i], 1.0, 0.0, k))
+        return {
+            "zero_all": zero_all,
+            "inv_vs": self._inv_vs,
+            "springs": springs,
+            "circular": circular,
+            "damped": damped,
+            "rough": rough,
+            "ledger_damped": [(int(i), float(d)) for i, d in zip(self._damped, self._d, strict=True)],
+            "ledger_rough": [(int(i), float(f)) for i, f in zip(self._rough, self._fc, strict=True)],
+            "wrenches": wrenches,
+            "push_models": pushes,
+            "energies": energies,
+            "nv": nv,
+        }
 
     def jacobians(self, q: np.ndarray, v: np.ndarray, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Partial derivatives of evaluate(q, v, t), exact, for implicit integrators' Newton iterations.
@@ -485,6 +572,26 @@ class _Push:
             zeros = self._zeros[n] = np.zeros((self.model.nv, n))
         pin.rneaInParallel(1, self.pool, np.ascontiguousarray(Q).T, zeros, zeros, out.T)
         np.negative(out, out=out)
+
+
+# spec.ForceSpec.scale's shapes as the native kernel numbers them (src/native/scene.hpp's Shape)
+_SHAPES = {"constant": 0, "step": 1, "ramp": 2, "sine": 3}
+
+
+def _shape_data(wrench: Wrench) -> tuple[int, list[float]] | None:
+    """(shape number, [start, ramp_time, frequency, phase]) of a wrench whose scale is a ForceSpec's declared shape
+    (or the unit scale), else None (a Python callable)."""
+    from .spec import ForceSpec
+
+    scale = wrench.scale
+    if scale is _unit_scale:
+        return 0, [0.0, 1.0, 1.0, 0.0]
+    spec = getattr(scale, "__self__", None)
+    if type(spec) is not ForceSpec or getattr(scale, "__func__", None) is not ForceSpec.scale:
+        return None
+    if not isinstance(spec.shape, str):
+        return None
+    return _SHAPES[spec.shape], [float(spec.start), float(spec.ramp_time), float(spec.frequency), float(spec.phase)]
 
 
 def _skew(a: np.ndarray) -> np.ndarray:

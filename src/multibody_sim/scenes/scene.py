@@ -408,7 +408,7 @@ class Scene(Robot):
         else:
             kinetic, potential = super().unchecked_energies(q, v)
         if self.elements is not None and self.elements.potentials:
-            potential += float(self.elements.potential_energies(q).sum())  # the same sum as rows_energies' per row
+            potential += float(self.elements.potential_energy(q))  # the same sum as rows_energies' per row
         return kinetic, potential
 
     def rows_energies(self, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
@@ -420,7 +420,7 @@ class Scene(Robot):
         else:
             out = super().rows_energies(Q, V)
         if self.elements is not None and self.elements.potentials:
-            out[:, 1] += self.elements.potential_energies(Q).sum(axis=1)
+            out[:, 1] += self.elements.potential_energy(Q)
         return out
 
     def rows_record(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> None:
