@@ -16,10 +16,15 @@ import numpy as np
 def ordered_sum(weights: np.ndarray, terms: np.ndarray, axis: int = 0, out: np.ndarray | None = None) -> np.ndarray:
     """Σ_j weights[j] · terms[j] along `axis` (terms has len(weights) entries there), j ascending, each product
     rounded and then added to the running sum; written into `out` when given."""
-    shape = [1] * terms.ndim
-    shape[axis] = len(weights)
-    products = np.multiply(np.reshape(weights, shape), terms)
-    total = np.add.accumulate(products, axis=axis).take(-1, axis=axis)
+    if axis == 0 and terms.ndim == 2:  # the row kernel's stages, (s, n): the same operations, fewer calls
+        products = weights[:, None] * terms
+        np.add.accumulate(products, axis=0, out=products)
+        total = products[-1]
+    else:
+        shape = [1] * terms.ndim
+        shape[axis] = len(weights)
+        products = np.multiply(np.reshape(weights, shape), terms)
+        total = np.add.accumulate(products, axis=axis).take(-1, axis=axis)
     if out is None:
         return total
     out[...] = total
