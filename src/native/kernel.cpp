@@ -46,6 +46,8 @@ namespace multibody_sim
     int64_t n_alive = 0;
     std::vector<Vec> q, v, flows, tau, qn, vn, fn, first;
     std::vector<char> has_first;
+    std::vector<int64_t> pending;  // per row: the store cell whose energies wait for the next ABA at this state (-1)
+    const Store * pending_store = nullptr;
     // workspace (no allocation in the step loop)
     RowMatrix K;  // stage derivatives (xi', v', ledger power), one row per stage
     Vec y, applied, acc, dv, xi, vs, qs, inc, chart_y, chart_t, q_last, v_last, size, diff, q_finite, yd, qd, vd;
@@ -82,6 +84,7 @@ namespace multibody_sim
       fn.assign(n, Vec::Zero(m));
       first.assign(n, Vec::Zero(w));
       has_first.assign(n, 0);
+      pending.assign(n, -1);
       const int stages = std::max(engine.method_.stages, engine.method_.extended_stages);
       K = RowMatrix::Zero(std::max(stages, 1), w);
       y = Vec::Zero(w);
@@ -238,6 +241,7 @@ namespace multibody_sim
       if (me.kind == Kind::semi_implicit_euler)
       {
         evaluate_acceleration(qj, vj, tj, t);
+        settle(j);
         for (int i = 0; i < nv; ++i)
           vn[j][i] = vj[i] + h * acc[i];
         for (int i = 0; i < nv; ++i)
@@ -254,6 +258,7 @@ namespace multibody_sim
       for (int r = 0; r < nv; ++r)
         K(0, r) = vj[r];
       evaluate(qj, vj, tj, 0, t);
+      settle(j);
       fill_stages(1, s, me.a.data(), me.c.data(), s, qj, vj, tj, h, t);
       combine(me.b.data(), s, h, inc);
       for (int r = 0; r < nv; ++r)
@@ -437,11 +442,24 @@ namespace multibody_sim
                const double * fl)
     {
       const int64_t at = i * store.B + b;
+      write_state(store, at, qx, vx, tx, fl);
+      pinocchio::forwardKinematics(e.model_, data, qx, vx);
+      write_energies(store, at, qx);
+    }
+
+    void write_state(const Store & store, int64_t at, const Vec & qx, const Vec & vx, const Vec & tx,
+                     const double * fl) const
+    {
       std::copy(qx.data(), qx.data() + nq, store.Q + at * nq);
       std::copy(vx.data(), vx.data() + nv, store.V + at * nv);
       std::copy(tx.data(), tx.data() + nv, store.TAU + at * nv);
       std::copy(fl, fl + m, store.FLOWS + at * m);
-      const double kinetic = pinocchio::computeKineticEnergy(e.model_, data, qx, vx);
+    }
+
+    // Robot.unchecked_energies from data's kinematics at qx (oMi and v, as forwardKinematics(q, v) leaves them)
+    void write_energies(const Store & store, int64_t at, const Vec & qx)
+    {
+      const double kinetic = pinocchio::computeKineticEnergy(e.model_, data);
       double potential = pinocchio::computePotentialEnergy(e.model_, data);
       if (e.scene_ && e.scene_->n_records())  // Scene.unchecked_energies and unchecked_record: the springs'
         potential = potential + e.scene_->spring_energy(qx, store.EXTRA + at * store.extra_width);
@@ -458,15 +476,55 @@ namespace multibody_sim
       store.COUNTS[at * 3 + 2] = st.evaluations;
     }
 
+    // A sample's energies need forwardKinematics(q, v). On fixed steps the next step's first ABA runs at the
+    // sampled state and computes the same joint placements (liMi, oMi: ABA's first pass does forwardKinematics'
+    // arithmetic); only the velocity recursion is left, done here exactly as forwardKinematics does it. A sample
+    // whose row takes no such step before advance() returns gets its energies by flush().
+    void settle(size_t j)
+    {
+      if (pending[j] < 0)
+        return;
+      const pinocchio::Model & model = e.model_;
+      for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
+      {
+        const pinocchio::JointIndex parent = model.parents[i];
+        data.v[i] = data.joints[i].v();
+        if (parent > 0)
+          data.v[i] += data.liMi[i].actInv(data.v[parent]);
+      }
+      write_energies(*pending_store, pending[j], q[j]);
+      pending[j] = -1;
+    }
+
+    void flush()
+    {
+      for (size_t j = 0; j < rows.size(); ++j)
+        if (pending[j] >= 0)
+        {
+          pinocchio::forwardKinematics(e.model_, data, q[j], v[j]);
+          write_energies(*pending_store, pending[j], q[j]);
+          pending[j] = -1;
+        }
+    }
+
     // Core.record: every running row's current state as sample `count`
     void record(const Store & store)
     {
       const int64_t i = st.count;
+      const bool defer = !e.control_.adaptive;
       for (size_t j = 0; j < rows.size(); ++j)
         if (alive[j])
         {
           stamp(store, i, rows[j], st.t);
-          write(store, i, rows[j], q[j], v[j], tau[j], flows[j].data());
+          if (defer)
+          {
+            const int64_t at = i * store.B + rows[j];
+            write_state(store, at, q[j], v[j], tau[j], flows[j].data());
+            pending[j] = at;
+            pending_store = &store;
+          }
+          else
+            write(store, i, rows[j], q[j], v[j], tau[j], flows[j].data());
         }
       advance_count();
       st.recorded = st.t;
@@ -663,6 +721,12 @@ namespace multibody_sim
     }
 
     void run(double t_stop, int64_t limit, double tolerance, const Sampler & sampler, const Store & store)
+    {
+      loop(t_stop, limit, tolerance, sampler, store);
+      flush();
+    }
+
+    void loop(double t_stop, int64_t limit, double tolerance, const Sampler & sampler, const Store & store)
     {
       res = AdvanceResult();
       const bool adaptive = e.control_.adaptive;
