@@ -20,20 +20,7 @@ from types import FrameType
 from typing import Any, NoReturn
 
 import multibody_sim as ms
-from multibody_sim import native
-from multibody_sim.driver import RunSettings, Sink, check_resources
 from multibody_sim.files import check_output, check_unlocked
-from multibody_sim.safety import printable, safe_name, terminal_text
-from multibody_sim.trajectory import plain_data
-from multibody_sim.validation import (
-    check_options,
-    frame_rate,
-    playback_speed,
-    port_number,
-    positive_count,
-    positive_number,
-    run_numbers,
-)
 
 PROG = "multibody-sim"
 COMMANDS = ("run", "models", "inspect", "integrators", "bench", "play", "plot", "export")
@@ -74,6 +61,8 @@ class _VersionAction(argparse.Action):
     """--version: the package version, then the kernel line, printed as is (argparse's action rewraps lines)."""
 
     def __call__(self, parser: argparse.ArgumentParser, *args: Any) -> NoReturn:
+        from . import native
+
         print(f"{PROG} {_version()}\nkernel: {native.kernel()}")
         parser.exit()
 
@@ -119,6 +108,14 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 # ---- arguments ---------------------------------------------------------------------------------------
+class _ControllerNames:
+    """The built-in controllers' names, looked up when a help text shows them: building the parser (and
+    `--help`) does not import the controllers, hence Pinocchio."""
+
+    def __str__(self) -> str:
+        return ", ".join(ms.CONTROLLERS)
+
+
 def _parse(argv: list[str]) -> argparse.Namespace:
     # argparse words the "no command" and "unknown command" errors differently across Python versions and
     # offers no close match: check the command name ourselves.
@@ -255,11 +252,12 @@ def _build_parser() -> _Parser:
     run.add_argument(
         "--control-dt", metavar="S", type=float, help="controller period [s], a multiple of dt (default: every step)"
     )
-    run.add_argument(
+    controller = run.add_argument(
         "--controller",
         metavar="NAME",
-        help=f"apply a built-in controller: {', '.join(ms.CONTROLLERS)} (default: no torque)",
+        help="apply a built-in controller: %(names)s (default: no torque)",
     )
+    controller.names = _ControllerNames()  # type: ignore[attr-defined]  # read by argparse's %(names)s
     run.add_argument(
         "--param",
         metavar="KEY=VALUE",
@@ -499,6 +497,7 @@ def _is_scene(args: argparse.Namespace) -> bool:
 
 def _nothing_holds_it_up(robot: Any) -> str:
     """The run header's line for a floating robot run without a scene: it falls, and which scene stands it up."""
+    from .safety import safe_name
     from .scenes import shipped_scenes
 
     standing = [name for name in shipped_scenes() if name.startswith(f"{robot.name}_") and "stand" in name]
@@ -563,6 +562,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     """The run command; fills `document` (when given) with the run's description and summary as data."""
+    from .driver import RunSettings, Sink, check_resources
+    from .safety import printable, safe_name
+    from .validation import playback_speed, port_number
+
     playback_speed(args.view_speed, "--view-speed")
     port_number(args.view_port, "--view-port")
     out = _check_out(args.out) if args.out else None
@@ -711,6 +714,8 @@ def _check_run_arguments(robot: Any, method: Any, duration: Any, dt: Any, option
     The same checks (validation.py), with the same messages, as simulate()'s: bad input prints one line and
     nothing else.
     """
+    from .validation import check_options, positive_number, run_numbers
+
     positive_number(duration, "duration")
     if dt is None:
         return
@@ -723,6 +728,8 @@ def _check_run_arguments(robot: Any, method: Any, duration: Any, dt: Any, option
 
 def _print_json(document: dict[str, Any]) -> None:
     """One JSON document on stdout (no NaN or Infinity: JSON has none; they are null)."""
+    from .trajectory import plain_data
+
     _say(json.dumps(plain_data(document), allow_nan=False))
 
 
@@ -773,6 +780,8 @@ def _choose_for_tolerance(args: argparse.Namespace, robot: Any, q0: Any, v0: Any
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
+    from .safety import printable, safe_name
+
     out = _check_out_dir(args.out)
     robot = _load(args)
     names = None
@@ -888,6 +897,8 @@ def _savings(scene: Any) -> str:
 
 
 def _cmd_inspect(args: argparse.Namespace) -> int:
+    from .safety import safe_name
+
     robot = _load(args)
     _print_note(args)
     if isinstance(robot, ms.Scene):
@@ -981,6 +992,9 @@ def _cmd_integrators(args: argparse.Namespace) -> int:
 
 
 def _cmd_play(args: argparse.Namespace) -> int:
+    from .safety import safe_name
+    from .validation import frame_rate, playback_speed, port_number
+
     viz = _viz()
     html = _check_output(args.html, "--html", "view.html") if args.html else None
     if args.forces and html is None:
@@ -1144,6 +1158,8 @@ def _open_viewer(robot: Any, host: str, port: int | None, speed: float, q0: Any 
 @contextlib.contextmanager
 def _viewer_warnings(viz: Any) -> Iterator[None]:
     """The viewer's warnings (exposed server, missing meshes) as one line each on stderr."""
+    from .safety import printable
+
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", viz.ViewerWarning)
         try:
@@ -1214,12 +1230,16 @@ def _check_output(name: str, option: str, example: str) -> Path:
 # ---- helpers -----------------------------------------------------------------------------------------
 def _error(message: str, code: int = EXIT_BAD_INPUT) -> int:
     """Print one line on stderr and return the exit code."""
+    from .safety import printable
+
     # Names in messages may come from untrusted files: control characters and line breaks escaped visibly.
     print(f"{PROG}: error: {printable(message)}", file=sys.stderr)
     return code
 
 
 def _positive_int(text: str) -> int:
+    from .validation import positive_count
+
     try:
         return positive_count(int(text), "N")
     except ValueError:  # not a whole number, or out of range (InvalidArgumentError is a ValueError)
@@ -1290,6 +1310,8 @@ def _joint_kind(shortname: str) -> str:
 
 def _table(headers: list[str], rows: list[list[Any]], indent: int = 0) -> str:
     """Left-aligned columns separated by two spaces."""
+    from .safety import safe_name
+
     cells = [[safe_name(c) for c in row] for row in [headers, *rows]]  # names from files: one line each
     widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
     pad = " " * indent
@@ -1299,6 +1321,8 @@ def _table(headers: list[str], rows: list[list[Any]], indent: int = 0) -> str:
 def _print(text: str = "", file: Any = None) -> None:
     """Print the program's text: its own line breaks kept, every other unprintable character escaped (names in it
     come from files: safe_name escapes them where they are inserted, this is the last defence)."""
+    from .safety import terminal_text
+
     print(terminal_text(text), file=file or sys.stdout, flush=True)
 
 
