@@ -8,9 +8,12 @@ runs every command once, in a rotated order) and the figures are medians over th
 package has them: without them every run would compile our sources, and only ours (pip compiles what it installs).
 
 
-    import ratio = (import multibody_sim - start) / (import pinocchio - start)     target <= 1.5
-    help ratio   = (multibody-sim --help - start) / (import multibody_sim - start)  target <= 1.0
-    (and, for reference, --help against import pinocchio: the command line needs the package, so pinocchio)
+The package is lazy (PEP 562): `import multibody_sim` alone loads almost nothing, so what a user pays is the import
+and the first use of its API, "import + use" below (`import multibody_sim as ms; ms.simulate; ms.load_robot`):
+
+    import ratio = (import + use - start) / (import pinocchio - start)     target <= 1.5
+    help ratio   = (multibody-sim --help - start) / (import + use - start)   target <= 1.0
+    (and, for reference, the bare lazy import, and --help against import pinocchio)
 
 Usage: python scripts/bench_import.py [--rounds 21] [--json]
 """
@@ -26,12 +29,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-IMPORT_TARGET = 1.5  # (import multibody_sim - start) <= 1.5 x (import pinocchio - start)
-HELP_TARGET = 1.0  # multibody-sim --help no slower than import multibody_sim
+IMPORT_TARGET = 1.5  # (import + use - start) <= 1.5 x (import pinocchio - start)
+HELP_TARGET = 1.0  # multibody-sim --help no slower than importing and using the package
 
 
 def commands() -> dict[str, list[str]]:
-    """The measured commands: Python's start, the two imports and the console script's --help."""
+    """The measured commands: Python's start, the imports (the package's bare and with its first use) and the
+    console script's --help."""
     python = sys.executable
     script = Path(python).with_name("multibody-sim")
     cli = [str(script)] if script.exists() else [shutil.which("multibody-sim") or "multibody-sim"]
@@ -39,6 +43,7 @@ def commands() -> dict[str, list[str]]:
         "python start": [python, "-c", "pass"],
         "import pinocchio": [python, "-c", "import pinocchio"],
         "import multibody_sim": [python, "-c", "import multibody_sim"],
+        "import + use": [python, "-c", "import multibody_sim as ms; ms.simulate; ms.load_robot"],
         "multibody-sim --help": [*cli, "--help"],
     }
 
@@ -74,8 +79,8 @@ def report(times: dict[str, list[float]]) -> dict[str, float]:
     median = {name: statistics.median(values) for name, values in times.items()}
     start = median["python start"]
     out = {f"{name} [s]": value for name, value in median.items()}
-    out["import ratio"] = (median["import multibody_sim"] - start) / (median["import pinocchio"] - start)
-    out["help ratio"] = (median["multibody-sim --help"] - start) / (median["import multibody_sim"] - start)
+    out["import ratio"] = (median["import + use"] - start) / (median["import pinocchio"] - start)
+    out["help ratio"] = (median["multibody-sim --help"] - start) / (median["import + use"] - start)
     out["help / pinocchio"] = (median["multibody-sim --help"] - start) / (median["import pinocchio"] - start)
     return out
 
@@ -99,12 +104,11 @@ def main(argv: list[str] | None = None) -> int:
         extra = "" if name == "python start" else f"  ({(value - start) * 1e3:7.1f} ms)"
         print(f"  {name:<22} {value * 1e3:7.1f} ms{extra}")
     print(
-        f"import ratio (multibody_sim / pinocchio, start subtracted): {figures['import ratio']:.2f}"
+        f"import ratio (import + use / pinocchio, start subtracted): {figures['import ratio']:.2f}"
         f"  (target <= {IMPORT_TARGET})"
     )
     print(
-        f"help ratio (--help / import multibody_sim, start subtracted): {figures['help ratio']:.2f}"
-        f"  (target <= {HELP_TARGET})"
+        f"help ratio (--help / import + use, start subtracted): {figures['help ratio']:.2f}  (target <= {HELP_TARGET})"
     )
     print(f"help / import pinocchio, start subtracted: {figures['help / pinocchio']:.2f}")
     return 0
