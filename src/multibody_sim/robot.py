@@ -9,7 +9,7 @@ import numpy as np
 import pinocchio as pin
 
 from .exceptions import InvalidArgumentError, UnknownNameError
-from .ordered import ordered_dot
+from .ordered import ordered_dot, ordered_rowdot
 from .state import ConfigurationSpace
 
 _WORLD = pin.Convention.WORLD
@@ -294,11 +294,11 @@ class Robot:
         """ledger_power of each row into out (n, n_elements); `fresh`: rows_applied was just called at (Q, V, t);
         not `torques`: TAU is zero (no controller), so is the torques' power (tau · v = 0 for finite v)."""
         if torques:
-            out[:, 0] = np.add.accumulate(TAU * V, axis=1)[:, -1]  # ledger_power's ordered_dot, row by row
+            ordered_rowdot(TAU, V, out=out[:, 0])  # ledger_power's ordered_dot, row by row
         else:
             out[:, 0] = 0.0
         if self._damped:
-            out[:, 1] = np.add.accumulate(V * (self.damping * V), axis=1)[:, -1]
+            ordered_rowdot(V, self.damping * V, out=out[:, 1])
 
     def rows_energies(self, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
         """(T, V) [J] of each row, shape (n, 2), each as unchecked_energies computes it."""
@@ -422,22 +422,6 @@ class RowsDynamics:
         """Power of each ledger element per row [W], out (n, m); `fresh`: accelerations() was just called at these
         rows (a scene's wrenches then need no new kinematics); not `torques`: TAU is zero."""
         self.system.rows_ledger_power(Q, V, TAU, t, out, fresh=fresh, torques=torques)
-
-
-# numpy >= 2 has vecdot, which calls the same BLAS dot as `x @ y` on 1-D arrays (so a row's power matches
-# ledger_power's bit for bit); the stacked matmul does the same on older numpy.
-_vecdot = getattr(np, "vecdot", None)
-
-
-def rowdot(x: np.ndarray, y: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Row-wise dot products, each computed exactly as ``x[i] @ y[i]``; written into `out` when given."""
-    if _vecdot is not None:
-        return _vecdot(x, y, out=out)
-    dots = np.matmul(x[:, None, :], y[:, :, None])[:, 0, 0]
-    if out is None:
-        return dots
-    out[...] = dots
-    return out
 
 
 def real_array(value: Any, name: str, expected: str) -> np.ndarray:

@@ -57,7 +57,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..exceptions import InvalidArgumentError
-from ..ordered import ordered_dot, ordered_sum
+from ..ordered import ordered_dot, ordered_rowdot, ordered_sum
 from ..state import indexer
 
 _REFERENCES = {"world": pin.LOCAL_WORLD_ALIGNED, "local": pin.LOCAL}
@@ -364,7 +364,7 @@ class ForceElements:
             forces, nf = self._wrench_forces_of[len(V)], self._n_flow_joint
             for k in range(len(self._wrenches)):
                 work = out[:, nf + k]
-                work[:] = np.add.accumulate(forces[k] * V, axis=1)[:, -1]  # ordered_dot, row by row
+                ordered_rowdot(forces[k], V, out=work)
                 if self._scales[k] != 1.0:
                     np.multiply(work, self._scales[k], out=work)
 
