@@ -290,6 +290,12 @@ def _build_parser() -> _Parser:
         "--view-speed", metavar="X", type=float, default=1.0, help="playback speed, 1 = real time (default: 1)"
     )
     view.add_argument("--view-plot", action="store_true", help="show the energy plot beside the view")
+    view.add_argument(
+        "--view-forces",
+        action="store_true",
+        help="draw a contact scene's contact forces as arrows in the recording left in the page after the run "
+        "(the largest force is 20 cm long)",
+    )
     _add_server_options(view, prefix="--view-")
     run.set_defaults(handler=_cmd_run)
 
@@ -381,7 +387,8 @@ def _add_view_commands(commands: Any) -> None:
     play.add_argument(
         "--forces",
         action="store_true",
-        help="draw a contact scene's contact forces as arrows (with --html; the largest force is 20 cm long)",
+        help="draw a contact scene's contact forces as arrows (served, --html or --video; the largest force is "
+        "20 cm long)",
     )
     _add_server_options(play, prefix="--")
     video = play.add_argument_group(
@@ -560,9 +567,16 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
 
     playback_speed(args.view_speed, "--view-speed")
     port_number(args.view_port, "--view-port")
+    if args.view_forces and not args.view:
+        raise _UsageError("--view-forces draws contact forces in the --view page: add --view")
     out = _check_out(args.out) if args.out else None
     robot = _load(args)
     scene = robot if isinstance(robot, ms.Scene) else None
+    if args.view_forces and getattr(robot, "contact", None) is None:
+        raise _UsageError(
+            "--view-forces draws contact forces, and this run has no contact (run a scene with [ground], [contact] "
+            "or [[object]], e.g. sliding_box)"
+        )
     # A scene's own settings, which the command line's flags override.
     declared = scene.simulation_settings() if scene is not None else {}
     if args.tolerance is not None:  # the pilot study chooses the method and its step, not the scene
@@ -1031,14 +1045,16 @@ def _cmd_play(args: argparse.Namespace) -> int:
 
     viz = _viz()
     html = _check_output(args.html, "--html", "view.html") if args.html else None
-    if args.forces and html is None:
-        raise _UsageError("--forces draws contact forces in the --html export only (not yet live or in videos)")
     if not args.video:  # a video's frame rate has its own range per format (checked with the video's options)
         frame_rate(args.fps, "--fps")
     playback_speed(args.speed, "--speed")
     port_number(args.port, "--port")
     video = _check_video(args) if args.video else None
     trajectory = ms.Trajectory.load(args.trajectory)
+    if args.forces and trajectory.contacts is None:
+        raise _UsageError(
+            f"--forces: {args.trajectory} records no contacts (forces are drawn for runs of scenes with contact)"
+        )
     try:
         robot = viz.robot_from_trajectory(trajectory, allowed_roots=args.allow_root or None)
         if video is not None:
@@ -1064,7 +1080,7 @@ def _cmd_play(args: argparse.Namespace) -> int:
             return EXIT_OK
         viewer = _open_viewer(robot, args.host, args.port, args.speed)
         try:
-            viewer.animate(trajectory, fps=args.fps, speed=args.speed)
+            viewer.animate(trajectory, fps=args.fps, speed=args.speed, forces=args.forces)
             if args.plot:
                 viewer.show_plot(trajectory)
             _say(
@@ -1107,6 +1123,7 @@ def _write_video(viz: Any, trajectory: Any, robot: Any, path: Path, args: argpar
                 camera=args.camera,
                 camera_position=args.camera_position,
                 camera_target=args.camera_target,
+                forces=args.forces,
             )
     except OSError as exc:
         raise _UsageError(f"--video {path}: cannot write the video ({exc.strerror or exc})") from None
@@ -1223,7 +1240,9 @@ def _watch(viewer: Any, trajectory: Any, args: argparse.Namespace) -> None:
         if live is not None:
             live.finish(trajectory)
         duration = float(trajectory.t[-1] - trajectory.t[0])
-        viewer.animate(trajectory, play=False, seek=duration, speed=args.view_speed, frame=False)
+        viewer.animate(
+            trajectory, play=False, seek=duration, speed=args.view_speed, frame=False, forces=args.view_forces
+        )
         if _interactive():  # someone at a terminal may still want the page; a script wants the exit
             _say("view: played; the page keeps the recording (time slider under Open Controls); Ctrl-C to quit")
             _wait_for_interrupt()
