@@ -201,10 +201,10 @@ class SampleStore:
             stats=stats,
             status=status,
             metadata=metadata,
-            contacts=self._contacts(b, n, system),
+            contacts=self.contacts_record(b, n, system),
         )
 
-    def _contacts(self, b: int, n: int, system: Any) -> Contacts | None:
+    def contacts_record(self, b: int, n: int, system: Any) -> Contacts | None:
         """Row b's contacts over its first n samples as a Contacts record (None without contact)."""
         contact = getattr(system, "contact", None)
         if contact is None:

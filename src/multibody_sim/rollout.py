@@ -26,7 +26,7 @@ from .integrators import Integrator, get_integrator
 from .progress import ProgressBar
 from .recording import limit_reports, split_records
 from .robot import Robot, real_array
-from .trajectory import ARRAYS, ConstraintRecord, LedgerEntry, LimitViolations, Trajectory
+from .trajectory import ARRAYS, ConstraintRecord, Contacts, LedgerEntry, LimitViolations, Trajectory
 from .validation import check_options, check_system, positive_count, positive_number
 
 _RECORD_PARTS = ("force", "drift", "velocity_drift")  # a ConstraintRecord's arrays
@@ -59,6 +59,8 @@ class BatchTrajectory:
         constraints: a scene's holonomic constraints, as in Trajectory: each ConstraintRecord's force of shape
             (B, N, rows), drift and velocity_drift of shape (B, N) (empty for a robot alone).
         limit_violations: position-limit violations of each element, length B.
+        contacts: a contact scene's active contacts of each element, as Trajectory.contacts (sample indices
+            within its real samples), length B; None for an element of a run without contact.
         stats: per-element counts as arrays of shape (B,): steps, rejected_steps, evaluations,
             controller_calls, saturated_controls; saturated_dofs, shape (B, nv); and wall_time [s] of the
             whole batch (a float).
@@ -83,6 +85,7 @@ class BatchTrajectory:
     stats: dict[str, Any] = field(default_factory=dict)
     metadata: dict[str, Any] = field(default_factory=dict)
     constraints: dict[str, ConstraintRecord] = field(default_factory=dict)
+    contacts: list[Contacts | None] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.n_samples)
@@ -126,6 +129,7 @@ class BatchTrajectory:
             stats=stats,
             status=str(self.status[b]),
             metadata={**self.metadata, "element": b % len(self)},
+            contacts=self.contacts[b] if self.contacts else None,
         )
 
     def summary(self) -> str:
@@ -349,6 +353,7 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
         limit_violations=limit_reports(system, arrays["t"], arrays["q"], n),
         stats=stats,
         metadata={**run.metadata(), "backend": "local"},
+        contacts=[store.contacts_record(b, int(n[b]), system) for b in range(B)],
     )
 
 
@@ -586,6 +591,7 @@ def _stack(
         constraints=constraints,
         limit_violations=[tr.limit_violations for tr in trajectories],
         stats=stats,
+        contacts=[tr.contacts for tr in trajectories],
     )
 
 
@@ -624,6 +630,7 @@ def _concatenate(batches: list[BatchTrajectory], wall_time: float | None = None)
         limit_violations=[lv for bt in batches for lv in bt.limit_violations],
         stats=stats,
         metadata=dict(batches[0].metadata),
+        contacts=[c for bt in batches for c in (bt.contacts or [None] * len(bt))],
     )
 
 
