@@ -353,7 +353,7 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
         limit_violations=limit_reports(system, arrays["t"], arrays["q"], n),
         stats=stats,
         metadata={**run.metadata(), "backend": "local"},
-        contacts=[store.contacts_record(b, int(n[b]), system) for b in range(B)],
+        contacts=[store.contacts_record(b, int(n[b]), system) for b in range(run.B)],
     )
 
 
