@@ -221,23 +221,25 @@ class Monitor:
         self.scale[rows] = energies[:, 0] + np.abs(energies[:, 1]) + self.system.energy_scale
         self.started[rows] = True
 
-    def suspects(self, store: SampleStore, rows: list[int], start: int, limits: list[int]) -> list[int]:
-        """The rows among `rows` that may have a problem among their samples start..limit-1: every row that
+    def suspects(self, store: SampleStore, rows: np.ndarray, start: int, limits: np.ndarray) -> np.ndarray:
+        """The rows among `rows` that may have a problem among their samples start..limits[j]-1: every row that
         first_problem() would flag, and maybe a few more (judged at half the bound, all rows at once)."""
-        stop = max(limits, default=start)
+        stop = int(limits.max(initial=start))
         if stop <= start:
-            return []
-        E = store.ENERGY[start:stop, rows]
+            return rows[:0]
+        whole = len(rows) == store.B and bool((rows == np.arange(store.B)).all())
+        index: Any = slice(None) if whole else rows  # every row in order (a rollout): views, not copies
+        E = store.ENERGY[start:stop, index]
         total = E[..., 0] + E[..., 1]
-        flows = store.FLOWS[start:stop, rows]
+        flows = store.FLOWS[start:stop, index]
         work = flows[..., self.is_work].sum(axis=-1)
         dissipated = flows[..., ~self.is_work].sum(axis=-1)
         with np.errstate(over="ignore", invalid="ignore"):
-            error = total - self.initial[rows] - work + dissipated
-            bound = 0.5 * BLOWUP_FACTOR * (self.scale[rows] + np.abs(work))
+            error = total - self.initial[index] - work + dissipated
+            bound = 0.5 * BLOWUP_FACTOR * (self.scale[index] + np.abs(work))
             bad = ~np.isfinite(total) | (np.abs(error) > bound) | (dissipated > bound)
-        inside = np.arange(stop - start)[:, None] < np.array(limits)[None, :] - start
-        return [rows[j] for j in np.flatnonzero((bad & inside).any(axis=0)).tolist()]
+        inside = np.arange(stop - start)[:, None] < limits[None, :] - start
+        return rows[(bad & inside).any(axis=0)]
 
     def first_problem(self, store: SampleStore, b: int, start: int, stop: int) -> tuple[int, str, bool] | None:
         """(sample index, what, whether the sample is kept) of row b's first problem among samples start..stop-1,
@@ -645,20 +647,21 @@ class Run:
         stop the rows the core or the monitor stopped."""
         store, core, monitor = self.store, self.core, self.monitor
         stops = {stop.row: stop for stop in core.take_stops()}
-        rows = list(core.rows.tolist()) + list(stops)
+        rows = np.concatenate([core.rows, np.fromiter(stops, dtype=core.rows.dtype, count=len(stops))])
+        limits = store.n_samples[rows]
         if not monitor.started.all():
-            fresh = [b for b in rows if not monitor.started[b] and store.samples_of(b)]
-            if fresh:
-                monitor.start(np.array(fresh), store.ENERGY[0, fresh])
-        limits = {}
-        for b in rows:
+            fresh = rows[~monitor.started[rows] & (limits > 0)]
+            if len(fresh):
+                monitor.start(fresh, store.ENERGY[0, fresh])
+        for j, b in enumerate(rows[len(core.rows) :].tolist()):
+            if stops[b].added:  # a stop's own last sample: not judged
+                limits[len(core.rows) + j] = stops[b].sample
+        suspects = set(monitor.suspects(store, rows, self.checked, limits).tolist())
+        limit = dict(zip(rows.tolist(), limits.tolist(), strict=True)) if suspects else {}
+        todo = [b for b in rows.tolist() if b in suspects or b in stops] if suspects or stops else []  # in order
+        for b in todo:
             stop = stops.get(b)
-            end = store.samples_of(b)
-            limits[b] = end if stop is None or not stop.added else stop.sample  # a stop's own last sample: not judged
-        suspects = set(monitor.suspects(store, rows, self.checked, list(limits.values())))
-        for b in rows:
-            stop = stops.get(b)
-            problem = monitor.first_problem(store, b, self.checked, limits[b]) if b in suspects else None
+            problem = monitor.first_problem(store, b, self.checked, limit[b]) if b in suspects else None
             if problem is not None:
                 i, what, keep = problem
                 t = store.T[i, b]
@@ -678,7 +681,7 @@ class Run:
                 # it was given, as _control does)
                 if stop.added and not stop.bad_output and not np.isfinite(store.ENERGY[stop.sample, b]).all():
                     store.truncate(b, stop.sample)
-        self._show(rows)
+        self._show(rows.tolist())
         self.checked = store.count
 
     def _show(self, rows: list[int]) -> None:
