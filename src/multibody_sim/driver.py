@@ -211,15 +211,18 @@ class Monitor:
         self.system = system
         elements = system.ledger_elements
         self.is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
+        self._work_only = bool(self.is_work.all()) and len(self.is_work) == 1
         self.initial = np.zeros(B)  # H at the start [J]
         self.scale = np.zeros(B)
         self.started = np.zeros(B, dtype=bool)
+        self.all_started = False
 
     def start(self, rows: np.ndarray, energies: np.ndarray) -> None:
         """The rows' initial (T, V), shape (n, 2)."""
         self.initial[rows] = energies.sum(axis=1)
         self.scale[rows] = energies[:, 0] + np.abs(energies[:, 1]) + self.system.energy_scale
         self.started[rows] = True
+        self.all_started = bool(self.started.all())
 
     def suspects(self, store: SampleStore, rows: np.ndarray, start: int, limits: np.ndarray) -> np.ndarray:
         """The rows among `rows` that may have a problem among their samples start..limits[j]-1: every row that
@@ -227,19 +230,30 @@ class Monitor:
         stop = int(limits.max(initial=start))
         if stop <= start:
             return rows[:0]
-        whole = len(rows) == store.B and bool((rows == np.arange(store.B)).all())
-        index: Any = slice(None) if whole else rows  # every row in order (a rollout): views, not copies
+        whole = len(rows) == store.B and (store.B == 1 or bool((rows == np.arange(store.B)).all()))
+        index: Any = slice(None) if whole else rows  # every row in order (simulate, a rollout): views, not copies
         E = store.ENERGY[start:stop, index]
-        total = E[..., 0] + E[..., 1]
         flows = store.FLOWS[start:stop, index]
-        work = flows[..., self.is_work].sum(axis=-1)
-        dissipated = flows[..., ~self.is_work].sum(axis=-1)
+        total = E[..., 0] + E[..., 1]
+        if self._work_only:  # the ledger's one element: the joint torques' work
+            work, dissipated = flows[..., 0], None
+        else:
+            work = flows[..., self.is_work].sum(axis=-1)
+            dissipated = flows[..., ~self.is_work].sum(axis=-1)
         with np.errstate(over="ignore", invalid="ignore"):
-            error = total - self.initial[index] - work + dissipated
-            bound = 0.5 * BLOWUP_FACTOR * (self.scale[index] + np.abs(work))
-            bad = ~np.isfinite(total) | (np.abs(error) > bound) | (dissipated > bound)
-        inside = np.arange(stop - start)[:, None] < limits[None, :] - start
-        return rows[(bad & inside).any(axis=0)]
+            error = total - self.initial[index] - work
+            if dissipated is not None:
+                error += dissipated
+            bound = np.abs(work)
+            bound += self.scale[index]
+            bound *= 0.5 * BLOWUP_FACTOR
+            bad = np.abs(error) > bound
+            bad |= ~np.isfinite(total)
+            if dissipated is not None:
+                bad |= dissipated > bound
+        if (limits != stop).any():  # some rows hold fewer samples
+            bad &= np.arange(stop - start)[:, None] < limits[None, :] - start
+        return rows[bad.any(axis=0)]
 
     def first_problem(self, store: SampleStore, b: int, start: int, stop: int) -> tuple[int, str, bool] | None:
         """(sample index, what, whether the sample is kept) of row b's first problem among samples start..stop-1,
@@ -647,9 +661,11 @@ class Run:
         stop the rows the core or the monitor stopped."""
         store, core, monitor = self.store, self.core, self.monitor
         stops = {stop.row: stop for stop in core.take_stops()}
-        rows = np.concatenate([core.rows, np.fromiter(stops, dtype=core.rows.dtype, count=len(stops))])
+        rows = core.rows
+        if stops:
+            rows = np.concatenate([rows, np.fromiter(stops, dtype=rows.dtype, count=len(stops))])
         limits = store.n_samples[rows]
-        if not monitor.started.all():
+        if not monitor.all_started:
             fresh = rows[~monitor.started[rows] & (limits > 0)]
             if len(fresh):
                 monitor.start(fresh, store.ENERGY[0, fresh])
@@ -681,16 +697,16 @@ class Run:
                 # it was given, as _control does)
                 if stop.added and not stop.bad_output and not np.isfinite(store.ENERGY[stop.sample, b]).all():
                     store.truncate(b, stop.sample)
-        self._show(rows.tolist())
+        self._show(rows)
         self.checked = store.count
 
-    def _show(self, rows: list[int]) -> None:
+    def _show(self, rows: np.ndarray) -> None:
         """on_sample and progress for the new samples (one-row runs)."""
         if self.on_sample is None and self.progress is None:
             return
         store = self.store
         b = 0
-        if self.B != 1 or not rows:
+        if self.B != 1 or not len(rows):
             if self.progress is not None:
                 core = self.core  # element-steps: the stopped rows' and the running rows'
                 self.progress.update_to(int(core.stopped_counts[:, 0].sum()) + core.steps * len(core.rows))
