@@ -524,9 +524,6 @@ class NativeCore(Core):
             )
             elapsed = time.perf_counter() - start
             self._take_pending()
-            if kernel.engine.has_contact:  # a contact step costs two evaluations, one a step without contact
-                rows = self.rows.tolist()
-                self.extra_evaluations[: len(rows)] = kernel.engine.extra_evaluations(rows)
             taken += steps
             if steps:
                 self._budget = max(16, min(1 << 20, int(self._budget * BUDGET_SECONDS / max(elapsed, 1e-6))))

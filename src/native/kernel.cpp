@@ -1405,20 +1405,24 @@ namespace
     return s;
   }
 
-  // core.RowKernel._write_contacts for the samples the engine wrote: store.write_contacts(i, b, rows (k, 11))
-  // (a sample without contacts only clears an entry left at its index)
+  // recording.SampleStore.write_contacts for the samples the engine wrote, on the store's `contacts` dict itself
+  // (row b -> {sample index: rows (k, 11)}): dict operations run no Python code, so a signal handler (Ctrl-C)
+  // never sees the samples counted without their contacts.
   void write_contacts(nb::handle store, std::vector<multibody_sim::ContactRecord> & records)
   {
     if (records.empty())
       return;
-    nb::object contacts = store.attr("contacts"), write = store.attr("write_contacts");
+    nb::dict contacts = nb::borrow<nb::dict>(store.attr("contacts"));
     for (multibody_sim::ContactRecord & r : records)
     {
+      nb::int_ b(r.b), i(r.i);
+      if (!contacts.contains(b))
+        contacts[b] = nb::dict();
+      nb::dict held = nb::borrow<nb::dict>(contacts[b]);
       if (r.rows.empty())
       {
-        nb::object held = contacts.attr("get")(r.b);
-        if (!held.is_none() && nb::len(held))
-          write(r.i, r.b, nb::none());
+        if (held.contains(i))
+          nb::del(held[i]);
         continue;
       }
       const size_t k = r.rows.size();
@@ -1426,9 +1430,23 @@ namespace
       for (size_t c = 0; c < k; ++c)
         std::copy(r.rows[c].begin(), r.rows[c].end(), buffer + 11 * c);
       nb::capsule owner(buffer, [](void * p) noexcept { delete[] static_cast<double *>(p); });
-      write(r.i, r.b, nb::ndarray<nb::numpy, double, nb::ndim<2>>(buffer, {k, 11}, owner));
+      held[i] = nb::cast(nb::ndarray<nb::numpy, double, nb::ndim<2>>(buffer, {k, 11}, owner));
     }
     records.clear();
+  }
+
+  // A contact run's evaluations beyond the core's count, per running position of the Python core (its `rows`,
+  // the rows stopped in this call included: NativeCore._take_pending compacts both).
+  void write_extra_evaluations(const multibody_sim::Engine & engine, nb::handle core)
+  {
+    if (!engine.has_contact())
+      return;
+    Ints positions = nb::cast<Ints>(core.attr("rows"));
+    Ints extra = nb::cast<Ints>(core.attr("extra_evaluations"));
+    std::vector<int64_t> rows(positions.data(), positions.data() + positions.size());
+    const std::vector<int64_t> counts = engine.extra_evaluations(rows);
+    for (size_t p = 0; p < counts.size() && p < extra.size(); ++p)
+      extra.data()[p] = counts[p];
   }
 
   template<typename T>
@@ -1601,6 +1619,7 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
             ev.h, ev.minimum, ev.error));
         write_state(self, core, store, sampler, control, s);
         write_contacts(store, result.records);
+        write_extra_evaluations(self, core);
         return std::make_tuple(result.status, result.taken, result.need);
       },
       nb::arg("t_stop"), nb::arg("limit"), nb::arg("tolerance"), nb::arg("core"), nb::arg("store"),
