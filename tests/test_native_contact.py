@@ -72,6 +72,13 @@ def assert_same(a, b) -> None:
     assert_same_contacts(a.contacts, b.contacts)
 
 
+def simulate(scene, duration: float, **options):
+    """simulate() of the scene from its initial state with timestepping at 1 ms."""
+    return ms.simulate(
+        scene, scene.q0, scene.v0, duration=duration, dt=1e-3, integrator="timestepping", progress=False, **options
+    )
+
+
 def scene_run(scene, steps: int = 300, **options):
     """simulate() of the scene's own settings (controller included) for `steps` steps."""
     settings = {**scene.simulation_settings(), **options}
@@ -111,8 +118,11 @@ def extra_scenes() -> dict:
     return {
         "pgs": make_scene(ground={"friction": 0.8}, contact={"solver": "pgs"}, object=[sliding]),
         "cylinder": make_scene(ground={"friction": 0.5}, object=[can]),
-        "ball on a table": make_scene(ground={"friction": 0.6, "restitution": 0.3},
-                                      contact={"pairs": "all", "body_restitution": 0.5}, object=[table, ball]),  # fmt: skip
+        "ball on a table": make_scene(
+            ground={"friction": 0.6, "restitution": 0.3},
+            contact={"pairs": "all", "body_restitution": 0.5},
+            object=[table, ball],
+        ),
         "tilted box bouncing": make_scene(ground={"friction": 0.4, "restitution": 0.6}, object=[box]),
         "sunk box": make_scene(ground={"friction": 0.8}, object=[dict(sliding, position=[0.0, 0.0, 0.048])]),
     }
@@ -122,7 +132,7 @@ def extra_scenes() -> dict:
 def test_shapes_pairs_and_solvers_beyond_the_shipped_scenes(label, monkeypatch):
     scene = extra_scenes()[label]
     assert why_not_native(scene, TIMESTEPPING) is None
-    run = lambda: ms.simulate(scene, scene.q0, scene.v0, duration=0.4, dt=1e-3, integrator="timestepping", progress=False)  # noqa: E731
+    run = lambda: simulate(scene, 0.4)  # noqa: E731
     native_run, python_run = both(run, monkeypatch)
     assert_same(native_run, python_run)
     assert python_run.stats["solver_steps"] > 0
@@ -140,8 +150,7 @@ def test_stepper_on_a_contact_scene(monkeypatch):
     scene = ms.load_scene("solo12_standing")
 
     def run():
-        stepper = ms.Stepper(scene, dt=1e-3, integrator="timestepping", q0=scene.q0, v0=scene.v0,
-                             control_dt=4e-3)
+        stepper = ms.Stepper(scene, dt=1e-3, integrator="timestepping", q0=scene.q0, v0=scene.v0, control_dt=4e-3)
         controller = scene.make_controller()
         stepper.advance_to(0.1, controller)
         stepper.v = 0.5 * stepper.v
@@ -205,7 +214,7 @@ def test_rollout_of_a_robot_contact_scene_with_its_controller_on_two_threads(mon
 )
 def test_a_contact_constant_perturbed_on_the_native_side_breaks_the_agreement(name, constant, label, monkeypatch):
     scene = extra_scenes()[label]
-    run = lambda: ms.simulate(scene, scene.q0, scene.v0, duration=0.4, dt=1e-3, integrator="timestepping", progress=False)  # noqa: E731
+    run = lambda: simulate(scene, 0.4)  # noqa: E731
     native_run, python_run = both(run, monkeypatch)
     assert_same(native_run, python_run)  # unperturbed: equal
     contact_data = native_core.contact_data
@@ -254,15 +263,13 @@ def test_ctrl_c_mid_contact_run_keeps_every_sample(monkeypatch):
     timer.start()
     try:
         with pytest.raises(ms.SimulationInterrupted) as info:
-            ms.simulate(scene, scene.q0, scene.v0, duration=1e4, dt=1e-3, output_dt=0.01,
-                        integrator="timestepping", progress=False)
+            simulate(scene, 1e4, output_dt=0.01)
     finally:
         timer.cancel()
     traj = info.value.trajectory
     assert traj.status == "interrupted" and len(traj) > 5
     assert traj.metadata["kernel"] == "native"
-    whole = ms.simulate(scene, scene.q0, scene.v0, duration=traj.t[-2], dt=1e-3, output_dt=0.01,
-                        integrator="timestepping", progress=False)
+    whole = simulate(scene, traj.t[-2], output_dt=0.01)
     n = len(whole)
     assert n == len(traj) - 1
     for field in FIELDS:

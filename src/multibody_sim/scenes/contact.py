@@ -583,7 +583,8 @@ def _patch_points(patch: Any, rotation: np.ndarray) -> list[int]:
     n = patch.size()
     if n <= MAX_PATCH_POINTS:
         return list(range(n))
-    tangent = np.array([ordered_matvec(rotation.T, np.asarray(patch.getPoint(i), dtype=float)) for i in range(n)])[:, :2]
+    points = [np.asarray(patch.getPoint(i), dtype=float) for i in range(n)]
+    tangent = np.array([ordered_matvec(rotation.T, p) for p in points])[:, :2]  # sums in index order (ordered.py)
     chosen: list[int] = []
     for direction in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
         best = int(np.argmax(tangent @ np.array(direction, dtype=float)))
