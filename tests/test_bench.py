@@ -502,6 +502,104 @@ def test_the_pilot_measures_on_the_kernel_the_run_takes_and_caches_each_apart(
     assert "kernel measured (the one each run takes): native for rk4, dp54" in compiled.study.summary().splitlines()
 
 
+def test_the_pilot_runs_under_the_controller_and_keys_its_cache_on_it(
+    tmp_path: Path, robot: Callable, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Under gravity compensation from rest the double pendulum does not move (M q̈ = g - g = 0), so the pilot's
+    reference stays at q0 while the unforced one falls; a built-in controller is cached under its recipe (another
+    gain is another entry), and a controller of the user's own is measured but not cached."""
+    system = robot("double_pendulum")
+    q0 = [0.7, -0.4]
+    kwargs = {"tolerance": 1e-4, "duration": 0.2, "cache_dir": tmp_path, "integrators": ["rk4", "dp54"]}
+    studies = []
+    work_precision = bench.work_precision
+
+    def counted(*args: Any, **kw: Any) -> Any:
+        studies.append(1)
+        return work_precision(*args, **kw)
+
+    monkeypatch.setattr(bench, "work_precision", counted)
+    held = ms.make_controller("gravity_compensation", system)
+    still = ms.choose_integrator(system, q0, [0.0, 0.0], controller=held, **kwargs)
+    assert np.abs(np.asarray(still.study.reference.q) - q0).max() < 1e-12
+    assert still.study.settings["controller"] == "GravityCompensation"
+    free = ms.choose_integrator(system, q0, [0.0, 0.0], **kwargs)
+    assert np.abs(np.asarray(free.study.reference.q) - q0).max() > 1e-2  # it falls
+    assert free.cache_path != still.cache_path
+    assert ms.choose_integrator(system, q0, [0.0, 0.0], controller=held, **kwargs).cached
+    assert len(studies) == 2
+    pd = {gain: ms.make_controller("pd", system, ["q_ref=0.7,-0.4", f"kp={gain}"]) for gain in (5, 50)}
+    first = ms.choose_integrator(system, q0, [0.0, 0.0], controller=pd[5], **kwargs)
+    other = ms.choose_integrator(system, q0, [0.0, 0.0], controller=pd[50], **kwargs)
+    assert not other.cached and other.cache_path != first.cache_path and len(studies) == 4
+
+    def own(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return np.zeros(2)
+
+    mine = ms.choose_integrator(system, q0, [0.0, 0.0], controller=own, **kwargs)
+    again = ms.choose_integrator(system, q0, [0.0, 0.0], controller=own, **kwargs)
+    assert not again.cached and len(studies) == 6
+    assert mine.note == "the pilot study is not cached: a controller of your own has no description to key the cache on"
+
+
+def test_bench_and_run_tolerance_take_the_scene_controller(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A scene with a [controller] is benchmarked and piloted under it (the motion the run makes), and says so."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    scene = ms.load_scene("panda_push")
+    name = scene.spec.controller.name
+    code, out, err = call(
+        capsys, "bench", "panda_push", "--duration", "0.04", "--integrators", "timestepping", "--out", str(tmp_path)
+    )
+    assert (code, err) == (0, "")
+    header = [line for line in out.splitlines() if line.startswith("bench: panda_push")]
+    assert header and header[0].endswith(f", duration 0.04 s, controller {name} every 0.001 s")
+    assert " under its controller (" in out
+    study = ms.WorkPrecision.from_json(tmp_path / "work_precision.json")
+    assert study.settings["controller"] is not None
+    code, out, err = call(capsys, "run", "panda_push", "--duration", "0.04", "--tolerance", "1e-2")
+    assert (code, err) == (0, ""), err
+    assert any(CHOICE.match(line) for line in out.splitlines())
+
+
+def test_an_unreferenced_motion_is_said_to_be_one() -> None:
+    """A study whose reference did not converge says so instead of calling the motion too simple."""
+    base = {
+        "integrator": "timestepping",
+        "rtol": math.nan,
+        "atol": math.nan,
+        "check_rtol": math.nan,
+        "check_atol": math.nan,
+        "evaluations": 10,
+        "wall_time": 0.1,
+        "dt": 2e-5,
+        "check_dt": 1e-5,
+        "t": np.zeros(1),
+        "q": np.zeros((1, 1)),
+        "v": np.zeros((1, 1)),
+    }
+    for error, said in ((46.0, "note: the reference did not converge"), (1e-9, "note: every run is as accurate")):
+        study = ms.WorkPrecision(
+            system="x",
+            duration=1.0,
+            output_dt=0.02,
+            q0=[0.0],
+            v0=[0.0],
+            reference=bench.Reference(error=error, **base),
+            measurements=[
+                bench.Measurement(
+                    "timestepping", 1e-3, None, None, bench.STATUS_COMPLETED, error=error / 100, below_reference=True
+                )
+            ],
+            orders={},
+            settings={},
+            metadata={},
+            complete=True,
+        )
+        assert said in study.summary()
+
+
 def test_an_unreachable_tolerance_is_a_clear_error(tmp_path: Path, robot: Callable) -> None:
     with pytest.raises(ms.InvalidArgumentError) as raised:
         ms.choose_integrator(
@@ -591,9 +689,12 @@ def _bad_inputs(tmp: Path) -> list[tuple[list[str], str]]:
         ([*tol, "--dt", "0.01", "--rtol", "1e-3"], chooses.format("--dt, --rtol")),
         (["run", *dp, "--tolerance", "-1"], "tolerance must be a positive number, got -1.0"),
         (
-            [*tol, "--controller", "gravity_compensation"],
-            "--tolerance chooses from a pilot study of the motion with no torque: it cannot choose for --controller "
-            "(drop one of them)",
+            ["bench", *dp, "--param", "kp=1"],
+            f"--param needs --controller NAME (valid: {', '.join(sorted(ms.CONTROLLERS))})",
+        ),
+        (
+            ["bench", *dp, "--controller", "pd"],
+            "controller 'pd' needs q_ref=..., kp=... (parameters: kd, kp (required), q_ref (required), v_ref)",
         ),
     ]
 

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from .driver import controller_name
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
 from .files import write_atomically
 from .integrators import INTEGRATORS, Integrator, get_integrator
@@ -39,7 +40,7 @@ from .metadata import versions
 from .native_core import why_not_native
 from .robot import Robot
 from .safety import safe_name
-from .simulation import simulate
+from .simulation import Controller, simulate
 from .trajectory import Trajectory
 from .validation import (
     MAX_STEPS,
@@ -84,6 +85,11 @@ ORDER_MISMATCH = 0.4
 # double pendulum, ur5, solo12 and talos, as the controller's start-up and landing steps weigh more at loose
 # tolerances). It is reported as what it is, never judged against the classical order.
 REPEAT_BELOW = 0.2  # [s] runs shorter than this are timed `repeats` times (median); longer ones once
+# A reference whose check differs from it by more than this [rad, m, rad/s, m/s] has not converged: the loosest
+# accuracy the study recommends for is 1e-2.
+UNCONVERGED_REFERENCE = 1e-2
+# [s] the period at which a study holds its controller when none is given (1 kHz, a common control rate)
+CONTROL_DT = 1e-3
 PILOT_HORIZON = 1.0  # [s] `run --tolerance` studies min(duration, this)
 PILOT_MIN_ERROR = 1e-8  # the pilot's ladders go down to min(tolerance, this), so one study serves many tolerances
 PILOT_MAX_RUN_TIME = 0.5  # [s] the pilot stops a ladder after a run this long
@@ -446,9 +452,11 @@ class WorkPrecision:
 
     def summary(self, tolerances: Sequence[float] = (1e-2, 1e-4, 1e-6, 1e-8)) -> str:
         """What the `bench` command prints: the reference, the orders and the recommendations."""
+        controller = self.settings.get("controller")
         lines = [
-            f"work-precision study of {safe_name(self.system)}: {self.duration:g} s, error = max over samples every "
-            f"{self.output_dt:g} s of |(q ⊖ q_ref, v − v_ref)|∞"
+            f"work-precision study of {safe_name(self.system)}: {self.duration:g} s"
+            + (f" under its controller ({safe_name(str(controller))})" if controller else ", no applied torque")
+            + f", error = max over samples every {self.output_dt:g} s of |(q ⊖ q_ref, v − v_ref)|∞"
             + ("" if self.complete else " (INTERRUPTED: partial results)")
         ]
         if self.reference is not None:
@@ -469,7 +477,16 @@ class WorkPrecision:
             lines.append(kernels)
         lines += ["", self.orders_table(), ""]
         done = [m for m in self.measurements if m.completed]
-        if done and all(m.below_reference for m in done):
+        if self.reference is not None and self.reference.error > UNCONVERGED_REFERENCE:
+            lines += [
+                f"note: the reference did not converge (two runs of it, one at half the step or a tenth of the "
+                f"tolerance, differ by {self.reference.error:.1e}): this motion is too sensitive to the step to "
+                "measure an error (e.g. a robot collapsing onto the ground with nothing holding it, whose impacts "
+                "come at other instants at every step); measure the motion the scene makes with its controller, a "
+                "shorter duration or another initial state",
+                "",
+            ]
+        elif done and all(m.below_reference for m in done):
             lines += [
                 "note: every run is as accurate as the reference: this motion is too simple to tell integrators "
                 "apart (e.g. a floating robot in free fall with no joint motion); pass another initial state",
@@ -535,6 +552,8 @@ def work_precision(
     repeats: int = 3,
     prune: bool = False,
     progress: Callable[[str], None] | None = None,
+    controller: Controller | None = None,
+    control_dt: float | None = None,
 ) -> WorkPrecision:
     """Measure error against cost for each integrator over a ladder of steps or tolerances.
 
@@ -564,6 +583,11 @@ def work_precision(
         repeats: runs shorter than REPEAT_BELOW seconds are timed this many times (median).
         prune: stop a ladder that other integrators dominate (the pilot study of `run --tolerance`).
         progress: called with one line of text per measurement.
+        controller: ``controller(t, q, v) -> tau`` applied in every run, the reference included (reset before each
+            run, as simulate does), so the study measures the motion the run will make; None applies no torque.
+        control_dt: the controller's period [s] (simulate's ``control_dt``); fixed steps that do not divide it are
+            left out of the ladder. None: CONTROL_DT (a controller called at every step of an adaptive method
+            would make the motion depend on the steps, and no run could be measured against another).
 
     Returns:
         The study.
@@ -614,6 +638,12 @@ def work_precision(
     if not isinstance(max_steps, (int, np.integer)) or isinstance(max_steps, bool) or max_steps < 1:
         raise InvalidArgumentError(f"max_steps must be a positive integer, got {max_steps!r}")
     check_callable(progress, "progress", "progress(line)")
+    check_callable(controller, "controller", "controller(t, q, v) -> tau")
+    if controller is None:
+        control_dt = None
+    else:
+        control_dt = CONTROL_DT if control_dt is None else positive_number(control_dt, "control_dt")
+        ladder = [dt for dt in ladder if _divides(dt, control_dt)]
     say = progress or (lambda line: None)
 
     result = WorkPrecision(
@@ -637,11 +667,13 @@ def work_precision(
             "repeats": int(repeats),
             "prune": bool(prune),
             "cost": "cpu_time: process CPU time of the simulate() call, median over repeats",
+            "controller": None if controller is None else controller_name(controller),
+            "control_dt": control_dt,
         },
         metadata={"versions": dict(versions()), "source": getattr(system, "source", {})},
         complete=False,
     )
-    study = _Study(system, q0, v0, duration, grid, result, say, int(repeats), max_run_time)
+    study = _Study(system, q0, v0, duration, grid, result, say, int(repeats), max_run_time, controller, control_dt)
     if study.contact:
         say(
             f"measuring {len(methods)} integrator(s) over {duration:g} s against timestepping at dt "
@@ -688,8 +720,11 @@ class _Study:
         say: Callable[[str], None],
         repeats: int,
         max_run_time: float,
+        controller: Controller | None = None,
+        control_dt: float | None = None,
     ):
         self.system, self.q0, self.v0 = system, q0, v0
+        self.controller, self.control_dt = controller, control_dt
         self.duration, self.grid = duration, grid
         self.result, self.say = result, say
         self.repeats, self.max_run_time = repeats, max_run_time
@@ -735,7 +770,18 @@ class _Study:
         options: dict[str, Any] = {"output_dt": self.grid}
         if tolerance is not None:
             options.update(rtol=tolerance, atol=tolerance)
-        return simulate(self.system, self.q0, self.v0, duration=self.duration, dt=dt, integrator=integrator, **options)
+        if self.control_dt is not None:
+            options["control_dt"] = self.control_dt
+        return simulate(
+            self.system,
+            self.q0,
+            self.v0,
+            duration=self.duration,
+            dt=dt,
+            integrator=integrator,
+            controller=self.controller,
+            **options,
+        )
 
     def ladder(
         self, method: Integrator, rungs: list[tuple[float, float | None]], floor: float, max_steps: int, prune: bool
@@ -1009,12 +1055,15 @@ class Choice:
         m = self.measurement
         source = "cached pilot study" if self.cached else "pilot study"
         ran = [r for r in self.study.measurements if r.status != STATUS_REFUSED]
+        controller = self.study.settings.get("controller")
         return (
             f"tolerance {self.tolerance:g} over the first {self.horizon:g} s: chose {m.integrator}, {m.settings()} "
             f"({source}: error {m.error:.2e} + reference {self.study.reference_error:.0e}, "
             f"max |energy_error| {m.energy_error:.2e} J, {m.evaluations} dynamics evaluations, "
             f"{m.cpu_time:.3g} s CPU on the {m.kernel or 'unrecorded'} kernel; cheapest of {len(ran)} runs of "
-            f"{len({r.integrator for r in ran})} integrators)" + self._reference_note()
+            f"{len({r.integrator for r in ran})} integrators)"
+            + self._reference_note()
+            + (f"; measured under the controller ({safe_name(str(controller))})" if controller else "")
         )
 
     def _reference_note(self) -> str:
@@ -1045,6 +1094,8 @@ def choose_integrator(
     cache: bool = True,
     cache_dir: str | os.PathLike[str] | None = None,
     progress: Callable[[str], None] | None = None,
+    controller: Controller | None = None,
+    control_dt: float | None = None,
 ) -> Choice:
     """The cheapest integrator and step meeting `tolerance`, from a pilot study over min(duration, 1 s).
 
@@ -1056,6 +1107,11 @@ def choose_integrator(
     (load_robot arguments and the URDF's SHA-256), the initial state, the horizon, the integrator set and the
     kernel each integrator runs on (native or Python: the costs differ, so does the choice); an entry is reused
     when its ladders went down to the tolerance asked for, and an unreadable entry is rebuilt.
+
+    With a `controller`, held for `control_dt` (default CONTROL_DT; the run must use the same period, which
+    ``study.settings["control_dt"]`` gives), the pilot runs under it: the choice is for the motion the controlled
+    run makes. A built-in controller (make_controller, a scene's [controller]) is keyed in the cache by
+    its name and parameters; any other callable has no such description, so its pilot is not cached.
 
     Raises:
         InvalidArgumentError: a bad argument, or no measured configuration meets the tolerance (the message
@@ -1072,10 +1128,21 @@ def choose_integrator(
     horizon = min(positive_number(duration, "duration"), PILOT_HORIZON)
     names = None if integrators is None else [get_integrator(i).name for i in integrators]
     min_error = min(tolerance, PILOT_MIN_ERROR)
-    key = _cache_key(system, q0, v0, horizon, names)
+    check_callable(controller, "controller", "controller(t, q, v) -> tau")
+    if controller is None:
+        control_dt = None
+    elif control_dt is None:
+        control_dt = CONTROL_DT
+    else:
+        control_dt = positive_number(control_dt, "control_dt")
+    recipe = None if controller is None else getattr(controller, "recipe", None)
+    key = _cache_key(system, q0, v0, horizon, names, recipe, control_dt)
     path = None
     note = ""
     study = None
+    if cache and controller is not None and recipe is None:
+        cache = False
+        note = "the pilot study is not cached: a controller of your own has no description to key the cache on"
     if cache:
         path = Path(cache_dir) if cache_dir is not None else default_cache_dir() / "pilot"
         path = path / f"{key[:40]}.json"
@@ -1092,6 +1159,8 @@ def choose_integrator(
             max_run_time=PILOT_MAX_RUN_TIME,
             prune=True,
             progress=progress,
+            controller=controller,
+            control_dt=control_dt,
         )
         study.settings["cache_key"] = key
         if path is not None:
@@ -1112,10 +1181,18 @@ def choose_integrator(
     return Choice(tolerance, horizon, chosen, study, cached, path, note)
 
 
-def _cache_key(system: Robot, q0: np.ndarray, v0: np.ndarray, horizon: float, names: list[str] | None) -> str:
+def _cache_key(
+    system: Robot,
+    q0: np.ndarray,
+    v0: np.ndarray,
+    horizon: float,
+    names: list[str] | None,
+    recipe: Any = None,
+    control_dt: float | None = None,
+) -> str:
     """SHA-256 of everything a pilot study depends on (floats by repr, which round-trips exactly), the kernel each
     integrator runs on included: costs measured on the Python kernel must not choose for a native run, nor the
-    reverse."""
+    reverse. `recipe` is a built-in controller's (name, parameters), `control_dt` its period."""
     source = dict(getattr(system, "source", {}))
     methods = INTEGRATORS.values() if names is None else [get_integrator(n) for n in names]
     content = {
@@ -1125,6 +1202,8 @@ def _cache_key(system: Robot, q0: np.ndarray, v0: np.ndarray, horizon: float, na
         "q0": [repr(float(x)) for x in q0],
         "v0": [repr(float(x)) for x in v0],
         "horizon": repr(horizon),
+        "controller": recipe,
+        "control_dt": None if control_dt is None else repr(float(control_dt)),
         "integrators": "all" if names is None else sorted(names),
         "kernels": {m.name: "python" if why_not_native(system, m) else "native" for m in methods},
         "versions": dict(versions()),

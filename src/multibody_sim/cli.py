@@ -252,19 +252,7 @@ def _build_parser() -> _Parser:
     run.add_argument(
         "--control-dt", metavar="S", type=float, help="controller period [s], a multiple of dt (default: every step)"
     )
-    controller = run.add_argument(
-        "--controller",
-        metavar="NAME",
-        help="apply a built-in controller: %(names)s (default: no torque)",
-    )
-    controller.names = _ControllerNames()  # type: ignore[attr-defined]  # read by argparse's %(names)s
-    run.add_argument(
-        "--param",
-        metavar="KEY=VALUE",
-        action="append",
-        default=[],
-        help="a --controller parameter; vectors are comma-separated (q_ref=0,-1,1,0,0,0); repeat for each",
-    )
+    _add_controller_options(run, "apply a built-in controller: %(names)s (default: the scene's, else no torque)")
     run.add_argument(
         "--out",
         metavar="FILE.npz",
@@ -302,6 +290,12 @@ def _build_parser() -> _Parser:
         "--view-speed", metavar="X", type=float, default=1.0, help="playback speed, 1 = real time (default: 1)"
     )
     view.add_argument("--view-plot", action="store_true", help="show the energy plot beside the view")
+    view.add_argument(
+        "--view-forces",
+        action="store_true",
+        help="draw a contact scene's contact forces as arrows in the recording left in the page after the run "
+        "(the largest force is 20 cm long)",
+    )
     _add_server_options(view, prefix="--view-")
     run.set_defaults(handler=_cmd_run)
 
@@ -332,8 +326,9 @@ def _build_parser() -> _Parser:
         parents=[robot_options],
         help="measure error against cost for every integrator and recommend one",
         description="Run each integrator over a ladder of steps (fixed-step) or tolerances (adaptive) from (q0, v0) "
-        "with no applied torque; measure the error against a dp54 reference (checked by refining it), the energy "
-        "error and the cost; print observed against theoretical orders and the cheapest integrator for a few "
+        "under the scene's controller or --controller (else with no applied torque); measure the error against a "
+        "dop853 reference (checked by refining it; a contact scene's is timestepping at a much smaller step), the "
+        "energy error and the cost; print observed against theoretical orders and the cheapest integrator for a few "
         "accuracies; write DIR/work_precision.csv, .json and .png.",
     )
     bench.add_argument(
@@ -353,6 +348,9 @@ def _build_parser() -> _Parser:
     bench.add_argument("--v0", metavar="V", type=float, nargs="+", help="initial velocity, nv numbers (default: zeros)")
     bench.add_argument(
         "--out", metavar="DIR", default=".", help="folder for work_precision.{csv,json,png} (default: the current one)"
+    )
+    _add_controller_options(
+        bench, "measure the motion under a built-in controller: %(names)s (default: the scene's, else no torque)"
     )
     bench.add_argument("--verbose", action="store_true", help="print a line for every run as it is measured")
     bench.set_defaults(handler=_cmd_bench)
@@ -389,7 +387,8 @@ def _add_view_commands(commands: Any) -> None:
     play.add_argument(
         "--forces",
         action="store_true",
-        help="draw a contact scene's contact forces as arrows (with --html; the largest force is 20 cm long)",
+        help="draw a contact scene's contact forces as arrows (served, --html or --video; the largest force is "
+        "20 cm long)",
     )
     _add_server_options(play, prefix="--")
     video = play.add_argument_group(
@@ -568,9 +567,16 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
 
     playback_speed(args.view_speed, "--view-speed")
     port_number(args.view_port, "--view-port")
+    if args.view_forces and not args.view:
+        raise _UsageError("--view-forces draws contact forces in the --view page: add --view")
     out = _check_out(args.out) if args.out else None
     robot = _load(args)
     scene = robot if isinstance(robot, ms.Scene) else None
+    if args.view_forces and getattr(robot, "contact", None) is None:
+        raise _UsageError(
+            "--view-forces draws contact forces, and this run has no contact (run a scene with [ground], [contact] "
+            "or [[object]], e.g. sliding_box)"
+        )
     # A scene's own settings, which the command line's flags override.
     declared = scene.simulation_settings() if scene is not None else {}
     if args.tolerance is not None:  # the pilot study chooses the method and its step, not the scene
@@ -606,11 +612,17 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
         if args.report_savings:
             _say(_savings(scene))
     if args.tolerance is not None:  # a pilot study chooses the integrator and its step
-        choice = _choose_for_tolerance(args, robot, q0, v0)
+        choice = _choose_for_tolerance(args, robot, q0, v0, controller, options.get("control_dt"))
         if isinstance(choice, int):  # interrupted during the pilot
             return choice
         method, args.dt = ms.get_integrator(choice.measurement.integrator), choice.measurement.dt
         options.update({k: v for k, v in choice.measurement.simulate_options().items() if k in ("rtol", "atol")})
+        if controller is not None and "control_dt" not in options:  # the period the pilot held the controller
+            options["control_dt"] = choice.study.settings["control_dt"]
+            _say(
+                f"note: the controller is held for {options['control_dt']:g} s, as in the pilot study (called at every "
+                "step, it would make the motion depend on the steps); --control-dt sets another period"
+            )
     args.dt = 1e-3 if args.dt is None else args.dt  # the --dt default
     tolerances = ""
     if method.adaptive:
@@ -742,19 +754,17 @@ def _controller(args: argparse.Namespace, robot: Any) -> Any:
     return ms.make_controller(args.controller, robot, args.param)
 
 
-def _choose_for_tolerance(args: argparse.Namespace, robot: Any, q0: Any, v0: Any) -> ms.Choice | int:
-    """`run --tolerance`: the pilot study's choice (said before the run), or the exit code if interrupted."""
+def _choose_for_tolerance(
+    args: argparse.Namespace, robot: Any, q0: Any, v0: Any, controller: Any, control_dt: float | None
+) -> ms.Choice | int:
+    """`run --tolerance`: the pilot study's choice (said before the run), or the exit code if interrupted. The
+    pilot runs under the run's controller, at its period."""
     chosen_flags = {"--integrator": args.integrator, "--dt": args.dt, "--rtol": args.rtol, "--atol": args.atol}
     given = [flag for flag, value in {**chosen_flags, "--max-step": args.max_step}.items() if value is not None]
     if given:
         raise _UsageError(
             f"--tolerance chooses the integrator and its step or tolerances: drop {', '.join(given)} "
             "(or drop --tolerance and choose them yourself)"
-        )
-    if getattr(args, "controller", None) is not None:  # the pilot measures the unforced motion only
-        raise _UsageError(
-            "--tolerance chooses from a pilot study of the motion with no torque: it cannot choose for --controller "
-            "(drop one of them)"
         )
     started: list[bool] = []
 
@@ -767,7 +777,14 @@ def _choose_for_tolerance(args: argparse.Namespace, robot: Any, q0: Any, v0: Any
     with _SigtermAsInterrupt() as signals:
         try:
             choice = ms.choose_integrator(
-                robot, q0, v0, tolerance=args.tolerance, duration=args.duration, progress=progress
+                robot,
+                q0,
+                v0,
+                tolerance=args.tolerance,
+                duration=args.duration,
+                progress=progress,
+                controller=controller,
+                control_dt=control_dt,
             )
         except KeyboardInterrupt:
             name = signals.received or "SIGINT"
@@ -777,6 +794,19 @@ def _choose_for_tolerance(args: argparse.Namespace, robot: Any, q0: Any, v0: Any
         _say(f"note: {choice.note}")
     _say(choice.describe())
     return choice
+
+
+def _add_controller_options(parser: argparse.ArgumentParser, text: str) -> None:
+    """--controller NAME and its repeated --param KEY=VALUE (run, bench)."""
+    controller = parser.add_argument("--controller", metavar="NAME", help=text)
+    controller.names = _ControllerNames()  # type: ignore[attr-defined]  # read by argparse's %(names)s
+    parser.add_argument(
+        "--param",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        help="a --controller parameter; vectors are comma-separated (q_ref=0,-1,1,0,0,0); repeat for each",
+    )
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -796,6 +826,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     default_v = robot.v0 if scene_start else [0.0] * robot.nv
     q0 = default_q if args.q0 is None else _configuration(robot, args.q0)
     v0 = default_v if args.v0 is None else robot.check_v(args.v0, "v0")
+    controller = _controller(args, robot)
+    declared = robot.simulation_settings() if scene_start else {}
+    if controller is None:  # the scene's own controller, at its declared period
+        controller = declared.get("controller")
+        if controller is not None:
+            args.controller = robot.spec.controller.name
+    control_dt = declared.get("control_dt", ms.bench.CONTROL_DT) if controller is not None else None
     base = "floating" if robot.floating_base else "fixed"
     started: list[bool] = []
 
@@ -806,6 +843,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             _say(
                 f"bench: {safe_name(robot.name)} ({base} base, nq {robot.nq}, nv {robot.nv}), "
                 f"duration {args.duration:g} s"
+                + (f", controller {args.controller}" if controller is not None else "")
+                + (f" every {control_dt:g} s" if control_dt is not None else "")
             )
         if args.verbose:  # one line per run; the default report is the header and the summary
             _say(line)
@@ -813,7 +852,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     failure: ms.BenchInterrupted | None = None
     with _SigtermAsInterrupt() as signals:
         try:
-            result = ms.work_precision(robot, q0, v0, duration=args.duration, integrators=names, progress=progress)
+            result = ms.work_precision(
+                robot,
+                q0,
+                v0,
+                duration=args.duration,
+                integrators=names,
+                progress=progress,
+                controller=controller,
+                control_dt=control_dt,
+            )
         except ms.BenchInterrupted as exc:
             result, failure = exc.result, exc
     try:
@@ -997,14 +1045,16 @@ def _cmd_play(args: argparse.Namespace) -> int:
 
     viz = _viz()
     html = _check_output(args.html, "--html", "view.html") if args.html else None
-    if args.forces and html is None:
-        raise _UsageError("--forces draws contact forces in the --html export only (not yet live or in videos)")
     if not args.video:  # a video's frame rate has its own range per format (checked with the video's options)
         frame_rate(args.fps, "--fps")
     playback_speed(args.speed, "--speed")
     port_number(args.port, "--port")
     video = _check_video(args) if args.video else None
     trajectory = ms.Trajectory.load(args.trajectory)
+    if args.forces and trajectory.contacts is None:
+        raise _UsageError(
+            f"--forces: {args.trajectory} records no contacts (forces are drawn for runs of scenes with contact)"
+        )
     try:
         robot = viz.robot_from_trajectory(trajectory, allowed_roots=args.allow_root or None)
         if video is not None:
@@ -1030,7 +1080,7 @@ def _cmd_play(args: argparse.Namespace) -> int:
             return EXIT_OK
         viewer = _open_viewer(robot, args.host, args.port, args.speed)
         try:
-            viewer.animate(trajectory, fps=args.fps, speed=args.speed)
+            viewer.animate(trajectory, fps=args.fps, speed=args.speed, forces=args.forces)
             if args.plot:
                 viewer.show_plot(trajectory)
             _say(
@@ -1073,6 +1123,7 @@ def _write_video(viz: Any, trajectory: Any, robot: Any, path: Path, args: argpar
                 camera=args.camera,
                 camera_position=args.camera_position,
                 camera_target=args.camera_target,
+                forces=args.forces,
             )
     except OSError as exc:
         raise _UsageError(f"--video {path}: cannot write the video ({exc.strerror or exc})") from None
@@ -1189,7 +1240,9 @@ def _watch(viewer: Any, trajectory: Any, args: argparse.Namespace) -> None:
         if live is not None:
             live.finish(trajectory)
         duration = float(trajectory.t[-1] - trajectory.t[0])
-        viewer.animate(trajectory, play=False, seek=duration, speed=args.view_speed, frame=False)
+        viewer.animate(
+            trajectory, play=False, seek=duration, speed=args.view_speed, frame=False, forces=args.view_forces
+        )
         if _interactive():  # someone at a terminal may still want the page; a script wants the exit
             _say("view: played; the page keeps the recording (time slider under Open Controls); Ctrl-C to quit")
             _wait_for_interrupt()

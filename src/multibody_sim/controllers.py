@@ -861,6 +861,9 @@ def make_controller(name: str, robot: Robot, params: Sequence[str] = ()) -> Any:
         robot: the robot the controller drives.
         params: ``KEY=VALUE`` strings.
 
+    The controller's ``recipe`` is (name, its ``KEY=VALUE`` strings sorted by key): what it was made from (the
+    pilot study of ``run --tolerance`` keys its cache on it).
+
     Raises:
         UnknownNameError: the name is not a built-in controller (the message lists them).
         InvalidArgumentError: a malformed, unknown, repeated, missing or invalid parameter (the message names
@@ -898,9 +901,13 @@ def make_controller(name: str, robot: Robot, params: Sequence[str] = ()) -> Any:
         )
     try:
         values = {key: by_name[key].parse(texts) for key, texts in given.items()}
-        return spec.factory(robot, **values)
+        controller = spec.factory(robot, **values)
     except InvalidArgumentError as exc:
         raise InvalidArgumentError(f"controller '{name}': {exc}") from None
+    # What it was made from, for the caches that key on it (run --tolerance's pilot study): the parameters by name,
+    # a repeated one's values in their order (waypoints), each as given.
+    controller.recipe = (name, [f"{key}={text}" for key in sorted(given) for text in given[key]])
+    return controller
 
 
 def _listing(spec: ControllerSpec) -> str:

@@ -23,7 +23,7 @@ from .exceptions import InvalidArgumentError
 from .integrators import INTEGRATORS, Integrator
 from .integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
 from .integrators.partitioned import SemiImplicitEuler
-from .recording import SampleStore
+from .recording import STORE_ARRAYS, SampleStore
 from .robot import Robot
 from .scenes.scene import Scene
 from .state import _HALF_SERIES
@@ -405,8 +405,9 @@ def native_policies(system: Any, torques: Any, settings: Any) -> dict[str, Any] 
 
 
 def store_arrays(store: SampleStore) -> tuple[np.ndarray, ...]:
-    """The store's arrays as the engine takes them (the store may have grown since the last call)."""
-    return store.T, store.Q, store.V, store.TAU, store.ENERGY, store.FLOWS, store.COUNTS, store.EXTRA
+    """The store's arrays as the engine takes them: batch-major, (B, capacity, ...) (the store may have grown since
+    the last call)."""
+    return tuple(store.batch_major(name) for name in STORE_ARRAYS)
 
 
 class NativeCore(Core):

@@ -441,7 +441,7 @@ namespace multibody_sim
     void write(const Store & store, int64_t i, int64_t b, const Vec & qx, const Vec & vx, const Vec & tx,
                const double * fl)
     {
-      const int64_t at = i * store.B + b;
+      const int64_t at = store.at(i, b);
       write_state(store, at, qx, vx, tx, fl);
       pinocchio::forwardKinematics(e.model_, data, qx, vx);
       write_energies(store, at, qx);
@@ -469,7 +469,7 @@ namespace multibody_sim
 
     void stamp(const Store & store, int64_t i, int64_t b, double t) const
     {
-      const int64_t at = i * store.B + b;
+      const int64_t at = store.at(i, b);
       store.T[at] = t;
       store.COUNTS[at * 3] = st.steps;
       store.COUNTS[at * 3 + 1] = st.rejected;
@@ -518,7 +518,7 @@ namespace multibody_sim
           stamp(store, i, rows[j], st.t);
           if (defer)
           {
-            const int64_t at = i * store.B + rows[j];
+            const int64_t at = store.at(i, rows[j]);
             write_state(store, at, q[j], v[j], tau[j], flows[j].data());
             pending[j] = at;
             pending_store = &store;
@@ -1262,12 +1262,14 @@ namespace
     s.COUNTS = COUNTS.data();
     s.EXTRA = EXTRA.data();
     s.extra_width = EXTRA.ndim() == 3 ? static_cast<int64_t>(EXTRA.shape(2)) : 0;
-    s.capacity = static_cast<int64_t>(T.shape(0));
-    s.B = static_cast<int64_t>(T.shape(1));
-    const size_t cells = T.shape(0) * T.shape(1);
-    if (COUNTS.size() != 3 * cells || ENERGY.size() != 2 * cells || Q.shape(0) != T.shape(0) || V.shape(0) != T.shape(0)
-        || TAU.shape(0) != T.shape(0) || FLOWS.shape(0) != T.shape(0) || EXTRA.ndim() != 3
-        || EXTRA.shape(0) != T.shape(0) || EXTRA.shape(1) != T.shape(1))
+    s.B = static_cast<int64_t>(T.shape(0));  // batch-major: (B, capacity, ...)
+    s.capacity = static_cast<int64_t>(T.shape(1));
+    const auto cells = [&](const Doubles & X) {
+      return X.ndim() == 3 && X.shape(0) == T.shape(0) && X.shape(1) == T.shape(1);
+    };
+    const size_t n = T.shape(0) * T.shape(1);
+    if (T.ndim() != 2 || COUNTS.size() != 3 * n || ENERGY.size() != 2 * n || !cells(Q) || !cells(V) || !cells(TAU)
+        || !cells(ENERGY) || !cells(FLOWS) || !cells(EXTRA))
       throw std::invalid_argument("the sample store's arrays disagree in shape");
     return s;
   }

@@ -86,9 +86,15 @@ namespace multibody_sim
     double last_control = std::numeric_limits<double>::quiet_NaN();  // ... every step: the latest (`passed`)
   };
 
-  // The sample store's arrays (recording.SampleStore), sample-major: X[i, b, :].
+  // The sample store's arrays (recording.SampleStore.batch_major), batch-major: X[b, i, :] is row b's sample i at
+  // cell at(i, b).
   struct Store
   {
+    int64_t at(int64_t i, int64_t b) const
+    {
+      return b * capacity + i;
+    }
+
     double * T = nullptr;
     double * Q = nullptr;
     double * V = nullptr;

@@ -2,12 +2,15 @@
 
 An arrow starts at a contact point and points along the force on the second body of the pair (the impulse of the
 step that ended at the sample shown, over that step: the mean force [N]); the largest force of the run is
-ARROW_LENGTH long, the others in proportion. Arrows of contacts that are not active are shrunk to nothing.
+ARROW_LENGTH long, the others in proportion. Arrows of contacts that are not active are shrunk to nothing. The
+HTML export (and videos) animate them with the motion; the live viewer animates them too, or moves them frame by
+frame when it streams a recording (Viewer.play).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -41,14 +44,69 @@ def arrow_part() -> MeshPart:
     )
 
 
-def force_arrows(trajectory: Trajectory, times: np.ndarray) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """(setup commands, animation entries) of the trajectory's contact forces at the display times.
+@dataclass(frozen=True)
+class ArrowTracks:
+    """Where each arrow slot is at each display time: slot k shows the k-th contact of the sample on display.
+
+    Attributes:
+        positions: arrow origins (contact points), world [m], shape (slots, n, 3).
+        quaternions: rotations taking +z onto the force's direction, x y z w, shape (slots, n, 4).
+        scales: (1, 1, length [m]) per slot and time (a hidden slot shrinks to nothing), shape (slots, n, 3).
+    """
+
+    positions: np.ndarray
+    quaternions: np.ndarray
+    scales: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def setup_commands(self) -> list[dict[str, Any]]:
+        """Remove the previous arrows, then create one arrow mesh per slot under FORCES/k/arrow."""
+        from .scene import _mesh_command
+
+        umsgpack = require("umsgpack", "the meshcat viewer")
+        part = arrow_part()
+        setup: list[dict[str, Any]] = [{"type": "delete", "path": FORCES}]
+        setup += [_mesh_command(umsgpack, f"{FORCES}/{k}/arrow", part) for k in range(len(self))]
+        return setup
+
+    def pose_commands(self, f: int) -> list[dict[str, Any]]:
+        """One set_transform per slot placing the arrows at display time index f (the live viewer's frames)."""
+        from .scene import transform_command
+
+        commands = []
+        for k in range(len(self)):
+            matrix = np.eye(4)
+            x, y, z, w = self.quaternions[k, f]
+            matrix[:3, :3] = pin.Quaternion(w, x, y, z).matrix() * self.scales[k, f]  # scaled along its own axes
+            matrix[:3, 3] = self.positions[k, f]
+            commands.append(transform_command(f"{FORCES}/{k}", matrix))
+        return commands
+
+    def animations(self, times: np.ndarray) -> list[dict[str, Any]]:
+        """meshcat animation entries of the slots over the display times (joined to the motion's animation)."""
+        from .scene import _keys
+
+        keys = (np.asarray(times, dtype=float) - float(times[0])).tolist()
+        animations = []
+        for k in range(len(self)):
+            tracks = [
+                {"name": ".position", "type": "vector3", "keys": _keys(keys, self.positions[k])},
+                {"name": ".quaternion", "type": "quaternion", "keys": _keys(keys, self.quaternions[k])},
+                {"name": ".scale", "type": "vector3", "keys": _keys(keys, self.scales[k])},
+            ]
+            animations.append({"path": f"{FORCES}/{k}", "clip": {"fps": 1, "name": "default", "tracks": tracks}})
+        return animations
+
+
+def arrow_tracks(trajectory: Trajectory, times: np.ndarray) -> ArrowTracks:
+    """The arrows of the trajectory's contact forces at the display times (as many slots as the most contacts
+    any displayed sample has; none when no displayed sample has a contact).
 
     Raises:
         InvalidArgumentError: the trajectory records no contacts (it is not a contact scene's run).
     """
-    from .scene import _keys, _mesh_command
-
     contacts = trajectory.contacts
     if contacts is None:
         raise InvalidArgumentError(
@@ -58,40 +116,34 @@ def force_arrows(trajectory: Trajectory, times: np.ndarray) -> tuple[list[dict[s
     if not (math.isfinite(dt) and dt > 0):
         raise InvalidArgumentError("the trajectory's metadata has no step (options.dt): its forces are unknown")
     t = np.asarray(trajectory.t, dtype=float)
+    times = np.asarray(times, dtype=float)
     shown = np.clip(np.searchsorted(t, times, side="right") - 1, 0, len(t) - 1)  # the sample on display
     counts = np.bincount(contacts.sample, minlength=len(t)) if len(contacts.sample) else np.zeros(len(t), int)
     slots = int(counts[shown].max()) if len(shown) else 0
-    if slots == 0:
-        return [], []
-    forces = contacts.impulse / dt
-    largest = float(np.linalg.norm(forces, axis=1).max()) or 1.0
-    starts = np.searchsorted(contacts.sample, np.arange(len(t)))
-    umsgpack = require("umsgpack", "the meshcat viewer")
-    part = arrow_part()
-    keys = (np.asarray(times, dtype=float) - float(times[0])).tolist()
-    setup: list[dict[str, Any]] = [{"type": "delete", "path": FORCES}]
-    animations = []
-    for k in range(slots):
-        positions = np.zeros((len(times), 3))
-        quaternions = np.tile([0.0, 0.0, 0.0, 1.0], (len(times), 1))
-        scales = np.full((len(times), 3), _HIDDEN)
+    positions = np.zeros((slots, len(times), 3))
+    quaternions = np.tile([0.0, 0.0, 0.0, 1.0], (slots, len(times), 1))
+    scales = np.full((slots, len(times), 3), _HIDDEN)
+    if slots:
+        forces = contacts.impulse / dt
+        largest = float(np.linalg.norm(forces, axis=1).max()) or 1.0
+        starts = np.searchsorted(contacts.sample, np.arange(len(t)))
         for f, i in enumerate(shown):
-            if k >= counts[i]:
-                continue
-            row = starts[i] + k
-            force = forces[row]
-            size = float(np.linalg.norm(force))
-            if size == 0.0:
-                continue
-            positions[f] = contacts.point[row]
-            quaternions[f] = pin.Quaternion.FromTwoVectors(_Z, force / size).coeffs()  # x y z w
-            scales[f] = (1.0, 1.0, ARROW_LENGTH * size / largest)
-        path = f"{FORCES}/{k}"
-        setup.append(_mesh_command(umsgpack, f"{path}/arrow", part))
-        tracks = [
-            {"name": ".position", "type": "vector3", "keys": _keys(keys, positions)},
-            {"name": ".quaternion", "type": "quaternion", "keys": _keys(keys, quaternions)},
-            {"name": ".scale", "type": "vector3", "keys": _keys(keys, scales)},
-        ]
-        animations.append({"path": path, "clip": {"fps": 1, "name": "default", "tracks": tracks}})
-    return setup, animations
+            for k in range(int(counts[i])):
+                row = starts[i] + k
+                force = forces[row]
+                size = float(np.linalg.norm(force))
+                if size == 0.0:
+                    continue
+                positions[k, f] = contacts.point[row]
+                quaternions[k, f] = pin.Quaternion.FromTwoVectors(_Z, force / size).coeffs()  # x y z w
+                scales[k, f] = (1.0, 1.0, ARROW_LENGTH * size / largest)
+    return ArrowTracks(positions, quaternions, scales)
+
+
+def force_arrows(trajectory: Trajectory, times: np.ndarray) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """(setup commands, animation entries) of the trajectory's contact forces at the display times (the HTML
+    export's; see arrow_tracks)."""
+    tracks = arrow_tracks(trajectory, times)
+    if not len(tracks):
+        return [], []
+    return tracks.setup_commands(), tracks.animations(times)

@@ -26,9 +26,10 @@ from ..files import atomic_path, check_output
 from ..robot import Robot
 from ..safety import check_allocation
 from ..trajectory import Trajectory
-from ..validation import check_path, check_text, check_trajectory, playback_speed
+from ..validation import check_flag, check_path, check_text, check_trajectory, playback_speed
 from ._deps import check_viewer_dependencies, require
 from .export import page_title, recording_page
+from .forces import force_arrows
 from .frames import resample, robot_from_trajectory
 from .scene import CAMERA_VIEWS, RobotScene
 
@@ -79,6 +80,7 @@ def export_video(
     camera_target: Sequence[float] | None = None,
     progress: bool | None = None,
     browser: str | None = None,
+    forces: bool = False,
 ) -> Path:
     """Film a trajectory into an MP4 or GIF file, rendered headless from the HTML export's page.
 
@@ -99,6 +101,7 @@ def export_video(
         camera_target: the point it looks at [m] (3,); default: the centre of the space the motion sweeps.
         progress: a progress bar on stderr; None shows it when stderr is a terminal.
         browser: the Chromium or Chrome executable; None looks for chromium, chromium-browser, google-chrome.
+        forces: draw a contact scene's contact forces as arrows (see viz/forces.py).
 
     Returns:
         The path written.
@@ -110,6 +113,7 @@ def export_video(
     """
     check_trajectory(trajectory, "trajectory")
     check_text(camera, "camera", optional=False)
+    check_flag(forces, "forces")
     target, fps = check_video_options(path, fps=fps, speed=speed, width=width, height=height)
     suffix = target.suffix.lower()
     if suffix == ".gif":  # a GIF is assembled in memory: one palette byte per pixel per frame
@@ -131,7 +135,8 @@ def export_video(
     scene = RobotScene(robot)
     aim = scene.camera_command(Q, view=camera, position=camera_position, target=camera_target)
     title = page_title(trajectory, robot)
-    page = recording_page(robot, times, Q, title=title, play=False, loop=False, camera=aim, scene=scene)
+    arrows = force_arrows(trajectory, times) if forces else None
+    page = recording_page(robot, times, Q, title=title, play=False, loop=False, camera=aim, scene=scene, arrows=arrows)
     offsets = [float(t - times[0]) for t in times]
     with tempfile.TemporaryDirectory(prefix="multibody-sim-video-") as folder:
         html = Path(folder) / "page.html"

@@ -10,8 +10,9 @@ import numpy as np
 
 from ..robot import Robot
 from ..trajectory import Trajectory
-from ..validation import check_system, frame_rate, playback_speed
+from ..validation import check_flag, check_system, frame_rate, playback_speed
 from ._deps import check_viewer_dependencies
+from .forces import FORCES, ArrowTracks, arrow_tracks
 from .frames import DEFAULT_FPS, resample
 from .scene import RobotScene, frame_marker
 from .server import DEFAULT_HOST, MeshcatServer
@@ -47,6 +48,7 @@ class Viewer:
         self.url = self.server.url
         self._frame = 0
         self._animated = False
+        self._arrows = False  # contact-force arrows are in the page
         for command in self.scene.setup_commands():
             self.server.send(command)
         q0 = robot.neutral()
@@ -82,9 +84,18 @@ class Viewer:
     def display(self, q: Any) -> None:
         """Show the robot at configuration q (shape (nq,))."""
         self._stop_animation()
+        self._clear_arrows()
         self._show(self.robot.check_q(q, "q"), None)
 
-    def play(self, trajectory: Trajectory, *, speed: float = 1.0, fps: float = DEFAULT_FPS, frame: bool = True) -> int:
+    def play(
+        self,
+        trajectory: Trajectory,
+        *,
+        speed: float = 1.0,
+        fps: float = DEFAULT_FPS,
+        frame: bool = True,
+        forces: bool = False,
+    ) -> int:
         """Stream a trajectory to the page at `speed` times real time; blocks until the end.
 
         Frames are resampled to `fps` on the configuration manifold; a frame that is already late when the
@@ -95,12 +106,20 @@ class Viewer:
             speed: playback speed (1 = real time, 0.5 = half speed).
             fps: frames per second sent to the page.
             frame: first aim the camera at the space the motion sweeps.
+            forces: draw a contact scene's contact forces as arrows (as the HTML export does: viz/forces.py).
 
         Returns:
             The number of frames shown.
+
+        Raises:
+            InvalidArgumentError: forces=True for a trajectory that records no contacts.
         """
         speed, fps = playback_speed(speed), frame_rate(fps)
+        check_flag(forces, "forces")
         times, Q = resample(self.robot, trajectory, fps)
+        arrows = self._arrow_tracks(trajectory, times) if forces else None
+        if arrows is None:
+            self._clear_arrows()
         self._stop_animation()
         if frame:
             self.server.send(self.scene.camera_command(Q))
@@ -113,6 +132,9 @@ class Viewer:
                 continue  # already late for the next frame: skip this one
             if due > now:
                 time.sleep(due - now)
+            if arrows is not None:
+                for command in arrows.pose_commands(k):
+                    self.server.send(command)
             self._show(q, float(t))
             shown += 1
         return shown
@@ -125,6 +147,7 @@ class Viewer:
         Call its ``finish(trajectory)`` after the run to show the last sample.
         """
         self._stop_animation()
+        self._clear_arrows()
         return LiveView(self, playback_speed(speed), 1.0 / frame_rate(fps))
 
     def animate(
@@ -137,6 +160,7 @@ class Viewer:
         loop: bool = True,
         seek: float | None = None,
         frame: bool = True,
+        forces: bool = False,
     ) -> None:
         """Hand a trajectory to the page as a meshcat animation, with its time slider and play/pause controls.
 
@@ -148,12 +172,24 @@ class Viewer:
             loop: repeat the animation.
             seek: with play=False, show this animation time [s].
             frame: first aim the camera at the space the motion sweeps.
+            forces: draw a contact scene's contact forces as arrows, animated with the motion (as the HTML
+                export does: viz/forces.py).
+
+        Raises:
+            InvalidArgumentError: forces=True for a trajectory that records no contacts.
         """
         speed, fps = playback_speed(speed), frame_rate(fps)
+        check_flag(forces, "forces")
         times, Q = resample(self.robot, trajectory, fps)
+        arrows = self._arrow_tracks(trajectory, times) if forces else None
+        if arrows is None:
+            self._clear_arrows()
         if frame:
             self.server.send(self.scene.camera_command(Q))
-        self.server.send(self.scene.animation_command(times, Q, play=play, loop=loop, speed=speed, seek=seek))
+        animation = self.scene.animation_command(times, Q, play=play, loop=loop, speed=speed, seek=seek)
+        if arrows is not None:  # one animation for everything: the arrows keep time with the motion
+            animation["animations"] += arrows.animations(times)
+        self.server.send(animation)
         self._animated = True
 
     def show_plot(self, plot: Trajectory | bytes) -> None:
@@ -186,6 +222,21 @@ class Viewer:
             self.server.send(command)
         self.server.send(frame_marker(self._frame, t))
         self._frame += 1
+
+    def _arrow_tracks(self, trajectory: Trajectory, times: np.ndarray) -> ArrowTracks:
+        """The trajectory's force arrows at the display times, their meshes sent to the page (old ones removed)."""
+        tracks = arrow_tracks(trajectory, times)  # raises before anything is sent
+        self._clear_arrows()
+        for command in tracks.setup_commands() + tracks.pose_commands(0):  # placed before any frame is shown
+            self.server.send(command)
+        self._arrows = True
+        return tracks
+
+    def _clear_arrows(self) -> None:
+        """Arrows of an earlier recording would stand still over another motion: remove them."""
+        if self._arrows:
+            self.server.send({"type": "delete", "path": FORCES})
+            self._arrows = False
 
     def _stop_animation(self) -> None:
         """An animation playing in the page would fight the poses we send: remove it first."""
