@@ -95,7 +95,8 @@ SYSTEMS = {
         M from CRBA at each step's start, one factorization of M + hγD per step; evaluations to reach an error of
         1e-6 in the same step loop and controller): the Rosenbrock-W method ROS34PW2 (order 3) needs about 8100,
         the IMEX pairs ARK4(3)6L[2]SA and ARK5(4)8L[2]SA about 4000 and 4200, dp54 about 2100; to 1e-8,
-        ARK5(4)8L[2]SA about 11900 against dp54's 3400. Their error estimate is carried by the damped joints'
+        ARK5(4)8L[2]SA about 11900 against dp54's 3400. ROS34PW2's step count hardly changes with the damping, but
+        its order (3) makes it the costliest. The ARK pairs' error estimate is carried by the damped joints'
         velocities, which relax quasi-statically (M⁻¹D's eigenvalues reach about 900 /s) and whose local error
         falls only about like h³ at the steps these methods take, not like h⁴ or h⁵ (order reduction: an ESDIRK's
         stage order is 2), so with the damping their step counts at a given tolerance grow 3.5–6 fold, as much as
