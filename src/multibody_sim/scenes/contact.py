@@ -48,6 +48,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..exceptions import SceneError
+from ..ordered import ordered_dot, ordered_matvec
 from ..safety import safe_name
 
 # Gaps below this are contact candidates [m]: a pair closing faster than SPECULATIVE_MARGIN / dt (10 m/s at 1 ms)
@@ -285,7 +286,7 @@ class ContactModel:
             rows[c, 0], rows[c, 1] = index[point.bodies[0]], index[point.bodies[1]]
             rows[c, 2:5] = point.position
             rows[c, 5:8] = point.normal
-            rows[c, 8:11] = rotation @ impulses[3 * c : 3 * c + 3]
+            rows[c, 8:11] = ordered_matvec(rotation, impulses[3 * c : 3 * c + 3])
         return rows
 
     def pair_names(self) -> list[tuple[str, str]]:
@@ -376,7 +377,7 @@ class ContactModel:
                         placement2=frame2,
                         position=0.5 * (p1 + p2),
                         normal=normal,
-                        gap=float(normal @ (p2 - p1)),
+                        gap=ordered_dot(normal, p2 - p1),
                         friction=friction,
                         restitution=restitution,
                     )
@@ -435,12 +436,13 @@ class ContactModel:
         cholesky = pin.ConstraintCholeskyDecomposition(model, data, models, datas)
         cholesky.compute(model, data, models, datas, DELASSUS_DAMPING)
         jacobian = np.array(pin.getConstraintsJacobian(model, data, models, datas)).reshape(-1, model.nv)
-        g = jacobian @ v_free
+        # Products summed in index order (ordered.py), as the native kernel sums them
+        g = ordered_matvec(jacobian, v_free).copy()
         correction = np.zeros(len(g))
         restitution = np.zeros(len(g))
         landings: dict[int, float] = {}
         if points:
-            approach = jacobian[2 : 3 * len(points) : 3] @ v  # normal velocities at the step's start
+            approach = ordered_matvec(jacobian[2 : 3 * len(points) : 3], v)  # normal velocities at the step's start
             threshold = -self.gravity * dt
             landed = landed or {}
             for c, point in enumerate(points):
@@ -581,7 +583,8 @@ def _patch_points(patch: Any, rotation: np.ndarray) -> list[int]:
     n = patch.size()
     if n <= MAX_PATCH_POINTS:
         return list(range(n))
-    tangent = np.array([rotation.T @ np.asarray(patch.getPoint(i), dtype=float) for i in range(n)])[:, :2]
+    points = [np.asarray(patch.getPoint(i), dtype=float) for i in range(n)]
+    tangent = np.array([ordered_matvec(rotation.T, p) for p in points])[:, :2]  # sums in index order (ordered.py)
     chosen: list[int] = []
     for direction in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
         best = int(np.argmax(tangent @ np.array(direction, dtype=float)))
