@@ -157,8 +157,7 @@ class Torques:
                 )
                 return np.zeros((n, nv)), [(j, error, True) for j in range(n)]
             TAU = np.array(out, dtype=float)
-            start, stop = system.actuated.start, system.actuated.stop
-            suspect = ~np.isfinite(TAU).all(axis=1) | TAU[:, :start].any(axis=1) | TAU[:, stop:].any(axis=1)
+            suspect = ~np.isfinite(TAU).all(axis=1) | system.unactuated_load(TAU, per_row=True)
             for j in np.flatnonzero(suspect).tolist():
                 try:  # the full check, with the precise reason
                     system.check_tau(TAU[j])
