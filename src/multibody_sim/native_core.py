@@ -71,7 +71,7 @@ def _scene_reason(scene: Scene) -> str | None:
     """Why the native kernel cannot render this scene's physics (constraints, contact, mimic joints, a force whose
     shape is Python code), or None."""
     if scene.contact is not None:
-        return "the scene has contact (the timestepping integrator's)"
+        return scene.contact.native_reason() or "the scene has contact (the timestepping integrator's)"
     if scene.constraints is not None:
         return f"the scene has constraints ({', '.join(scene.constraints.names)}), which run on the Python kernel"
     if scene.mimic:
