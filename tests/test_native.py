@@ -84,6 +84,31 @@ def test_the_cpp_rk4_loop_equals_pinocchios_python_calls_bit_for_bit(robot, name
 
 
 @needs_native
+def test_a_model_is_rebuilt_in_cpp_only_when_it_changed(monkeypatch):
+    import multibody_sim as ms
+
+    r = ms.load_robot("ur5", damping=False)  # its own model: this test edits it
+    q, v, tau = state(r, 3)
+    first = native.load_model(r.model)
+    assert native.load_model(r.model) is first  # unchanged: the same hand-over serves again
+    r.model.inertias[3].mass *= 2.0  # edited in Python, as a scene does when it builds its model
+    r.model.gravity.linear = np.array([0.0, 0.0, -1.62])
+    edited = native.load_model(r.model)
+    assert edited is not first
+    expected = pin.aba(r.model, r.model.createData(), q, v, tau, pin.Convention.WORLD)
+    assert np.array_equal(edited.aba(q, v, tau), expected)
+    assert not np.array_equal(first.aba(q, v, tau), expected)  # the edit matters
+    copy = r.model.copy()  # another pin.Model of equal content: its own hand-over, equal dynamics
+    assert np.array_equal(native.load_model(copy).aba(q, v, tau), expected)
+    # A run on the edited model steps with it: its native trajectory is the Python kernel's to round-off.
+    traj = ms.simulate(r, q, v, duration=0.05, dt=1e-3)
+    monkeypatch.setenv(native.ENV, "0")
+    reference = ms.simulate(r, q, v, duration=0.05, dt=1e-3)
+    assert traj.metadata["kernel"] == "native" and reference.metadata["kernel"] != "native"
+    np.testing.assert_allclose(traj.v, reference.v, rtol=1e-12, atol=1e-12)
+
+
+@needs_native
 def test_bad_bytes_and_bad_sizes_are_one_clear_error(robot):
     with pytest.raises(ValueError, match="not a Pinocchio binary archive of a Model"):
         native.module.Model(b"not an archive")

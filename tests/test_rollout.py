@@ -411,6 +411,35 @@ def test_batches_joined_along_the_batch_axis_keep_constraint_records() -> None:
 
 
 # ---- physics, independently of simulate() --------------------------------------------------------------------------
+def test_limit_reports_of_a_batch_follow_the_definition_sample_by_sample(robot) -> None:
+    """Each element's position-limit report against the definition applied to its samples one by one: excess =
+    max(lower - q, 0) + max(q - upper, 0), counted beyond 8 machine epsilons times max(|lower|, |upper|, 1)."""
+    ur5 = robot("ur5", damping=False)  # one coordinate per joint: coordinate j is joint_names[j]
+    Q0, V0 = random_states(ur5, 24, seed=5, v_scale=2.0)
+    batch = ms.rollout(ur5, Q0, V0, duration=0.3, dt=1e-3, progress=False)
+    lower, upper = ur5.lower_limit, ur5.upper_limit
+    tolerance = 8 * np.finfo(float).eps * np.maximum(np.maximum(np.abs(lower), np.abs(upper)), 1.0)
+    violating = 0
+    for b in range(len(batch)):
+        count = samples = 0
+        worst = (0.0, None, None)
+        for i in range(batch.n_samples[b]):
+            inside = True
+            for j, q in enumerate(batch.q[b, i]):
+                excess = max(lower[j] - q, 0.0) + max(q - upper[j], 0.0)
+                if excess > tolerance[j]:
+                    count += 1
+                    inside = False
+                    if excess > worst[0]:
+                        worst = (excess, ur5.joint_names[j], batch.t[b, i])
+            samples += not inside
+        report = batch.limit_violations[b]
+        assert (report.count, report.samples) == (count, samples), b
+        assert (report.worst_excess, report.worst_joint, report.worst_time) == worst, b
+        violating += count > 0
+    assert 0 < violating < len(batch)  # both kinds of element
+
+
 def test_small_swings_of_a_batch_follow_the_linearised_pendulum(robot) -> None:
     # Small swings about the hanging equilibrium obey M x'' + K x = 0 with M from CRBA and K the gravity
     # Jacobian (central differences): the batch must follow the normal modes, up to the nonlinearity, which

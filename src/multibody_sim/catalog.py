@@ -1032,7 +1032,11 @@ def read_xml_file(path: Path, kind: str) -> bytes:
                 raise ModelError(
                     f"{path}: file is {info.st_size} bytes, larger than the {MAX_URDF_BYTES}-byte limit for a {kind}"
                 )
-            xml = f.read(MAX_URDF_BYTES + 1)  # a file still growing (or in /proc) may exceed its stat size
+            # Its stat size and one byte more (not the limit: a 32 MiB buffer per load); a file still growing (or
+            # in /proc, whose size says 0) may exceed its stat size: then read on, up to the limit.
+            xml = f.read(min(info.st_size, MAX_URDF_BYTES) + 1)
+            if len(xml) > info.st_size:
+                xml += f.read(MAX_URDF_BYTES + 1 - len(xml))
     except OSError as exc:
         raise ModelError(f"{path}: cannot read {kind} ({exc.strerror})") from None
     if len(xml) > MAX_URDF_BYTES:

@@ -287,11 +287,15 @@ def choose_kernel(
     atol: float | None = None,
     num_threads: int = 1,
     torque_free: bool = False,
+    native: bool | None = None,
 ) -> RowKernel | BatchRungeKutta | NativeKernel:
     """The kernel a run of these rows takes: the native kernel when it runs the method on the system
-    (native_core.why_not_native), else the batch kernel for several rows when it renders the method on the system,
-    else the row kernel (simulate(), Stepper and rollout() share this rule)."""
-    if why_not_native(system, method) is None:
+    (native_core.why_not_native; `native`: its answer, when the caller has it), else the batch kernel for several
+    rows when it renders the method on the system, else the row kernel (simulate(), Stepper and rollout() share this
+    rule)."""
+    if native is None:
+        native = why_not_native(system, method) is None
+    if native:
         return NativeKernel(system, method, Q0, V0, rtol=rtol, atol=atol, num_threads=num_threads)
     if len(Q0) > 1 and batch_kernel_supported(system, method):
         dynamics = system.rows_dynamics(num_threads)
@@ -524,6 +528,7 @@ class Run:
         else:
             control = ConstantStep(settings.dt)
             sampler = Sampler(every=settings.output_every)
+        self.why_not_native = why_not_native(system, method)
         kernel = choose_kernel(
             system,
             method,
@@ -533,9 +538,9 @@ class Run:
             atol=settings.atol,
             num_threads=num_threads,
             torque_free=torques.kind == "none",
+            native=self.why_not_native is None,
         )
         self.kernel_name = kernel_name(kernel)
-        self.why_not_native = why_not_native(system, method)
         self.core = core_class(kernel)(
             system=system, method=method, kernel=kernel, control=control, sampler=sampler, store=self.store, B=B
         )
@@ -762,11 +767,13 @@ class Run:
             core.record()
         rows = core.rows.tolist()
         core.stop(np.arange(len(rows)))
-        for b in rows:
+        frozen = core.stopped_counts[rows].tolist()  # their counts, as core.counts(b) gives them now
+        judge = status == "completed" and bool(core.solver_stats)
+        for b, counts in zip(rows, frozen, strict=True):
             outcome = self.outcomes[b]
             outcome.status, outcome.message = status, message
-            outcome.counts = self._core_counts(b)
-            if status == "completed":
+            outcome.counts = dict(zip(COUNTERS, counts, strict=True))
+            if judge:
                 self._judge_solver(b)
 
     def _judge_solver(self, b: int) -> None:
@@ -809,6 +816,15 @@ class Run:
             "saturated_dofs": {dofs[i]: int(n) for i, n in enumerate(self.saturation.dofs[b]) if n},
             "wall_time": self.wall_time,
         }
+
+    def count_arrays(self) -> dict[str, np.ndarray]:
+        """Every row's counts of stats(), shape (B,) each: steps, rejected_steps, evaluations, controller_calls,
+        saturated_controls."""
+        counts = [outcome.counts or self._core_counts(b) for b, outcome in enumerate(self.outcomes)]
+        arrays = {name: np.array([c.get(name, 0) for c in counts], dtype=int) for name in COUNTERS}
+        arrays["controller_calls"] = self.controller_calls.astype(int)
+        arrays["saturated_controls"] = self.saturation.calls.astype(int)
+        return arrays
 
     def metadata(self) -> dict[str, Any]:
         return {

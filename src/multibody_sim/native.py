@@ -70,12 +70,28 @@ def model_bytes(model: pin.Model) -> bytes:
     return buffer.tobytes()
 
 
+# The latest models handed over: id(pin.Model) -> (its archive, its _native.Model), oldest first.
+_HANDED: dict[int, tuple[bytes, Any]] = {}
+_HANDED_SIZE = 16
+
+
 def load_model(model: pin.Model) -> Any:
     """The model handed over to C++: a `_native.Model` (pinocchio::Model + Data) built from model_bytes(model).
+
+    The model is serialized at every call, but rebuilt in C++ only when its archive differs from the one this very
+    pin.Model had at its latest hand-over (a model edited in Python since, e.g. by a Scene, is rebuilt): the same
+    `_native.Model` then serves again (the kernel and the scene's forces copy what they use from it).
 
     Raises:
         MissingDependencyError: the extension is not available here (the message says why).
     """
     if module is None:
         raise MissingDependencyError(f"the native kernel is not available: {why_unavailable}")
-    return module.Model(model_bytes(model))
+    archive = model_bytes(model)
+    held = _HANDED.pop(id(model), None)
+    if held is None or held[0] != archive:  # a new model, or this one changed (equal archives: equal models)
+        held = (archive, module.Model(archive))
+    _HANDED[id(model)] = held  # the latest at the end
+    if len(_HANDED) > _HANDED_SIZE:
+        del _HANDED[next(iter(_HANDED))]
+    return held[1]

@@ -1,7 +1,9 @@
 """Where a run's samples go: the sample store the stepping core writes, and the trajectory built from it.
 
-Rows of a run share their sample times (they step together), so the store is sample-major: ``Q[i, b]`` is row b's
-configuration at sample i. A row that stopped early simply has fewer samples (``n_samples[b]``).
+Rows of a run share their sample times (they step together) and are indexed sample first: ``Q[i, b]`` is row b's
+configuration at sample i. The memory behind is batch-major (row b's samples are one block, as a BatchTrajectory and
+a Trajectory hold them), so results are views of it, not reordered copies. A row that stopped early simply has fewer
+samples (``n_samples[b]``).
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ from .trajectory import ConstraintRecord, Contacts, LedgerEntry, LimitViolations
 
 # Counters kept per sample and row, so that a run truncated at a sample reports the counts it had there.
 COUNTERS = ("steps", "rejected_steps", "evaluations")
+# The store's arrays (SampleStore's attributes of these names), in the order the native kernel takes them.
+STORE_ARRAYS = ("T", "Q", "V", "TAU", "ENERGY", "FLOWS", "COUNTS", "EXTRA")
 
 
 class SampleStore:
@@ -31,7 +35,8 @@ class SampleStore:
         T: sample times [s], shape (capacity, B); Q, V, TAU: (capacity, B, nq / nv / nv); ENERGY: (capacity, B, 2)
             kinetic and potential energy [J]; FLOWS: (capacity, B, n_elements) cumulative ledger flows [J]; EXTRA:
             (capacity, B, extra_width) what the system records per sample; COUNTS: (capacity, B, 3) steps, rejected
-            steps and evaluations when the sample was taken.
+            steps and evaluations when the sample was taken. Each is a view (axes 0 and 1 swapped) of a C-ordered
+            batch-major array of shape (B, capacity, ...), which batch_major() gives (the native kernel writes those).
     """
 
     def __init__(self, B: int, nq: int, nv: int, n_elements: int, extra_width: int, capacity: int):
@@ -48,14 +53,23 @@ class SampleStore:
     def _allocate(self, capacity: int) -> None:
         nq, nv, m, e = self._shapes
         B = self.B
-        self.T = np.zeros((capacity, B))
-        self.Q = np.empty((capacity, B, nq))
-        self.V = np.empty((capacity, B, nv))
-        self.TAU = np.empty((capacity, B, nv))
-        self.ENERGY = np.zeros((capacity, B, 2))
-        self.FLOWS = np.zeros((capacity, B, m))
-        self.EXTRA = np.zeros((capacity, B, e))
-        self.COUNTS = np.zeros((capacity, B, len(COUNTERS)), dtype=np.int64)
+        self._batch = {
+            "T": np.zeros((B, capacity)),
+            "Q": np.empty((B, capacity, nq)),
+            "V": np.empty((B, capacity, nv)),
+            "TAU": np.empty((B, capacity, nv)),
+            "ENERGY": np.zeros((B, capacity, 2)),
+            "FLOWS": np.zeros((B, capacity, m)),
+            "EXTRA": np.zeros((B, capacity, e)),
+            "COUNTS": np.zeros((B, capacity, len(COUNTERS)), dtype=np.int64),
+        }
+        self.T, self.Q, self.V, self.TAU, self.ENERGY, self.FLOWS, self.COUNTS, self.EXTRA = (
+            np.swapaxes(self._batch[name], 0, 1) for name in STORE_ARRAYS
+        )
+
+    def batch_major(self, name: str) -> np.ndarray:
+        """The memory behind array `name` (one of STORE_ARRAYS): shape (B, capacity, ...), C-ordered."""
+        return self._batch[name]
 
     @property
     def capacity(self) -> int:
@@ -89,7 +103,7 @@ class SampleStore:
                     f"{capacity} samples would need {needed / 2**30:.3g} GiB, more than the {room.bytes / 2**30:.3g} "
                     f"GiB available ({room.limit})"
                 )
-            old = {name: getattr(self, name) for name in ("T", "Q", "V", "TAU", "ENERGY", "FLOWS", "EXTRA", "COUNTS")}
+            old = {name: getattr(self, name) for name in STORE_ARRAYS}
             self._allocate(capacity)
             n = min(i + 1, len(old["T"]))  # stopped rows may hold a last sample at index i
             for name, array in old.items():
@@ -230,26 +244,55 @@ def split_records(
 
 def find_limit_violations(system: Any, t: np.ndarray, Q: np.ndarray) -> LimitViolations:
     """The position-limit report of samples (t, Q): count, worst joint, worst excess and its time."""
-    if not len(t):
-        return LimitViolations()
-    excess = system.limit_excess(Q)
+    return limit_reports(system, t[None], Q[None], np.array([len(t)]))[0]
+
+
+def limit_reports(system: Any, T: np.ndarray, Q: np.ndarray, n: np.ndarray) -> list[LimitViolations]:
+    """The position-limit report of each row of samples, T (B, N) [s] and Q (B, N, nq), over its first n[b] samples
+    (the rows past them must be finite): count, worst joint, worst excess and its time.
+
+    Each row's extreme coordinates pick the rows that need a report: Robot.limit_excess at (the lowest, the highest)
+    coordinate bounds its excess at every sample (a rounded difference is monotone in each operand), so no row with a
+    violation is missed, and the others cost two reductions.
+    """
+    none = LimitViolations()  # frozen: one instance serves every row without violations
+    B, N, nq = Q.shape
+    if not N or not np.isfinite(system.limit_tolerance).any():  # no sample, or no position limit at all
+        return [none] * B
+    low, high = Q.min(axis=1), Q.max(axis=1)
+    bound = np.maximum(system.lower_limit - low, 0.0) + np.maximum(high - system.upper_limit, 0.0)
+    rows = np.flatnonzero((bound > system.limit_tolerance).any(axis=1) & (n > 0))
+    reports = [none] * B
+    if not len(rows):
+        return reports
+    excess = system.limit_excess(Q[rows].reshape(-1, nq)).reshape(len(rows), N, nq)
+    excess[np.arange(N) >= n[rows, None]] = 0.0  # past a row's samples
     outside = excess > 0
-    if not outside.any():
-        return LimitViolations()
-    i, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
+    worst = excess.reshape(len(rows), -1).argmax(axis=1)  # the first of the largest, as over the row's samples alone
+    joints = _coordinate_joints(system)
+    for r, b in enumerate(rows.tolist()):
+        if not outside[r].any():
+            continue
+        i, j = divmod(int(worst[r]), nq)
+        reports[b] = LimitViolations(
+            count=int(outside[r].sum()),
+            samples=int(outside[r].any(axis=1).sum()),
+            worst_joint=joints[j],
+            worst_excess=float(excess[r, i, j]),
+            worst_time=float(T[b, i]),
+        )
+    return reports
+
+
+def _coordinate_joints(system: Any) -> list[str]:
+    """The name of the joint of each configuration coordinate, shape (nq,)."""
     model = system.model
-    joint = next(
-        model.names[jid]
-        for jid in range(1, model.njoints)
-        if model.joints[jid].idx_q <= j < model.joints[jid].idx_q + model.joints[jid].nq
-    )
-    return LimitViolations(
-        count=int(outside.sum()),
-        samples=int(outside.any(axis=1).sum()),
-        worst_joint=joint,
-        worst_excess=float(excess[i, j]),
-        worst_time=float(t[i]),
-    )
+    names = [""] * model.nq
+    for jid in range(model.njoints - 1, 0, -1):  # the first joint that holds a coordinate names it
+        joint = model.joints[jid]
+        for j in range(joint.idx_q, joint.idx_q + joint.nq):
+            names[j] = model.names[jid]
+    return names
 
 
 def sample_bytes(system: Any, rows: int = 1) -> int:

@@ -24,7 +24,7 @@ from .driver import Run, RunSettings, Torques, controller_name
 from .exceptions import InvalidArgumentError, SimulationInterrupted
 from .integrators import Integrator, get_integrator
 from .progress import ProgressBar
-from .recording import find_limit_violations, split_records
+from .recording import limit_reports, split_records
 from .robot import Robot, real_array
 from .trajectory import ARRAYS, ConstraintRecord, Contacts, LedgerEntry, LimitViolations, Trajectory
 from .validation import check_options, check_system, positive_count, positive_number
@@ -306,15 +306,17 @@ def _local(job: _Job, *, num_threads: int, bar: ProgressBar) -> BatchTrajectory:
 
 def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
     """The BatchTrajectory of a run over B rows, batch-major, padded as BatchTrajectory documents."""
-    store, system, B = run.store, run.system, run.B
+    store, system = run.store, run.system
     n = store.n_samples.copy()
     N = max(1, int(n.max(initial=0)))
     run.wall_time = wall_time
 
-    def batch_major(array: np.ndarray) -> np.ndarray:
-        return np.ascontiguousarray(np.swapaxes(array[:N], 0, 1))
+    def batch_major(name: str) -> np.ndarray:
+        # The store's own memory (no copy: the run ends here) when it holds just N samples, as it does for a fixed-step
+        # run in memory; else its first N samples, copied.
+        return np.ascontiguousarray(store.batch_major(name)[:, :N])
 
-    energy, flows = batch_major(store.ENERGY), batch_major(store.FLOWS)
+    energy, flows = store.batch_major("ENERGY")[:, :N], store.batch_major("FLOWS")[:, :N]  # views: read once
     elements = system.ledger_elements
     is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
     kinetic, potential = energy[:, :, 0].copy(), energy[:, :, 1].copy()
@@ -322,10 +324,10 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
     dissipated = flows[:, :, ~is_work].sum(axis=2)
     total = kinetic + potential
     arrays = {
-        "t": batch_major(store.T),
-        "q": batch_major(store.Q),
-        "v": batch_major(store.V),
-        "tau": batch_major(store.TAU),
+        "t": batch_major("T"),
+        "q": batch_major("Q"),
+        "v": batch_major("V"),
+        "tau": batch_major("TAU"),
         "kinetic_energy": kinetic,
         "potential_energy": potential,
         "total_energy": total,
@@ -334,15 +336,11 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
         "energy_error": total - run.monitor.initial[:, None] - work + dissipated,
     }
     ledger = {name: LedgerEntry(kind, flows[:, :, j].copy()) for j, (name, kind) in enumerate(elements)}
-    potentials, constraints = split_records(system.record_fields, batch_major(store.EXTRA))
+    potentials, constraints = split_records(system.record_fields, store.batch_major("EXTRA")[:, :N])  # (copies)
     ledger.update(potentials)
     records = {f"{name}.{part}": getattr(r, part) for name, r in constraints.items() for part in _RECORD_PARTS}
     _pad({**arrays, **records}, ledger, n, run.Q0, run.V0)
-    stats: dict[str, Any] = {name: np.zeros(B, dtype=int) for name in _COUNTS}
-    for b in range(B):
-        for name, value in run.stats(b).items():
-            if name in _COUNTS:
-                stats[name][b] = value
+    stats: dict[str, Any] = run.count_arrays()
     stats["saturated_dofs"] = run.saturation.dofs.astype(int).copy()
     stats["wall_time"] = wall_time
     return BatchTrajectory(
@@ -352,10 +350,10 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
         messages=[outcome.message for outcome in run.outcomes],
         ledger=ledger,
         constraints=constraints,
-        limit_violations=_batch_limit_violations(system, arrays["t"], arrays["q"], n),
+        limit_violations=limit_reports(system, arrays["t"], arrays["q"], n),
         stats=stats,
         metadata={**run.metadata(), "backend": "local"},
-        contacts=[store.contacts_record(b, int(n[b]), system) for b in range(B)],
+        contacts=[store.contacts_record(b, int(n[b]), system) for b in range(run.B)],
     )
 
 
@@ -495,15 +493,6 @@ def _check_taus(system: Robot, taus: Any, B: int, n_control: int) -> np.ndarray:
 
 
 # ---- results ----------------------------------------------------------------------------------------------------
-def _batch_limit_violations(system: Robot, T: np.ndarray, Q: np.ndarray, n: np.ndarray) -> list[LimitViolations]:
-    """simulate()'s limit report of each element; one vectorised pass finds the elements that need one."""
-    B, N, nq = Q.shape
-    excess = system.limit_excess(Q.reshape(B * N, nq)).reshape(B, N, nq)
-    outside = np.asarray(((excess > 0).any(axis=2) & (np.arange(N) < n[:, None])).any(axis=1), dtype=bool)
-    none = LimitViolations()  # frozen: one instance serves every element without violations
-    return [find_limit_violations(system, T[b, : n[b]], Q[b, : n[b]]) if outside[b] else none for b in range(B)]
-
-
 def _pad(
     arrays: dict[str, np.ndarray], ledger: dict[str, LedgerEntry], n: np.ndarray, Q0: np.ndarray, V0: np.ndarray
 ) -> None:

@@ -48,6 +48,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..exceptions import SceneError
+from ..ordered import ordered_dot, ordered_matvec
 from ..safety import safe_name
 
 # Gaps below this are contact candidates [m]: a pair closing faster than SPECULATIVE_MARGIN / dt (10 m/s at 1 ms)
@@ -66,9 +67,10 @@ LIMIT_MARGIN = 0.05
 # A contact patch keeps at most this many points (its extreme ones): a mesh's convex hull flat on the ground gives
 # dozens of coplanar points, redundant rows that slow the solver without changing the wrench it can apply.
 MAX_PATCH_POINTS = 8
-# Patch points closer than this [m] are one point for the constraint: a mesh hull resting on a facet of a few
-# millimetres gives up to 8 points within it, whose nearly equal rows stall the cone solver (solo12 on its URDF
-# meshes: ADMM unconverged on 1 step in 8); the wrench range they add is a few millimetres' lever.
+# In a patch with a mesh hull, points closer than this [m] are one point for the constraint: a hull resting on a
+# facet of a few millimetres gives up to 8 points within it, whose nearly equal rows stall the cone solver (solo12
+# standing on its URDF meshes: 38 unconverged steps of 1000 without it, none with it); the wrench range they add is
+# a few millimetres' lever. Declared shapes' patches keep every point (up to MAX_PATCH_POINTS).
 MIN_PATCH_SPACING = 0.01
 TOUCHING = 1e-6  # [m]: a gap below this is a touching contact (restitution applies)
 # Cholesky regularization of the Delassus operator (keeps G's factorization defined on redundant contacts, such
@@ -282,12 +284,6 @@ class ContactModel:
         """Every body with collision geometry, in the order Trajectory.contacts indexes them."""
         return list(dict.fromkeys(g.body for g in self.geometries))
 
-    def native_reason(self) -> str | None:
-        """Why the native kernel cannot render this contact, or None (native_core._scene_reason asks)."""
-        if any(g.kind == "mesh" for g in self.geometries):
-            return "the scene's contact uses the URDF's collision meshes (convex hulls), which run on the Python kernel"
-        return None
-
     def records(self, problem: ContactProblem, impulses: np.ndarray) -> np.ndarray | None:
         """The contact points of a solved problem as (k, 11) rows: pair (2 indices into body_names), point (3),
         normal (3), impulse on body 2 in world axes (3) [N·s]; None without points."""
@@ -301,7 +297,7 @@ class ContactModel:
             rows[c, 0], rows[c, 1] = index[point.bodies[0]], index[point.bodies[1]]
             rows[c, 2:5] = point.position
             rows[c, 5:8] = point.normal
-            rows[c, 8:11] = rotation @ impulses[3 * c : 3 * c + 3]
+            rows[c, 8:11] = ordered_matvec(rotation, impulses[3 * c : 3 * c + 3])
         return rows
 
     def pair_names(self) -> list[tuple[str, str]]:
@@ -386,7 +382,8 @@ class ContactModel:
             rotation = pin.Quaternion.FromTwoVectors(_Z, normal).matrix()
             g1, g2 = self.geometries[a], self.geometries[b]
             friction, restitution = self._coefficients[k]
-            for i in _patch_points(patch, rotation):
+            spacing = MIN_PATCH_SPACING if "mesh" in (g1.kind, g2.kind) else 0.0
+            for i in _patch_points(patch, rotation, spacing):
                 p1 = np.array(patch.getPointShape1(i), dtype=float)
                 p2 = np.array(patch.getPointShape2(i), dtype=float)
                 frame1 = data.oMi[g1.joint].actInv(pin.SE3(rotation, p1))
@@ -401,7 +398,7 @@ class ContactModel:
                         placement2=frame2,
                         position=0.5 * (p1 + p2),
                         normal=normal,
-                        gap=float(normal @ (p2 - p1)),
+                        gap=ordered_dot(normal, p2 - p1),
                         friction=friction,
                         restitution=restitution,
                     )
@@ -460,12 +457,13 @@ class ContactModel:
         cholesky = pin.ConstraintCholeskyDecomposition(model, data, models, datas)
         cholesky.compute(model, data, models, datas, DELASSUS_DAMPING)
         jacobian = np.array(pin.getConstraintsJacobian(model, data, models, datas)).reshape(-1, model.nv)
-        g = jacobian @ v_free
+        # Products summed in index order (ordered.py), as the native kernel sums them
+        g = ordered_matvec(jacobian, v_free).copy()
         correction = np.zeros(len(g))
         restitution = np.zeros(len(g))
         landings: dict[int, float] = {}
         if points:
-            approach = jacobian[2 : 3 * len(points) : 3] @ v  # normal velocities at the step's start
+            approach = ordered_matvec(jacobian[2 : 3 * len(points) : 3], v)  # normal velocities at the step's start
             threshold = -self.gravity * dt
             landed = landed or {}
             for c, point in enumerate(points):
@@ -656,19 +654,23 @@ def _urdf_shape(shape: Any) -> tuple[Any, str, tuple[float, ...]]:
     return shape, type(shape).__name__.lower(), ()
 
 
-def _patch_points(patch: Any, rotation: np.ndarray) -> list[int]:
-    """The indices of a patch's points the constraint uses: its extreme points along the patch's two tangent axes
-    and their diagonals (a polygon's support: the same resultant wrench range, far fewer redundant rows for the
-    solver), at most MAX_PATCH_POINTS, none within MIN_PATCH_SPACING of another (a mesh hull's facet on the
-    ground gives a few millimetres' polygon of points: nearly equal rows, on which the cone solver stalls)."""
+def _patch_points(patch: Any, rotation: np.ndarray, spacing: float = 0.0) -> list[int]:
+    """The indices of a patch's points the constraint uses: all of them up to MAX_PATCH_POINTS, else the extreme
+    ones along the patch's two tangent axes and their diagonals (a polygon's support: the same resultant wrench
+    range, far fewer redundant rows for the solver); with `spacing` > 0 [m] (pairs with a mesh hull:
+    MIN_PATCH_SPACING) none within that distance of another (a hull's facet on the ground gives a few millimetres'
+    polygon of points: nearly equal rows, on which the cone solver stalls)."""
     n = patch.size()
-    tangent = np.array([rotation.T @ np.asarray(patch.getPoint(i), dtype=float) for i in range(n)])[:, :2]
-    if n <= MAX_PATCH_POINTS and (n < 2 or _spacing(tangent) >= MIN_PATCH_SPACING):
+    if n <= MAX_PATCH_POINTS and spacing == 0.0:
+        return list(range(n))
+    points = [np.asarray(patch.getPoint(i), dtype=float) for i in range(n)]
+    tangent = np.array([ordered_matvec(rotation.T, p) for p in points])[:, :2]  # sums in index order (ordered.py)
+    if n <= MAX_PATCH_POINTS and (n < 2 or _spacing(tangent) >= spacing):
         return list(range(n))
     chosen: list[int] = []
     for direction in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
         best = int(np.argmax(tangent @ np.array(direction, dtype=float)))
-        if best not in chosen and all(np.linalg.norm(tangent[best] - tangent[c]) >= MIN_PATCH_SPACING for c in chosen):
+        if best not in chosen and all(np.linalg.norm(tangent[best] - tangent[c]) >= spacing for c in chosen):
             chosen.append(best)
         if len(chosen) == MAX_PATCH_POINTS:
             break

@@ -177,9 +177,13 @@ class Scene(Robot):
         if spec.has_contact:
             if self.mimic:
                 raise SceneError(f"{where}: contact: contact and mimic joints cannot be combined yet")
-            from .contact import build_contact
+            from .contact import PENETRATION_SLOP, build_contact
 
             self.contact = build_contact(self, spec, exact_friction)
+            # An enforced limit holds to the penetration slop, by design: only an excursion beyond it is a violation.
+            for jid in self.contact.limited_joints:
+                iq = model.joints[jid].idx_q
+                self.limit_tolerance[iq] = max(self.limit_tolerance[iq], PENETRATION_SLOP)
         self._flow_elements = list(super().ledger_elements)
         self._n_robot_flows = len(self._flow_elements)
         if self.elements is not None:
