@@ -4,9 +4,10 @@ solo12 held by PD + gravity compensation at its standing pose (solo12_standing's
 timestepping at 1 ms, from the same start (its standing pose, 3 mm above the ground on its spheres), with its URDF's
 collision geometry (17 meshes as their convex hulls; robot_geometry = "urdf") and with four declared foot spheres
 (solo12_standing's). Each is a CPU-time median over interleaved rounds in one process (2 cores shared: the ratio,
-not absolute times, is the result).
+not absolute times, is the result). Each run takes the kernel it would take (mesh hulls: Python; spheres: native
+when built); MULTIBODY_SIM_NATIVE=0 compares both on the Python kernel.
 
-Usage: python scripts/bench_contact_geometry.py [--steps 300] [--repeats 7]
+Usage: [MULTIBODY_SIM_NATIVE=0] python scripts/bench_contact_geometry.py [--steps 300] [--repeats 7]
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ def main() -> None:
     q0 = np.array(Q_REF)
     times: dict[str, list[float]] = {name: [] for name in scenes}
     unconverged: dict[str, int] = {name: 0 for name in scenes}
+    kernels: dict[str, str] = {}
     for _ in range(args.repeats):
         for name, s in scenes.items():
             controller = s.make_controller()
@@ -51,10 +53,14 @@ def main() -> None:
             )  # fmt: skip
             times[name].append((time.process_time() - start) / args.steps * 1e6)
             unconverged[name] = max(unconverged[name], int(traj.stats.get("solver_unconverged", 0)))
+            kernels[name] = str(traj.metadata.get("kernel"))
     print(f"solo12 standing, {args.steps} steps of 1 ms, CPU-time medians of {args.repeats} interleaved rounds")
     for name in scenes:
         median = statistics.median(times[name])
-        print(f"  {name:8s} {median:8.1f} µs/step  (max unconverged steps per run: {unconverged[name]})")
+        print(
+            f"  {name:8s} {median:8.1f} µs/step  kernel {kernels[name]}  "
+            f"(max unconverged steps per run: {unconverged[name]})"
+        )
     print(f"  urdf / spheres: {statistics.median(times['urdf']) / statistics.median(times['spheres']):.2f}x")
 
 

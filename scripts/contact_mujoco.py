@@ -366,10 +366,12 @@ unconverged steps of 1000 at 4.3 ms per step without the spacing, none at 0.9 ms
   lowest vertex of its collision meshes (read by trimesh, placed by Pinocchio's kinematics) at -1e-14 m, within
   the 1 nm penetration slop (`tests/test_contact.py`).
 - Cost, `python scripts/bench_contact_geometry.py --steps 300 --repeats 7` (solo12 standing under the scene's PD +
-  gravity compensation, timestepping at 1 ms, CPU-time medians of interleaved rounds, load average 7.6): URDF
-  meshes 765 µs per step, four declared foot spheres 217 µs: 3.5x (17 hulls against the ground instead of 4
-  spheres: more pairs to test, 8 contact points at rest instead of 4, the lower legs' speculative rows, more solver
-  iterations). Both converged on every step.
+  gravity compensation, timestepping at 1 ms, CPU-time medians of interleaved rounds, load average 7.6-8.7; both
+  converged on every step). Both on the Python kernel (`MULTIBODY_SIM_NATIVE=0`): URDF meshes 765-814 µs per step,
+  four declared foot spheres 206-217 µs: 3.5-4.0x over two runs (17 hulls against the ground instead of 4 spheres:
+  more pairs to test, 8 contact points at rest instead of 4, the lower legs' speculative rows, more solver
+  iterations). By default the spheres run on the native kernel (36.6 µs) while mesh hulls stay on the Python
+  kernel (771 µs): 21x.
 - Limit: a robot that collapses onto many links at once (solo12, go2 or talos dropped without a controller: 30-100
   points on 10-40 links) leaves ADMM at residuals of 1e-9..1e-7 on 2-5 % of the steps, above the 1e-12 tolerance,
   and the run ends "solver_failed" (partial samples kept; it does not pass through the ground). Hold the robot with

@@ -89,7 +89,8 @@ def main() -> None:
         'joint) or "declared" (`[[contact.geometry]]` only); the default is "declared" when the scene '
         'declares any `[[contact.geometry]]`, else "urdf", and `describe()` says which geometry is used. The '
         "shipped legged scenes declare foot spheres (sole boxes for talos): solo12 standing on its 17 URDF "
-        "meshes costs 3.5x its four spheres per step (`scripts/bench_contact_geometry.py`, docs/contact.md).",
+        "meshes costs 3.5-4x its four spheres per step on the Python kernel (21x the spheres on the native "
+        "kernel, which does not render meshes) (`scripts/bench_contact_geometry.py`, docs/contact.md).",
     ]
     Path(args.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
