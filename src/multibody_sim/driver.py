@@ -157,8 +157,7 @@ class Torques:
                 )
                 return np.zeros((n, nv)), [(j, error, True) for j in range(n)]
             TAU = np.array(out, dtype=float)
-            start, stop = system.actuated.start, system.actuated.stop
-            suspect = ~np.isfinite(TAU).all(axis=1) | TAU[:, :start].any(axis=1) | TAU[:, stop:].any(axis=1)
+            suspect = ~np.isfinite(TAU).all(axis=1) | system.unactuated_load(TAU, per_row=True)
             for j in np.flatnonzero(suspect).tolist():
                 try:  # the full check, with the precise reason
                     system.check_tau(TAU[j])
@@ -211,33 +210,49 @@ class Monitor:
         self.system = system
         elements = system.ledger_elements
         self.is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
+        self._work_only = bool(self.is_work.all()) and len(self.is_work) == 1
         self.initial = np.zeros(B)  # H at the start [J]
         self.scale = np.zeros(B)
         self.started = np.zeros(B, dtype=bool)
+        self.all_started = False
 
     def start(self, rows: np.ndarray, energies: np.ndarray) -> None:
         """The rows' initial (T, V), shape (n, 2)."""
         self.initial[rows] = energies.sum(axis=1)
         self.scale[rows] = energies[:, 0] + np.abs(energies[:, 1]) + self.system.energy_scale
         self.started[rows] = True
+        self.all_started = bool(self.started.all())
 
-    def suspects(self, store: SampleStore, rows: list[int], start: int, limits: list[int]) -> list[int]:
-        """The rows among `rows` that may have a problem among their samples start..limit-1: every row that
+    def suspects(self, store: SampleStore, rows: np.ndarray, start: int, limits: np.ndarray) -> np.ndarray:
+        """The rows among `rows` that may have a problem among their samples start..limits[j]-1: every row that
         first_problem() would flag, and maybe a few more (judged at half the bound, all rows at once)."""
-        stop = max(limits, default=start)
+        stop = int(limits.max(initial=start))
         if stop <= start:
-            return []
-        E = store.ENERGY[start:stop, rows]
+            return rows[:0]
+        whole = len(rows) == store.B and (store.B == 1 or bool((rows == np.arange(store.B)).all()))
+        index: Any = slice(None) if whole else rows  # every row in order (simulate, a rollout): views, not copies
+        E = store.ENERGY[start:stop, index]
+        flows = store.FLOWS[start:stop, index]
         total = E[..., 0] + E[..., 1]
-        flows = store.FLOWS[start:stop, rows]
-        work = flows[..., self.is_work].sum(axis=-1)
-        dissipated = flows[..., ~self.is_work].sum(axis=-1)
+        if self._work_only:  # the ledger's one element: the joint torques' work
+            work, dissipated = flows[..., 0], None
+        else:
+            work = flows[..., self.is_work].sum(axis=-1)
+            dissipated = flows[..., ~self.is_work].sum(axis=-1)
         with np.errstate(over="ignore", invalid="ignore"):
-            error = total - self.initial[rows] - work + dissipated
-            bound = 0.5 * BLOWUP_FACTOR * (self.scale[rows] + np.abs(work))
-            bad = ~np.isfinite(total) | (np.abs(error) > bound) | (dissipated > bound)
-        inside = np.arange(stop - start)[:, None] < np.array(limits)[None, :] - start
-        return [rows[j] for j in np.flatnonzero((bad & inside).any(axis=0)).tolist()]
+            error = total - self.initial[index] - work
+            if dissipated is not None:
+                error += dissipated
+            bound = np.abs(work)
+            bound += self.scale[index]
+            bound *= 0.5 * BLOWUP_FACTOR
+            bad = np.abs(error) > bound
+            bad |= ~np.isfinite(total)
+            if dissipated is not None:
+                bad |= dissipated > bound
+        if (limits != stop).any():  # some rows hold fewer samples
+            bad &= np.arange(stop - start)[:, None] < limits[None, :] - start
+        return rows[bad.any(axis=0)]
 
     def first_problem(self, store: SampleStore, b: int, start: int, stop: int) -> tuple[int, str, bool] | None:
         """(sample index, what, whether the sample is kept) of row b's first problem among samples start..stop-1,
@@ -371,9 +386,10 @@ class Kept:
         return float(self.trajectory.t[-1]) if self.trajectory is not None and self.samples else 0.0
 
 
-@dataclass
+@dataclass(slots=True)
 class RowOutcome:
-    """How one row of a run ended: status, message, the user's exception, and its counts."""
+    """How one row of a run ended: status, message, the user's exception, and its counts (never edited in place:
+    rows that stop together may share one dict)."""
 
     status: str = "running"
     message: str = ""
@@ -645,20 +661,23 @@ class Run:
         stop the rows the core or the monitor stopped."""
         store, core, monitor = self.store, self.core, self.monitor
         stops = {stop.row: stop for stop in core.take_stops()}
-        rows = list(core.rows.tolist()) + list(stops)
-        if not monitor.started.all():
-            fresh = [b for b in rows if not monitor.started[b] and store.samples_of(b)]
-            if fresh:
-                monitor.start(np.array(fresh), store.ENERGY[0, fresh])
-        limits = {}
-        for b in rows:
+        rows = core.rows
+        if stops:
+            rows = np.concatenate([rows, np.fromiter(stops, dtype=rows.dtype, count=len(stops))])
+        limits = store.n_samples[rows]
+        if not monitor.all_started:
+            fresh = rows[~monitor.started[rows] & (limits > 0)]
+            if len(fresh):
+                monitor.start(fresh, store.ENERGY[0, fresh])
+        for j, b in enumerate(rows[len(core.rows) :].tolist()):
+            if stops[b].added:  # a stop's own last sample: not judged
+                limits[len(core.rows) + j] = stops[b].sample
+        suspects = set(monitor.suspects(store, rows, self.checked, limits).tolist())
+        limit = dict(zip(rows.tolist(), limits.tolist(), strict=True)) if suspects else {}
+        todo = [b for b in rows.tolist() if b in suspects or b in stops] if suspects or stops else []  # in order
+        for b in todo:
             stop = stops.get(b)
-            end = store.samples_of(b)
-            limits[b] = end if stop is None or not stop.added else stop.sample  # a stop's own last sample: not judged
-        suspects = set(monitor.suspects(store, rows, self.checked, list(limits.values())))
-        for b in rows:
-            stop = stops.get(b)
-            problem = monitor.first_problem(store, b, self.checked, limits[b]) if b in suspects else None
+            problem = monitor.first_problem(store, b, self.checked, limit[b]) if b in suspects else None
             if problem is not None:
                 i, what, keep = problem
                 t = store.T[i, b]
@@ -681,13 +700,13 @@ class Run:
         self._show(rows)
         self.checked = store.count
 
-    def _show(self, rows: list[int]) -> None:
+    def _show(self, rows: np.ndarray) -> None:
         """on_sample and progress for the new samples (one-row runs)."""
         if self.on_sample is None and self.progress is None:
             return
         store = self.store
         b = 0
-        if self.B != 1 or not rows:
+        if self.B != 1 or not len(rows):
             if self.progress is not None:
                 core = self.core  # element-steps: the stopped rows' and the running rows'
                 self.progress.update_to(int(core.stopped_counts[:, 0].sum()) + core.steps * len(core.rows))
@@ -769,10 +788,12 @@ class Run:
         core.stop(np.arange(len(rows)))
         frozen = core.stopped_counts[rows].tolist()  # their counts, as core.counts(b) gives them now
         judge = status == "completed" and bool(core.solver_stats)
+        shared: dict[tuple[int, ...], dict[str, int]] = {}  # rows that stop together mostly share their counts
         for b, counts in zip(rows, frozen, strict=True):
             outcome = self.outcomes[b]
             outcome.status, outcome.message = status, message
-            outcome.counts = dict(zip(COUNTERS, counts, strict=True))
+            key = tuple(counts)
+            outcome.counts = shared.get(key) or shared.setdefault(key, dict(zip(COUNTERS, counts, strict=True)))
             if judge:
                 self._judge_solver(b)
 

@@ -23,6 +23,7 @@ from .exceptions import InvalidArgumentError
 from .integrators import INTEGRATORS, Integrator
 from .integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
 from .integrators.partitioned import SemiImplicitEuler
+from .integrators.timestepping import ANDERSON_CAPACITY, TOLERANCE, TimeStepping
 from .recording import STORE_ARRAYS, SampleStore
 from .robot import Robot
 from .scenes.scene import Scene
@@ -35,7 +36,10 @@ NATIVE_METHODS = {
     EmbeddedRungeKutta: 1,
     DormandPrince853: 2,
     SemiImplicitEuler: 3,
+    TimeStepping: 4,  # on contact scenes (contact_data)
 }
+# The collision shapes the engine rebuilds (src/native/contact.cpp's ShapeKind); others stay on the Python kernel.
+NATIVE_SHAPES = {"halfspace": 0, "box": 1, "sphere": 2, "cylinder": 3}
 # advance() returns to Python after about this much work [s] (interrupts, signals)
 BUDGET_SECONDS = 0.03
 _STATUSES = (REACHED, STEPPED, FULL, EMPTY)
@@ -50,8 +54,13 @@ def why_not_native(system: Any, method: Integrator) -> str | None:
         return f"{native.ENV}=0"
     if not native.available:
         return native.why_unavailable
-    if type(method) not in NATIVE_METHODS or INTEGRATORS.get(method.name) is not method:
+    if type(method) is TimeStepping:  # any max_iterations: the engine takes it as data
+        if getattr(system, "contact", None) is None:
+            return "integrator 'timestepping' runs natively on contact scenes only"
+    elif type(method) not in NATIVE_METHODS or INTEGRATORS.get(method.name) is not method:
         return f"integrator '{method.name}' is not an explicit method of the registry"
+    elif getattr(system, "contact", None) is not None:
+        return "the scene has contact, which only the timestepping integrator steps"
     if type(system) is Scene:
         reason = _scene_reason(system)
         if reason is not None:
@@ -71,7 +80,12 @@ def _scene_reason(scene: Scene) -> str | None:
     """Why the native kernel cannot render this scene's physics (constraints, contact, mimic joints, a force whose
     shape is Python code), or None."""
     if scene.contact is not None:
-        return "the scene has contact (the timestepping integrator's)"
+        shapes = sorted({g.kind for g in scene.contact.geometries} - set(NATIVE_SHAPES))
+        if shapes:
+            return (
+                f"the scene's collision geometry has {', '.join(shapes)} shapes (the native kernel renders "
+                f"{', '.join(NATIVE_SHAPES)})"
+            )
     if scene.constraints is not None:
         return f"the scene has constraints ({', '.join(scene.constraints.names)}), which run on the Python kernel"
     if scene.mimic:
@@ -98,6 +112,52 @@ _SYSTEM_HOOKS = (
     "rows_applied",
 )
 _SPACE_HOOKS = ("integrate", "difference", "chart_velocity")
+
+
+def contact_data(scene: Any, method: TimeStepping) -> dict[str, Any]:
+    """A contact scene's geometry, constraints and constants as _native.ContactScene takes them (contact.py's
+    ContactModel and module constants, timestepping.py's solver settings), read at each run."""
+    from .scenes import contact as c
+
+    model = scene.contact
+    body_index = {name: k for k, name in enumerate(model.body_names)}
+    shapes = [
+        (
+            NATIVE_SHAPES[g.kind],
+            int(g.joint),
+            body_index[g.body],
+            np.array(g.placement.rotation, dtype=float),
+            np.array(g.placement.translation, dtype=float),
+            [float(x) for x in g.dimensions],
+        )
+        for g in model.geometries
+    ]
+    nv = scene.model.nv
+    bound = np.zeros(nv)
+    for jid, force in model.friction_joints:
+        bound[scene.model.joints[jid].idx_v] = force
+    return {
+        "shapes": shapes,
+        "pairs": [(int(a), int(b)) for a, b in model.pairs],
+        "friction": [float(mu) for mu, _ in model._coefficients],
+        "restitution": [float(e) for _, e in model._coefficients],
+        "limited_joints": [int(j) for j in model.limited_joints],
+        "limit_margin": np.full(scene.model.nq, c.LIMIT_MARGIN),
+        "friction_joints": [int(j) for j, _ in model.friction_joints],
+        "friction_bound": bound,
+        "reals": [
+            c.SPECULATIVE_MARGIN,
+            c.PENETRATION_CORRECTION,
+            c.PENETRATION_SLOP,
+            c.MAX_CORRECTION_SPEED,
+            c.TOUCHING,
+            c.DELASSUS_DAMPING,
+            TOLERANCE,
+            model.gravity,
+        ],
+        "ints": [c.MAX_PATCH_POINTS, ANDERSON_CAPACITY, method.max_iterations, int(model.solver == "pgs")],
+        "flow_work": [kind == "work" for _, kind in scene.ledger_elements[:-4]],
+    }
 
 
 def method_data(method: Integrator) -> dict[str, Any]:
@@ -244,6 +304,13 @@ class NativeKernel:
                     data["energies"],
                 )
             )
+        if type(self.method) is TimeStepping:  # a contact scene (why_not_native said it renders)
+            data = contact_data(system, self.method)
+            flow_work = data.pop("flow_work")
+            self.engine.set_contact(
+                native.module.ContactScene(native.load_model(system.model), **data),  # type: ignore[union-attr]
+                flow_work,
+            )
 
     def control_natively(self, torques: Any, settings: Any, saturation: Any, calls: np.ndarray) -> bool:
         """Hand the run's torques to the engine when it renders them (native_policies): it then computes them at its
@@ -303,13 +370,33 @@ class NativeKernel:
     def snapshot(self) -> tuple[Any, ...]:
         """Every row's whole state and the time (Stepper: one row)."""
         rows = range(len(self._initial[0]))
-        return [self.engine.snapshot_row(b) for b in rows], self.t, self.k
+        contact = [self.engine.contact_row(b) for b in rows] if self.engine.has_contact else None
+        return [self.engine.snapshot_row(b) for b in rows], self.t, self.k, contact
 
     def restore(self, snapshot: tuple[Any, ...]) -> None:
-        rows, t, k = snapshot
+        rows, t, k, contact = snapshot
         for b, state in enumerate(rows):
             self.engine.restore_row(b, *state)
+            if contact is not None:
+                self.engine.set_contact_row(b, contact[b])
         self.start_at(t, k)
+
+    def solver_stats(self, j: int) -> dict[str, int]:
+        """Running row j's contact solver counts (TimeStepping.solver_stats), {} without contact."""
+        if not self.engine.has_contact:  # (without looking the row up: Core.stop asks for every row it stops)
+            return {}
+        return self.row_solver_stats(self._row(j))
+
+    def row_solver_stats(self, row: int) -> dict[str, int]:
+        """Run row `row`'s contact solver counts, {} without contact."""
+        if not self.engine.has_contact:
+            return {}
+        state = self.engine.contact_row(row)
+        return {
+            "solver_steps": state.steps,
+            "solver_unconverged": state.unconverged,
+            "solver_iterations": state.iterations,
+        }
 
     def _row(self, j: int) -> int:
         """The run row of running position j."""
@@ -324,7 +411,7 @@ class NativeKernel:
             rows = list(range(store.B))[index]
         else:
             rows = [int(b) for b in index]
-        self.engine.write_rows(i, rows, *store_arrays(store))
+        self.engine.write_rows(i, rows, store, *store_arrays(store))
 
     def attempt(self, h: float) -> KernelAttempt:
         raise AssertionError("the native kernel steps inside NativeCore.advance")  # pragma: no cover
@@ -483,6 +570,9 @@ class NativeCore(Core):
                 norm = None if math.isnan(error) else error
                 message = collapsed_message(self.system, when, step, h, minimum, norm)
             if row in self.rows:
+                stats = self.kernel.row_solver_stats(int(row))
+                if stats:
+                    self.solver_stats[int(row)] = stats
                 self.stops.append(
                     RowStop(int(row), status, message, when, count + added - 1, bool(added), cause, cause is not None)
                 )

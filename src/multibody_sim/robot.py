@@ -381,10 +381,14 @@ class Robot:
             )
         return tau
 
-    def unactuated_load(self, tau: np.ndarray) -> bool:
-        """Whether tau (nv,) or rows of it (n, nv) put anything on unactuated coordinates (cheap; no message)."""
+    def unactuated_load(self, tau: np.ndarray, *, per_row: bool = False) -> Any:
+        """Whether tau (nv,) or rows of it (n, nv) put anything on unactuated coordinates (cheap; no message): a bool,
+        or with `per_row` one per row of tau (n, nv), shape (n,)."""
         start, stop = self.actuated.start, self.actuated.stop
-        return bool(tau[..., :start].any() or tau[..., stop:].any())
+        head, tail = tau[..., :start], tau[..., stop:]
+        if per_row:
+            return head.any(axis=-1) | tail.any(axis=-1)
+        return bool(head.any() or tail.any())
 
 
 class RowsDynamics:
@@ -427,12 +431,12 @@ class RowsDynamics:
 def real_array(value: Any, name: str, expected: str) -> np.ndarray:
     """value as a float array if it holds real numbers (strings, objects, complex and ragged nesting are refused
     rather than coerced), else InvalidArgumentError: "{name} must be {expected}, got ..."."""
-    got = f"dtype {value.dtype}" if isinstance(value, np.ndarray) else type(value).__name__
     try:
         raw = np.asarray(value)
     except ValueError:  # ragged nesting
         raw = None
     if raw is None or raw.dtype.kind not in "biuf":
+        got = f"dtype {value.dtype}" if isinstance(value, np.ndarray) else type(value).__name__
         raise InvalidArgumentError(f"{name} must be {expected}, got {got}")
     return np.array(raw, dtype=float)
 
@@ -441,7 +445,7 @@ def _as_vector(value: Any, size: int, name: str) -> np.ndarray:
     arr = real_array(value, name, f"an array of {size} real numbers")
     if arr.shape != (size,):
         raise InvalidArgumentError(f"{name} must have shape ({size},), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         bad = np.flatnonzero(~np.isfinite(arr)).tolist()
         raise InvalidArgumentError(f"{name} must be finite, got non-finite entries at indices {bad}")
     return arr

@@ -54,6 +54,10 @@ namespace multibody_sim
     RowMatrix H, F;
     std::unique_ptr<SceneWork> sw;   // a scene's workspace (set_scene)
     std::unique_ptr<PolicyWork> pw;  // the native controllers' (set_policies)
+    std::unique_ptr<ContactWork, void (*)(ContactWork *)> cw{nullptr, nullptr};  // a contact scene's (set_contact)
+    std::vector<ContactRow> crow;  // per row: the contact solver state
+    std::vector<int64_t> extra;    // per row: evaluations beyond st.evaluations (a contact step costs two)
+    Vec vfree;
     Vec fx, pbuf, tau_control;
     bool dense_ready = false;
     int extra_evaluations = 0;
@@ -85,6 +89,8 @@ namespace multibody_sim
       first.assign(n, Vec::Zero(w));
       has_first.assign(n, 0);
       pending.assign(n, -1);
+      crow.assign(n, ContactRow());
+      extra.assign(n, 0);
       const int stages = std::max(engine.method_.stages, engine.method_.extended_stages);
       K = RowMatrix::Zero(std::max(stages, 1), w);
       y = Vec::Zero(w);
@@ -95,7 +101,7 @@ namespace multibody_sim
       size = Vec::Zero(2 * nv);
       H = RowMatrix::Zero(6, 6);
       F = RowMatrix::Zero(7, w);
-      fx = tau_control = Vec::Zero(nv);
+      fx = tau_control = vfree = Vec::Zero(nv);
       pbuf = Vec::Zero(std::max(m, 1));
     }
 
@@ -238,6 +244,8 @@ namespace multibody_sim
     {
       const Method & me = e.method_;
       const Vec &qj = q[j], &vj = v[j], &tj = tau[j];
+      if (me.kind == Kind::timestepping)
+        return attempt_contact(j, h, t);
       if (me.kind == Kind::semi_implicit_euler)
       {
         evaluate_acceleration(qj, vj, tj, t);
@@ -270,6 +278,57 @@ namespace multibody_sim
       for (int i = 0; i < m; ++i)
         fn[j][i] = inc[2 * nv + i];
       return s;
+    }
+
+    // ---- TimeStepping.attempt on row j (a contact scene): the pending state in qn, vn, fn -----------------------
+    int attempt_contact(size_t j, double h, double t)
+    {
+      const Vec &qj = q[j], &vj = v[j], &tj = tau[j];
+      evaluate_acceleration(qj, vj, tj, t);
+      settle(j);
+      for (int i = 0; i < nv; ++i)
+        vfree[i] = vj[i] + h * acc[i];
+      double work = 0.0, correction = 0.0, bounce = 0.0;
+      const bool problem =
+        e.contact_->step(*cw, e.model_, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce);
+      for (int i = 0; i < nv; ++i)
+        dv[i] = h * vn[j][i];
+      pinocchio::integrate(e.model_, qj, dv, qn[j]);
+      if (e.scene_ && !e.scene_->wrenches.empty())  // Scene.ledger_power at a new point: the wrenches' parts there
+        e.scene_->forces(*sw, e.model_, qn[j], vn[j], t + h, fx);
+      power(vn[j], tj, pbuf.data());
+      const int smooth_n = m - 4;  // the contact's elements come last: contact, penetration_correction,
+      double smooth = 0.0;         // restitution, timestep_error
+      for (int i = 0; i < smooth_n; ++i)
+      {
+        fn[j][i] = h * pbuf[i];
+        smooth += e.flow_work_[static_cast<size_t>(i)] ? fn[j][i] : -fn[j][i];
+      }
+      double kinetic, potential, kinetic_free, kinetic_next, kinetic_end, potential_end, unused;
+      energies(qj, vj, kinetic, potential);
+      energies(qj, vfree, kinetic_free, unused);
+      if (problem)
+        energies(qj, vn[j], kinetic_next, unused);
+      else
+        kinetic_next = kinetic_free;
+      energies(qn[j], vn[j], kinetic_end, potential_end);
+      fn[j][m - 4] = correction + bounce - work;
+      fn[j][m - 3] = correction;
+      fn[j][m - 2] = bounce;
+      fn[j][m - 1] = (kinetic_free - kinetic) + (kinetic_end - kinetic_next) + (potential_end - potential) - smooth;
+      if (problem)
+        extra[j] += 1;
+      return 1;
+    }
+
+    // Scene.unchecked_energies: (T, V) at (qx, vx)
+    void energies(const Vec & qx, const Vec & vx, double & kinetic, double & potential)
+    {
+      pinocchio::forwardKinematics(e.model_, data, qx, vx);
+      kinetic = pinocchio::computeKineticEnergy(e.model_, data);
+      potential = pinocchio::computePotentialEnergy(e.model_, data);
+      if (e.scene_ && e.scene_->n_records())
+        potential = potential + e.scene_->spring_energy(qx, nullptr);
     }
 
     void evaluate_acceleration(const Vec & qx, const Vec & vx, const Vec & tx, double t)
@@ -473,7 +532,14 @@ namespace multibody_sim
       store.T[at] = t;
       store.COUNTS[at * 3] = st.steps;
       store.COUNTS[at * 3 + 1] = st.rejected;
-      store.COUNTS[at * 3 + 2] = st.evaluations;
+      store.COUNTS[at * 3 + 2] = st.evaluations + extra[static_cast<size_t>(b - rows.front())];
+    }
+
+    // core.RowKernel._write_contacts: a contact scene's active contacts of row j as sample i
+    void note_contacts(int64_t i, size_t j)
+    {
+      if (e.contact_)
+        res.records.push_back(ContactRecord{i, rows[j], crow[j].active});
     }
 
     // A sample's energies need forwardKinematics(q, v). On fixed steps the next step's first ABA runs at the
@@ -516,6 +582,7 @@ namespace multibody_sim
         if (alive[j])
         {
           stamp(store, i, rows[j], st.t);
+          note_contacts(i, j);
           if (defer)
           {
             const int64_t at = store.at(i, rows[j]);
@@ -545,6 +612,7 @@ namespace multibody_sim
       for (size_t j : js)
       {
         stamp(store, st.count, rows[j], st.t);
+        note_contacts(st.count, j);
         write(store, st.count, rows[j], q[j], v[j], tau[j], flows[j].data());
       }
       return true;
@@ -671,7 +739,7 @@ namespace multibody_sim
       ev.added = added;
       ev.counts[0] = counted_steps;
       ev.counts[1] = st.rejected;
-      ev.counts[2] = st.evaluations;
+      ev.counts[2] = st.evaluations + extra[j];
       res.stops.push_back(ev);
     }
 
@@ -1077,7 +1145,12 @@ namespace multibody_sim
     out.need = lead->res.need;
     state = lead->st;
     for (auto & th : threads_)
+    {
       out.stops.insert(out.stops.end(), th->res.stops.begin(), th->res.stops.end());
+      for (ContactRecord & r : th->res.records)
+        out.records.push_back(std::move(r));
+      th->res.records.clear();
+    }
     std::stable_sort(out.stops.begin(), out.stops.end(), [](const StopEvent & a, const StopEvent & b) {
       return a.step != b.step ? a.step < b.step : a.row < b.row;
     });
@@ -1086,13 +1159,72 @@ namespace multibody_sim
     return out;
   }
 
-  void Engine::write_rows(int64_t i, const std::vector<int64_t> & rows, const Store & store)
+  std::vector<ContactRecord> Engine::write_rows(int64_t i, const std::vector<int64_t> & rows, const Store & store)
   {
+    std::vector<ContactRecord> records;
     for (int64_t b : rows)
       for (auto & th : threads_)
         for (size_t j = 0; j < th->rows.size(); ++j)
           if (th->rows[j] == b)
+          {
             th->write(store, i, b, th->q[j], th->v[j], th->tau[j], th->flows[j].data());
+            if (contact_)
+              records.push_back(ContactRecord{i, b, th->crow[j].active});
+          }
+    return records;
+  }
+
+  void Engine::set_contact(std::shared_ptr<const ContactScene> contact, const std::vector<bool> & flow_work)
+  {
+    if (contact && (contact->nv != model_.nv || n_ledger_ < 4 || static_cast<int>(flow_work.size()) != n_ledger_ - 4))
+      throw std::invalid_argument("the contact scene disagrees with the model's sizes or the ledger");
+    if (contact && method_.kind != Kind::timestepping)
+      throw std::invalid_argument("a contact scene steps with the timestepping kind only");
+    contact_ = contact;
+    flow_work_ = flow_work;
+    for (auto & th : threads_)
+    {
+      if (contact)
+        th->cw = contact->workspace(model_);
+      else
+        th->cw.reset();
+    }
+  }
+
+  ContactRow Engine::contact_row(int64_t row) const
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+          return th->crow[j];
+    throw std::invalid_argument("no such row");
+  }
+
+  void Engine::set_contact_row(int64_t row, const ContactRow & state)
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+        {
+          th->crow[j] = state;
+          return;
+        }
+    throw std::invalid_argument("no such row");
+  }
+
+  std::vector<int64_t> Engine::extra_evaluations(const std::vector<int64_t> & rows) const
+  {
+    std::vector<int64_t> out;
+    for (int64_t b : rows)
+    {
+      int64_t x = 0;
+      for (auto & th : threads_)
+        for (size_t j = 0; j < th->rows.size(); ++j)
+          if (th->rows[j] == b)
+            x = th->extra[j];
+      out.push_back(x);
+    }
+    return out;
   }
 
   void Engine::set_torques(const RowMatrix & TAU, bool jump)
@@ -1175,6 +1307,7 @@ namespace multibody_sim
           th->v[j] = v;
           th->flows[j] = flows;
           th->has_first[j] = 0;
+          th->crow[j] = ContactRow();  // RowKernel.set_row: the solver state restarts (TimeStepping.init)
         }
   }
 
@@ -1272,6 +1405,50 @@ namespace
         || !cells(ENERGY) || !cells(FLOWS) || !cells(EXTRA))
       throw std::invalid_argument("the sample store's arrays disagree in shape");
     return s;
+  }
+
+  // recording.SampleStore.write_contacts for the samples the engine wrote, on the store's `contacts` dict itself
+  // (row b -> {sample index: rows (k, 11)}): dict operations run no Python code, so a signal handler (Ctrl-C)
+  // never sees the samples counted without their contacts.
+  void write_contacts(nb::handle store, std::vector<multibody_sim::ContactRecord> & records)
+  {
+    if (records.empty())
+      return;
+    nb::dict contacts = nb::borrow<nb::dict>(store.attr("contacts"));
+    for (multibody_sim::ContactRecord & r : records)
+    {
+      nb::int_ b(r.b), i(r.i);
+      if (!contacts.contains(b))
+        contacts[b] = nb::dict();
+      nb::dict held = nb::borrow<nb::dict>(contacts[b]);
+      if (r.rows.empty())
+      {
+        if (held.contains(i))
+          nb::del(held[i]);
+        continue;
+      }
+      const size_t k = r.rows.size();
+      double * buffer = new double[k * 11];
+      for (size_t c = 0; c < k; ++c)
+        std::copy(r.rows[c].begin(), r.rows[c].end(), buffer + 11 * c);
+      nb::capsule owner(buffer, [](void * p) noexcept { delete[] static_cast<double *>(p); });
+      held[i] = nb::cast(nb::ndarray<nb::numpy, double, nb::ndim<2>>(buffer, {k, 11}, owner));
+    }
+    records.clear();
+  }
+
+  // A contact run's evaluations beyond the core's count, per running position of the Python core (its `rows`,
+  // the rows stopped in this call included: NativeCore._take_pending compacts both).
+  void write_extra_evaluations(const multibody_sim::Engine & engine, nb::handle core)
+  {
+    if (!engine.has_contact())
+      return;
+    Ints positions = nb::cast<Ints>(core.attr("rows"));
+    Ints extra = nb::cast<Ints>(core.attr("extra_evaluations"));
+    std::vector<int64_t> rows(positions.data(), positions.data() + positions.size());
+    const std::vector<int64_t> counts = engine.extra_evaluations(rows);
+    for (size_t p = 0; p < counts.size() && p < extra.size(); ++p)
+      extra.data()[p] = counts[p];
   }
 
   template<typename T>
@@ -1443,6 +1620,8 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
             ev.code, ev.row, ev.time, ev.step, ev.dof, ev.count, ev.added, ev.counts[0], ev.counts[1], ev.counts[2],
             ev.h, ev.minimum, ev.error));
         write_state(self, core, store, sampler, control, s);
+        write_contacts(store, result.records);
+        write_extra_evaluations(self, core);
         return std::make_tuple(result.status, result.taken, result.need);
       },
       nb::arg("t_stop"), nb::arg("limit"), nb::arg("tolerance"), nb::arg("core"), nb::arg("store"),
@@ -1453,16 +1632,30 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
     .def(
       "write_rows",
       [](
-        Engine & self, int64_t i, std::vector<int64_t> rows, Doubles T, Doubles Q, Doubles V, Doubles TAU,
-        Doubles ENERGY, Doubles FLOWS, Ints COUNTS, Doubles EXTRA) {
+        Engine & self, int64_t i, std::vector<int64_t> rows, nb::handle owner, Doubles T, Doubles Q, Doubles V,
+        Doubles TAU, Doubles ENERGY, Doubles FLOWS, Ints COUNTS, Doubles EXTRA) {
         multibody_sim::Store store = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS, EXTRA);
         if (i < 0 || i >= store.capacity)
           throw std::invalid_argument("sample index out of the store");
         for (int64_t b : rows)
           if (b < 0 || b >= store.B)
             throw std::invalid_argument("row out of the store");
-        self.write_rows(i, rows, store);
-      })
+        std::vector<multibody_sim::ContactRecord> records = self.write_rows(i, rows, store);
+        write_contacts(owner, records);
+      },
+      "Write run rows `rows` as sample i of `store` (its arrays follow), with their contacts.")
+    .def(
+      "set_contact",
+      [](Engine & self, std::shared_ptr<multibody_sim::ContactScene> contact, std::vector<bool> flow_work) {
+        self.set_contact(contact, flow_work);
+      },
+      nb::arg("contact"), nb::arg("flow_work"),
+      "A contact scene's geometry and constraints (_native.ContactScene) for the timestepping kind; flow_work: "
+      "per ledger entry before the contact's four, whether it is work (else dissipated).")
+    .def_prop_ro("has_contact", &Engine::has_contact)
+    .def("contact_row", &Engine::contact_row)
+    .def("set_contact_row", &Engine::set_contact_row)
+    .def("extra_evaluations", &Engine::extra_evaluations)
     .def(
       "set_scene", [](Engine & self, std::shared_ptr<multibody_sim::SceneForces> scene) { self.set_scene(scene); },
       nb::arg("scene"), "A scene's force elements (_native.SceneForces) join the dynamics (scene.cpp).")

@@ -6,6 +6,7 @@
 // arrives as data from Python: no coefficient is written here.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <limits>
 #include <memory>
@@ -17,7 +18,8 @@
 
 #include "pinocchio/multibody.hpp"
 
-#include "scene.hpp"  // a scene's force elements and the built-in controllers (scene.cpp)
+#include "contact.hpp"  // a contact scene's geometry, constraints and cone solve (contact.cpp)
+#include "scene.hpp"    // a scene's force elements and the built-in controllers (scene.cpp)
 
 namespace multibody_sim
 {
@@ -31,6 +33,7 @@ namespace multibody_sim
     embedded = 1,     // EmbeddedRungeKutta: error weights e = b - b_hat, dense weights
     dop853 = 2,       // DormandPrince853: combined error estimate, three extra stages for dense output
     semi_implicit_euler = 3,
+    timestepping = 4,  // TimeStepping on a contact scene (contact.hpp): semi-implicit Euler with impulses
   };
 
   struct Method
@@ -142,12 +145,20 @@ namespace multibody_sim
     double period = 0.0;  // 0: none
   };
 
+  // A sample's active contacts (core.RowKernel._write_contacts): store.write_contacts(i, b, rows).
+  struct ContactRecord
+  {
+    int64_t i = 0, b = 0;
+    std::vector<std::array<double, 11>> rows;
+  };
+
   struct AdvanceResult
   {
     int status = REACHED;
     int64_t taken = 0;  // accepted steps in this call
     int64_t need = 0;   // NEED_ROOM: samples the store must have room for beyond count
     std::vector<StopEvent> stops;
+    std::vector<ContactRecord> records;  // the contacts of the samples written (contact scenes)
   };
 
   struct Thread;  // one thread's rows and workspace
@@ -174,7 +185,7 @@ namespace multibody_sim
       double t_stop, int64_t limit, double tolerance, const Sampler & sampler, const Store & store, CoreState & state);
 
     // Write the current state of run rows `rows` as sample i (Q, V, TAU, FLOWS, ENERGY; the caller writes T, COUNTS).
-    void write_rows(int64_t i, const std::vector<int64_t> & rows, const Store & store);
+    std::vector<ContactRecord> write_rows(int64_t i, const std::vector<int64_t> & rows, const Store & store);
 
     void set_torques(const RowMatrix & TAU, bool jump);  // the running rows' torques, in order
     void keep(const std::vector<bool> & keep);          // the running rows to keep, in order
@@ -197,6 +208,18 @@ namespace multibody_sim
     // counted per run row into calls (B,), saturated (B,) and saturated_dofs (B, nv) (driver.Run's arrays).
     void set_policies(
       std::shared_ptr<const Policies> policies, int64_t * calls, int64_t * saturated, int64_t * saturated_dofs);
+
+    // A contact scene's geometry and constraints (the timestepping kind); flow_work: per ledger entry before the
+    // contact's four, whether it is a "work" element (else a dissipation), as the time-stepper books them.
+    void set_contact(std::shared_ptr<const ContactScene> contact, const std::vector<bool> & flow_work);
+    bool has_contact() const
+    {
+      return static_cast<bool>(contact_);
+    }
+    ContactRow contact_row(int64_t row) const;  // a row's solver state (Stepper's snapshot) and back
+    void set_contact_row(int64_t row, const ContactRow & state);
+    // Evaluations each run row made beyond the run's count (contact steps cost two), for rows `rows`.
+    std::vector<int64_t> extra_evaluations(const std::vector<int64_t> & rows) const;
 
     const pinocchio::Model & model() const
     {
@@ -221,6 +244,8 @@ namespace multibody_sim
     Vec neutral_;
     std::shared_ptr<const SceneForces> scene_;
     std::shared_ptr<const Policies> policies_;
+    std::shared_ptr<const ContactScene> contact_;
+    std::vector<bool> flow_work_;
     int64_t *calls_ = nullptr, *saturated_ = nullptr, *saturated_dofs_ = nullptr;
     int n_robot_flows_ = 1;  // the robot's ledger entries before the scene's (joint torques, joint damping)
     std::vector<std::unique_ptr<Thread>> threads_;

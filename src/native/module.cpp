@@ -30,6 +30,7 @@ namespace multibody_sim
 #ifdef MULTIBODY_SIM_WITH_KERNEL
   void bind_kernel(nb::module_ & m); // src/native/kernel.cpp
   void bind_scene(nb::module_ & m);  // src/native/scene.cpp
+  void bind_contact(nb::module_ & m);  // src/native/contact.cpp
 #endif
 
   namespace
@@ -165,6 +166,7 @@ NB_MODULE(_native, m)
 
 #ifdef MULTIBODY_SIM_WITH_KERNEL
   multibody_sim::bind_scene(m);  // before the kernel, whose set_scene and set_policies take its classes
+  multibody_sim::bind_contact(m);  // ... and set_contact
   multibody_sim::bind_kernel(m);
 #endif
 }

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from ..ordered import ordered_dot, ordered_matvec
 from .base import Attempt, Integrator, System
 from .partitioned import SemiImplicitEuler
 
@@ -185,11 +186,12 @@ class TimeStepping(Integrator):
             new.iterations += iterations
             new.unconverged += not converged
             new.impulses = _split(impulses, problem.keys, problem.sizes)
-            generalized = problem.jacobian.T @ impulses
+            # sums in index order (ordered.py), as the native kernel (src/native/contact.cpp) forms them
+            generalized = ordered_matvec(problem.jacobian.T, impulses)
             v_next = v_free + contact.inverse_mass_times(generalized)
-            work = 0.5 * float(generalized @ (v_next + v_free))  # ½ λᵀ J (v⁺ + v_free)
-            correction = -float(impulses @ problem.correction)
-            bounce = -float(impulses @ problem.restitution)
+            work = 0.5 * ordered_dot(generalized, v_next + v_free)  # ½ λᵀ J (v⁺ + v_free)
+            correction = -ordered_dot(impulses, problem.correction)
+            bounce = -ordered_dot(impulses, problem.restitution)
             new.active = (problem, impulses)
             new.landed = problem.landings
         q_next = system.space.integrate(q, h * v_next)
