@@ -7,7 +7,6 @@ The simulation never builds geometry; this module builds Pinocchio's visual Geom
 
 from __future__ import annotations
 
-import hashlib
 import uuid
 import warnings
 from dataclasses import dataclass
@@ -17,8 +16,8 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from ..catalog import CATALOG, catalog_urdf, derived_urdf
-from ..exceptions import InvalidArgumentError, ModelError, UnknownNameError
+from ..catalog import build_geometry, mesh_roots
+from ..exceptions import InvalidArgumentError, UnknownNameError
 from ..robot import Robot
 from ..safety import printable
 from ..validation import check_system, check_text
@@ -104,27 +103,9 @@ class RobotScene:
             self.notes.append(f"{self.robot.name}: no URDF recorded for this robot; drawing a skeleton of its joints")
             return []
         path = Path(urdf_path)
-        try:
-            xml = path.read_bytes()
-        except OSError as exc:
-            raise ModelError(f"{path}: cannot read the URDF for its visual meshes ({exc.strerror})") from None
-        expected = source.get("urdf_sha256")
-        if expected and hashlib.sha256(xml).hexdigest() != expected:
-            raise ModelError(f"{path}: the URDF changed after the robot was loaded (SHA-256 differs); reload it")
-        if source.get("format") != "mjcf":
-            xml = derived_urdf(xml, path, source.get("derivation"))  # an SDF's conversion, a catalog entry's pruning
         roots = allowed_roots(self.robot)
         try:
-            if source.get("format") == "mjcf":  # checked at load like a URDF; Pinocchio reads it from its path
-                geometry_model = pin.buildGeomFromMJCF(self.model, str(path), pin.GeometryType.VISUAL)
-            else:
-                geometry_model = pin.buildGeomFromUrdfString(
-                    self.model,
-                    xml.decode("utf-8"),
-                    pin.GeometryType.VISUAL,
-                    package_dirs=[str(r) for r in roots],
-                    **_cheap_mesh_loader(),
-                )
+            geometry_model = build_geometry(source, self.model, "visual", **_cheap_mesh_loader())
         except (RuntimeError, ValueError) as exc:  # e.g. a mesh file that is not there
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             self.notes.append(f"{path}: Pinocchio cannot build the visual model ({first}); drawing a skeleton")
@@ -299,11 +280,14 @@ GROUND_THICKNESS = 0.01
 
 
 def _contact_visuals(model: pin.Model, contact: Any) -> tuple[list[_Visual], list[_Visual]]:
-    """(moving, fixtures): a contact scene's objects and declared collision shapes on their bodies, and the ground."""
+    """(moving, fixtures): a contact scene's objects and declared collision shapes on their bodies, and the ground
+    (not the URDF's collision shapes: the robot's visual meshes stand for them)."""
     import coal
 
     moving, fixtures = [], []
     for index, geometry in enumerate(contact.geometries):
+        if geometry.from_urdf:  # the URDF's collision shapes: the robot's visual meshes show them
+            continue
         if geometry.kind == "halfspace":
             height = geometry.dimensions[0]
             shape = coal.Box(GROUND_SIZE, GROUND_SIZE, GROUND_THICKNESS)
@@ -340,15 +324,7 @@ def _cheap_mesh_loader() -> dict[str, Any]:
 def allowed_roots(robot: Robot) -> list[Path]:
     """Folders the robot's meshes may come from: the URDF's folder, its package directories and allowed roots,
     the catalog's package directory."""
-    source = robot.source
-    arguments = source.get("load_robot", {})
-    roots = [Path(source["urdf_path"]).parent] if source.get("urdf_path") else []
-    roots += [Path(p) for p in arguments.get("package_dirs", []) or []]
-    roots += [Path(p) for p in arguments.get("allowed_roots", []) or []]
-    name = arguments.get("source")
-    if name in CATALOG:
-        roots += catalog_urdf(CATALOG[name])[1]
-    return [r.resolve() for r in roots]
+    return mesh_roots(robot.source)
 
 
 def pack(command: dict[str, Any]) -> bytes:
