@@ -313,6 +313,36 @@ def test_solo12_stands_on_its_four_foot_spheres():
     assert np.diff(traj.ledger["contact"].energy).min() >= 0.0
 
 
+def test_go2_standing_comes_to_rest_and_sags_as_its_pd_springs_carry_its_weight():
+    """go2_standing holds still by the end of its run (its base moves < 0.1 mm over the last half second), and the
+    sag from where its feet touch is the PD springs' (floating-base gravity compensation leaves the trunk's weight
+    to them): Hooke's law, so doubling kp halves it."""
+    from multibody_sim.controllers import PDGravity
+
+    scene = load_scene("go2_standing")
+    traj = scene.run(progress=False)
+    assert np.linalg.norm(traj.q[-1, :3] - traj.q[len(traj) // 2, :3]) < 1e-4
+    touchdown = scene.q0[2] - min(point.gap for point in scene.contact.detect(scene.q0))
+    q_ref = scene.make_controller().pd.q_ref
+    sags = []
+    for kp in (100.0, 200.0):
+        controller = PDGravity(scene, q_ref, kp=kp, kd=5.0)
+        rest = ms.simulate(
+            scene,
+            scene.q0,
+            scene.v0,
+            duration=4.0,
+            dt=1e-3,
+            integrator="timestepping",
+            controller=controller,
+            output_dt=0.1,
+        )
+        assert np.abs(rest.v[-1]).max() < 1e-5  # at rest
+        sags.append(touchdown - rest.q[-1, 2])
+    assert sags[0] > 5e-3  # millimetres: what the first run's base settles by
+    assert sags[0] / sags[1] == pytest.approx(2.0, rel=0.05)
+
+
 def test_run_solo12_without_a_scene_says_nothing_holds_it_up(capsys):
     from multibody_sim.cli import main
 
