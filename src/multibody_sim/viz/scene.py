@@ -221,11 +221,7 @@ class RobotScene:
             UnknownNameError: `view` is not a camera view.
             InvalidArgumentError: position or target is not 3 finite numbers, or they coincide.
         """
-        check_text(view, "camera", optional=False)
-        if view not in CAMERA_VIEWS:
-            raise UnknownNameError(f"unknown camera view '{view}' (choose from: {', '.join(CAMERA_VIEWS)})")
-        fixed_position = None if position is None else _point(position, "camera position")
-        fixed_target = None if target is None else _point(target, "camera target")
+        fixed_position, fixed_target = check_camera(view, position, target)
         Q = np.atleast_2d(np.asarray(Q, dtype=float))
         picks = np.unique(np.linspace(0, len(Q) - 1, min(len(Q), _CAMERA_SAMPLES)).round().astype(int))
         corners_by_joint: dict[int, list[np.ndarray]] = {j: [] for j in self.joints}
@@ -354,14 +350,44 @@ def check_configurations(robot: Robot, Q: np.ndarray, name: str) -> np.ndarray:
     return Q
 
 
-def _point(value: Any, name: str) -> np.ndarray:
+def check_camera(
+    view: Any, position: Any = None, target: Any = None, *, prefix: str = ""
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """A camera's view, position and target checked before any work (camera_command's, export_video's and
+    `play --video`'s arguments): the position and target as points [m], None where not given.
+
+    Args:
+        view: a name of CAMERA_VIEWS.
+        position, target: 3 finite numbers x y z [m], or None.
+        prefix: "--" names them as the command line's options (--camera, --camera-position, --camera-target).
+
+    Raises:
+        UnknownNameError: `view` is not a camera view.
+        InvalidArgumentError: position or target is not 3 finite numbers, or they coincide.
+    """
+    check_text(view, f"{prefix}camera", optional=False)
+    if view not in CAMERA_VIEWS:
+        what = f"{prefix}camera: unknown view" if prefix else "unknown camera view"
+        raise UnknownNameError(f"{what} '{view}' (choose from: {', '.join(CAMERA_VIEWS)})")
+    position_name, target_name, both = "the camera position", "the camera target", "the camera position and target"
+    if prefix:
+        position_name, target_name = f"{prefix}camera-position", f"{prefix}camera-target"
+        both = f"{position_name} and {target_name}"
+    fixed_position = None if position is None else _point(position, position_name)
+    fixed_target = None if target is None else _point(target, target_name)
+    if fixed_position is not None and fixed_target is not None and np.linalg.norm(fixed_position - fixed_target) < 1e-6:
+        raise InvalidArgumentError(f"{both} coincide: the camera would look nowhere")
+    return fixed_position, fixed_target
+
+
+def _point(value: Any, subject: str) -> np.ndarray:
     """A point in space: 3 finite numbers [m]."""
     try:
         point = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         point = np.array([np.nan])
     if point.shape != (3,) or not np.all(np.isfinite(point)):
-        raise InvalidArgumentError(f"the {name} must be 3 finite numbers (x y z in metres), got {value!r}")
+        raise InvalidArgumentError(f"{subject} must be 3 finite numbers (x y z in metres), got {value!r}")
     return point
 
 
