@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import importlib
 import re
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 import pytest
 
 import multibody_sim as ms
+from multibody_sim import native_core
 from multibody_sim.exceptions import InvalidArgumentError, SimulationError
 from multibody_sim.integrators.timestepping import TimeStepping
 from multibody_sim.scenes import load_scene, make_scene
@@ -311,6 +313,50 @@ def test_solo12_stands_on_its_four_foot_spheres():
     assert np.diff(traj.ledger["contact"].energy).min() >= 0.0
 
 
+def test_contact_with_mimic_joints_is_refused_naming_what_pinocchio_lacks():
+    """Pinocchio 4.1's ConstraintCholeskyDecomposition raises on a model with a mimic joint ("This algorithm does
+    not support Joint Mimic type in the model"): the scene says so, and what to drop, in one line."""
+    with pytest.raises(ms.SceneError) as caught:
+        make_scene(robot={"source": "panda", "mimic": True}, ground={})
+    assert str(caught.value) == (
+        "<scene>: contact: contact and mimic joints cannot be combined: Pinocchio 4.1's constraint Cholesky (the "
+        "contact solver's Delassus operator) does not support mimic joints (drop robot.mimic, making the followers "
+        "independent joints, or drop [ground], [contact] and [[object]])"
+    )
+    plain = make_scene(robot={"source": "panda"}, ground={})  # the same robot, its fingers independent: accepted
+    assert plain.contact is not None and plain.nv == 9
+
+
+def test_go2_standing_comes_to_rest_and_sags_as_its_pd_springs_carry_its_weight():
+    """go2_standing holds still by the end of its run (its base moves < 0.1 mm over the last half second), and the
+    sag from where its feet touch is the PD springs' (floating-base gravity compensation leaves the trunk's weight
+    to them): Hooke's law, so doubling kp halves it."""
+    from multibody_sim.controllers import PDGravity
+
+    scene = load_scene("go2_standing")
+    traj = scene.run(progress=False)
+    assert np.linalg.norm(traj.q[-1, :3] - traj.q[len(traj) // 2, :3]) < 1e-4
+    touchdown = scene.q0[2] - min(point.gap for point in scene.contact.detect(scene.q0))
+    q_ref = scene.make_controller().pd.q_ref
+    sags = []
+    for kp in (100.0, 200.0):
+        controller = PDGravity(scene, q_ref, kp=kp, kd=5.0)
+        rest = ms.simulate(
+            scene,
+            scene.q0,
+            scene.v0,
+            duration=4.0,
+            dt=1e-3,
+            integrator="timestepping",
+            controller=controller,
+            output_dt=0.1,
+        )
+        assert np.abs(rest.v[-1]).max() < 1e-5  # at rest
+        sags.append(touchdown - rest.q[-1, 2])
+    assert sags[0] > 5e-3  # millimetres: what the first run's base settles by
+    assert sags[0] / sags[1] == pytest.approx(2.0, rel=0.05)
+
+
 def test_run_solo12_without_a_scene_says_nothing_holds_it_up(capsys):
     from multibody_sim.cli import main
 
@@ -412,10 +458,101 @@ def test_a_rollout_of_a_contact_scene_steps_each_row_as_simulate_does():
     assert no_contact.contacts == [None, None] and no_contact.element(1).contacts is None
 
 
-def test_a_robot_without_declared_collision_geometry_is_told_so():
-    text = make_scene(robot={"source": "solo12"}, ground={}).describe()
-    assert "robot collision geometry: none declared" in text and "declare [[contact.geometry]]" in text
+# ---- the URDF's collision geometry ------------------------------------------------------------------------------
+SOLO_LEGS = {  # solo12's knees bent as in solo12_standing: locked, the robot is one rigid body on four feet
+    f"{leg}_{joint}": value
+    for leg, sign in (("FL", 1.0), ("FR", 1.0), ("HL", -1.0), ("HR", -1.0))
+    for joint, value in (("HAA", 0.0), ("HFE", 0.8 * sign), ("KFE", -1.6 * sign))
+}
+
+
+def lowest_collision_vertex(scene: ms.Scene, q: np.ndarray) -> float:
+    """min world z over every vertex of the URDF's collision meshes at q, independently of coal and of the contact
+    code: the URDF read by yourdfpy, the STL files by trimesh, the links placed by Pinocchio's kinematics."""
+    import trimesh
+    import yourdfpy
+
+    from multibody_sim.catalog import resolve_mesh_uri
+
+    urdf_path = Path(scene.source["urdf_path"])
+    urdf = yourdfpy.URDF.load(str(urdf_path), load_meshes=False, build_scene_graph=False)
+    roots = [urdf_path.parents[3]]  # example-robot-data's share folder: package://example-robot-data/...
+    model, data = scene.model, scene.model.createData()
+    pin.framesForwardKinematics(model, data, q)
+    lowest = np.inf
+    for link in urdf.robot.links:
+        for collision in link.collisions:
+            mesh = collision.geometry.mesh
+            path = resolve_mesh_uri(mesh.filename, urdf_path, package_dirs=roots)
+            vertices = np.asarray(trimesh.load(path, force="mesh").vertices) * (
+                1.0 if mesh.scale is None else mesh.scale
+            )
+            origin = np.eye(4) if collision.origin is None else collision.origin
+            placement = data.oMf[model.getFrameId(link.name)].homogeneous @ origin
+            lowest = min(lowest, float((vertices @ placement[:3, :3].T + placement[:3, 3])[:, 2].min()))
+    return lowest
+
+
+def test_a_robot_without_declared_geometry_rests_on_its_urdf_collision_meshes():
+    """solo12 (legs locked: one rigid body) dropped 1.1 cm onto [ground] with no [[contact.geometry]]: it lands on its
+    URDF collision meshes' convex hulls and comes to rest with its lowest collision vertex on the plane, to the
+    penetration slop (1 nm)."""
+    from multibody_sim.scenes.contact import PENETRATION_SLOP
+
+    scene = make_scene(robot={"source": "solo12"}, ground={"friction": 0.8}, lock=SOLO_LEGS)
+    start = scene.q0.copy()
+    start[2] += 0.011 - lowest_collision_vertex(scene, start)  # its lowest vertex 1.1 cm above the ground
+    text = scene.describe()
+    assert "robot collision geometry (the URDF's): 17 shapes on 17 links, 17 of them meshes" in text
+    assert native_core._scene_reason(scene) == (  # the run stays on the Python kernel, which renders hulls
+        "the scene's collision geometry has mesh shapes (the native kernel renders halfspace, box, sphere, cylinder)"
+    )
+    traj = ms.simulate(scene, start, scene.v0, duration=0.5, dt=1e-3, integrator="timestepping", progress=False)
+    assert traj.stats["solver_unconverged"] <= 5  # of 500 steps (the landing's), well within the 1 % allowed
+    assert np.abs(traj.v[-1]).max() < 1e-9  # at rest
+    assert abs(lowest_collision_vertex(scene, traj.q[-1])) <= PENETRATION_SLOP
+    assert traj.q[:, 2].min() > start[2] - 0.011 - 1e-9  # never below where the vertex meets the plane
+    last = traj.contacts.at(len(traj) - 1)
+    carrying = last.pair[np.linalg.norm(last.impulse, axis=1) > 0.0, 1]  # (the lower legs are speculative rows)
+    assert {traj.contacts.bodies[j] for j in carrying} == {"FL_FOOT", "FR_FOOT", "HL_FOOT", "HR_FOOT"}
+
+
+def test_a_standing_robot_holds_on_its_urdf_meshes_and_declared_geometry_replaces_them_per_body():
+    """solo12 held by PD + gravity compensation on its URDF collision meshes stands (the solver converges on every
+    step); a declared sphere replaces the URDF's meshes on the body it is on (every link of that joint) only."""
+    controller = {"name": "pd_gravity", "kp": 20.0, "q_ref": [0.0, 0.0, 0.235, 0.0, 0.0, 0.0, 1.0]}
+    controller["q_ref"] += [0.1, 0.8, -1.6, -0.1, 0.8, -1.6, 0.1, -0.8, 1.6, -0.1, -0.8, 1.6]
+    scene = make_scene(robot={"source": "solo12"}, ground={"friction": 0.8}, controller=controller)
+    traj = scene.run(duration=0.3, progress=False)
+    assert traj.stats["solver_unconverged"] == 0
+    assert traj.q[:, 2].min() > 0.2  # it stands: the base stays up
+    sphere = {"frame": "FL_FOOT", "shape": "sphere", "radius": 0.016}
+    mixed = make_scene(robot={"source": "solo12"}, ground={}, contact={"robot_geometry": "urdf", "geometry": [sphere]})
+    knee = mixed.model.frames[mixed.model.getFrameId("FL_FOOT")].parentJoint
+    on_knee = [g for g in mixed.contact.geometries if g.joint == knee]
+    assert [(g.body, g.kind, g.from_urdf) for g in on_knee] == [("FL_FOOT", "sphere", False)]
+    assert sum(g.from_urdf for g in mixed.contact.geometries) == 17 - 2  # FL_LOWER_LEG's and FL_FOOT's replaced
+    declared_only = make_scene(robot={"source": "solo12"}, ground={}, contact={"geometry": [sphere]})
+    assert not any(g.from_urdf for g in declared_only.contact.geometries)  # the default once geometry is declared
+
+
+def test_a_robot_without_collision_geometry_is_told_so():
+    text = make_scene(robot={"source": "solo12"}, ground={}, contact={"robot_geometry": "declared"}).describe()
+    assert (
+        'robot collision geometry: none (robot_geometry = "declared" and no [[contact.geometry]]): the robot passes '
+        'through everything; declare [[contact.geometry]] (spheres on feet, boxes on soles) or robot_geometry = "urdf"'
+    ) in text
     assert "contact pairs: none" in text
+    no_ground = make_scene(robot={"source": "panda"}, contact={"limits": "enforce"})  # nothing to touch: no meshes
+    assert 'robot collision geometry: none (nothing to touch: no [ground], and contact.pairs is "ground")' in (
+        no_ground.describe()
+    )
+    with pytest.raises(ms.SceneError, match=re.escape("contact.robot_geometry: needs a robot")):
+        make_scene(
+            ground={}, contact={"robot_geometry": "urdf"}, object=[{"shape": "sphere", "radius": 0.1, "mass": 1.0}]
+        )
+    with pytest.raises(ms.SceneError, match=re.escape("contact.robot_geometry: must be one of declared, urdf, got")):
+        make_scene(robot={"source": "solo12"}, ground={}, contact={"robot_geometry": "meshes"})
 
 
 def test_a_large_patch_keeps_its_extreme_points():

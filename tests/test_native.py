@@ -173,6 +173,28 @@ def test_an_extension_built_without_the_kernel_is_refused_with_one_line(monkeypa
     )
 
 
+@needs_native
+def test_cmake_and_python_digest_the_sources_alike_and_an_edit_makes_the_build_stale(tmp_path):
+    """The digest CMake wrote at the build (this checkout's editable install) equals the one Python computes
+    from the same files; one byte changed in a copy of the sources makes that copy stale, and _load refuses an
+    extension whose sources moved on (it would otherwise run against a Python side it does not match)."""
+    build = importlib.import_module("multibody_sim._native_build")
+    if native.SOURCES.is_dir():  # a checkout (the editable install the suite runs on): its sources were built
+        assert native.sources_digest(native.SOURCES) == build.SOURCES_SHA256
+    copy = tmp_path / "native"
+    copy.mkdir()
+    for path in sorted((REPO / "src" / "native").iterdir()):
+        (copy / path.name).write_bytes(path.read_bytes())
+    assert native._stale_sources(build.SOURCES_SHA256, copy) is None
+    kernel = copy / "kernel.cpp"
+    kernel.write_bytes(kernel.read_bytes() + b"\n")
+    assert native._stale_sources(build.SOURCES_SHA256, copy) == copy
+    (copy / "new.hpp").write_text("")  # a new file counts too
+    kernel.write_bytes((REPO / "src" / "native" / "kernel.cpp").read_bytes())
+    assert native._stale_sources(build.SOURCES_SHA256, copy) == copy
+    assert native._stale_sources(build.SOURCES_SHA256, tmp_path) is None  # no sources there: nothing to check
+
+
 @pytest.mark.skipif(not BUILT, reason="the C++ extension is not built here")
 def test_the_extension_itself_refuses_another_pinocchio_at_import():
     probe = (

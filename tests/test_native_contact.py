@@ -294,3 +294,26 @@ def test_shapes_the_engine_does_not_render_stay_on_python_and_say_so():
     assert why_not_native(ms.load_robot("ur5"), TIMESTEPPING) == (
         "integrator 'timestepping' runs natively on contact scenes only"
     )
+
+
+def test_batch_stepper_on_a_contact_scene_with_a_row_reset(monkeypatch):
+    """gym's BatchStepper on two threads: rows step one control interval per call, a reset row restarts its
+    solver state, as on the Python kernel."""
+    scene = ms.load_scene("bouncing_ball")
+    B = 3
+    Q0 = np.tile(scene.q0, (B, 1))
+    Q0[:, 2] = [0.2, 0.3, 0.25]
+
+    def run():
+        batch = ms.BatchStepper(scene, Q0, np.zeros((B, scene.nv)), dt=1e-3, integrator="timestepping",
+                                num_threads=2)  # fmt: skip
+        for _ in range(300):
+            batch.step(np.zeros((B, scene.nv)))
+        batch.reset(rows=[1], q=Q0[1:2], v=np.ones((1, scene.nv)))
+        for _ in range(200):
+            batch.step(np.zeros((B, scene.nv)))
+        return batch.q.copy(), batch.v.copy()
+
+    (qa, va), (qb, vb) = both(run, monkeypatch)
+    np.testing.assert_array_equal(qa, qb)
+    np.testing.assert_array_equal(va, vb)

@@ -888,7 +888,7 @@ ERRORS = [
         "contact key",
         scene(contact={"pair": "all"}),
         "contact: unknown key 'pair' (did you mean 'pairs'? valid: body_friction, body_restitution, friction, "
-        "geometry, limits, pairs, solver)",
+        "geometry, limits, pairs, robot_geometry, solver)",
     ),
     (
         "geometry frame",
@@ -954,7 +954,8 @@ ERRORS = [
     (
         "contact with constraints",
         scene(ground={}, constraint=[{"type": "point", "frames": ["panda_hand"]}]),
-        "constraint: holonomic constraints and contact cannot be combined yet (drop one of them)",
+        "constraint: holonomic constraints and contact cannot be combined yet: the contact time-stepper does not "
+        "solve [[constraint]] rows with its cones (drop [[constraint]], or [ground], [contact] and [[object]])",
     ),
 ]
 

@@ -649,7 +649,7 @@ def test_a_short_run_does_not_read_the_memory_room_and_a_large_one_is_refused(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Reading the memory room (/proc/meminfo, the cgroup's files) costs as much as a short native run: a run keeping
-    a few samples is let through unread, while one keeping more than a MiB is still checked and refused."""
+    a few samples is let through unread, while one keeping more than 16 MiB is still checked and refused."""
     from multibody_sim import safety
 
     read: list[int] = []
@@ -663,7 +663,7 @@ def test_a_short_run_does_not_read_the_memory_room_and_a_large_one_is_refused(
     traj = ms.simulate(robot, [0.5], [0.0], duration=0.1, dt=1e-3, integrator="rk4")
     assert len(traj) == 101 and not read
     with pytest.raises(ms.InvalidArgumentError, match=r"in memory, more than the 0 GiB available \(a test's limit\)"):
-        ms.simulate(robot, [0.5], [0.0], duration=100.0, dt=1e-3, integrator="rk4")  # 1e5 samples: > 1 MiB
+        ms.simulate(robot, [0.5], [0.0], duration=1000.0, dt=1e-3, integrator="rk4")  # 1e6 samples: > 16 MiB
     assert read
 
 

@@ -187,6 +187,18 @@ def test_a_view_without_the_robot_is_an_error_not_a_blank_video(
             ["--video", "{d}/x.gif", "--camera", "under"],
             "--camera: unknown view 'under' (choose from: default, front, back, left, right, top)",
         ),
+        (
+            ["--video", "{d}/x.gif", "--camera-position", "1", "nan", "0"],
+            "--camera-position must be 3 finite numbers (x y z in metres), got [1.0, nan, 0.0]",
+        ),
+        (
+            ["--video", "{d}/x.gif", "--camera-target", "inf", "0", "0"],
+            "--camera-target must be 3 finite numbers (x y z in metres), got [inf, 0.0, 0.0]",
+        ),
+        (
+            ["--video", "{d}/x.mp4", "--camera-position", "1", "2", "3", "--camera-target", "1", "2", "3"],
+            "--camera-position and --camera-target coincide: the camera would look nowhere",
+        ),
         (["--video", "{d}"], "--video {d}: is a directory, expected a file name such as motion.mp4"),
     ],
 )

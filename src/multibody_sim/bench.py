@@ -1300,7 +1300,8 @@ def plot_work_precision(result: WorkPrecision, path: str | os.PathLike[str], *, 
     axes[2].set_ylabel("max |energy_error| [J] (a check, not the error)")
     for ax in axes:
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=7, loc="best")
+    if axes[0].get_legend_handles_labels()[0]:  # none when no run completed: matplotlib would warn
+        axes[0].legend(fontsize=7, loc="best")
     fig.suptitle(title or f"{safe_name(result.system)}: work-precision over {result.duration:g} s (dashed: adaptive)")
     fig.tight_layout()
     path = Path(path)

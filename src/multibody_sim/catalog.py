@@ -859,6 +859,52 @@ def derived_urdf(xml: bytes, path: Path, derivation: str | None) -> bytes:
     raise ModelError(f"{path}: unknown derivation '{derivation}' (expected sdf or prune:JOINT)")
 
 
+def mesh_roots(source: dict[str, Any]) -> list[Path]:
+    """Folders a robot's meshes may come from (its `source`: Robot.source): the URDF's folder, its package
+    directories and allowed roots, the catalog's package directory."""
+    arguments = source.get("load_robot", {})
+    roots = [Path(source["urdf_path"]).parent] if source.get("urdf_path") else []
+    roots += [Path(p) for p in arguments.get("package_dirs", []) or []]
+    roots += [Path(p) for p in arguments.get("allowed_roots", []) or []]
+    name = arguments.get("source")
+    if name in CATALOG:
+        roots += catalog_urdf(CATALOG[name])[1]
+    return [r.resolve() for r in roots]
+
+
+def build_geometry(source: dict[str, Any], model: pin.Model, kind: str, **loader: Any) -> pin.GeometryModel:
+    """The visual or collision geometry of a robot's URDF (or MJCF) on `model` (its own, or a scene's built from
+    it: shapes attach to the links of the same names), from the file its `source` (Robot.source) records: checked
+    unchanged (SHA-256), derived as the model was (catalog pruning, SDFormat), meshes resolved in mesh_roots().
+
+    Args:
+        kind: "visual" or "collision".
+        **loader: Pinocchio's builder options (mesh_loader).
+
+    Raises:
+        ModelError: the file cannot be read, or changed since the robot was loaded.
+        RuntimeError, ValueError: Pinocchio cannot build it (e.g. a mesh file that is not there).
+    """
+    path = Path(source["urdf_path"])
+    try:
+        xml = path.read_bytes()
+    except OSError as exc:
+        raise ModelError(f"{path}: cannot read the URDF for its {kind} meshes ({exc.strerror})") from None
+    expected = source.get("urdf_sha256")
+    if expected and hashlib.sha256(xml).hexdigest() != expected:
+        raise ModelError(f"{path}: the URDF changed after the robot was loaded (SHA-256 differs); reload it")
+    geometry_type = pin.GeometryType.VISUAL if kind == "visual" else pin.GeometryType.COLLISION
+    if source.get("format") == "mjcf":  # checked at load like a URDF; Pinocchio reads it from its path
+        return pin.buildGeomFromMJCF(model, str(path), geometry_type)
+    return pin.buildGeomFromUrdfString(
+        model,
+        derived_urdf(xml, path, source.get("derivation")).decode("utf-8"),
+        geometry_type,
+        package_dirs=[str(r) for r in mesh_roots(source)],
+        **loader,
+    )
+
+
 def _prune(xml: bytes, path: Path, joint: str) -> bytes:
     """The URDF without `joint`, its child link and everything below it (transmissions and gazebo blocks of the
     removed parts too)."""

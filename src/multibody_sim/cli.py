@@ -1102,8 +1102,7 @@ def _check_video(args: argparse.Namespace) -> Path:
 
     path = _check_output(args.video, "--video", "motion.mp4")
     video.check_video_options(path, fps=args.fps, speed=args.speed, width=args.width, height=args.height, prefix="--")
-    if args.camera not in video.CAMERA_VIEWS:
-        raise _UsageError(f"--camera: unknown view '{args.camera}' (choose from: {', '.join(video.CAMERA_VIEWS)})")
+    video.check_camera(args.camera, args.camera_position, args.camera_target, prefix="--")
     video.find_browser()
     return path
 

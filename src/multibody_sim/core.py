@@ -322,7 +322,7 @@ class Core:
         which they did not take, is not theirs; `with_last`: they hold a last sample at the store's index count)."""
         rows = self.rows[js]
         solver_stats = getattr(self.kernel, "solver_stats", None)
-        if solver_stats is not None:
+        if solver_stats is not None and type(self.method).solver_stats is not Integrator.solver_stats:  # else {}
             for j, b in zip(js.tolist(), rows.tolist(), strict=True):
                 stats = solver_stats(j)
                 if stats:

@@ -157,8 +157,7 @@ class Torques:
                 )
                 return np.zeros((n, nv)), [(j, error, True) for j in range(n)]
             TAU = np.array(out, dtype=float)
-            start, stop = system.actuated.start, system.actuated.stop
-            suspect = ~np.isfinite(TAU).all(axis=1) | TAU[:, :start].any(axis=1) | TAU[:, stop:].any(axis=1)
+            suspect = ~np.isfinite(TAU).all(axis=1) | system.unactuated_load(TAU, per_row=True)
             for j in np.flatnonzero(suspect).tolist():
                 try:  # the full check, with the precise reason
                     system.check_tau(TAU[j])
@@ -387,9 +386,10 @@ class Kept:
         return float(self.trajectory.t[-1]) if self.trajectory is not None and self.samples else 0.0
 
 
-@dataclass
+@dataclass(slots=True)
 class RowOutcome:
-    """How one row of a run ended: status, message, the user's exception, and its counts."""
+    """How one row of a run ended: status, message, the user's exception, and its counts (never edited in place:
+    rows that stop together may share one dict)."""
 
     status: str = "running"
     message: str = ""
@@ -788,10 +788,12 @@ class Run:
         core.stop(np.arange(len(rows)))
         frozen = core.stopped_counts[rows].tolist()  # their counts, as core.counts(b) gives them now
         judge = status == "completed" and bool(core.solver_stats)
+        shared: dict[tuple[int, ...], dict[str, int]] = {}  # rows that stop together mostly share their counts
         for b, counts in zip(rows, frozen, strict=True):
             outcome = self.outcomes[b]
             outcome.status, outcome.message = status, message
-            outcome.counts = dict(zip(COUNTERS, counts, strict=True))
+            key = tuple(counts)
+            outcome.counts = shared.get(key) or shared.setdefault(key, dict(zip(COUNTERS, counts, strict=True)))
             if judge:
                 self._judge_solver(b)
 

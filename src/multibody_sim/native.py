@@ -7,8 +7,10 @@ one line and runs take the Python kernel. `kernel()` is the one phrase the CLI a
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import os
+from pathlib import Path
 from types import ModuleType
 from typing import Any
 
@@ -34,6 +36,12 @@ def _load() -> tuple[ModuleType | None, str | None]:
             "the C++ extension is not built (no C++ compiler at install time, or its build failed: "
             "`pip install -v .` shows why)"
         )
+    stale = _stale_sources(getattr(build, "SOURCES_SHA256", None))
+    if stale is not None:
+        return None, (
+            f"the C++ extension is older than its sources in {stale} (edited or pulled, not rebuilt): rebuild it "
+            "(`bash scripts/test.sh --co -q` or `pip install -e .`)"
+        )
     built, running = build.PINOCCHIO_VERSION, pin.__version__
     if built != running:
         return None, (
@@ -49,6 +57,33 @@ def _load() -> tuple[ModuleType | None, str | None]:
     if not hasattr(extension, "SceneForces"):  # ... built before the scenes' elements joined it (scene.cpp)
         return None, "the C++ extension was built without the scenes' elements: reinstall multibody-sim"
     return extension, None
+
+
+def sources_digest(folder: Path) -> str:
+    """CMakeLists.txt's digest of the C++ sources: SHA-256 of the lines "<file name> <its SHA-256>" of the
+    folder's *.cpp and *.hpp files, sorted by name."""
+    lines = "".join(
+        f"{path.name} {hashlib.sha256(path.read_bytes()).hexdigest()}\n"
+        for path in sorted(folder.iterdir(), key=lambda p: p.name)
+        if path.suffix in (".cpp", ".hpp")
+    )
+    return hashlib.sha256(lines.encode()).hexdigest()
+
+
+#: Where the C++ sources sit in a checkout (src/native beside src/multibody_sim); a wheel ships none.
+SOURCES = Path(__file__).resolve().parent.parent / "native"
+
+
+def _stale_sources(built: str | None, folder: Path = SOURCES) -> Path | None:
+    """The source folder when the extension was built from other sources than those in it (an editable install
+    whose C++ changed since its build), else None (a wheel ships no sources: nothing to check)."""
+    if not (folder / "module.cpp").is_file():
+        return None
+    try:
+        current = sources_digest(folder)
+    except OSError:
+        return None
+    return None if current == built else folder
 
 
 module, why_unavailable = _load()

@@ -383,6 +383,8 @@ class NativeKernel:
 
     def solver_stats(self, j: int) -> dict[str, int]:
         """Running row j's contact solver counts (TimeStepping.solver_stats), {} without contact."""
+        if not self.engine.has_contact:  # (without looking the row up: Core.stop asks for every row it stops)
+            return {}
         return self.row_solver_stats(self._row(j))
 
     def row_solver_stats(self, row: int) -> dict[str, int]:

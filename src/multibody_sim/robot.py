@@ -381,10 +381,14 @@ class Robot:
             )
         return tau
 
-    def unactuated_load(self, tau: np.ndarray) -> bool:
-        """Whether tau (nv,) or rows of it (n, nv) put anything on unactuated coordinates (cheap; no message)."""
+    def unactuated_load(self, tau: np.ndarray, *, per_row: bool = False) -> Any:
+        """Whether tau (nv,) or rows of it (n, nv) put anything on unactuated coordinates (cheap; no message): a bool,
+        or with `per_row` one per row of tau (n, nv), shape (n,)."""
         start, stop = self.actuated.start, self.actuated.stop
-        return bool(tau[..., :start].any() or tau[..., stop:].any())
+        head, tail = tau[..., :start], tau[..., stop:]
+        if per_row:
+            return head.any(axis=-1) | tail.any(axis=-1)
+        return bool(head.any() or tail.any())
 
 
 class RowsDynamics:

@@ -353,7 +353,9 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
         limit_violations=limit_reports(system, arrays["t"], arrays["q"], n),
         stats=stats,
         metadata={**run.metadata(), "backend": "local"},
-        contacts=[store.contacts_record(b, int(n[b]), system) for b in range(run.B)],
+        contacts=[store.contacts_record(b, int(n[b]), system) for b in range(run.B)]
+        if getattr(system, "contact", None) is not None
+        else [None] * run.B,  # (what contacts_record gives without contact)
     )
 
 

@@ -37,8 +37,9 @@ MAX_HEADER_BYTES = 10_000  # np.load's own default limit on an .npy header
 # recurses once per level and raises RecursionError near 1000, so deeper documents are refused before parsing.
 MAX_JSON_DEPTH = 64
 # Allocations up to this size are not checked against the memory room: reading it (/proc/meminfo, the cgroup's files)
-# costs ~0.2 ms, as much as a whole short native run, and no process that got as far as running lacks 1 MiB.
-SMALL_ALLOCATION = 2**20  # [bytes]
+# costs 0.2-0.7 ms, as much as a whole short native run or a short rollout's assembly, and no process that got as far
+# as running lacks 16 MiB.
+SMALL_ALLOCATION = 2**24  # [bytes]
 _JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
 _READABLE_COMPRESSION = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
 _END_OF_DIRECTORY = b"PK\x05\x06"

@@ -67,6 +67,9 @@ namespace multibody_sim
     std::vector<pinocchio::ConstraintData> datas;
     std::vector<std::vector<int64_t>> keys;
     std::vector<int> sizes;
+    // The constraint set's structure (per model: a point's joints, the limits' selection, friction): while it
+    // stays, the models and datas are updated in place instead of being built again.
+    std::vector<int64_t> structure, next_structure;
     pinocchio::ConstraintCholeskyDecomposition cholesky;
     pinocchio::ADMMConstraintSolver admm;
     pinocchio::PGSConstraintSolver pgs;
@@ -283,18 +286,14 @@ namespace multibody_sim
       }
     }
     // ---- ContactModel.problem --------------------------------------------------------------------------------
-    w.models.clear();
     w.keys.clear();
     w.sizes.clear();
+    w.next_structure.clear();
     for (const Point & p : w.points)
     {
-      pinocchio::PointContactConstraintModel cm(
-        model, static_cast<pinocchio::JointIndex>(p.joint1), p.placement1,
-        static_cast<pinocchio::JointIndex>(p.joint2), p.placement2);
-      cm.setFriction(p.friction);
-      w.models.emplace_back(cm);
       w.keys.push_back({0, p.pair, p.index});
       w.sizes.push_back(3);
+      w.next_structure.insert(w.next_structure.end(), {0, p.joint1, p.joint2});
     }
     int limit_rows = 0;
     if (w.has_limit)
@@ -303,23 +302,22 @@ namespace multibody_sim
       limit_rows = w.limit.residualSize();
       if (limit_rows)
       {
-        w.models.emplace_back(w.limit);
         std::vector<int64_t> key{1};
         for (auto idx : w.limit.active_idx_in_activable())
           key.push_back(static_cast<int64_t>(idx));
-        w.keys.push_back(key);
+        w.next_structure.insert(w.next_structure.end(), key.begin(), key.end());
+        w.keys.push_back(std::move(key));
         w.sizes.push_back(limit_rows);
       }
     }
     if (w.has_friction)
     {
       w.friction.setTimeStep(h);
-      const int rows = w.friction.residualSize();
-      w.models.emplace_back(w.friction);
       w.keys.push_back({2});
-      w.sizes.push_back(rows);
+      w.sizes.push_back(w.friction.residualSize());
+      w.next_structure.push_back(2);
     }
-    if (w.models.empty())  // nothing to solve: TimeStepping.attempt's `problem is None`
+    if (w.keys.empty())  // nothing to solve: TimeStepping.attempt's `problem is None`
     {
       v_next = v_free;
       contact_work = correction = bounce = 0.0;
@@ -329,14 +327,43 @@ namespace multibody_sim
       row.active.clear();
       return false;
     }
+    const size_t n_models = w.keys.size();
+    if (w.next_structure != w.structure || w.models.size() != n_models)
+    {  // a new constraint set: Python's models (a point contact per point, copies of the limits and friction)
+      w.models.clear();
+      for (const Point & p : w.points)
+        w.models.emplace_back(pinocchio::PointContactConstraintModel(
+          model, static_cast<pinocchio::JointIndex>(p.joint1), p.placement1,
+          static_cast<pinocchio::JointIndex>(p.joint2), p.placement2));
+      if (limit_rows)
+        w.models.emplace_back(w.limit);
+      if (w.has_friction)
+        w.models.emplace_back(w.friction);
+      w.datas.clear();
+      for (const pinocchio::ConstraintModel & cm : w.models)
+        w.datas.push_back(cm.createData());
+      w.structure.swap(w.next_structure);
+    }
+    else
+    {  // the same set: this step's placements, selection and time step (the models hold nothing else)
+      size_t k = 0;
+      for (const Point & p : w.points)
+      {
+        auto & point = boost::get<pinocchio::PointContactConstraintModel>(w.models[k++].toVariant());
+        point.joint1_placement = p.placement1;
+        point.joint2_placement = p.placement2;
+      }
+      if (limit_rows)
+        boost::get<pinocchio::JointLimitConstraintModel>(w.models[k++].toVariant()) = w.limit;
+      if (w.has_friction)
+        boost::get<pinocchio::JointFrictionConstraintModel>(w.models[k++].toVariant()) = w.friction;
+    }
+    for (size_t k = 0; k < w.points.size(); ++k)
+      boost::get<pinocchio::PointContactConstraintModel>(w.models[k].toVariant()).setFriction(w.points[k].friction);
     pinocchio::crba(model, data, q, pinocchio::Convention::WORLD);
     data.q_in = q;
-    w.datas.clear();
-    for (const pinocchio::ConstraintModel & cm : w.models)
-    {
-      w.datas.push_back(cm.createData());
-      cm.calc(model, data, w.datas.back());
-    }
+    for (size_t k = 0; k < n_models; ++k)
+      w.models[k].calc(model, data, w.datas[k]);
     w.cholesky.rebuild(model, data, w.models, w.datas);  // = the constructor's work, on the kept storage
     w.cholesky.compute(model, data, w.models, w.datas, c.delassus_damping);
     int m = 0;
@@ -456,11 +483,11 @@ namespace multibody_sim
     row.steps += 1;
     row.iterations += static_cast<int64_t>(iterations);
     row.unconverged += converged ? 0 : 1;
-    row.keys = w.keys;
-    row.impulses.resize(w.keys.size());
+    row.keys.swap(w.keys);  // (w.keys is rebuilt next step)
+    row.impulses.resize(row.keys.size());
     {
       int start = 0;
-      for (size_t b = 0; b < w.keys.size(); ++b)
+      for (size_t b = 0; b < row.keys.size(); ++b)
       {
         row.impulses[b] = w.impulses.segment(start, w.sizes[b]);
         start += w.sizes[b];

@@ -67,6 +67,11 @@ LIMIT_MARGIN = 0.05
 # A contact patch keeps at most this many points (its extreme ones): a mesh's convex hull flat on the ground gives
 # dozens of coplanar points, redundant rows that slow the solver without changing the wrench it can apply.
 MAX_PATCH_POINTS = 8
+# In a patch with a mesh hull, points closer than this [m] are one point for the constraint: a hull resting on a
+# facet of a few millimetres gives up to 8 points within it, whose nearly equal rows stall the cone solver (solo12
+# standing on its URDF meshes: 38 unconverged steps of 1000 without it, none with it); the wrench range they add is
+# a few millimetres' lever. Declared shapes' patches keep every point (up to MAX_PATCH_POINTS).
+MIN_PATCH_SPACING = 0.01
 TOUCHING = 1e-6  # [m]: a gap below this is a touching contact (restitution applies)
 # Cholesky regularization of the Delassus operator (keeps G's factorization defined on redundant contacts, such
 # as the 4 corners of a box on the ground: 12 rows on 6 dofs). Its effect on the impulses is ~1e-12 relative.
@@ -84,8 +89,10 @@ class Geometry:
         joint: the joint the body moves with (0: the world).
         placement: the shape's pose in that joint's frame.
         shape: the coal shape.
-        kind: "halfspace", "box", "sphere" or "cylinder".
-        dimensions: box: full extents (3,) [m]; sphere: (radius,); cylinder: (radius, length); halfspace: (height,).
+        kind: "halfspace", "box", "sphere", "cylinder" or "mesh" (a URDF mesh's convex hull, a coal.ConvexBase).
+        dimensions: box: full extents (3,) [m]; sphere: (radius,); cylinder: (radius, length); halfspace: (height,);
+            mesh: ().
+        from_urdf: the shape is the URDF's collision geometry (robot_geometry = "urdf"), not declared by the scene.
     """
 
     body: str
@@ -94,6 +101,7 @@ class Geometry:
     shape: Any
     kind: str
     dimensions: tuple[float, ...]
+    from_urdf: bool = False
 
 
 @dataclass(frozen=True)
@@ -195,6 +203,7 @@ class ContactModel:
         limited_joints: joint ids whose position limits are enforced (limits = "enforce").
         friction_joints: (joint id, F [N·m or N]) of joints with exact dry friction.
         has_robot: the scene has a robot (describe() then says whether it has collision geometry).
+        robot_geometry_note: why the robot has no collision geometry, if it has none (for describe()).
     """
 
     def __init__(
@@ -213,6 +222,7 @@ class ContactModel:
         limited_joints: Sequence[int] = (),
         friction_joints: Sequence[tuple[int, float]] = (),
         has_robot: bool = False,
+        robot_geometry_note: str = "",
     ):
         self.model = model
         self.data = model.createData()
@@ -238,6 +248,7 @@ class ContactModel:
             request.security_margin = SPECULATIVE_MARGIN
         self._ground_coefficients = (ground_friction, ground_restitution)
         self.has_robot = has_robot
+        self.robot_geometry_note = robot_geometry_note
         self._body_index = {name: k for k, name in enumerate(self.body_names)}
         self._object_names = {g.body for g in self.geometries if g.joint and model.names[g.joint] == g.body}
         self._coefficients = [
@@ -307,14 +318,23 @@ class ContactModel:
             lines.append(f"  ground: plane z = {ground[0].dimensions[0]:g} m, friction {mu:g}, restitution {e:g}")
         else:
             lines.append("  ground: none")
-        robot_bodies = sorted({g.body for g in self.geometries if g.joint and g.body not in self._object_names})
-        if robot_bodies:
-            lines.append("  robot collision geometry (declared): " + ", ".join(map(safe_name, robot_bodies)))
-        elif self.has_robot:
+        robot = [g for g in self.geometries if g.joint and g.body not in self._object_names]
+        declared = sorted({g.body for g in robot if not g.from_urdf})
+        urdf = [g for g in robot if g.from_urdf]
+        if declared:
+            lines.append("  robot collision geometry (declared): " + ", ".join(map(safe_name, declared)))
+        if urdf:
+            meshes = sum(g.kind == "mesh" for g in urdf)
+            links = len({g.body for g in urdf})
             lines.append(
-                "  robot collision geometry: none declared: the URDF's collision meshes are not used (their convex "
-                "hulls give dozens of contact points per link); declare [[contact.geometry]] (spheres on feet, boxes "
-                "on soles), or the robot passes through everything"
+                f"  robot collision geometry (the URDF's): {len(urdf)} shapes on {links} links, {meshes} of them "
+                f"meshes as their convex hulls (at most {MAX_PATCH_POINTS} contact points per pair)"
+                + (" where none is declared" if declared else "")
+            )
+        if not robot and self.has_robot:
+            lines.append(
+                f"  robot collision geometry: none ({self.robot_geometry_note}): the robot passes through "
+                'everything; declare [[contact.geometry]] (spheres on feet, boxes on soles) or robot_geometry = "urdf"'
             )
         pairs = self.pair_names()
         shown = ", ".join(f"{safe_name(a)}-{safe_name(b)}" for a, b in pairs[:12]) + (
@@ -345,9 +365,9 @@ class ContactModel:
         Runs the kinematics of q in the contact's own Data (``updateGeometryPlacements``).
         """
         model, data, gm, gd = self.model, self.data, self.geometry_model, self.geometry_data
-        pin.updateGeometryPlacements(model, data, gm, gd, q)
         if not self.pairs:
             return []
+        pin.updateGeometryPlacements(model, data, gm, gd, q)
         pin.computeCollisions(gm, gd, False)
         points: list[ContactPoint] = []
         for k, (a, b) in enumerate(self.pairs):
@@ -362,7 +382,8 @@ class ContactModel:
             rotation = pin.Quaternion.FromTwoVectors(_Z, normal).matrix()
             g1, g2 = self.geometries[a], self.geometries[b]
             friction, restitution = self._coefficients[k]
-            for i in _patch_points(patch, rotation):
+            spacing = MIN_PATCH_SPACING if "mesh" in (g1.kind, g2.kind) else 0.0
+            for i in _patch_points(patch, rotation, spacing):
                 p1 = np.array(patch.getPointShape1(i), dtype=float)
                 p2 = np.array(patch.getPointShape2(i), dtype=float)
                 frame1 = data.oMi[g1.joint].actInv(pin.SE3(rotation, p1))
@@ -530,6 +551,18 @@ def build_contact(scene: Any, spec: Any, exact_friction: Sequence[tuple[int, flo
             )
         )
     pairs_setting = settings.pairs if settings is not None else "ground"
+    choice = settings.effective_robot_geometry if settings is not None else "urdf"
+    note = ""
+    if spec.robot is not None and choice == "urdf":
+        if spec.ground is None and pairs_setting == "ground":
+            note = 'nothing to touch: no [ground], and contact.pairs is "ground"'
+        else:
+            declared_joints = {g.joint for g in geometries if g.joint and model.names[g.joint] != g.body}
+            urdf = _urdf_geometries(scene, declared_joints, where)
+            geometries += urdf
+            note = "the URDF declares no collision geometry on a moving body" if not urdf else ""
+    elif spec.robot is not None:
+        note = 'robot_geometry = "declared" and no [[contact.geometry]]'
     pairs: list[tuple[int, int]] = []
     ground = [k for k, g in enumerate(geometries) if g.body == "ground"]
     bodies = [k for k, g in enumerate(geometries) if g.body != "ground"]
@@ -573,26 +606,82 @@ def build_contact(scene: Any, spec: Any, exact_friction: Sequence[tuple[int, flo
         limited_joints=limited,
         friction_joints=exact_friction,
         has_robot=spec.robot is not None,
+        robot_geometry_note=note,
     )
 
 
-def _patch_points(patch: Any, rotation: np.ndarray) -> list[int]:
+def _urdf_geometries(scene: Any, skip_joints: set[int], where: str) -> list[Geometry]:
+    """The robot's URDF collision geometry on the scene's model, on moving bodies other than `skip_joints`
+    (those with declared geometry: it replaces the URDF's on every link that moves with that joint); meshes become
+    their convex hulls (coal's ConvexBase: contact patches between hulls and planes; a mesh's own triangles would
+    collide through its surface only)."""
+    from ..catalog import build_geometry
+
+    if not scene.source.get("urdf_path"):
+        return []
+    try:
+        gm = build_geometry(scene.source, scene.model, "collision")
+    except (RuntimeError, ValueError) as exc:  # e.g. a collision mesh that is not there
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise SceneError(
+            f"{where}: contact: Pinocchio cannot build the robot's collision geometry ({first}); declare "
+            '[[contact.geometry]] instead, with robot_geometry = "declared"'
+        ) from None
+    geometries = []
+    for obj in gm.geometryObjects:
+        joint = int(obj.parentJoint)
+        if joint == 0 or joint in skip_joints:  # welded to the world, or replaced by declared geometry
+            continue
+        shape, kind, dimensions = _urdf_shape(obj.geometry)
+        body = scene.model.frames[obj.parentFrame].name
+        geometries.append(Geometry(body, joint, obj.placement, shape, kind, dimensions, from_urdf=True))
+    return geometries
+
+
+def _urdf_shape(shape: Any) -> tuple[Any, str, tuple[float, ...]]:
+    """(coal shape, kind, dimensions) of a URDF collision shape: a mesh as its convex hull, primitives as they are."""
+    if isinstance(shape, coal.BVHModelBase):
+        # The true hull (qhull): buildConvexRepresentation would take the mesh's own triangles as the hull, and an
+        # STL's unshared vertices leave coal's support search stuck on a local vertex (a foot sank 28 µm).
+        shape.buildConvexHull(True, "Qt")
+        return shape.convex, "mesh", ()
+    if isinstance(shape, coal.Box):
+        return shape, "box", tuple(2.0 * float(h) for h in shape.halfSide)
+    if isinstance(shape, coal.Sphere):
+        return shape, "sphere", (float(shape.radius),)
+    if isinstance(shape, coal.Cylinder):
+        return shape, "cylinder", (float(shape.radius), 2.0 * float(shape.halfLength))
+    return shape, type(shape).__name__.lower(), ()
+
+
+def _patch_points(patch: Any, rotation: np.ndarray, spacing: float = 0.0) -> list[int]:
     """The indices of a patch's points the constraint uses: all of them up to MAX_PATCH_POINTS, else the extreme
     ones along the patch's two tangent axes and their diagonals (a polygon's support: the same resultant wrench
-    range, far fewer redundant rows for the solver; a mesh's hull on the ground gives dozens of points)."""
+    range, far fewer redundant rows for the solver); with `spacing` > 0 [m] (pairs with a mesh hull:
+    MIN_PATCH_SPACING) none within that distance of another (a hull's facet on the ground gives a few millimetres'
+    polygon of points: nearly equal rows, on which the cone solver stalls)."""
     n = patch.size()
-    if n <= MAX_PATCH_POINTS:
+    if n <= MAX_PATCH_POINTS and spacing == 0.0:
         return list(range(n))
     points = [np.asarray(patch.getPoint(i), dtype=float) for i in range(n)]
     tangent = np.array([ordered_matvec(rotation.T, p) for p in points])[:, :2]  # sums in index order (ordered.py)
+    if n <= MAX_PATCH_POINTS and (n < 2 or _spacing(tangent) >= spacing):
+        return list(range(n))
     chosen: list[int] = []
     for direction in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
         best = int(np.argmax(tangent @ np.array(direction, dtype=float)))
-        if best not in chosen:
+        if best not in chosen and all(np.linalg.norm(tangent[best] - tangent[c]) >= spacing for c in chosen):
             chosen.append(best)
         if len(chosen) == MAX_PATCH_POINTS:
             break
     return sorted(chosen)
+
+
+def _spacing(points: np.ndarray) -> float:
+    """The smallest distance between two of the points (shape (n, 2), n ≥ 2)."""
+    differences = points[:, None, :] - points[None, :, :]
+    distances = np.linalg.norm(differences, axis=2)
+    return float(distances[np.triu_indices(len(points), 1)].min())
 
 
 def _adjacent(model: pin.Model, a: int, b: int) -> bool:

@@ -68,11 +68,21 @@ SHAPE_KEYS = {
 CONSTRAINT_FRAMES = {"loop": 2, "point": 1, "weld": 2}
 DEFAULT_FRICTION_VELOCITY = 1e-3
 GROUND_KEYS = ("height", "friction", "restitution")
-CONTACT_KEYS = ("pairs", "limits", "friction", "solver", "body_friction", "body_restitution", "geometry")
+CONTACT_KEYS = (
+    "pairs",
+    "limits",
+    "friction",
+    "solver",
+    "body_friction",
+    "body_restitution",
+    "robot_geometry",
+    "geometry",
+)
 CONTACT_PAIRS = ("ground", "all")
 CONTACT_LIMITS = ("enforce", "report")
 CONTACT_FRICTION = ("exact", "regularized")
 CONTACT_SOLVERS = ("admm", "pgs")
+ROBOT_GEOMETRY = ("urdf", "declared")
 OBJECT_SHAPES = ("box", "sphere", "cylinder")
 # The dimensions each shape takes (and requires).
 SHAPE_DIMENSIONS = {"box": ("size",), "sphere": ("radius",), "cylinder": ("radius", "length")}
@@ -308,6 +318,9 @@ class ContactSpec:
         solver: "admm" (Pinocchio's ADMM) or "pgs" (projected Gauss–Seidel).
         body_friction: Coulomb μ of contacts between bodies (ground contacts take [ground] friction).
         body_restitution: Newton's e of contacts between bodies.
+        robot_geometry: the robot's collision geometry: "urdf" (the URDF's collision shapes, meshes as their
+            convex hulls, on every body without declared geometry) or "declared" ([[contact.geometry]] only); None
+            (not given): "declared" when the scene declares geometry, else "urdf" (see effective_robot_geometry).
         geometry: collision geometry replacing the URDF's on the bodies it names.
     """
 
@@ -317,7 +330,15 @@ class ContactSpec:
     solver: str = "admm"
     body_friction: float = DEFAULT_GROUND_FRICTION
     body_restitution: float = 0.0
+    robot_geometry: str | None = None
     geometry: tuple[GeometrySpec, ...] = ()
+
+    @property
+    def effective_robot_geometry(self) -> str:
+        """robot_geometry as declared, else its default: "declared" when [[contact.geometry]] is given, else "urdf"."""
+        if self.robot_geometry is not None:
+            return self.robot_geometry
+        return "declared" if self.geometry else "urdf"
 
 
 @dataclass(frozen=True)
@@ -673,6 +694,8 @@ class _Parser:
         if robot is None and contact is not None:
             if contact.geometry:
                 self.fail("contact.geometry", "needs a robot: this scene has objects only")
+            if contact.robot_geometry is not None:
+                self.fail("contact.robot_geometry", "needs a robot: this scene has objects only")
             if contact.limits == "enforce" or contact.friction == "exact":
                 key = "limits" if contact.limits == "enforce" else "friction"
                 self.fail(f"contact.{key}", "needs a robot: this scene has objects only")
@@ -703,7 +726,11 @@ class _Parser:
         initial = self.table(data.get("initial", {}), "initial", INITIAL_KEYS)
         has_contact = ground is not None or contact is not None or bool(objects)
         if has_contact and constraints:
-            self.fail("constraint", "holonomic constraints and contact cannot be combined yet (drop one of them)")
+            self.fail(
+                "constraint",
+                "holonomic constraints and contact cannot be combined yet: the contact time-stepper does not solve "
+                "[[constraint]] rows with its cones (drop [[constraint]], or [ground], [contact] and [[object]])",
+            )
         simulation = self.simulation(data["simulation"]) if "simulation" in data else None
         declared = simulation.integrator if simulation is not None else None
         if has_contact and declared is not None and declared != CONTACT_INTEGRATOR:
@@ -930,6 +957,11 @@ class _Parser:
                 table.get("body_friction", DEFAULT_GROUND_FRICTION), "contact.body_friction", allow_zero=True
             ),
             body_restitution=restitution,
+            robot_geometry=(
+                self.choice(table["robot_geometry"], "contact.robot_geometry", ROBOT_GEOMETRY)
+                if "robot_geometry" in table
+                else None
+            ),
             geometry=geometry,
         )
 

@@ -7,7 +7,6 @@ The simulation never builds geometry; this module builds Pinocchio's visual Geom
 
 from __future__ import annotations
 
-import hashlib
 import uuid
 import warnings
 from dataclasses import dataclass
@@ -17,8 +16,8 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from ..catalog import CATALOG, catalog_urdf, derived_urdf
-from ..exceptions import InvalidArgumentError, ModelError, UnknownNameError
+from ..catalog import build_geometry, mesh_roots
+from ..exceptions import InvalidArgumentError, UnknownNameError
 from ..robot import Robot
 from ..safety import printable
 from ..validation import check_system, check_text
@@ -104,27 +103,9 @@ class RobotScene:
             self.notes.append(f"{self.robot.name}: no URDF recorded for this robot; drawing a skeleton of its joints")
             return []
         path = Path(urdf_path)
-        try:
-            xml = path.read_bytes()
-        except OSError as exc:
-            raise ModelError(f"{path}: cannot read the URDF for its visual meshes ({exc.strerror})") from None
-        expected = source.get("urdf_sha256")
-        if expected and hashlib.sha256(xml).hexdigest() != expected:
-            raise ModelError(f"{path}: the URDF changed after the robot was loaded (SHA-256 differs); reload it")
-        if source.get("format") != "mjcf":
-            xml = derived_urdf(xml, path, source.get("derivation"))  # an SDF's conversion, a catalog entry's pruning
         roots = allowed_roots(self.robot)
         try:
-            if source.get("format") == "mjcf":  # checked at load like a URDF; Pinocchio reads it from its path
-                geometry_model = pin.buildGeomFromMJCF(self.model, str(path), pin.GeometryType.VISUAL)
-            else:
-                geometry_model = pin.buildGeomFromUrdfString(
-                    self.model,
-                    xml.decode("utf-8"),
-                    pin.GeometryType.VISUAL,
-                    package_dirs=[str(r) for r in roots],
-                    **_cheap_mesh_loader(),
-                )
+            geometry_model = build_geometry(source, self.model, "visual", **_cheap_mesh_loader())
         except (RuntimeError, ValueError) as exc:  # e.g. a mesh file that is not there
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             self.notes.append(f"{path}: Pinocchio cannot build the visual model ({first}); drawing a skeleton")
@@ -240,11 +221,7 @@ class RobotScene:
             UnknownNameError: `view` is not a camera view.
             InvalidArgumentError: position or target is not 3 finite numbers, or they coincide.
         """
-        check_text(view, "camera", optional=False)
-        if view not in CAMERA_VIEWS:
-            raise UnknownNameError(f"unknown camera view '{view}' (choose from: {', '.join(CAMERA_VIEWS)})")
-        fixed_position = None if position is None else _point(position, "camera position")
-        fixed_target = None if target is None else _point(target, "camera target")
+        fixed_position, fixed_target = check_camera(view, position, target)
         Q = np.atleast_2d(np.asarray(Q, dtype=float))
         picks = np.unique(np.linspace(0, len(Q) - 1, min(len(Q), _CAMERA_SAMPLES)).round().astype(int))
         corners_by_joint: dict[int, list[np.ndarray]] = {j: [] for j in self.joints}
@@ -299,11 +276,14 @@ GROUND_THICKNESS = 0.01
 
 
 def _contact_visuals(model: pin.Model, contact: Any) -> tuple[list[_Visual], list[_Visual]]:
-    """(moving, fixtures): a contact scene's objects and declared collision shapes on their bodies, and the ground."""
+    """(moving, fixtures): a contact scene's objects and declared collision shapes on their bodies, and the ground
+    (not the URDF's collision shapes: the robot's visual meshes stand for them)."""
     import coal
 
     moving, fixtures = [], []
     for index, geometry in enumerate(contact.geometries):
+        if geometry.from_urdf:  # the URDF's collision shapes: the robot's visual meshes show them
+            continue
         if geometry.kind == "halfspace":
             height = geometry.dimensions[0]
             shape = coal.Box(GROUND_SIZE, GROUND_SIZE, GROUND_THICKNESS)
@@ -340,15 +320,7 @@ def _cheap_mesh_loader() -> dict[str, Any]:
 def allowed_roots(robot: Robot) -> list[Path]:
     """Folders the robot's meshes may come from: the URDF's folder, its package directories and allowed roots,
     the catalog's package directory."""
-    source = robot.source
-    arguments = source.get("load_robot", {})
-    roots = [Path(source["urdf_path"]).parent] if source.get("urdf_path") else []
-    roots += [Path(p) for p in arguments.get("package_dirs", []) or []]
-    roots += [Path(p) for p in arguments.get("allowed_roots", []) or []]
-    name = arguments.get("source")
-    if name in CATALOG:
-        roots += catalog_urdf(CATALOG[name])[1]
-    return [r.resolve() for r in roots]
+    return mesh_roots(robot.source)
 
 
 def pack(command: dict[str, Any]) -> bytes:
@@ -378,14 +350,44 @@ def check_configurations(robot: Robot, Q: np.ndarray, name: str) -> np.ndarray:
     return Q
 
 
-def _point(value: Any, name: str) -> np.ndarray:
+def check_camera(
+    view: Any, position: Any = None, target: Any = None, *, prefix: str = ""
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """A camera's view, position and target checked before any work (camera_command's, export_video's and
+    `play --video`'s arguments): the position and target as points [m], None where not given.
+
+    Args:
+        view: a name of CAMERA_VIEWS.
+        position, target: 3 finite numbers x y z [m], or None.
+        prefix: "--" names them as the command line's options (--camera, --camera-position, --camera-target).
+
+    Raises:
+        UnknownNameError: `view` is not a camera view.
+        InvalidArgumentError: position or target is not 3 finite numbers, or they coincide.
+    """
+    check_text(view, f"{prefix}camera", optional=False)
+    if view not in CAMERA_VIEWS:
+        what = f"{prefix}camera: unknown view" if prefix else "unknown camera view"
+        raise UnknownNameError(f"{what} '{view}' (choose from: {', '.join(CAMERA_VIEWS)})")
+    position_name, target_name, both = "the camera position", "the camera target", "the camera position and target"
+    if prefix:
+        position_name, target_name = f"{prefix}camera-position", f"{prefix}camera-target"
+        both = f"{position_name} and {target_name}"
+    fixed_position = None if position is None else _point(position, position_name)
+    fixed_target = None if target is None else _point(target, target_name)
+    if fixed_position is not None and fixed_target is not None and np.linalg.norm(fixed_position - fixed_target) < 1e-6:
+        raise InvalidArgumentError(f"{both} coincide: the camera would look nowhere")
+    return fixed_position, fixed_target
+
+
+def _point(value: Any, subject: str) -> np.ndarray:
     """A point in space: 3 finite numbers [m]."""
     try:
         point = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         point = np.array([np.nan])
     if point.shape != (3,) or not np.all(np.isfinite(point)):
-        raise InvalidArgumentError(f"the {name} must be 3 finite numbers (x y z in metres), got {value!r}")
+        raise InvalidArgumentError(f"{subject} must be 3 finite numbers (x y z in metres), got {value!r}")
     return point
 
 

@@ -26,14 +26,22 @@ from ..files import atomic_path, check_output
 from ..robot import Robot
 from ..safety import check_allocation
 from ..trajectory import Trajectory
-from ..validation import check_flag, check_path, check_text, check_trajectory, playback_speed
+from ..validation import check_flag, check_path, check_trajectory, playback_speed
 from ._deps import check_viewer_dependencies, require
 from .export import page_title, recording_page
 from .forces import force_arrows
 from .frames import resample, robot_from_trajectory
-from .scene import CAMERA_VIEWS, RobotScene
+from .scene import CAMERA_VIEWS, RobotScene, check_camera
 
-__all__ = ["CAMERA_VIEWS", "EmptyFrameError", "check_video_options", "export_video", "find_browser", "frame_count"]
+__all__ = [
+    "CAMERA_VIEWS",
+    "EmptyFrameError",
+    "check_camera",
+    "check_video_options",
+    "export_video",
+    "find_browser",
+    "frame_count",
+]
 
 VIDEO_FORMATS = (".gif", ".mp4")
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
@@ -112,7 +120,7 @@ def export_video(
         MissingDependencyError: no browser, or a package of the viz extra is missing.
     """
     check_trajectory(trajectory, "trajectory")
-    check_text(camera, "camera", optional=False)
+    check_camera(camera, camera_position, camera_target)
     check_flag(forces, "forces")
     target, fps = check_video_options(path, fps=fps, speed=speed, width=width, height=height)
     suffix = target.suffix.lower()
