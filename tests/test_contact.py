@@ -313,6 +313,20 @@ def test_solo12_stands_on_its_four_foot_spheres():
     assert np.diff(traj.ledger["contact"].energy).min() >= 0.0
 
 
+def test_contact_with_mimic_joints_is_refused_naming_what_pinocchio_lacks():
+    """Pinocchio 4.1's ConstraintCholeskyDecomposition raises on a model with a mimic joint ("This algorithm does
+    not support Joint Mimic type in the model"): the scene says so, and what to drop, in one line."""
+    with pytest.raises(ms.SceneError) as caught:
+        make_scene(robot={"source": "panda", "mimic": True}, ground={})
+    assert str(caught.value) == (
+        "<scene>: contact: contact and mimic joints cannot be combined: Pinocchio 4.1's constraint Cholesky (the "
+        "contact solver's Delassus operator) does not support mimic joints (drop robot.mimic, making the followers "
+        "independent joints, or drop [ground], [contact] and [[object]])"
+    )
+    plain = make_scene(robot={"source": "panda"}, ground={})  # the same robot, its fingers independent: accepted
+    assert plain.contact is not None and plain.nv == 9
+
+
 def test_go2_standing_comes_to_rest_and_sags_as_its_pd_springs_carry_its_weight():
     """go2_standing holds still by the end of its run (its base moves < 0.1 mm over the last half second), and the
     sag from where its feet touch is the PD springs' (floating-base gravity compensation leaves the trunk's weight
