@@ -771,8 +771,8 @@ def main(argv: list[str] | None = None) -> int:
             double pendulum MuJoCo's RK4, elsewhere any of its integrators). The cheapest run of each method of each
             side that reaches the accuracy in the study is timed again in {ROUNDS} interleaved rounds (each round
             runs every candidate in a new random order, each twice in a row and the second timed: its caches warm as
-            in a loop of calls, not cooled by the candidate before): CPU time medians, ours of the whole `simulate` call, MuJoCo's of its stepping loop
-            (`mj_step` in a Python loop). Ratio = ours / MuJoCo's."""),
+            in a loop of calls, not cooled by the candidate before): CPU time medians, ours of the whole `simulate`
+            call, MuJoCo's of its stepping loop (`mj_step` in a Python loop). Ratio = ours / MuJoCo's."""),
             "",
             *targets_table(targets),
             "",
