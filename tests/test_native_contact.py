@@ -323,3 +323,27 @@ def test_batch_stepper_on_a_contact_scene_with_a_row_reset(monkeypatch):
     (qa, va), (qb, vb) = both(run, monkeypatch)
     np.testing.assert_array_equal(qa, qb)
     np.testing.assert_array_equal(va, vb)
+
+
+def test_stepper_restores_the_solver_state_after_a_diverged_interval(monkeypatch):
+    """A Stepper interval that diverges is undone (the state, the warm start, the counts) on either kernel alike,
+    and the run goes on from there."""
+    scene = ms.load_scene("solo12_standing")
+
+    def run():
+        stepper = ms.Stepper(scene, dt=1e-3, integrator="timestepping", q0=scene.q0, v0=scene.v0)
+        controller = scene.make_controller()
+        stepper.advance_to(0.05, controller)
+        v = stepper.v
+        stepper.v = np.full(scene.nv, 1e300)  # a jump to a state whose energy overflows
+        with pytest.raises(ms.SimulationError) as info:
+            stepper.step(controller(stepper.t, stepper.q, stepper.v))
+        assert info.value.status == "diverged"
+        stepper.v = v
+        stepper.advance_to(0.1, controller)
+        return stepper
+
+    a, b = both(run, monkeypatch)
+    np.testing.assert_array_equal(a.q, b.q)
+    np.testing.assert_array_equal(a.v, b.v)
+    assert a.stats == b.stats and a.ledger == b.ledger

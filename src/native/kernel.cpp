@@ -1213,6 +1213,18 @@ namespace multibody_sim
     throw std::invalid_argument("no such row");
   }
 
+  void Engine::set_extra_evaluations(int64_t row, int64_t value)
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+        {
+          th->extra[j] = value;
+          return;
+        }
+    throw std::invalid_argument("no such row");
+  }
+
   std::vector<int64_t> Engine::extra_evaluations(const std::vector<int64_t> & rows) const
   {
     std::vector<int64_t> out;
@@ -1657,6 +1669,7 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
     .def("contact_row", &Engine::contact_row)
     .def("set_contact_row", &Engine::set_contact_row)
     .def("extra_evaluations", &Engine::extra_evaluations)
+    .def("set_extra_evaluations", &Engine::set_extra_evaluations)
     .def(
       "set_scene", [](Engine & self, std::shared_ptr<multibody_sim::SceneForces> scene) { self.set_scene(scene); },
       nb::arg("scene"), "A scene's force elements (_native.SceneForces) join the dynamics (scene.cpp).")
