@@ -105,7 +105,8 @@ def test_every_shipped_contact_scene_runs_natively_bit_for_bit(name, monkeypatch
 
 def extra_scenes() -> dict:
     """What the shipped scenes leave out: PGS, a cylinder standing on its face (a patch of more than
-    MAX_PATCH_POINTS points), a sphere bouncing on a box (a pair between two objects), restitution on a box."""
+    MAX_PATCH_POINTS points), a sphere bouncing on a box (a pair between two objects), restitution on a box, a
+    penetration pushed out, a force element beside the contact."""
     can = {"name": "can", "shape": "cylinder", "radius": 0.1, "length": 0.2, "mass": 1.0,
            "position": [0.0, 0.0, 0.1], "velocity": [0.5, 0.0, 0.0, 0.0, 0.0, 2.0]}  # fmt: skip
     table = {"name": "table", "shape": "box", "size": [0.6, 0.6, 0.1], "mass": 5.0, "position": [0.0, 0.0, 0.05]}
@@ -113,6 +114,8 @@ def extra_scenes() -> dict:
             "velocity": [0.3, 0.0, 0.0, 0.0, 0.0, 0.0]}  # fmt: skip
     box = {"name": "box", "shape": "box", "size": [0.2, 0.1, 0.1], "mass": 1.0, "position": [0.0, 0.0, 0.3],
            "rpy": [0.2, 0.1, 0.0]}  # fmt: skip
+    push = {"name": "push", "frame": "box", "force": [8.0, 0.0, 0.0], "reference": "world", "shape": "ramp",
+            "ramp_time": 0.2}  # fmt: skip
     sliding = {"name": "box", "shape": "box", "size": [0.2, 0.2, 0.1], "mass": 1.0, "position": [0.0, 0.0, 0.05],
                "velocity": [1.0, 0.5, 0.0, 0.0, 0.0, 1.0]}  # fmt: skip
     return {
@@ -125,10 +128,11 @@ def extra_scenes() -> dict:
         ),
         "tilted box bouncing": make_scene(ground={"friction": 0.4, "restitution": 0.6}, object=[box]),
         "sunk box": make_scene(ground={"friction": 0.8}, object=[dict(sliding, position=[0.0, 0.0, 0.048])]),
+        "pushed box": make_scene(ground={"friction": 0.5}, object=[dict(sliding, velocity=[0.0] * 6)], force=[push]),
     }
 
 
-@pytest.mark.parametrize("label", ["pgs", "cylinder", "ball on a table", "tilted box bouncing"])
+@pytest.mark.parametrize("label", ["pgs", "cylinder", "ball on a table", "tilted box bouncing", "pushed box"])
 def test_shapes_pairs_and_solvers_beyond_the_shipped_scenes(label, monkeypatch):
     scene = extra_scenes()[label]
     assert why_not_native(scene, TIMESTEPPING) is None
@@ -139,8 +143,10 @@ def test_shapes_pairs_and_solvers_beyond_the_shipped_scenes(label, monkeypatch):
     if label == "cylinder":  # a patch of more points than the cap: the extreme ones were chosen
         per_sample = np.bincount(python_run.contacts.sample)
         assert per_sample.max() == contact_module.MAX_PATCH_POINTS
-    if label != "pgs" and label != "cylinder":
+    if label in ("ball on a table", "tilted box bouncing"):
         assert python_run.ledger["restitution"].energy[-1] > 0.0  # a bounce happened
+    if label == "pushed box":  # a force element with its ledger flow beside the contact's
+        assert python_run.ledger["force:push"].energy[-1] > 0.0
 
 
 # ---- Stepper and rollout ------------------------------------------------------------------------------------------

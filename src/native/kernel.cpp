@@ -1101,7 +1101,8 @@ namespace multibody_sim
 
   void Engine::set_scene(std::shared_ptr<const SceneForces> scene)
   {
-    if (scene && (scene->nv != model_.nv || n_robot_flows_ + scene->n_flows() != n_ledger_))
+    const int contact_flows = method_.kind == Kind::timestepping ? 4 : 0;  // the time-stepper's, last
+    if (scene && (scene->nv != model_.nv || n_robot_flows_ + scene->n_flows() + contact_flows != n_ledger_))
       throw std::invalid_argument("the scene's elements disagree with the model's sizes or the ledger");
     scene_ = scene;
     for (auto & th : threads_)
