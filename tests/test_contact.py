@@ -547,6 +547,10 @@ def test_a_robot_without_collision_geometry_is_told_so():
     assert 'robot collision geometry: none (nothing to touch: no [ground], and contact.pairs is "ground")' in (
         no_ground.describe()
     )
+    mjcf = Path(__file__).parent / "data" / "mjcf" / "floating_arm.xml"  # its geoms: box, capsule, sphere, cylinder
+    assert "robot collision geometry (the MJCF's): 4 shapes on 4 links, 0 of them meshes" in (
+        make_scene(robot={"source": str(mjcf)}, ground={}).describe()
+    )
     with pytest.raises(ms.SceneError, match=re.escape("contact.robot_geometry: needs a robot")):
         make_scene(
             ground={}, contact={"robot_geometry": "urdf"}, object=[{"shape": "sphere", "radius": 0.1, "mass": 1.0}]

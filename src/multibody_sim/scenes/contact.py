@@ -204,6 +204,7 @@ class ContactModel:
         friction_joints: (joint id, F [N·m or N]) of joints with exact dry friction.
         has_robot: the scene has a robot (describe() then says whether it has collision geometry).
         robot_geometry_note: why the robot has no collision geometry, if it has none (for describe()).
+        robot_file: "URDF" or "MJCF": the file the robot's collision geometry comes from (for describe()).
     """
 
     def __init__(
@@ -223,6 +224,7 @@ class ContactModel:
         friction_joints: Sequence[tuple[int, float]] = (),
         has_robot: bool = False,
         robot_geometry_note: str = "",
+        robot_file: str = "URDF",
     ):
         self.model = model
         self.data = model.createData()
@@ -249,6 +251,7 @@ class ContactModel:
         self._ground_coefficients = (ground_friction, ground_restitution)
         self.has_robot = has_robot
         self.robot_geometry_note = robot_geometry_note
+        self.robot_file = robot_file
         self._body_index = {name: k for k, name in enumerate(self.body_names)}
         self._object_names = {g.body for g in self.geometries if g.joint and model.names[g.joint] == g.body}
         self._coefficients = [
@@ -327,8 +330,8 @@ class ContactModel:
             meshes = sum(g.kind == "mesh" for g in urdf)
             links = len({g.body for g in urdf})
             lines.append(
-                f"  robot collision geometry (the URDF's): {len(urdf)} shapes on {links} links, {meshes} of them "
-                f"meshes as their convex hulls (at most {MAX_PATCH_POINTS} contact points per pair)"
+                f"  robot collision geometry (the {self.robot_file}'s): {len(urdf)} shapes on {links} links, "
+                f"{meshes} of them meshes as their convex hulls (at most {MAX_PATCH_POINTS} contact points per pair)"
                 + (" where none is declared" if declared else "")
             )
         if not robot and self.has_robot:
@@ -607,6 +610,7 @@ def build_contact(scene: Any, spec: Any, exact_friction: Sequence[tuple[int, flo
         friction_joints=exact_friction,
         has_robot=spec.robot is not None,
         robot_geometry_note=note,
+        robot_file="MJCF" if scene.source.get("format") == "mjcf" else "URDF",
     )
 
 
