@@ -188,6 +188,9 @@ def test_rollout_of_a_contact_scene_on_threads(num_threads, monkeypatch):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     for key in ("steps", "evaluations"):  # evaluations: one per step, two with a contact problem
         np.testing.assert_array_equal(a.stats[key], b.stats[key], err_msg=key)
+    for contacts_a, contacts_b in zip(a.contacts, b.contacts, strict=True):  # each element's, as simulate's
+        assert_same_contacts(contacts_a, contacts_b)
+    assert sum(len(c.sample) for c in b.contacts) > 0
     assert len(set(np.asarray(b.stats["evaluations"]).tolist())) > 1  # rows differ in their contact steps
 
 
