@@ -442,6 +442,9 @@ def test_a_rollout_of_a_contact_scene_steps_each_row_as_simulate_does():
         alone = run(box_scene(mu=mu, velocity=speeds[b]), 0.3, dt)
         for element in (batch.element(b), joined.element(b)):
             np.testing.assert_array_equal(element.q, alone.q)
+            solver = {k: v for k, v in alone.stats.items() if k.startswith("solver_")}
+            assert len(solver) == 3 and solver["solver_steps"] > 0  # the cone solver's counts, kept per element
+            assert {k: element.stats[k] for k in solver} == solver
             assert element.contacts is not None and element.contacts.bodies == alone.contacts.bodies
             for part in ("sample", "pair", "point", "normal", "impulse"):
                 np.testing.assert_array_equal(getattr(element.contacts, part), getattr(alone.contacts, part))
@@ -456,6 +459,10 @@ def test_a_rollout_of_a_contact_scene_steps_each_row_as_simulate_does():
     pendulum = ms.load_robot("double_pendulum")
     no_contact = ms.rollout(pendulum, [[0.1, 0.2]] * 2, [[0.0, 0.0]] * 2, duration=0.01, dt=1e-3, progress=False)
     assert no_contact.contacts == [None, None] and no_contact.element(1).contacts is None
+    assert "solver_steps" not in no_contact.stats and "solver_steps" not in no_contact.element(1).stats
+    totals = {k: int(batch.stats[k].sum()) for k in ("solver_steps", "solver_iterations", "solver_unconverged")}
+    said = f"contact solver: {totals['solver_steps']} steps with constraints, {totals['solver_iterations']} iterations"
+    assert said in batch.summary()
 
 
 # ---- the URDF's collision geometry ------------------------------------------------------------------------------
@@ -588,3 +595,5 @@ def test_stepper_steps_a_contact_scene_as_simulate_does():
     traj = scene.run(duration=0.1, progress=False)
     np.testing.assert_array_equal(stepper.q, traj.q[-1])
     np.testing.assert_array_equal(stepper.v, traj.v[-1])
+    solver = {k: v for k, v in traj.stats.items() if k.startswith("solver_")}
+    assert solver["solver_steps"] == 100 and {k: stepper.stats[k] for k in solver} == solver
