@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import both, on_kernel
 
 import multibody_sim as ms
 from multibody_sim import native, native_core
@@ -35,19 +36,6 @@ FIELDS = ("t", "q", "v", "tau", "kinetic_energy", "potential_energy", "work", "d
 STATS = ("steps", "rejected_steps", "evaluations", "solver_steps", "solver_unconverged", "solver_iterations",
          "controller_calls", "saturated_controls", "saturated_dofs")  # fmt: skip
 TIMESTEPPING = INTEGRATORS["timestepping"]
-
-
-def on_kernel(native_on: bool, run, monkeypatch):
-    monkeypatch.setenv("MULTIBODY_SIM_NATIVE", "1" if native_on else "0")
-    try:
-        return run()
-    finally:
-        monkeypatch.delenv("MULTIBODY_SIM_NATIVE")
-
-
-def both(run, monkeypatch):
-    """(native, python) results of the same run."""
-    return on_kernel(True, run, monkeypatch), on_kernel(False, run, monkeypatch)
 
 
 def assert_same_contacts(a, b) -> None:
