@@ -166,6 +166,26 @@ def test_unconverged_steps_are_counted_and_more_than_one_percent_fails_the_run()
     assert re.match(r"solver_failed: the contact solver did not converge on \d+ of 50 steps", str(error))
 
 
+def test_a_failed_pgs_run_suggests_admm(tmp_path):
+    """A run that fails on PGS (here capped at 5 sweeps on a box stack) says that ADMM, the default, is another way
+    out; the same capped run on ADMM does not name itself."""
+    shipped = Path(ms.__file__).resolve().parents[2] / "models" / "scenes" / "box_stack.toml"
+    text = shipped.read_text().replace("duration = 1.0", "duration = 0.02")
+    messages = {}
+    for solver in ("pgs", "admm"):
+        path = tmp_path / f"{solver}.toml"
+        path.write_text(text.replace("[contact]\n", f'[contact]\nsolver = "{solver}"\n', 1))
+        scene = ms.load_scene(str(path))
+        with pytest.raises(SimulationError) as info:
+            ms.simulate(scene, scene.q0, scene.v0, duration=0.02, dt=1e-3, integrator=TimeStepping(max_iterations=5))
+        assert info.value.status == "solver_failed"
+        messages[solver] = str(info.value)
+    hint = ' or [contact] solver = "admm" (the default: it converges more reliably than PGS on many or redundant '
+    hint += "contact rows)"
+    assert messages["pgs"].endswith("try a smaller dt" + hint)
+    assert messages["admm"].endswith("try a smaller dt")
+
+
 # ---- scenes, objects and refusals ------------------------------------------------------------------------------
 def test_other_integrators_refuse_contact_scenes_naming_timestepping():
     scene = box_scene()

@@ -810,6 +810,12 @@ class Run:
             outcome.message = (
                 f"solver_failed: the contact solver did not converge on {unconverged} of {steps} steps (more than "
                 f"{SOLVER_FAILURE_FRACTION:.0%}); each continued with the best impulses found; try a smaller dt"
+                + (
+                    ' or [contact] solver = "admm" (the default: it converges more reliably than PGS on many or '
+                    "redundant contact rows)"
+                    if getattr(getattr(self.system, "contact", None), "solver", None) == "pgs"
+                    else ""
+                )
             )
 
     def _end(self, b: int, status: str, message: str, *, counts_at: int) -> None:
