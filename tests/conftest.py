@@ -6,6 +6,7 @@ import functools
 import signal
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -79,3 +80,17 @@ def joint(
 def urdf(*parts: str, name: str = "test_robot") -> str:
     """A whole URDF document from link() and joint() parts."""
     return f'<?xml version="1.0"?><robot name="{name}">{"".join(parts)}</robot>'
+
+
+def on_kernel(native_on: bool, run: Callable[[], Any], monkeypatch: pytest.MonkeyPatch) -> Any:
+    """run() on the native kernel (native_on) or the Python one (MULTIBODY_SIM_NATIVE=1 or 0 while it runs)."""
+    monkeypatch.setenv("MULTIBODY_SIM_NATIVE", "1" if native_on else "0")
+    try:
+        return run()
+    finally:
+        monkeypatch.delenv("MULTIBODY_SIM_NATIVE")
+
+
+def both(run: Callable[[], Any], monkeypatch: pytest.MonkeyPatch) -> tuple[Any, Any]:
+    """(native, python) results of the same run."""
+    return on_kernel(True, run, monkeypatch), on_kernel(False, run, monkeypatch)

@@ -166,6 +166,26 @@ def test_unconverged_steps_are_counted_and_more_than_one_percent_fails_the_run()
     assert re.match(r"solver_failed: the contact solver did not converge on \d+ of 50 steps", str(error))
 
 
+def test_a_failed_pgs_run_suggests_admm(tmp_path):
+    """A run that fails on PGS (here capped at 5 sweeps on a box stack) says that ADMM, the default, is another way
+    out; the same capped run on ADMM does not name itself."""
+    shipped = Path(ms.__file__).resolve().parents[2] / "models" / "scenes" / "box_stack.toml"
+    text = shipped.read_text().replace("duration = 1.0", "duration = 0.02")
+    messages = {}
+    for solver in ("pgs", "admm"):
+        path = tmp_path / f"{solver}.toml"
+        path.write_text(text.replace("[contact]\n", f'[contact]\nsolver = "{solver}"\n', 1))
+        scene = ms.load_scene(str(path))
+        with pytest.raises(SimulationError) as info:
+            ms.simulate(scene, scene.q0, scene.v0, duration=0.02, dt=1e-3, integrator=TimeStepping(max_iterations=5))
+        assert info.value.status == "solver_failed"
+        messages[solver] = str(info.value)
+    hint = ' or [contact] solver = "admm" (the default: it converges more reliably than PGS on many or redundant '
+    hint += "contact rows)"
+    assert messages["pgs"].endswith("try a smaller dt" + hint)
+    assert messages["admm"].endswith("try a smaller dt")
+
+
 # ---- scenes, objects and refusals ------------------------------------------------------------------------------
 def test_other_integrators_refuse_contact_scenes_naming_timestepping():
     scene = box_scene()
@@ -313,6 +333,20 @@ def test_solo12_stands_on_its_four_foot_spheres():
     assert np.diff(traj.ledger["contact"].energy).min() >= 0.0
 
 
+def test_contact_with_mimic_joints_is_refused_naming_what_pinocchio_lacks():
+    """Pinocchio 4.1's ConstraintCholeskyDecomposition raises on a model with a mimic joint ("This algorithm does
+    not support Joint Mimic type in the model"): the scene says so, and what to drop, in one line."""
+    with pytest.raises(ms.SceneError) as caught:
+        make_scene(robot={"source": "panda", "mimic": True}, ground={})
+    assert str(caught.value) == (
+        "<scene>: contact: contact and mimic joints cannot be combined: Pinocchio 4.1's constraint Cholesky (the "
+        "contact solver's Delassus operator) does not support mimic joints (drop robot.mimic, making the followers "
+        "independent joints, or drop [ground], [contact] and [[object]])"
+    )
+    plain = make_scene(robot={"source": "panda"}, ground={})  # the same robot, its fingers independent: accepted
+    assert plain.contact is not None and plain.nv == 9
+
+
 def test_go2_standing_comes_to_rest_and_sags_as_its_pd_springs_carry_its_weight():
     """go2_standing holds still by the end of its run (its base moves < 0.1 mm over the last half second), and the
     sag from where its feet touch is the PD springs' (floating-base gravity compensation leaves the trunk's weight
@@ -428,6 +462,9 @@ def test_a_rollout_of_a_contact_scene_steps_each_row_as_simulate_does():
         alone = run(box_scene(mu=mu, velocity=speeds[b]), 0.3, dt)
         for element in (batch.element(b), joined.element(b)):
             np.testing.assert_array_equal(element.q, alone.q)
+            solver = {k: v for k, v in alone.stats.items() if k.startswith("solver_")}
+            assert len(solver) == 3 and solver["solver_steps"] > 0  # the cone solver's counts, kept per element
+            assert {k: element.stats[k] for k in solver} == solver
             assert element.contacts is not None and element.contacts.bodies == alone.contacts.bodies
             for part in ("sample", "pair", "point", "normal", "impulse"):
                 np.testing.assert_array_equal(getattr(element.contacts, part), getattr(alone.contacts, part))
@@ -442,6 +479,10 @@ def test_a_rollout_of_a_contact_scene_steps_each_row_as_simulate_does():
     pendulum = ms.load_robot("double_pendulum")
     no_contact = ms.rollout(pendulum, [[0.1, 0.2]] * 2, [[0.0, 0.0]] * 2, duration=0.01, dt=1e-3, progress=False)
     assert no_contact.contacts == [None, None] and no_contact.element(1).contacts is None
+    assert "solver_steps" not in no_contact.stats and "solver_steps" not in no_contact.element(1).stats
+    totals = {k: int(batch.stats[k].sum()) for k in ("solver_steps", "solver_iterations", "solver_unconverged")}
+    said = f"contact solver: {totals['solver_steps']} steps with constraints, {totals['solver_iterations']} iterations"
+    assert said in batch.summary()
 
 
 # ---- the URDF's collision geometry ------------------------------------------------------------------------------
@@ -533,6 +574,10 @@ def test_a_robot_without_collision_geometry_is_told_so():
     assert 'robot collision geometry: none (nothing to touch: no [ground], and contact.pairs is "ground")' in (
         no_ground.describe()
     )
+    mjcf = Path(__file__).parent / "data" / "mjcf" / "floating_arm.xml"  # its geoms: box, capsule, sphere, cylinder
+    assert "robot collision geometry (the MJCF's): 4 shapes on 4 links, 0 of them meshes" in (
+        make_scene(robot={"source": str(mjcf)}, ground={}).describe()
+    )
     with pytest.raises(ms.SceneError, match=re.escape("contact.robot_geometry: needs a robot")):
         make_scene(
             ground={}, contact={"robot_geometry": "urdf"}, object=[{"shape": "sphere", "radius": 0.1, "mass": 1.0}]
@@ -570,3 +615,5 @@ def test_stepper_steps_a_contact_scene_as_simulate_does():
     traj = scene.run(duration=0.1, progress=False)
     np.testing.assert_array_equal(stepper.q, traj.q[-1])
     np.testing.assert_array_equal(stepper.v, traj.v[-1])
+    solver = {k: v for k, v in traj.stats.items() if k.startswith("solver_")}
+    assert solver["solver_steps"] == 100 and {k: stepper.stats[k] for k in solver} == solver

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import both, on_kernel
 
 import multibody_sim as ms
 from multibody_sim import native, native_core
@@ -35,19 +36,6 @@ FIELDS = ("t", "q", "v", "tau", "kinetic_energy", "potential_energy", "work", "d
 STATS = ("steps", "rejected_steps", "evaluations", "solver_steps", "solver_unconverged", "solver_iterations",
          "controller_calls", "saturated_controls", "saturated_dofs")  # fmt: skip
 TIMESTEPPING = INTEGRATORS["timestepping"]
-
-
-def on_kernel(native_on: bool, run, monkeypatch):
-    monkeypatch.setenv("MULTIBODY_SIM_NATIVE", "1" if native_on else "0")
-    try:
-        return run()
-    finally:
-        monkeypatch.delenv("MULTIBODY_SIM_NATIVE")
-
-
-def both(run, monkeypatch):
-    """(native, python) results of the same run."""
-    return on_kernel(True, run, monkeypatch), on_kernel(False, run, monkeypatch)
 
 
 def assert_same_contacts(a, b) -> None:
@@ -105,7 +93,8 @@ def test_every_shipped_contact_scene_runs_natively_bit_for_bit(name, monkeypatch
 
 def extra_scenes() -> dict:
     """What the shipped scenes leave out: PGS, a cylinder standing on its face (a patch of more than
-    MAX_PATCH_POINTS points), a sphere bouncing on a box (a pair between two objects), restitution on a box."""
+    MAX_PATCH_POINTS points), a sphere bouncing on a box (a pair between two objects), restitution on a box, a
+    penetration pushed out, a force element beside the contact."""
     can = {"name": "can", "shape": "cylinder", "radius": 0.1, "length": 0.2, "mass": 1.0,
            "position": [0.0, 0.0, 0.1], "velocity": [0.5, 0.0, 0.0, 0.0, 0.0, 2.0]}  # fmt: skip
     table = {"name": "table", "shape": "box", "size": [0.6, 0.6, 0.1], "mass": 5.0, "position": [0.0, 0.0, 0.05]}
@@ -113,6 +102,8 @@ def extra_scenes() -> dict:
             "velocity": [0.3, 0.0, 0.0, 0.0, 0.0, 0.0]}  # fmt: skip
     box = {"name": "box", "shape": "box", "size": [0.2, 0.1, 0.1], "mass": 1.0, "position": [0.0, 0.0, 0.3],
            "rpy": [0.2, 0.1, 0.0]}  # fmt: skip
+    push = {"name": "push", "frame": "box", "force": [8.0, 0.0, 0.0], "reference": "world", "shape": "ramp",
+            "ramp_time": 0.2}  # fmt: skip
     sliding = {"name": "box", "shape": "box", "size": [0.2, 0.2, 0.1], "mass": 1.0, "position": [0.0, 0.0, 0.05],
                "velocity": [1.0, 0.5, 0.0, 0.0, 0.0, 1.0]}  # fmt: skip
     return {
@@ -125,10 +116,11 @@ def extra_scenes() -> dict:
         ),
         "tilted box bouncing": make_scene(ground={"friction": 0.4, "restitution": 0.6}, object=[box]),
         "sunk box": make_scene(ground={"friction": 0.8}, object=[dict(sliding, position=[0.0, 0.0, 0.048])]),
+        "pushed box": make_scene(ground={"friction": 0.5}, object=[dict(sliding, velocity=[0.0] * 6)], force=[push]),
     }
 
 
-@pytest.mark.parametrize("label", ["pgs", "cylinder", "ball on a table", "tilted box bouncing"])
+@pytest.mark.parametrize("label", ["pgs", "cylinder", "ball on a table", "tilted box bouncing", "pushed box"])
 def test_shapes_pairs_and_solvers_beyond_the_shipped_scenes(label, monkeypatch):
     scene = extra_scenes()[label]
     assert why_not_native(scene, TIMESTEPPING) is None
@@ -139,8 +131,10 @@ def test_shapes_pairs_and_solvers_beyond_the_shipped_scenes(label, monkeypatch):
     if label == "cylinder":  # a patch of more points than the cap: the extreme ones were chosen
         per_sample = np.bincount(python_run.contacts.sample)
         assert per_sample.max() == contact_module.MAX_PATCH_POINTS
-    if label != "pgs" and label != "cylinder":
+    if label in ("ball on a table", "tilted box bouncing"):
         assert python_run.ledger["restitution"].energy[-1] > 0.0  # a bounce happened
+    if label == "pushed box":  # a force element with its ledger flow beside the contact's
+        assert python_run.ledger["force:push"].energy[-1] > 0.0
 
 
 # ---- Stepper and rollout ------------------------------------------------------------------------------------------
@@ -182,6 +176,9 @@ def test_rollout_of_a_contact_scene_on_threads(num_threads, monkeypatch):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     for key in ("steps", "evaluations"):  # evaluations: one per step, two with a contact problem
         np.testing.assert_array_equal(a.stats[key], b.stats[key], err_msg=key)
+    for contacts_a, contacts_b in zip(a.contacts, b.contacts, strict=True):  # each element's, as simulate's
+        assert_same_contacts(contacts_a, contacts_b)
+    assert sum(len(c.sample) for c in b.contacts) > 0
     assert len(set(np.asarray(b.stats["evaluations"]).tolist())) > 1  # rows differ in their contact steps
 
 
@@ -317,3 +314,27 @@ def test_batch_stepper_on_a_contact_scene_with_a_row_reset(monkeypatch):
     (qa, va), (qb, vb) = both(run, monkeypatch)
     np.testing.assert_array_equal(qa, qb)
     np.testing.assert_array_equal(va, vb)
+
+
+def test_stepper_restores_the_solver_state_after_a_diverged_interval(monkeypatch):
+    """A Stepper interval that diverges is undone (the state, the warm start, the counts) on either kernel alike,
+    and the run goes on from there."""
+    scene = ms.load_scene("solo12_standing")
+
+    def run():
+        stepper = ms.Stepper(scene, dt=1e-3, integrator="timestepping", q0=scene.q0, v0=scene.v0)
+        controller = scene.make_controller()
+        stepper.advance_to(0.05, controller)
+        v = stepper.v
+        stepper.v = np.full(scene.nv, 1e300)  # a jump to a state whose energy overflows
+        with pytest.raises(ms.SimulationError) as info:
+            stepper.step(controller(stepper.t, stepper.q, stepper.v))
+        assert info.value.status == "diverged"
+        stepper.v = v
+        stepper.advance_to(0.1, controller)
+        return stepper
+
+    a, b = both(run, monkeypatch)
+    np.testing.assert_array_equal(a.q, b.q)
+    np.testing.assert_array_equal(a.v, b.v)
+    assert a.stats == b.stats and a.ledger == b.ledger

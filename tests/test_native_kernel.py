@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import on_kernel
 
 import multibody_sim as ms
 from multibody_sim import native, native_core
@@ -42,14 +43,6 @@ def start(robot, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if robot.floating_base:
         tau[:6] = 0.0
     return q0, v0, tau
-
-
-def on_kernel(native_on: bool, run, monkeypatch):
-    monkeypatch.setenv("MULTIBODY_SIM_NATIVE", "1" if native_on else "0")
-    try:
-        return run()
-    finally:
-        monkeypatch.delenv("MULTIBODY_SIM_NATIVE")
 
 
 def options(method: str) -> dict:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import both, on_kernel
 
 import multibody_sim as ms
 from multibody_sim import native, native_core
@@ -27,19 +28,6 @@ pytestmark = pytest.mark.skipif(
 SCENES = sorted(p.stem for p in (Path(__file__).parents[1] / "models" / "scenes").glob("*.toml"))
 FIELDS = ("t", "q", "v", "tau", "kinetic_energy", "potential_energy", "work", "dissipated", "energy_error")
 RK4 = INTEGRATORS["rk4"]
-
-
-def on_kernel(native_on: bool, run, monkeypatch):
-    monkeypatch.setenv("MULTIBODY_SIM_NATIVE", "1" if native_on else "0")
-    try:
-        return run()
-    finally:
-        monkeypatch.delenv("MULTIBODY_SIM_NATIVE")
-
-
-def both(run, monkeypatch):
-    """(native, python) results of the same run."""
-    return on_kernel(True, run, monkeypatch), on_kernel(False, run, monkeypatch)
 
 
 def assert_same(a, b) -> None:

@@ -954,7 +954,8 @@ ERRORS = [
     (
         "contact with constraints",
         scene(ground={}, constraint=[{"type": "point", "frames": ["panda_hand"]}]),
-        "constraint: holonomic constraints and contact cannot be combined yet (drop one of them)",
+        "constraint: holonomic constraints and contact cannot be combined yet: the contact time-stepper does not "
+        "solve [[constraint]] rows with its cones (drop [[constraint]], or [ground], [contact] and [[object]])",
     ),
 ]
 

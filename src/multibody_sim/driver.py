@@ -52,7 +52,9 @@ SOLVER_FAILURE_FRACTION = 0.01
 def check_torque(system: Any, tau: Any, t: float | None, what: str = "controller output") -> np.ndarray:
     """tau as a float array (nv,) if it is a valid torque, else InvalidArgumentError naming the time and reason."""
     fast = type(tau) is np.ndarray and tau.dtype == np.float64 and tau.shape == (system.nv,)
-    if fast and math.isfinite(tau @ tau) and not system.unactuated_load(tau):
+    # max - min in Python floats: finite exactly when every entry is, and a huge finite torque overflows to inf
+    # silently (tau @ tau made NumPy warn), taking the full check.
+    if fast and math.isfinite(float(tau.max()) - float(tau.min())) and not system.unactuated_load(tau):
         return tau
     try:  # the full check, with the precise reason
         return system.check_tau(tau)
@@ -808,6 +810,12 @@ class Run:
             outcome.message = (
                 f"solver_failed: the contact solver did not converge on {unconverged} of {steps} steps (more than "
                 f"{SOLVER_FAILURE_FRACTION:.0%}); each continued with the best impulses found; try a smaller dt"
+                + (
+                    ' or [contact] solver = "admm" (the default: it converges more reliably than PGS on many or '
+                    "redundant contact rows)"
+                    if getattr(getattr(self.system, "contact", None), "solver", None) == "pgs"
+                    else ""
+                )
             )
 
     def _end(self, b: int, status: str, message: str, *, counts_at: int) -> None:

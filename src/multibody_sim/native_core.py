@@ -370,7 +370,9 @@ class NativeKernel:
     def snapshot(self) -> tuple[Any, ...]:
         """Every row's whole state and the time (Stepper: one row)."""
         rows = range(len(self._initial[0]))
-        contact = [self.engine.contact_row(b) for b in rows] if self.engine.has_contact else None
+        contact = None
+        if self.engine.has_contact:  # each row's solver state and its evaluations beyond the core's count
+            contact = [self.engine.contact_row(b) for b in rows], self.engine.extra_evaluations(list(rows))
         return [self.engine.snapshot_row(b) for b in rows], self.t, self.k, contact
 
     def restore(self, snapshot: tuple[Any, ...]) -> None:
@@ -378,7 +380,8 @@ class NativeKernel:
         for b, state in enumerate(rows):
             self.engine.restore_row(b, *state)
             if contact is not None:
-                self.engine.set_contact_row(b, contact[b])
+                self.engine.set_contact_row(b, contact[0][b])
+                self.engine.set_extra_evaluations(b, contact[1][b])
         self.start_at(t, k)
 
     def solver_stats(self, j: int) -> dict[str, int]:

@@ -31,6 +31,8 @@ from .validation import check_options, check_system, positive_count, positive_nu
 
 _RECORD_PARTS = ("force", "drift", "velocity_drift")  # a ConstraintRecord's arrays
 _COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls")
+# A contact scene's cone-solver counts (TimeStepping.solver_stats), in stats only when the method keeps them.
+_SOLVER_COUNTS = ("solver_steps", "solver_unconverged", "solver_iterations")
 _BACKENDS = ("local", "ray")
 
 
@@ -115,7 +117,9 @@ class BatchTrajectory:
         arrays = {name: getattr(self, name)[b, :n].copy() for name in ARRAYS}
         dof_names = self.metadata.get("robot", {}).get("dof_names", [])
         saturated = self.stats["saturated_dofs"][b]
-        stats: dict[str, Any] = {name: int(self.stats[name][b]) for name in _COUNTS}
+        stats: dict[str, Any] = {
+            name: int(self.stats[name][b]) for name in _COUNTS + _SOLVER_COUNTS if name in self.stats
+        }
         stats["saturated_dofs"] = {dof_names[i]: int(c) for i, c in enumerate(saturated) if c}
         stats["wall_time"] = self.stats["wall_time"] / len(self)
         return Trajectory(
@@ -148,6 +152,12 @@ class BatchTrajectory:
             lines.append(f"element {b}: {self.messages[b]}")
         if len(stopped) > 3:
             lines.append(f"... and {len(stopped) - 3} more stopped early")
+        if "solver_steps" in self.stats:  # a contact scene's cone solver, over every element
+            unconverged = int(np.sum(self.stats["solver_unconverged"]))
+            lines.append(
+                f"contact solver: {int(np.sum(self.stats['solver_steps']))} steps with constraints, "
+                f"{int(np.sum(self.stats['solver_iterations']))} iterations; {unconverged} unconverged"
+            )
         violating = sum(1 for lv in self.limit_violations if lv.count)
         if violating:
             lines.append(f"{violating} elements violated position limits")
@@ -341,6 +351,11 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
     records = {f"{name}.{part}": getattr(r, part) for name, r in constraints.items() for part in _RECORD_PARTS}
     _pad({**arrays, **records}, ledger, n, run.Q0, run.V0)
     stats: dict[str, Any] = run.count_arrays()
+    if run.core.solver_stats:  # a contact method's counts, per element
+        solved = run.core.solver_stats
+        stats.update(
+            {name: np.array([solved.get(b, {}).get(name, 0) for b in range(run.B)]) for name in _SOLVER_COUNTS}
+        )
     stats["saturated_dofs"] = run.saturation.dofs.astype(int).copy()
     stats["wall_time"] = wall_time
     return BatchTrajectory(
@@ -579,8 +594,9 @@ def _stack(
     for b, tr in enumerate(trajectories):
         for name, count in tr.stats.get("saturated_dofs", {}).items():
             saturated[b, dof_index[name]] = count
+    counted = _COUNTS + (_SOLVER_COUNTS if any("solver_steps" in tr.stats for tr in trajectories) else ())
     stats: dict[str, Any] = {
-        name: np.array([int(tr.stats.get(name, 0)) for tr in trajectories], dtype=int) for name in _COUNTS
+        name: np.array([int(tr.stats.get(name, 0)) for tr in trajectories], dtype=int) for name in counted
     }
     stats["saturated_dofs"] = saturated
     stats["wall_time"] = wall_time
@@ -619,7 +635,8 @@ def _concatenate(batches: list[BatchTrajectory], wall_time: float | None = None)
         )
         for name in batches[0].constraints
     }
-    stats: dict[str, Any] = {name: np.concatenate([bt.stats[name] for bt in batches]) for name in _COUNTS}
+    counted = _COUNTS + (_SOLVER_COUNTS if all("solver_steps" in bt.stats for bt in batches) else ())
+    stats: dict[str, Any] = {name: np.concatenate([bt.stats[name] for bt in batches]) for name in counted}
     stats["saturated_dofs"] = np.concatenate([bt.stats["saturated_dofs"] for bt in batches])
     stats["wall_time"] = wall_time if wall_time is not None else sum(bt.stats["wall_time"] for bt in batches)
     return BatchTrajectory(

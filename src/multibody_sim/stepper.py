@@ -283,9 +283,10 @@ class Stepper:
     @property
     def stats(self) -> dict[str, Any]:
         """Counts since the reset: steps, rejected_steps, evaluations, controller_calls, saturated_controls,
-        saturated_dofs."""
+        saturated_dofs; a contact scene's cone solver adds solver_steps, solver_unconverged, solver_iterations."""
         saturation, dofs = self._saturation, self.system.dof_names
         steps, rejected, evaluations = self._core.counts(0)
+        solver_stats = getattr(self._core.kernel, "solver_stats", None)
         return {
             "steps": steps,
             "rejected_steps": rejected,
@@ -293,6 +294,7 @@ class Stepper:
             "controller_calls": self._controller_calls,
             "saturated_controls": int(saturation.calls[0]),
             "saturated_dofs": {dofs[i]: int(n) for i, n in enumerate(saturation.dofs[0]) if n},
+            **(solver_stats(0) if solver_stats is not None else {}),
         }
 
     # ---- stepping ------------------------------------------------------------------------------------

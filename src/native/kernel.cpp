@@ -1101,7 +1101,8 @@ namespace multibody_sim
 
   void Engine::set_scene(std::shared_ptr<const SceneForces> scene)
   {
-    if (scene && (scene->nv != model_.nv || n_robot_flows_ + scene->n_flows() != n_ledger_))
+    const int contact_flows = method_.kind == Kind::timestepping ? 4 : 0;  // the time-stepper's, last
+    if (scene && (scene->nv != model_.nv || n_robot_flows_ + scene->n_flows() + contact_flows != n_ledger_))
       throw std::invalid_argument("the scene's elements disagree with the model's sizes or the ledger");
     scene_ = scene;
     for (auto & th : threads_)
@@ -1207,6 +1208,18 @@ namespace multibody_sim
         if (th->rows[j] == row)
         {
           th->crow[j] = state;
+          return;
+        }
+    throw std::invalid_argument("no such row");
+  }
+
+  void Engine::set_extra_evaluations(int64_t row, int64_t value)
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+        {
+          th->extra[j] = value;
           return;
         }
     throw std::invalid_argument("no such row");
@@ -1656,6 +1669,7 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
     .def("contact_row", &Engine::contact_row)
     .def("set_contact_row", &Engine::set_contact_row)
     .def("extra_evaluations", &Engine::extra_evaluations)
+    .def("set_extra_evaluations", &Engine::set_extra_evaluations)
     .def(
       "set_scene", [](Engine & self, std::shared_ptr<multibody_sim::SceneForces> scene) { self.set_scene(scene); },
       nb::arg("scene"), "A scene's force elements (_native.SceneForces) join the dynamics (scene.cpp).")

@@ -220,6 +220,7 @@ namespace multibody_sim
     void set_contact_row(int64_t row, const ContactRow & state);
     // Evaluations each run row made beyond the run's count (contact steps cost two), for rows `rows`.
     std::vector<int64_t> extra_evaluations(const std::vector<int64_t> & rows) const;
+    void set_extra_evaluations(int64_t row, int64_t value);  // (Stepper's restore)
 
     const pinocchio::Model & model() const
     {

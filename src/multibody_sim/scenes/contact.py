@@ -74,7 +74,9 @@ MAX_PATCH_POINTS = 8
 MIN_PATCH_SPACING = 0.01
 TOUCHING = 1e-6  # [m]: a gap below this is a touching contact (restitution applies)
 # Cholesky regularization of the Delassus operator (keeps G's factorization defined on redundant contacts, such
-# as the 4 corners of a box on the ground: 12 rows on 6 dofs). Its effect on the impulses is ~1e-12 relative.
+# as the 4 corners of a box on the ground: 12 rows on 6 dofs). PGS works on this G; ADMM sets its own proximal
+# damping on the decomposition, so under ADMM (the default) this value changes nothing (1e-12 and 1e-6 give the
+# same impulses bit for bit).
 DELASSUS_DAMPING = 1e-12
 _WORLD = pin.Convention.WORLD
 _Z = np.array([0.0, 0.0, 1.0])
@@ -204,6 +206,7 @@ class ContactModel:
         friction_joints: (joint id, F [N·m or N]) of joints with exact dry friction.
         has_robot: the scene has a robot (describe() then says whether it has collision geometry).
         robot_geometry_note: why the robot has no collision geometry, if it has none (for describe()).
+        robot_file: "URDF" or "MJCF": the file the robot's collision geometry comes from (for describe()).
     """
 
     def __init__(
@@ -223,6 +226,7 @@ class ContactModel:
         friction_joints: Sequence[tuple[int, float]] = (),
         has_robot: bool = False,
         robot_geometry_note: str = "",
+        robot_file: str = "URDF",
     ):
         self.model = model
         self.data = model.createData()
@@ -249,6 +253,7 @@ class ContactModel:
         self._ground_coefficients = (ground_friction, ground_restitution)
         self.has_robot = has_robot
         self.robot_geometry_note = robot_geometry_note
+        self.robot_file = robot_file
         self._body_index = {name: k for k, name in enumerate(self.body_names)}
         self._object_names = {g.body for g in self.geometries if g.joint and model.names[g.joint] == g.body}
         self._coefficients = [
@@ -327,8 +332,8 @@ class ContactModel:
             meshes = sum(g.kind == "mesh" for g in urdf)
             links = len({g.body for g in urdf})
             lines.append(
-                f"  robot collision geometry (the URDF's): {len(urdf)} shapes on {links} links, {meshes} of them "
-                f"meshes as their convex hulls (at most {MAX_PATCH_POINTS} contact points per pair)"
+                f"  robot collision geometry (the {self.robot_file}'s): {len(urdf)} shapes on {links} links, "
+                f"{meshes} of them meshes as their convex hulls (at most {MAX_PATCH_POINTS} contact points per pair)"
                 + (" where none is declared" if declared else "")
             )
         if not robot and self.has_robot:
@@ -607,6 +612,7 @@ def build_contact(scene: Any, spec: Any, exact_friction: Sequence[tuple[int, flo
         friction_joints=exact_friction,
         has_robot=spec.robot is not None,
         robot_geometry_note=note,
+        robot_file="MJCF" if scene.source.get("format") == "mjcf" else "URDF",
     )
 
 

@@ -176,7 +176,11 @@ class Scene(Robot):
         self.contact = None
         if spec.has_contact:
             if self.mimic:
-                raise SceneError(f"{where}: contact: contact and mimic joints cannot be combined yet")
+                raise SceneError(
+                    f"{where}: contact: contact and mimic joints cannot be combined: Pinocchio 4.1's constraint "
+                    "Cholesky (the contact solver's Delassus operator) does not support mimic joints (drop "
+                    "robot.mimic, making the followers independent joints, or drop [ground], [contact] and [[object]])"
+                )
             from .contact import PENETRATION_SLOP, build_contact
 
             self.contact = build_contact(self, spec, exact_friction)

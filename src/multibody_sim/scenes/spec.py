@@ -726,7 +726,11 @@ class _Parser:
         initial = self.table(data.get("initial", {}), "initial", INITIAL_KEYS)
         has_contact = ground is not None or contact is not None or bool(objects)
         if has_contact and constraints:
-            self.fail("constraint", "holonomic constraints and contact cannot be combined yet (drop one of them)")
+            self.fail(
+                "constraint",
+                "holonomic constraints and contact cannot be combined yet: the contact time-stepper does not solve "
+                "[[constraint]] rows with its cones (drop [[constraint]], or [ground], [contact] and [[object]])",
+            )
         simulation = self.simulation(data["simulation"]) if "simulation" in data else None
         declared = simulation.integrator if simulation is not None else None
         if has_contact and declared is not None and declared != CONTACT_INTEGRATOR:
