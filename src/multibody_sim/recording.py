@@ -251,34 +251,43 @@ def limit_reports(system: Any, T: np.ndarray, Q: np.ndarray, n: np.ndarray) -> l
     """The position-limit report of each row of samples, T (B, N) [s] and Q (B, N, nq), over its first n[b] samples
     (the rows past them must be finite): count, worst joint, worst excess and its time.
 
-    Each row's extreme coordinates pick the rows that need a report: Robot.limit_excess at (the lowest, the highest)
-    coordinate bounds its excess at every sample (a rounded difference is monotone in each operand), so no row with a
-    violation is missed, and the others cost two reductions.
+    Each row's extreme coordinates pick the (row, coordinate) pairs to look at: Robot.limit_excess at (the lowest,
+    the highest) value of a coordinate bounds its excess at every sample (a rounded difference is monotone in each
+    operand), so no violation is missed, and the other pairs cost two reductions.
     """
     none = LimitViolations()  # frozen: one instance serves every row without violations
-    B, N, nq = Q.shape
+    B, N, _ = Q.shape
     if not N or not np.isfinite(system.limit_tolerance).any():  # no sample, or no position limit at all
         return [none] * B
     low, high = Q.min(axis=1), Q.max(axis=1)
     bound = np.maximum(system.lower_limit - low, 0.0) + np.maximum(high - system.upper_limit, 0.0)
-    rows = np.flatnonzero((bound > system.limit_tolerance).any(axis=1) & (n > 0))
+    suspect = (bound > system.limit_tolerance) & (n > 0)[:, None]  # (B, nq): may leave its limits in this row
     reports = [none] * B
-    if not len(rows):
+    # The (row, coordinate) pairs that may leave their limits, row by row (the others' excess is zero throughout):
+    # each pair's excess at every sample, then each row's report from its pairs.
+    pair_rows, pair_cols = np.nonzero(suspect)
+    if not len(pair_rows):
         return reports
-    excess = system.limit_excess(Q[rows].reshape(-1, nq)).reshape(len(rows), N, nq)
-    excess[np.arange(N) >= n[rows, None]] = 0.0  # past a row's samples
+    excess = system.limit_excess(Q[pair_rows, :, pair_cols].T, columns=pair_cols).T  # (pairs, N)
+    excess[np.arange(N)[None, :] >= n[pair_rows][:, None]] = 0.0  # past a row's samples
     outside = excess > 0
-    worst = excess.reshape(len(rows), -1).argmax(axis=1)  # the first of the largest, as over the row's samples alone
+    rows, starts = np.unique(pair_rows, return_index=True)
+    counts = np.add.reduceat(outside.sum(axis=1), starts)
+    samples = np.logical_or.reduceat(outside, starts, axis=0).sum(axis=1)
+    stops = [*starts[1:].tolist(), len(pair_rows)]
     joints = _coordinate_joints(system)
-    for r, b in enumerate(rows.tolist()):
-        if not outside[r].any():
+    for b, first, last, count, sampled in zip(
+        rows.tolist(), starts.tolist(), stops, counts.tolist(), samples.tolist(), strict=True
+    ):
+        if not count:
             continue
-        i, j = divmod(int(worst[r]), nq)
+        block = excess[first:last].T  # (N, its pairs): the first of the largest in sample, then coordinate, order
+        i, j = divmod(int(block.argmax()), last - first)
         reports[b] = LimitViolations(
-            count=int(outside[r].sum()),
-            samples=int(outside[r].any(axis=1).sum()),
-            worst_joint=joints[j],
-            worst_excess=float(excess[r, i, j]),
+            count=int(count),
+            samples=int(sampled),
+            worst_joint=joints[int(pair_cols[first + j])],
+            worst_excess=float(block[i, j]),
             worst_time=float(T[b, i]),
         )
     return reports

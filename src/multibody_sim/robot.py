@@ -329,7 +329,7 @@ class Robot:
         return max(self.total_mass * float(np.linalg.norm(self.model.gravity.linear)), 1e-6)
 
     # ---- limits --------------------------------------------------------------------------------------
-    def limit_excess(self, Q: np.ndarray) -> np.ndarray:
+    def limit_excess(self, Q: np.ndarray, *, columns: np.ndarray | None = None) -> np.ndarray:
         """How far each configuration coordinate is outside its position limits, shape like Q (0 inside).
 
         Round-off is not a violation: an excess counts (and is returned as it is) only when it exceeds
@@ -337,19 +337,22 @@ class Robot:
         coordinate, a few units in the last place (1.8e-15 rad or m for limits within ±1).
 
         Args:
-            Q: one configuration (nq,) or a stack of them (n, nq).
+            Q: one configuration (nq,) or a stack of them (n, nq); with `columns`, only those coordinates.
+            columns: the coordinate each column of Q holds (indices), or None for all of them in order.
         """
         single = np.ndim(Q) == 1
         Q = np.atleast_2d(np.asarray(Q, dtype=float))
-        if Q.ndim != 2 or Q.shape[1] != self.nq:
-            raise InvalidArgumentError(f"Q must have shape ({self.nq},) or (n, {self.nq}), got {np.shape(Q)}")
+        width = self.nq if columns is None else len(columns)
+        if Q.ndim != 2 or Q.shape[1] != width:
+            raise InvalidArgumentError(f"Q must have shape ({width},) or (n, {width}), got {np.shape(Q)}")
         excess = np.zeros_like(Q)
-        if self._limited.any():
-            lim = self._limited
-            outside = np.maximum(self.lower_limit[lim] - Q[:, lim], 0.0) + np.maximum(
-                Q[:, lim] - self.upper_limit[lim], 0.0
+        lim = self._limited if columns is None else self._limited[columns]
+        if lim.any():
+            at = lim if columns is None else np.asarray(columns)[lim]  # the limited coordinates' indices
+            outside = np.maximum(self.lower_limit[at] - Q[:, lim], 0.0) + np.maximum(
+                Q[:, lim] - self.upper_limit[at], 0.0
             )
-            excess[:, lim] = np.where(outside > self.limit_tolerance[lim], outside, 0.0)
+            excess[:, lim] = np.where(outside > self.limit_tolerance[at], outside, 0.0)
         return excess[0] if single else excess
 
     # ---- argument checks ----------------------------------------------------------------------------
