@@ -966,8 +966,10 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     if robot.poses:
         named = ", ".join(safe_name(p) + (" (default)" if p == robot.default_pose_name else "") for p in robot.poses)
         lines.append(f"poses: {named} (from {safe_name(source.get('srdf_path'))})")
-    else:
+    elif not isinstance(robot, ms.Scene):
         lines.append("poses: none (runs start from the neutral configuration)")
+    if isinstance(robot, ms.Scene):
+        lines.append("start: the scene's initial state ([initial], else the robot's default pose; objects as declared)")
     welded = float(model.inertias[0].mass)
     lines.append(
         f"total mass: {robot.total_mass:.6g} kg"
