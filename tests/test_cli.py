@@ -417,6 +417,16 @@ def test_inspect_zero_limits_mean_none_and_floating_note(capsys: pytest.CaptureF
     assert all(float(d) == 0.0 for r in rows for d in r[4].split(", "))  # --no-damping reached load_robot
 
 
+def test_inspect_a_scene_says_runs_start_from_its_initial_state(capsys: pytest.CaptureFixture[str]) -> None:
+    """A scene of objects has no poses, yet its runs start where it places them (not from neutral): inspect says
+    so, and the state a run starts from is the declared one."""
+    code, out, _ = call(capsys, "inspect", "box_stack")
+    assert code == 0 and "neutral" not in out
+    assert "start: the scene's initial state ([initial], else the robot's default pose; objects as declared)" in out
+    scene = ms.load_scene("box_stack")
+    assert scene.run(duration=0.001, progress=False).q[0][2] == pytest.approx(0.05)  # the bottom box's declared z
+
+
 @pytest.mark.parametrize("mode", ["in-process", "console script"])
 def test_integrators_lists_the_registry(capsys: pytest.CaptureFixture[str], mode: str, request: Any) -> None:
     if mode == "in-process":

@@ -56,10 +56,12 @@ def test_html_export_of_a_sliding_box_draws_and_moves(browser: Any, tmp_path: Pa
         page.close()
 
 
-def check_arrows(page: Page, trajectory: ms.Trajectory, t: float, *, sliding: bool = True) -> None:
+def check_arrows(
+    page: Page, trajectory: ms.Trajectory, t: float, *, sliding: bool = True, largest: float | None = None
+) -> None:
     """The page shows one arrow per contact point of the sample on display at t, along its force (friction back,
-    the normal force up: the direction (−μ, 0, 1) while the box slides), the largest force of the run
-    ARROW_LENGTH long; and hiding the arrows changes the picture (they are drawn, not only placed)."""
+    the normal force up: the direction (−μ, 0, 1) while the box slides), a force of `largest` (default: the largest
+    of the run) ARROW_LENGTH long; and hiding the arrows changes the picture (they are drawn, not only placed)."""
     from multibody_sim.viz.forces import ARROW_LENGTH
 
     i = int(np.searchsorted(trajectory.t, t + 1e-9, side="right") - 1)
@@ -67,7 +69,8 @@ def check_arrows(page: Page, trajectory: ms.Trajectory, t: float, *, sliding: bo
     assert len(shown.sample) == 4
     dt = trajectory.metadata["options"]["dt"]
     forces = shown.impulse / dt
-    largest = np.linalg.norm(trajectory.contacts.impulse, axis=1).max() / dt
+    if largest is None:
+        largest = np.linalg.norm(trajectory.contacts.impulse, axis=1).max() / dt
     for k in range(4):
         node = f"viewer.scene_tree.find(['meshcat', 'forces', '{k}']).object"
         position = page.page.evaluate(f"{node}.position.toArray()")
@@ -127,6 +130,60 @@ def test_live_viewer_draws_the_ground_and_contact_forces_as_arrows(browser: Any,
             page.close()
         with pytest.raises(InvalidArgumentError, match="^the trajectory records no contacts"):
             viewer.animate(dataclasses.replace(trajectory, contacts=None), forces=True)
+
+
+def test_a_live_run_draws_its_contact_forces_as_it_computes(browser: Any, tmp_path: Path) -> None:
+    """Viewer.live(forces=True) as a run's on_sample: the arrows follow the run as it computes (mid-run, the
+    sample on display), an arrow ARROW_LENGTH long for the box's weight (the run's largest force is not known
+    yet); without forces the callback takes no contacts and no arrow is drawn."""
+    scene = ms.load_scene("sliding_box")
+    weight = 1.0 * 9.81  # the sliding box: 1 kg (its scene file), standard gravity
+    assert pin.computeTotalMass(scene.model) == pytest.approx(1.0)
+    with viz.Viewer(scene, port=0, announce=False) as viewer:
+        origin = f"http://127.0.0.1:{viewer.server.address[1]}/"
+        page = Page(browser, viewer.url, lambda url: url.startswith(origin), tmp_path)
+        try:
+            from multibody_sim.viz.forces import ARROW_LENGTH
+
+            live = viewer.live(forces=True)
+            handed: list[np.ndarray] = []
+            seen: list[tuple[float, list[float], float]] = []
+
+            def contacts(rows: np.ndarray | None, dt: float) -> None:
+                handed.append(rows)
+                live.contacts(rows, dt)
+
+            def watched(t: float, q: np.ndarray, v: np.ndarray) -> None:
+                before = live.shown
+                live(t, q, v)
+                if not seen and live.shown != before and t >= 0.05:  # mid-run: the frame just sent, with its arrows
+                    page.page.wait_for_function(f"window.multibodySim.frame >= {viewer._frame - 1}")
+                    node = "viewer.scene_tree.find(['meshcat', 'forces', '0']).object"
+                    seen.append(
+                        (t, page.page.evaluate(f"{node}.position.toArray()"), page.page.evaluate(f"{node}.scale.z"))
+                    )
+
+            watched.wants_contacts = True  # type: ignore[attr-defined]  # hand the contacts on to the live view
+            watched.contacts = contacts  # type: ignore[attr-defined]
+            trajectory = ms.simulate(
+                scene, scene.q0, scene.v0, duration=0.1, dt=1e-3, integrator="timestepping", on_sample=watched
+            )
+            assert len(handed) == len(trajectory.t) and handed[0] is None  # sample 0 has no step behind it
+            t, position, length = seen[0]
+            i = int(np.flatnonzero(trajectory.t == t)[0])
+            first = trajectory.contacts.at(i)
+            np.testing.assert_allclose(position, first.point[0], atol=1e-9)
+            assert length == pytest.approx(ARROW_LENGTH * np.linalg.norm(first.impulse[0]) / 1e-3 / weight, rel=1e-6)
+            live.finish(trajectory)
+            page.page.wait_for_function(f"window.multibodySim.frame >= {viewer._frame - 1}")
+            check_arrows(page, trajectory, 0.1, largest=weight)
+            plain = viewer.live()
+            assert not plain.wants_contacts
+            ms.simulate(scene, scene.q0, scene.v0, duration=0.02, dt=1e-3, integrator="timestepping", on_sample=plain)
+            page.page.wait_for_function(f"window.multibodySim.frame >= {viewer._frame - 1}")
+            assert page.page.evaluate("viewer.scene_tree.find(['meshcat', 'forces']).object.children.length") == 0
+        finally:
+            page.close()
 
 
 def test_play_forces_serves_the_arrows_and_the_commands_refuse_runs_without_contact(

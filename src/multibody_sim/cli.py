@@ -293,8 +293,8 @@ def _build_parser() -> _Parser:
     view.add_argument(
         "--view-forces",
         action="store_true",
-        help="draw a contact scene's contact forces as arrows in the recording left in the page after the run "
-        "(the largest force is 20 cm long)",
+        help="draw a contact scene's contact forces as arrows: as the run computes (20 cm for the system's weight) "
+        "and in the recording left in the page after it (20 cm for the largest force)",
     )
     _add_server_options(view, prefix="--view-")
     run.set_defaults(handler=_cmd_run)
@@ -966,8 +966,10 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     if robot.poses:
         named = ", ".join(safe_name(p) + (" (default)" if p == robot.default_pose_name else "") for p in robot.poses)
         lines.append(f"poses: {named} (from {safe_name(source.get('srdf_path'))})")
-    else:
+    elif not isinstance(robot, ms.Scene):
         lines.append("poses: none (runs start from the neutral configuration)")
+    if isinstance(robot, ms.Scene):
+        lines.append("start: the scene's initial state ([initial], else the robot's default pose; objects as declared)")
     welded = float(model.inertias[0].mass)
     lines.append(
         f"total mass: {robot.total_mass:.6g} kg"
@@ -1227,7 +1229,7 @@ def _await_browser(viewer: Any, args: argparse.Namespace) -> Any:
     _say(f"view: open {viewer.url} in a browser to watch the run; Ctrl-C to quit")
     while not viewer.wait_for_browser(timeout=0.5):
         pass
-    return viewer.live(speed=args.view_speed)
+    return viewer.live(speed=args.view_speed, forces=args.view_forces)
 
 
 def _watch(viewer: Any, trajectory: Any, args: argparse.Namespace) -> None:

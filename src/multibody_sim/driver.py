@@ -714,10 +714,16 @@ class Run:
                 self.progress.update_to(int(core.stopped_counts[:, 0].sum()) + core.steps * len(core.rows))
             return
         start, end = self.checked, store.samples_of(b)
+        # A callback that draws contacts (viz's LiveView with forces) gets each sample's first: (k, 11) rows or None.
+        contacts = (
+            getattr(self.on_sample, "contacts", None) if getattr(self.on_sample, "wants_contacts", False) else None
+        )
         for i in range(start, end):
             if self.on_sample is not None:
                 q, v = store.Q[i, b], store.V[i, b]
                 try:
+                    if contacts is not None:
+                        contacts(store.contacts.get(b, {}).get(i), self.settings.dt)
                     self.on_sample(float(store.T[i, b]), q, v)
                 except Exception as exc:  # user code: the run stops with what it has
                     if len(self.core.rows):

@@ -63,26 +63,14 @@ class ArrowTracks:
 
     def setup_commands(self) -> list[dict[str, Any]]:
         """Remove the previous arrows, then create one arrow mesh per slot under FORCES/k/arrow."""
-        from .scene import _mesh_command
-
-        umsgpack = require("umsgpack", "the meshcat viewer")
-        part = arrow_part()
-        setup: list[dict[str, Any]] = [{"type": "delete", "path": FORCES}]
-        setup += [_mesh_command(umsgpack, f"{FORCES}/{k}/arrow", part) for k in range(len(self))]
-        return setup
+        return [{"type": "delete", "path": FORCES}, *slot_commands(0, len(self))]
 
     def pose_commands(self, f: int) -> list[dict[str, Any]]:
         """One set_transform per slot placing the arrows at display time index f (the live viewer's frames)."""
-        from .scene import transform_command
-
-        commands = []
-        for k in range(len(self)):
-            matrix = np.eye(4)
-            x, y, z, w = self.quaternions[k, f]
-            matrix[:3, :3] = pin.Quaternion(w, x, y, z).matrix() * self.scales[k, f]  # scaled along its own axes
-            matrix[:3, 3] = self.positions[k, f]
-            commands.append(transform_command(f"{FORCES}/{k}", matrix))
-        return commands
+        return [
+            slot_pose_command(k, self.positions[k, f], self.quaternions[k, f], self.scales[k, f])
+            for k in range(len(self))
+        ]
 
     def animations(self, times: np.ndarray) -> list[dict[str, Any]]:
         """meshcat animation entries of the slots over the display times (joined to the motion's animation)."""
@@ -130,14 +118,79 @@ def arrow_tracks(trajectory: Trajectory, times: np.ndarray) -> ArrowTracks:
         for f, i in enumerate(shown):
             for k in range(int(counts[i])):
                 row = starts[i] + k
-                force = forces[row]
-                size = float(np.linalg.norm(force))
-                if size == 0.0:
-                    continue
                 positions[k, f] = contacts.point[row]
-                quaternions[k, f] = pin.Quaternion.FromTwoVectors(_Z, force / size).coeffs()  # x y z w
-                scales[k, f] = (1.0, 1.0, ARROW_LENGTH * size / largest)
+                quaternions[k, f], scales[k, f] = arrow_pose(forces[row], largest)
     return ArrowTracks(positions, quaternions, scales)
+
+
+def arrow_pose(force: np.ndarray, reference: float) -> tuple[np.ndarray, np.ndarray]:
+    """(quaternion x y z w taking +z onto the force, scale (1, 1, ARROW_LENGTH |force| / reference)) of one arrow;
+    a zero force is hidden (scaled to nothing)."""
+    size = float(np.linalg.norm(force))
+    if size == 0.0:
+        return np.array([0.0, 0.0, 0.0, 1.0]), np.full(3, _HIDDEN)
+    quaternion = pin.Quaternion.FromTwoVectors(_Z, force / size).coeffs()  # x y z w
+    return np.asarray(quaternion, dtype=float), np.array([1.0, 1.0, ARROW_LENGTH * size / reference])
+
+
+def slot_commands(first: int, end: int) -> list[dict[str, Any]]:
+    """The arrow meshes of slots first .. end - 1, under FORCES/k/arrow."""
+    from .scene import _mesh_command
+
+    umsgpack = require("umsgpack", "the meshcat viewer")
+    part = arrow_part()
+    return [_mesh_command(umsgpack, f"{FORCES}/{k}/arrow", part) for k in range(first, end)]
+
+
+def slot_pose_command(k: int, position: np.ndarray, quaternion: np.ndarray, scale: np.ndarray) -> dict[str, Any]:
+    """The set_transform placing arrow slot k: at position, rotated by quaternion (x y z w), scaled along its own
+    axes."""
+    from .scene import transform_command
+
+    matrix = np.eye(4)
+    x, y, z, w = quaternion
+    matrix[:3, :3] = pin.Quaternion(w, x, y, z).matrix() * scale
+    matrix[:3, 3] = position
+    return transform_command(f"{FORCES}/{k}", matrix)
+
+
+class LiveArrows:
+    """Contact-force arrows drawn as a run computes (Viewer.live(forces=True)): each frame shows the contacts of
+    the step that ended at its sample, an arrow ARROW_LENGTH long for a force equal to the system's weight (the run's
+    largest force is not known yet, as a recording's is). Slots are created as more contacts appear; unused ones
+    are hidden.
+
+    Args:
+        send: sends one meshcat command to the page.
+        weight: the reference force [N]: total mass × |gravity| (1 N for a weightless system).
+    """
+
+    def __init__(self, send: Any, weight: float):
+        self.send, self.weight = send, weight if weight > 0 else 1.0
+        self.slots = 0  # arrow meshes in the page
+        self.latest: tuple[np.ndarray | None, float] = (None, math.nan)
+
+    def contacts(self, rows: np.ndarray | None, dt: float) -> None:
+        """The contacts of the latest sample: (k, 11) rows as Trajectory.contacts holds them (point at 2:5, impulse
+        at 8:11 [N·s]) over its step dt [s], or None."""
+        self.latest = (rows, dt)
+
+    def draw(self) -> None:
+        """Place the arrows of the latest sample's contacts (before the frame that shows its configuration)."""
+        rows, dt = self.latest
+        count = 0 if rows is None else len(rows)
+        if count > self.slots:
+            if self.slots == 0:
+                self.send({"type": "delete", "path": FORCES})
+            for command in slot_commands(self.slots, count):
+                self.send(command)
+            self.slots = count
+        for k in range(self.slots):
+            if rows is not None and k < count:
+                quaternion, scale = arrow_pose(rows[k, 8:11] / dt, self.weight)
+                self.send(slot_pose_command(k, rows[k, 2:5], quaternion, scale))
+            else:
+                self.send(slot_pose_command(k, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), np.full(3, _HIDDEN)))
 
 
 def force_arrows(trajectory: Trajectory, times: np.ndarray) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:

@@ -7,12 +7,13 @@ import time
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 
 from ..robot import Robot
 from ..trajectory import Trajectory
 from ..validation import check_flag, check_system, frame_rate, playback_speed
 from ._deps import check_viewer_dependencies
-from .forces import FORCES, ArrowTracks, arrow_tracks
+from .forces import FORCES, ArrowTracks, LiveArrows, arrow_tracks
 from .frames import DEFAULT_FPS, resample
 from .scene import RobotScene, frame_marker
 from .server import DEFAULT_HOST, MeshcatServer
@@ -139,16 +140,24 @@ class Viewer:
             shown += 1
         return shown
 
-    def live(self, *, speed: float = 1.0, fps: float = DEFAULT_FPS) -> LiveView:
+    def live(self, *, speed: float = 1.0, fps: float = DEFAULT_FPS, forces: bool = False) -> LiveView:
         """A callback for ``simulate(..., on_sample=viewer.live())`` that shows the run while it is computed.
 
         It keeps the run to `speed` times real time (it waits when the simulation is ahead of the clock; a
         simulation slower than that is shown as fast as it computes) and sends at most `fps` frames per second.
-        Call its ``finish(trajectory)`` after the run to show the last sample.
+        Call its ``finish(trajectory)`` after the run to show the last sample. With `forces`, a contact scene's
+        contact forces are drawn as arrows as it runs (viz/forces.py LiveArrows: ARROW_LENGTH for the system's
+        weight; the run hands each sample's contacts to the callback).
         """
+        check_flag(forces, "forces")
         self._stop_animation()
         self._clear_arrows()
-        return LiveView(self, playback_speed(speed), 1.0 / frame_rate(fps))
+        arrows = None
+        if forces:
+            weight = pin.computeTotalMass(self.robot.model) * float(np.linalg.norm(self.robot.model.gravity.linear))
+            arrows = LiveArrows(self.server.send, weight)
+            self._arrows = True
+        return LiveView(self, playback_speed(speed), 1.0 / frame_rate(fps), arrows)
 
     def animate(
         self,
@@ -246,12 +255,24 @@ class Viewer:
 
 
 class LiveView:
-    """The on_sample callback of a live view (see Viewer.live)."""
+    """The on_sample callback of a live view (see Viewer.live).
 
-    def __init__(self, viewer: Viewer, speed: float, period: float):
+    Attributes:
+        wants_contacts: the run hands it each sample's contacts (``contacts(rows, dt)``, just before the sample)
+            when it draws force arrows.
+    """
+
+    def __init__(self, viewer: Viewer, speed: float, period: float, arrows: LiveArrows | None = None):
         self.viewer, self.speed, self.period = viewer, speed, period
         self.start: float | None = None
         self.shown = -math.inf  # time of the latest frame sent
+        self.arrows = arrows
+        self.wants_contacts = arrows is not None
+
+    def contacts(self, rows: np.ndarray | None, dt: float) -> None:
+        """The next sample's contacts: (k, 11) rows as Trajectory.contacts holds them, or None; dt the step [s]."""
+        if self.arrows is not None:
+            self.arrows.contacts(rows, dt)
 
     def __call__(self, t: float, q: np.ndarray, v: np.ndarray) -> None:
         now = time.perf_counter()
@@ -261,11 +282,15 @@ class LiveView:
         if due > now:  # ahead of the clock: wait, so the run plays at `speed`
             time.sleep(due - now)
         if t - self.shown >= self.period * self.speed:
+            if self.arrows is not None:
+                self.arrows.draw()
             self.viewer._show(np.asarray(q), t)
             self.shown = t
 
     def finish(self, trajectory: Trajectory) -> None:
         """Show the run's last sample if the frame rate skipped it."""
         if len(trajectory) and trajectory.t[-1] > self.shown:
+            if self.arrows is not None:  # it holds the last sample's contacts
+                self.arrows.draw()
             self.viewer._show(np.asarray(trajectory.q[-1]), float(trajectory.t[-1]))
             self.shown = float(trajectory.t[-1])
