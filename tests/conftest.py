@@ -94,3 +94,23 @@ def on_kernel(native_on: bool, run: Callable[[], Any], monkeypatch: pytest.Monke
 def both(run: Callable[[], Any], monkeypatch: pytest.MonkeyPatch) -> tuple[Any, Any]:
     """(native, python) results of the same run."""
     return on_kernel(True, run, monkeypatch), on_kernel(False, run, monkeypatch)
+
+
+# What a run's native and Python renderings must share bit for bit (tests/test_native_*.py).
+FIELDS = ("t", "q", "v", "tau", "kinetic_energy", "potential_energy", "work", "dissipated", "energy_error")
+COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls", "saturated_dofs")
+
+
+def assert_same_run(a: Any, b: Any, stats: tuple[str, ...] = COUNTS) -> None:
+    """Every sample field, every ledger entry, the status and the named stats of two trajectories equal bit for
+    bit."""
+    import numpy as np
+
+    for name in FIELDS:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.ledger.keys() == b.ledger.keys()
+    for name in a.ledger:
+        np.testing.assert_array_equal(a.ledger[name].energy, b.ledger[name].energy, err_msg=name)
+    assert a.status == b.status
+    for key in stats:
+        assert a.stats[key] == b.stats[key], key

@@ -442,14 +442,9 @@ def test_run_tolerance_chooses_says_so_and_meets_it(
     )
 
 
-def test_pilot_cache_is_read_and_a_corrupt_entry_is_rebuilt(
-    tmp_path: Path, robot: Callable, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The second choose_integrator call reads the cache (no study is run again, same choice); a corrupted cache
-    file is ignored, said so, rebuilt as a valid entry, and used by the next call."""
-    system = robot("double_pendulum")
-    kwargs = {"tolerance": 1e-4, "duration": 0.2, "cache_dir": tmp_path, "integrators": ["midpoint", "rk4", "dp54"]}
-    studies = []
+def count_studies(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """A list that gains an entry each time choose_integrator runs a study (rather than reading its cache)."""
+    studies: list[int] = []
     work_precision = bench.work_precision
 
     def counted(*args: Any, **kw: Any) -> Any:
@@ -457,6 +452,17 @@ def test_pilot_cache_is_read_and_a_corrupt_entry_is_rebuilt(
         return work_precision(*args, **kw)
 
     monkeypatch.setattr(bench, "work_precision", counted)
+    return studies
+
+
+def test_pilot_cache_is_read_and_a_corrupt_entry_is_rebuilt(
+    tmp_path: Path, robot: Callable, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The second choose_integrator call reads the cache (no study is run again, same choice); a corrupted cache
+    file is ignored, said so, rebuilt as a valid entry, and used by the next call."""
+    system = robot("double_pendulum")
+    kwargs = {"tolerance": 1e-4, "duration": 0.2, "cache_dir": tmp_path, "integrators": ["midpoint", "rk4", "dp54"]}
+    studies = count_studies(monkeypatch)
     first = ms.choose_integrator(system, Q0_DP, V0_DP, **kwargs)
     second = ms.choose_integrator(system, Q0_DP, V0_DP, **kwargs)
     assert not first.cached and second.cached and second.cache_path == first.cache_path
@@ -511,14 +517,7 @@ def test_the_pilot_runs_under_the_controller_and_keys_its_cache_on_it(
     system = robot("double_pendulum")
     q0 = [0.7, -0.4]
     kwargs = {"tolerance": 1e-4, "duration": 0.2, "cache_dir": tmp_path, "integrators": ["rk4", "dp54"]}
-    studies = []
-    work_precision = bench.work_precision
-
-    def counted(*args: Any, **kw: Any) -> Any:
-        studies.append(1)
-        return work_precision(*args, **kw)
-
-    monkeypatch.setattr(bench, "work_precision", counted)
+    studies = count_studies(monkeypatch)
     held = ms.make_controller("gravity_compensation", system)
     still = ms.choose_integrator(system, q0, [0.0, 0.0], controller=held, **kwargs)
     assert np.abs(np.asarray(still.study.reference.q) - q0).max() < 1e-12

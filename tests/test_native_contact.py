@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import both, on_kernel
+from conftest import FIELDS, assert_same_run, both, on_kernel
 
 import multibody_sim as ms
 from multibody_sim import native, native_core
@@ -32,7 +32,6 @@ pytestmark = pytest.mark.skipif(
 
 SCENES = sorted(p.stem for p in (Path(__file__).parents[1] / "models" / "scenes").glob("*.toml"))
 CONTACT_SCENES = [name for name in SCENES if ms.load_scene(name).contact is not None]
-FIELDS = ("t", "q", "v", "tau", "kinetic_energy", "potential_energy", "work", "dissipated", "energy_error")
 STATS = ("steps", "rejected_steps", "evaluations", "solver_steps", "solver_unconverged", "solver_iterations",
          "controller_calls", "saturated_controls", "saturated_dofs")  # fmt: skip
 TIMESTEPPING = INTEGRATORS["timestepping"]
@@ -49,14 +48,7 @@ def assert_same_contacts(a, b) -> None:
 def assert_same(a, b) -> None:
     """Every sample, ledger flow, count, solver count, contact record and the status equal bit for bit."""
     assert a.metadata["kernel"] == "native" and b.metadata["kernel"] != "native"
-    for name in FIELDS:
-        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
-    assert a.ledger.keys() == b.ledger.keys()
-    for name in a.ledger:
-        np.testing.assert_array_equal(a.ledger[name].energy, b.ledger[name].energy, err_msg=name)
-    assert a.status == b.status
-    for key in STATS:
-        assert a.stats[key] == b.stats[key], key
+    assert_same_run(a, b, STATS)
     assert_same_contacts(a.contacts, b.contacts)
 
 

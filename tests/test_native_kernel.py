@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import on_kernel
+from conftest import FIELDS, assert_same_run, on_kernel
 
 import multibody_sim as ms
 from multibody_sim import native, native_core
@@ -27,7 +27,6 @@ pytestmark = pytest.mark.skipif(
 ROBOTS = ["double_pendulum", "ur5", "panda", "solo12", "talos"]
 FIXED = ["euler", "semi_implicit_euler", "midpoint", "rk4"]
 ADAPTIVE = ["bs32", "dp54", "dop853"]
-FIELDS = ("t", "q", "v", "tau", "kinetic_energy", "potential_energy", "work", "dissipated", "energy_error")
 
 
 def start(robot, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -51,13 +50,7 @@ def options(method: str) -> dict:
 
 def assert_same(a, b) -> None:
     """Every sample, count and status equal bit for bit."""
-    for field in FIELDS:
-        np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
-    for name, entry in b.ledger.items():
-        np.testing.assert_array_equal(a.ledger[name].energy, entry.energy, err_msg=name)
-    counts = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls", "saturated_dofs")
-    assert {k: a.stats[k] for k in counts} == {k: b.stats[k] for k in counts}
-    assert a.status == b.status
+    assert_same_run(a, b)
 
 
 # ---- simulate --------------------------------------------------------------------------------------------------------
