@@ -21,7 +21,7 @@ from multibody_sim import native, native_core
 from multibody_sim.controllers import PDGravity
 from multibody_sim.integrators import INTEGRATORS
 from multibody_sim.integrators.timestepping import TimeStepping
-from multibody_sim.native_core import why_not_native
+from multibody_sim.native_core import BUDGET_SECONDS, next_budget, why_not_native
 from multibody_sim.scenes import contact as contact_module
 from multibody_sim.scenes import make_scene
 
@@ -241,6 +241,17 @@ def test_a_capped_solver_fails_the_run_natively_as_on_python(monkeypatch):
     assert a.status == b.status == "solver_failed" and str(a) == str(b)
     assert_same(a.trajectory, b.trajectory)
     assert a.trajectory.stats["solver_unconverged"] > 0
+
+
+def test_the_engine_budget_follows_the_rate_of_the_steps_taken():
+    """The steps per engine call follow the steps a call actually took: a call that returned early at an event
+    (one step in 10 µs) must not be read as a whole budget that fast (the next call would run ~200 000 box_stack
+    steps, 20 s and more deaf to Ctrl-C, as a CI run once did); growth is at most 4x per call."""
+    assert next_budget(64, 1, 1e-5) == 256  # the rate says 3000 steps; growth is held to 4x
+    assert next_budget(64, 64, BUDGET_SECONDS) == 64  # on target: unchanged
+    assert next_budget(1000, 1000, 2 * BUDGET_SECONDS) == 500  # too slow: halved
+    assert next_budget(1 << 20, 1 << 20, 1e-3) == 1 << 20  # capped
+    assert next_budget(64, 1, 10.0) == 16  # floored
 
 
 def test_ctrl_c_mid_contact_run_keeps_every_sample(monkeypatch):

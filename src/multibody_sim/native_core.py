@@ -494,6 +494,15 @@ def native_policies(system: Any, torques: Any, settings: Any) -> dict[str, Any] 
     }
 
 
+def next_budget(budget: int, steps: int, elapsed: float) -> int:
+    """The steps of the next engine call, so that it takes about BUDGET_SECONDS: the rate of the call just made
+    (`steps` taken in `elapsed` seconds; a call that returned early at an event took fewer than its budget), at
+    most 4 times the current budget (one fast call must not make the next one run for minutes, deaf to Ctrl-C), and
+    from 16 to 2**20 steps."""
+    estimate = int(steps * BUDGET_SECONDS / max(elapsed, 1e-6))
+    return max(16, min(1 << 20, 4 * budget, estimate))
+
+
 def store_arrays(store: SampleStore) -> tuple[np.ndarray, ...]:
     """The store's arrays as the engine takes them: batch-major, (B, capacity, ...) (the store may have grown since
     the last call)."""
@@ -532,7 +541,7 @@ class NativeCore(Core):
             self._take_pending()
             taken += steps
             if steps:
-                self._budget = max(16, min(1 << 20, int(self._budget * BUDGET_SECONDS / max(elapsed, 1e-6))))
+                self._budget = next_budget(self._budget, steps, elapsed)
             if status == _NEED_ROOM:
                 store.room(need)
                 continue
