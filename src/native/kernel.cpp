@@ -1192,37 +1192,31 @@ namespace multibody_sim
     }
   }
 
-  ContactRow Engine::contact_row(int64_t row) const
+  std::pair<Thread *, size_t> Engine::locate(int64_t row) const
   {
     for (auto & th : threads_)
       for (size_t j = 0; j < th->rows.size(); ++j)
         if (th->rows[j] == row)
-          return th->crow[j];
+          return {th.get(), j};
     throw std::invalid_argument("no such row");
+  }
+
+  ContactRow Engine::contact_row(int64_t row) const
+  {
+    const auto [th, j] = locate(row);
+    return th->crow[j];
   }
 
   void Engine::set_contact_row(int64_t row, const ContactRow & state)
   {
-    for (auto & th : threads_)
-      for (size_t j = 0; j < th->rows.size(); ++j)
-        if (th->rows[j] == row)
-        {
-          th->crow[j] = state;
-          return;
-        }
-    throw std::invalid_argument("no such row");
+    const auto [th, j] = locate(row);
+    th->crow[j] = state;
   }
 
   void Engine::set_extra_evaluations(int64_t row, int64_t value)
   {
-    for (auto & th : threads_)
-      for (size_t j = 0; j < th->rows.size(); ++j)
-        if (th->rows[j] == row)
-        {
-          th->extra[j] = value;
-          return;
-        }
-    throw std::invalid_argument("no such row");
+    const auto [th, j] = locate(row);
+    th->extra[j] = value;
   }
 
   std::vector<int64_t> Engine::extra_evaluations(const std::vector<int64_t> & rows) const

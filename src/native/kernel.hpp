@@ -12,6 +12,7 @@
 #include <memory>
 #include <string>
 #include <tuple>
+#include <utility>
 #include <vector>
 
 #include <Eigen/Core>
@@ -234,6 +235,8 @@ namespace multibody_sim
 
   private:
     friend struct Thread;
+    // The thread that runs run row `row` and the row's place in it; throws invalid_argument if none runs it.
+    std::pair<Thread *, size_t> locate(int64_t row) const;
     pinocchio::Model model_;
     Method method_;
     std::vector<ChartBlock> blocks_;
