@@ -1360,8 +1360,8 @@ def _resolve_uri(uri: str, urdf_path: Path, package_roots: list[Path], roots: li
     found = None
     for candidate in candidates:
         lexical = Path(os.path.normpath(candidate))
-        resolved = lexical if not _inside(lexical, roots) else Path(os.path.realpath(lexical))
-        if not _inside(resolved, roots):
+        resolved = lexical if not inside_roots(lexical, roots) else Path(os.path.realpath(lexical))
+        if not inside_roots(resolved, roots):
             raise ModelError(
                 f"{urdf_path}: {kind} '{uri}' resolves outside the allowed folders "
                 f"({', '.join(str(r) for r in roots)}); add its folder to package_dirs"
@@ -1371,7 +1371,7 @@ def _resolve_uri(uri: str, urdf_path: Path, package_roots: list[Path], roots: li
     return found
 
 
-def _inside(path: Path, roots: list[Path]) -> bool:
+def inside_roots(path: Path, roots: list[Path]) -> bool:
     """Whether a normalized absolute path lies in (or is) one of the roots (compared as strings: 10x faster than
     Path.is_relative_to, which the catalog's 2000-odd meshes felt)."""
     text = str(path)

@@ -12,7 +12,14 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ..catalog import CATALOG, ROBOT_PREFIX, example_robot_data_share, folder_list, shipped_models_dir
+from ..catalog import (
+    CATALOG,
+    ROBOT_PREFIX,
+    example_robot_data_share,
+    folder_list,
+    inside_roots,
+    shipped_models_dir,
+)
 from ..exceptions import ModelError, SceneError
 from ..safety import printable
 from .scene import Scene
@@ -95,7 +102,7 @@ def check_scene_roots(spec: SceneSpec, allowed_roots: list[Path]) -> None:
     paths += [(f"robot.package_dirs[{i}]", d) for i, d in enumerate(spec.robot.package_dirs)]
     for key, value in paths:
         resolved = Path(os.path.realpath(Path(value).expanduser()))
-        if not any(resolved == root or resolved.is_relative_to(root) for root in roots):
+        if not inside_roots(resolved, roots):
             raise SceneError(
                 printable(
                     f"{spec.source}: {key}: '{value}' is outside the folders a scene may read from (its own folder "

@@ -11,7 +11,14 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from ..catalog import CATALOG, example_robot_data_share, folder_list, load_robot, shipped_models_dir
+from ..catalog import (
+    CATALOG,
+    example_robot_data_share,
+    folder_list,
+    inside_roots,
+    load_robot,
+    shipped_models_dir,
+)
 from ..exceptions import InvalidArgumentError, ModelError, TrajectoryFileError
 from ..robot import Robot
 from ..safety import check_allocation, printable
@@ -90,7 +97,7 @@ def _recorded_folders(arguments: dict[str, Any], urdf_path: Any, extra: list[Pat
             raise TrajectoryFileError(f"the trajectory's metadata has a malformed robot.load_robot.{key}")
         for folder in folders:
             resolved = Path(os.path.realpath(Path(folder).expanduser()))
-            if not any(resolved == root or resolved.is_relative_to(root) for root in trusted):
+            if not inside_roots(resolved, trusted):
                 raise ModelError(
                     printable(
                         f"cannot load the trajectory's robot: its metadata names the folder '{folder}' ({key}), "
