@@ -23,7 +23,7 @@ from .exceptions import InvalidArgumentError
 from .integrators import INTEGRATORS, Integrator
 from .integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
 from .integrators.partitioned import SemiImplicitEuler
-from .integrators.timestepping import ANDERSON_CAPACITY, TOLERANCE, TimeStepping
+from .integrators.timestepping import ANDERSON_CAPACITY, TOLERANCE, TimeStepping, solver_counts
 from .recording import STORE_ARRAYS, SampleStore
 from .robot import Robot
 from .scenes.scene import Scene
@@ -394,12 +394,7 @@ class NativeKernel:
         """Run row `row`'s contact solver counts, {} without contact."""
         if not self.engine.has_contact:
             return {}
-        state = self.engine.contact_row(row)
-        return {
-            "solver_steps": state.steps,
-            "solver_unconverged": state.unconverged,
-            "solver_iterations": state.iterations,
-        }
+        return solver_counts(self.engine.contact_row(row))
 
     def _row(self, j: int) -> int:
         """The run row of running position j."""

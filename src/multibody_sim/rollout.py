@@ -23,6 +23,7 @@ import numpy as np
 from .driver import Run, RunSettings, Torques, controller_name
 from .exceptions import InvalidArgumentError, SimulationInterrupted
 from .integrators import Integrator, get_integrator
+from .integrators.timestepping import SOLVER_COUNTS  # a contact scene's, in stats only when kept
 from .progress import ProgressBar
 from .recording import limit_reports, split_records
 from .robot import Robot, real_array
@@ -31,8 +32,6 @@ from .validation import check_options, check_system, positive_count, positive_nu
 
 _RECORD_PARTS = ("force", "drift", "velocity_drift")  # a ConstraintRecord's arrays
 _COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls")
-# A contact scene's cone-solver counts (TimeStepping.solver_stats), in stats only when the method keeps them.
-_SOLVER_COUNTS = ("solver_steps", "solver_unconverged", "solver_iterations")
 _BACKENDS = ("local", "ray")
 
 
@@ -118,7 +117,7 @@ class BatchTrajectory:
         dof_names = self.metadata.get("robot", {}).get("dof_names", [])
         saturated = self.stats["saturated_dofs"][b]
         stats: dict[str, Any] = {
-            name: int(self.stats[name][b]) for name in _COUNTS + _SOLVER_COUNTS if name in self.stats
+            name: int(self.stats[name][b]) for name in _COUNTS + SOLVER_COUNTS if name in self.stats
         }
         stats["saturated_dofs"] = {dof_names[i]: int(c) for i, c in enumerate(saturated) if c}
         stats["wall_time"] = self.stats["wall_time"] / len(self)
@@ -353,9 +352,7 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
     stats: dict[str, Any] = run.count_arrays()
     if run.core.solver_stats:  # a contact method's counts, per element
         solved = run.core.solver_stats
-        stats.update(
-            {name: np.array([solved.get(b, {}).get(name, 0) for b in range(run.B)]) for name in _SOLVER_COUNTS}
-        )
+        stats.update({name: np.array([solved.get(b, {}).get(name, 0) for b in range(run.B)]) for name in SOLVER_COUNTS})
     stats["saturated_dofs"] = run.saturation.dofs.astype(int).copy()
     stats["wall_time"] = wall_time
     return BatchTrajectory(
@@ -594,7 +591,7 @@ def _stack(
     for b, tr in enumerate(trajectories):
         for name, count in tr.stats.get("saturated_dofs", {}).items():
             saturated[b, dof_index[name]] = count
-    counted = _COUNTS + (_SOLVER_COUNTS if any("solver_steps" in tr.stats for tr in trajectories) else ())
+    counted = _COUNTS + (SOLVER_COUNTS if any("solver_steps" in tr.stats for tr in trajectories) else ())
     stats: dict[str, Any] = {
         name: np.array([int(tr.stats.get(name, 0)) for tr in trajectories], dtype=int) for name in counted
     }
@@ -635,7 +632,7 @@ def _concatenate(batches: list[BatchTrajectory], wall_time: float | None = None)
         )
         for name in batches[0].constraints
     }
-    counted = _COUNTS + (_SOLVER_COUNTS if all("solver_steps" in bt.stats for bt in batches) else ())
+    counted = _COUNTS + (SOLVER_COUNTS if all("solver_steps" in bt.stats for bt in batches) else ())
     stats: dict[str, Any] = {name: np.concatenate([bt.stats[name] for bt in batches]) for name in counted}
     stats["saturated_dofs"] = np.concatenate([bt.stats["saturated_dofs"] for bt in batches])
     stats["wall_time"] = wall_time if wall_time is not None else sum(bt.stats["wall_time"] for bt in batches)

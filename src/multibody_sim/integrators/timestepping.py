@@ -68,6 +68,16 @@ class ContactState:
     active: tuple[Any, np.ndarray] | None = None
 
 
+# The counts a contact run's stats gain (Trajectory.stats, BatchTrajectory.stats, Stepper.stats).
+SOLVER_COUNTS = ("solver_steps", "solver_unconverged", "solver_iterations")
+
+
+def solver_counts(state: Any) -> dict[str, int]:
+    """The SOLVER_COUNTS of a solver state with steps, unconverged and iterations (ContactState, or the native
+    kernel's row state)."""
+    return dict(zip(SOLVER_COUNTS, (state.steps, state.unconverged, state.iterations), strict=True))
+
+
 def admm_settings(max_iterations: int = MAX_ITERATIONS) -> Any:
     """ADMM with the SPECTRAL update rule and Anderson acceleration (capacity 10), tolerances TOLERANCE."""
     settings = pin.ADMMSolverSettings()
@@ -148,11 +158,7 @@ class TimeStepping(Integrator):
     def solver_stats(self, state: Any) -> dict[str, int]:
         if not isinstance(state, ContactState):
             return {}
-        return {
-            "solver_steps": state.steps,
-            "solver_unconverged": state.unconverged,
-            "solver_iterations": state.iterations,
-        }
+        return solver_counts(state)
 
     def attempt(
         self,
