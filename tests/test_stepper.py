@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 import multibody_sim as ms
+from multibody_sim.driver import BLOWUP_FACTOR, Monitor
 from multibody_sim.integrators.implicit import ImplicitEuler
+from multibody_sim.recording import SampleStore
 
 DT = 2.0**-10  # a power of two: k·dt is exact, so every step of simulate() is exactly dt long
 N_STEPS = 40
@@ -261,6 +263,38 @@ def test_divergence_raises_like_simulate_and_keeps_the_state_before(robot):
     np.testing.assert_array_equal(stepper.q, samples.q[-2])
     np.testing.assert_array_equal(by_stepper.value.trajectory.q, samples.q[-2:-1])
     assert by_stepper.value.trajectory.status == "diverged"
+
+
+def test_the_one_sample_energy_check_never_passes_a_sample_the_full_check_flags(robot):
+    # Stepper checks one sample per step; Monitor.surely_fine clears it in Python floats at half the bound before
+    # NumPy's full check runs. It must never clear a sample the full check flags, and it must clear ordinary ones.
+    dp = robot("double_pendulum")  # damped: the ledger has a work and a dissipated element
+    monitor = Monitor(dp, 1)
+    store = SampleStore(1, dp.nq, dp.nv, len(dp.ledger_elements), 0, 2)
+    store.ENERGY[1, 0], store.FLOWS[1, 0] = (1.0, 0.0), 0.0  # a harmless second sample: the full check's range
+    rng = np.random.default_rng(3)
+    cleared = flagged = 0
+    for _ in range(3000):
+        scale = 10.0 ** rng.uniform(-3, 3)
+        monitor.initial[0], monitor.scale[0] = rng.normal() * scale, scale
+        work, dissipated = rng.normal() * scale, abs(rng.normal()) * scale
+        bound = BLOWUP_FACTOR * (scale + abs(work))
+        error = rng.choice([-1.0, 1.0]) * bound * 10.0 ** rng.uniform(-3, 0.5)  # up to 3x the bound
+        if rng.uniform() < 0.2:
+            dissipated = bound * 10.0 ** rng.uniform(-1, 0.5)
+        kinetic = abs(rng.normal()) * scale
+        potential = error + monitor.initial[0] + work - dissipated - kinetic
+        if rng.uniform() < 0.05:
+            potential = rng.choice([np.inf, -np.inf, np.nan])
+        store.ENERGY[0, 0] = kinetic, potential
+        store.FLOWS[0, 0] = work, dissipated
+        problem = monitor.first_problem(store, 0, 0, 2)
+        fine = monitor.surely_fine(store, 0, 0)
+        if problem is not None and problem[0] == 0:
+            flagged += 1
+            assert not fine, (kinetic, potential, work, dissipated)
+        cleared += fine
+    assert flagged > 500 and cleared > 1000  # both sides were exercised
 
 
 @pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")

@@ -24,7 +24,7 @@ from .integrators import INTEGRATORS, Integrator
 from .integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
 from .integrators.partitioned import SemiImplicitEuler
 from .integrators.timestepping import ANDERSON_CAPACITY, TOLERANCE, TimeStepping, solver_counts
-from .recording import STORE_ARRAYS, SampleStore
+from .recording import SampleStore
 from .robot import Robot
 from .scenes.scene import Scene
 from .state import _HALF_SERIES
@@ -501,7 +501,7 @@ def next_budget(budget: int, steps: int, elapsed: float) -> int:
 def store_arrays(store: SampleStore) -> tuple[np.ndarray, ...]:
     """The store's arrays as the engine takes them: batch-major, (B, capacity, ...) (the store may have grown since
     the last call)."""
-    return tuple(store.batch_major(name) for name in STORE_ARRAYS)
+    return store.batch_arrays
 
 
 class NativeCore(Core):

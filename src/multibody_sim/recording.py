@@ -37,6 +37,7 @@ class SampleStore:
             (capacity, B, extra_width) what the system records per sample; COUNTS: (capacity, B, 3) steps, rejected
             steps and evaluations when the sample was taken. Each is a view (axes 0 and 1 swapped) of a C-ordered
             batch-major array of shape (B, capacity, ...), which batch_major() gives (the native kernel writes those).
+        batch_arrays: those batch-major arrays, in STORE_ARRAYS' order.
     """
 
     def __init__(self, B: int, nq: int, nv: int, n_elements: int, extra_width: int, capacity: int):
@@ -66,6 +67,7 @@ class SampleStore:
         self.T, self.Q, self.V, self.TAU, self.ENERGY, self.FLOWS, self.COUNTS, self.EXTRA = (
             np.swapaxes(self._batch[name], 0, 1) for name in STORE_ARRAYS
         )
+        self.batch_arrays = tuple(self._batch[name] for name in STORE_ARRAYS)  # (B, capacity, ...) each
 
     def batch_major(self, name: str) -> np.ndarray:
         """The memory behind array `name` (one of STORE_ARRAYS): shape (B, capacity, ...), C-ordered."""

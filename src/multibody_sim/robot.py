@@ -388,6 +388,8 @@ class Robot:
         """Whether tau (nv,) or rows of it (n, nv) put anything on unactuated coordinates (cheap; no message): a bool,
         or with `per_row` one per row of tau (n, nv), shape (n,)."""
         start, stop = self.actuated.start, self.actuated.stop
+        if start == 0 and stop == self.nv:  # every coordinate is actuated
+            return np.zeros(tau.shape[:-1], dtype=bool) if per_row else False
         head, tail = tau[..., :start], tau[..., stop:]
         if per_row:
             return head.any(axis=-1) | tail.any(axis=-1)
