@@ -227,6 +227,7 @@ class NativeKernel:
         self.num_threads = num_threads
         self._initial = (np.ascontiguousarray(Q0, dtype=float), np.ascontiguousarray(V0, dtype=float))
         self._start = (0.0, 0)  # (t, k) until the engine exists
+        self._saves = 0  # snapshots taken (the engine keeps the latest)
         self.engine: Any = None
         self.method_data = method_data(method)
         self.torques: Any = None  # native control: the driver's Torques (the Python controllers, for messages)
@@ -368,20 +369,17 @@ class NativeKernel:
         self.engine.set_state(row, q, v, self.engine.flows_of(row))
 
     def snapshot(self) -> tuple[Any, ...]:
-        """Every row's whole state and the time (Stepper: one row)."""
-        rows = range(len(self._initial[0]))
-        contact = None
-        if self.engine.has_contact:  # each row's solver state and its evaluations beyond the core's count
-            contact = [self.engine.contact_row(b) for b in rows], self.engine.extra_evaluations(list(rows))
-        return [self.engine.snapshot_row(b) for b in rows], self.t, self.k, contact
+        """Every row's whole state (its contact solver's too) and the time (Stepper: one row). The engine keeps
+        the state: only the latest snapshot can be restored."""
+        self.engine.save()
+        self._saves += 1
+        return self._saves, self.t, self.k
 
     def restore(self, snapshot: tuple[Any, ...]) -> None:
-        rows, t, k, contact = snapshot
-        for b, state in enumerate(rows):
-            self.engine.restore_row(b, *state)
-            if contact is not None:
-                self.engine.set_contact_row(b, contact[0][b])
-                self.engine.set_extra_evaluations(b, contact[1][b])
+        saves, t, k = snapshot
+        if saves != self._saves:
+            raise AssertionError("the native kernel restores its latest snapshot only")
+        self.engine.restore_saved()
         self.start_at(t, k)
 
     def solver_stats(self, j: int) -> dict[str, int]:

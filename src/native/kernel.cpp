@@ -57,6 +57,15 @@ namespace multibody_sim
     std::unique_ptr<ContactWork, void (*)(ContactWork *)> cw{nullptr, nullptr};  // a contact scene's (set_contact)
     std::vector<ContactRow> crow;  // per row: the contact solver state
     std::vector<int64_t> extra;    // per row: evaluations beyond st.evaluations (a contact step costs two)
+    // Engine::save's copy of the rows' whole state (Stepper's undo point before each step)
+    struct Saved
+    {
+      std::vector<Vec> q, v, flows, tau, first;
+      std::vector<char> has_first, alive;
+      int64_t n_alive = 0;
+      std::vector<ContactRow> crow;
+      std::vector<int64_t> extra;
+    } saved;
     Vec vfree;
     Vec fx, pbuf, tau_control;
     bool dense_ready = false;
@@ -1364,6 +1373,45 @@ namespace multibody_sim
     throw std::invalid_argument("no such row");
   }
 
+  void Engine::save()
+  {
+    for (auto & th : threads_)
+    {
+      Thread::Saved & s = th->saved;
+      s.q = th->q;  // (same-sized vectors: copied into the storage of the last save)
+      s.v = th->v;
+      s.flows = th->flows;
+      s.tau = th->tau;
+      s.first = th->first;
+      s.has_first = th->has_first;
+      s.alive = th->alive;
+      s.n_alive = th->n_alive;
+      s.crow = th->crow;
+      s.extra = th->extra;
+    }
+    saved_ = true;
+  }
+
+  void Engine::restore_saved()
+  {
+    if (!saved_)
+      throw std::logic_error("restore_saved() before save()");
+    for (auto & th : threads_)
+    {
+      const Thread::Saved & s = th->saved;
+      th->q = s.q;
+      th->v = s.v;
+      th->flows = s.flows;
+      th->tau = s.tau;
+      th->first = s.first;
+      th->has_first = s.has_first;
+      th->alive = s.alive;
+      th->n_alive = s.n_alive;
+      th->crow = s.crow;
+      th->extra = s.extra;
+    }
+  }
+
   int64_t Engine::running() const
   {
     int64_t n = 0;
@@ -1689,6 +1737,8 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
     .def("revive", &Engine::revive)
     .def("snapshot_row", &Engine::snapshot_row)
     .def("restore_row", &Engine::restore_row)
+    .def("save", &Engine::save, "Keep every row's whole state (one copy, overwritten by the next save()).")
+    .def("restore_saved", &Engine::restore_saved, "Return every row to the state of the last save().")
     .def_prop_ro("running", &Engine::running)
     .def_rw("t", &Engine::t)
     .def_rw("k", &Engine::k);

@@ -201,6 +201,10 @@ namespace multibody_sim
     std::tuple<Vec, Vec, Vec, Vec, Vec, bool> snapshot_row(int64_t row) const;
     void restore_row(int64_t row, const Vec & q, const Vec & v, const Vec & flows, const Vec & tau, const Vec & first,
                      bool has_first);
+    // Every row's whole state (as snapshot_row, with the contact solver's state and the rows running), kept inside
+    // the engine (one copy: the next save() overwrites it), and back: Stepper's undo point before each step.
+    void save();
+    void restore_saved();
     int64_t running() const;
 
     // A scene's force elements join the dynamics, ledger and energies (before the first advance()).
@@ -253,6 +257,7 @@ namespace multibody_sim
     int64_t *calls_ = nullptr, *saturated_ = nullptr, *saturated_dofs_ = nullptr;
     int n_robot_flows_ = 1;  // the robot's ledger entries before the scene's (joint torques, joint damping)
     std::vector<std::unique_ptr<Thread>> threads_;
+    bool saved_ = false;
     struct Pool;
     std::unique_ptr<Pool> pool_;
   };
