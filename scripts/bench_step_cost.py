@@ -987,7 +987,8 @@ def interpretation(
     rests = ", ".join(f"{r.name} {fmt(rest)} µs ({rest / rk4:.0%})" for r, rk4, _, rest, _ in rows)
     records = ", ".join(f"{r.name} {fmt(record)}" for r, _, _, _, record in rows)
     text = [
-        para(f"""An rk4 step costs {min(ratios):.1f}–{max(ratios):.1f} times its Pinocchio floor: the 4 dynamics
+        para(f"""On the Python kernel (the first table; the native kernel has its own section above), an rk4
+        step costs {min(ratios):.1f}–{max(ratios):.1f} times its Pinocchio floor: the 4 dynamics
         evaluations and 4 configuration updates are {shares} of the step, so on every robot most of the
         time is spent in Python around them. The table's "rest" (what remains after the calls timed alone)
         is {rests}: the stage arithmetic and the step's and loop's bookkeeping, made of small-array numpy
@@ -1066,9 +1067,10 @@ def interpretation(
         ]
     text += [
         "",
-        para("""Past such fixes, what separates the loop from MuJoCo is the Python overhead of about ten
-        Pinocchio calls and a few dozen numpy operations per step; batching many trajectories per call
-        (`abaInParallel`) is the way beyond it."""),
+        para("""Past such fixes, what separates the Python kernel's loop from MuJoCo is the Python overhead of
+        about ten Pinocchio calls and a few dozen numpy operations per step: the native kernel (its section
+        above) runs the same loop in C++, and the Python kernel remains its specification and the fallback
+        where no compiler is found."""),
     ]
     return text
 
