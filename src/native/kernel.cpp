@@ -12,6 +12,7 @@
 #include <limits>
 #include <mutex>
 #include <thread>
+#include <type_traits>
 
 #include "pinocchio/algorithm/aba.hpp"
 #include "pinocchio/algorithm/energy.hpp"
@@ -69,6 +70,7 @@ namespace multibody_sim
     Vec vfree;
     Vec fx, pbuf, tau_control;
     bool dense_ready = false;
+    bool no_armature;  // every armature exactly 0: kinetic_energy() needs no per-joint armature term
     int extra_evaluations = 0;
     CoreState st;
     AdvanceResult res;
@@ -81,6 +83,7 @@ namespace multibody_sim
     , m(engine.n_ledger_)
     , w(2 * engine.model_.nv + engine.n_ledger_)
     , rows(owned)
+    , no_armature((engine.model_.armature.array() == 0.0).all())
     {
       const size_t n = rows.size();
       alive.assign(n, 1);
@@ -225,7 +228,7 @@ namespace multibody_sim
           xi[r] = y[r];
           vs[r] = v0[r] + y[nv + r];
         }
-        pinocchio::integrate(e.model_, q0, xi, qs);
+        e.integrate_(e.model_, q0, xi, qs);
         double * row = K.row(i).data();
         if (flat)
           for (int r = 0; r < nv; ++r)
@@ -263,7 +266,7 @@ namespace multibody_sim
           vn[j][i] = vj[i] + h * acc[i];
         for (int i = 0; i < nv; ++i)
           dv[i] = h * vn[j][i];
-        pinocchio::integrate(e.model_, qj, dv, qn[j]);
+        e.integrate_(e.model_, qj, dv, qn[j]);
         if (e.scene_ && !e.scene_->wrenches.empty())  // Scene.ledger_power at a new point: the wrenches' parts there
           e.scene_->forces(*sw, e.model_, qn[j], vn[j], t + h, fx);
         power(vn[j], tj, pbuf.data());
@@ -283,7 +286,7 @@ namespace multibody_sim
         xi[r] = inc[r];
         vn[j][r] = vj[r] + inc[nv + r];
       }
-      pinocchio::integrate(e.model_, qj, xi, qn[j]);
+      e.integrate_(e.model_, qj, xi, qn[j]);
       for (int i = 0; i < m; ++i)
         fn[j][i] = inc[2 * nv + i];
       return s;
@@ -302,7 +305,7 @@ namespace multibody_sim
         e.contact_->step(*cw, e.model_, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce);
       for (int i = 0; i < nv; ++i)
         dv[i] = h * vn[j][i];
-      pinocchio::integrate(e.model_, qj, dv, qn[j]);
+      e.integrate_(e.model_, qj, dv, qn[j]);
       if (e.scene_ && !e.scene_->wrenches.empty())  // Scene.ledger_power at a new point: the wrenches' parts there
         e.scene_->forces(*sw, e.model_, qn[j], vn[j], t + h, fx);
       power(vn[j], tj, pbuf.data());
@@ -376,7 +379,7 @@ namespace multibody_sim
           xi[r] = inc[r];
           vn[j][r] = vj[r] + inc[nv + r];
         }
-        pinocchio::integrate(e.model_, qj, xi, qn[j]);
+        e.integrate_(e.model_, qj, xi, qn[j]);
       }
       for (int i = 0; i < m; ++i)
         fn[j][i] = inc[2 * nv + i];
@@ -502,7 +505,7 @@ namespace multibody_sim
         xi[r] = yd[r];
         vd[r] = vj[r] + yd[nv + r];
       }
-      pinocchio::integrate(e.model_, qj, xi, qd);
+      e.integrate_(e.model_, qj, xi, qd);
     }
 
     // ---- samples: RowKernel._write -------------------------------------------------------------------------------
@@ -512,7 +515,7 @@ namespace multibody_sim
       const int64_t at = store.at(i, b);
       write_state(store, at, qx, vx, tx, fl);
       pinocchio::forwardKinematics(e.model_, data, qx, vx);
-      write_energies(store, at, qx);
+      write_energies(store, at, qx, vx);
     }
 
     void write_state(const Store & store, int64_t at, const Vec & qx, const Vec & vx, const Vec & tx,
@@ -524,11 +527,43 @@ namespace multibody_sim
       std::copy(fl, fl + m, store.FLOWS + at * m);
     }
 
-    // Robot.unchecked_energies from data's kinematics at qx (oMi and v, as forwardKinematics(q, v) leaves them)
-    void write_energies(const Store & store, int64_t at, const Vec & qx)
+    // pinocchio::computeKineticEnergy(model, data) at velocity vx: without armature, the same sum in the same order
+    // without its per-joint visitor, which adds each joint's armature term: exactly 0 when the armature is and every
+    // |v| < 1e150 (else v² may overflow and 0 · inf make it NaN: then Pinocchio's own call)
+    double kinetic_energy(const Vec & vx)
     {
-      const double kinetic = pinocchio::computeKineticEnergy(e.model_, data);
-      double potential = pinocchio::computePotentialEnergy(e.model_, data);
+      const pinocchio::Model & model = e.model_;
+      bool exact = no_armature;
+      for (int r = 0; exact && r < nv; ++r)
+        exact = std::abs(vx[r]) < 1e150;  // (false for NaN)
+      if (!exact)
+        return pinocchio::computeKineticEnergy(model, data);
+      double sum = 0.0;
+      for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
+        sum += model.inertias[i].vtiv(data.v[i]);
+      return sum * .5;
+    }
+
+    // pinocchio::computePotentialEnergy(model, data), written out as Pinocchio 4.1 has it
+    double potential_energy() const
+    {
+      const pinocchio::Model & model = e.model_;
+      const Eigen::Vector3d & g = model.gravity.linear();
+      Eigen::Vector3d com_global;
+      double energy = 0.0;
+      for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
+      {
+        com_global.noalias() = data.oMi[i].translation() + data.oMi[i].rotation() * model.inertias[i].lever();
+        energy -= model.inertias[i].mass() * com_global.dot(g);
+      }
+      return energy;
+    }
+
+    // Robot.unchecked_energies from data's kinematics at qx (oMi and v, as forwardKinematics(q, v) leaves them)
+    void write_energies(const Store & store, int64_t at, const Vec & qx, const Vec & vx)
+    {
+      const double kinetic = kinetic_energy(vx);
+      double potential = potential_energy();
       if (e.scene_ && e.scene_->n_records())  // Scene.unchecked_energies and unchecked_record: the springs'
         potential = potential + e.scene_->spring_energy(qx, store.EXTRA + at * store.extra_width);
       store.ENERGY[at * 2] = kinetic;
@@ -567,7 +602,7 @@ namespace multibody_sim
         if (parent > 0)
           data.v[i] += data.liMi[i].actInv(data.v[parent]);
       }
-      write_energies(*pending_store, pending[j], q[j]);
+      write_energies(*pending_store, pending[j], q[j], v[j]);
       pending[j] = -1;
     }
 
@@ -577,7 +612,7 @@ namespace multibody_sim
         if (pending[j] >= 0)
         {
           pinocchio::forwardKinematics(e.model_, data, q[j], v[j]);
-          write_energies(*pending_store, pending[j], q[j]);
+          write_energies(*pending_store, pending[j], q[j], v[j]);
           pending[j] = -1;
         }
     }
@@ -1071,6 +1106,52 @@ namespace multibody_sim
   };
 
   // ---- Engine -----------------------------------------------------------------------------------------------------
+  namespace
+  {
+    // Whether a joint's Lie group (pinocchio::LieGroupMap) is the vector space R^nq, where integrate is q + v.
+    struct IsVectorSpace : boost::static_visitor<bool>
+    {
+      template<typename JointModel>
+      bool operator()(const JointModel &) const
+      {
+        using Group = typename pinocchio::LieGroupMap::template operation<JointModel>::type;
+        using Flat = pinocchio::VectorSpaceOperationTpl<JointModel::NQ, double, 0>;
+        return std::is_same<Group, Flat>::value && JointModel::NQ == JointModel::NV;
+      }
+    };
+  } // namespace
+
+  Integrator::Integrator(const pinocchio::Model & model)
+  {
+    for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
+    {
+      const auto & joint = model.joints[i];
+      if (!boost::apply_visitor(IsVectorSpace(), joint.toVariant()))
+      {
+        others.push_back(i);
+        continue;
+      }
+      const int q = joint.idx_q(), v = joint.idx_v(), n = joint.nq();
+      if (!spans.empty() && spans.back().q + spans.back().n == q && spans.back().v + spans.back().n == v)
+        spans.back().n += n;
+      else
+        spans.push_back(Span{q, v, n});
+    }
+  }
+
+  void Integrator::operator()(const pinocchio::Model & model, const Vec & q, const Vec & v, Vec & out) const
+  {
+    for (const Span & s : spans)
+      for (int i = 0; i < s.n; ++i)
+        out[s.q + i] = q[s.q + i] + v[s.v + i];
+    if (others.empty())
+      return;
+    using Step = pinocchio::IntegrateStep<pinocchio::LieGroupMap, Vec, Vec, Vec>;
+    Step::ArgsType args(q, v, out);
+    for (pinocchio::JointIndex i : others)
+      Step::run(model.joints[i], args);
+  }
+
   Engine::Engine(
     const pinocchio::Model & model,
     const Method & method,
@@ -1083,6 +1164,7 @@ namespace multibody_sim
     const RowMatrix & V0,
     int num_threads)
   : model_(model)
+  , integrate_(model_)
   , method_(method)
   , blocks_(blocks)
   , half_series_(half_series)

@@ -164,6 +164,23 @@ namespace multibody_sim
 
   struct Thread;  // one thread's rows and workspace
 
+  // pinocchio::integrate(model, q, v, out) without its per-joint visitor where the joint's Lie group is a vector
+  // space (revolute, prismatic, ...: out = q + v, the same additions): runs of such joints are one loop each, and
+  // the other joints (free-flyer, spherical, planar, unbounded revolute, composite, mimic) take Pinocchio's own
+  // per-joint step. Bit for bit pinocchio::integrate's result.
+  struct Integrator
+  {
+    struct Span
+    {
+      int q = 0, v = 0, n = 0;  // out[q + i] = q[q + i] + v[v + i] for i < n
+    };
+    std::vector<Span> spans;
+    std::vector<pinocchio::JointIndex> others;
+
+    explicit Integrator(const pinocchio::Model & model);
+    void operator()(const pinocchio::Model & model, const Vec & q, const Vec & v, Vec & out) const;
+  };
+
   // The kernel of one run: the model, the rows' states, the method and the controller's constants.
   class Engine
   {
@@ -242,6 +259,7 @@ namespace multibody_sim
     // The thread that runs run row `row` and the row's place in it; throws invalid_argument if none runs it.
     std::pair<Thread *, size_t> locate(int64_t row) const;
     pinocchio::Model model_;
+    Integrator integrate_;
     Method method_;
     std::vector<ChartBlock> blocks_;
     std::vector<double> half_series_;
