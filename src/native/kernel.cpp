@@ -1121,7 +1121,7 @@ namespace multibody_sim
     };
   } // namespace
 
-  Integrator::Integrator(const pinocchio::Model & model)
+  Integrate::Integrate(const pinocchio::Model & model)
   {
     for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
     {
@@ -1139,7 +1139,7 @@ namespace multibody_sim
     }
   }
 
-  void Integrator::operator()(const pinocchio::Model & model, const Vec & q, const Vec & v, Vec & out) const
+  void Integrate::operator()(const pinocchio::Model & model, const Vec & q, const Vec & v, Vec & out) const
   {
     for (const Span & s : spans)
       for (int i = 0; i < s.n; ++i)

@@ -168,7 +168,7 @@ namespace multibody_sim
   // space (revolute, prismatic, ...: out = q + v, the same additions): runs of such joints are one loop each, and
   // the other joints (free-flyer, spherical, planar, unbounded revolute, composite, mimic) take Pinocchio's own
   // per-joint step. Bit for bit pinocchio::integrate's result.
-  struct Integrator
+  struct Integrate
   {
     struct Span
     {
@@ -177,7 +177,7 @@ namespace multibody_sim
     std::vector<Span> spans;
     std::vector<pinocchio::JointIndex> others;
 
-    explicit Integrator(const pinocchio::Model & model);
+    explicit Integrate(const pinocchio::Model & model);
     void operator()(const pinocchio::Model & model, const Vec & q, const Vec & v, Vec & out) const;
   };
 
@@ -259,7 +259,7 @@ namespace multibody_sim
     // The thread that runs run row `row` and the row's place in it; throws invalid_argument if none runs it.
     std::pair<Thread *, size_t> locate(int64_t row) const;
     pinocchio::Model model_;
-    Integrator integrate_;
+    Integrate integrate_;
     Method method_;
     std::vector<ChartBlock> blocks_;
     std::vector<double> half_series_;
