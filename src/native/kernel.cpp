@@ -1298,18 +1298,6 @@ namespace multibody_sim
     return th->crow[j];
   }
 
-  void Engine::set_contact_row(int64_t row, const ContactRow & state)
-  {
-    const auto [th, j] = locate(row);
-    th->crow[j] = state;
-  }
-
-  void Engine::set_extra_evaluations(int64_t row, int64_t value)
-  {
-    const auto [th, j] = locate(row);
-    th->extra[j] = value;
-  }
-
   std::vector<int64_t> Engine::extra_evaluations(const std::vector<int64_t> & rows) const
   {
     std::vector<int64_t> out;
@@ -1409,49 +1397,12 @@ namespace multibody_sim
         }
   }
 
-  void Engine::revive(int64_t row)
-  {
-    for (auto & th : threads_)
-      for (size_t j = 0; j < th->rows.size(); ++j)
-        if (th->rows[j] == row && !th->alive[j])
-        {
-          th->alive[j] = 1;
-          ++th->n_alive;
-        }
-  }
-
   std::tuple<Vec, Vec, Vec, Vec, Vec, bool> Engine::snapshot_row(int64_t row) const
   {
     for (auto & th : threads_)
       for (size_t j = 0; j < th->rows.size(); ++j)
         if (th->rows[j] == row)
           return {th->q[j], th->v[j], th->flows[j], th->tau[j], th->first[j], th->has_first[j] != 0};
-    throw std::invalid_argument("no such row");
-  }
-
-  void Engine::restore_row(
-    int64_t row, const Vec & q, const Vec & v, const Vec & flows, const Vec & tau, const Vec & first, bool has_first)
-  {
-    for (auto & th : threads_)
-      for (size_t j = 0; j < th->rows.size(); ++j)
-        if (th->rows[j] == row)
-        {
-          if (q.size() != th->nq || v.size() != th->nv || tau.size() != th->nv || flows.size() != th->m
-              || first.size() != th->w)
-            throw std::invalid_argument("a row's state has the wrong sizes");
-          th->q[j] = q;
-          th->v[j] = v;
-          th->flows[j] = flows;
-          th->tau[j] = tau;
-          th->first[j] = first;
-          th->has_first[j] = has_first;
-          if (!th->alive[j])
-          {
-            th->alive[j] = 1;
-            ++th->n_alive;
-          }
-          return;
-        }
     throw std::invalid_argument("no such row");
   }
 
@@ -1791,9 +1742,6 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
       "per ledger entry before the contact's four, whether it is work (else dissipated).")
     .def_prop_ro("has_contact", &Engine::has_contact)
     .def("contact_row", &Engine::contact_row)
-    .def("set_contact_row", &Engine::set_contact_row)
-    .def("extra_evaluations", &Engine::extra_evaluations)
-    .def("set_extra_evaluations", &Engine::set_extra_evaluations)
     .def(
       "set_scene", [](Engine & self, std::shared_ptr<multibody_sim::SceneForces> scene) { self.set_scene(scene); },
       nb::arg("scene"), "A scene's force elements (_native.SceneForces) join the dynamics (scene.cpp).")
@@ -1816,9 +1764,7 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
     .def("running_v", &Engine::running_v)
     .def("flows_of", &Engine::flows_of)
     .def("set_state", &Engine::set_state)
-    .def("revive", &Engine::revive)
     .def("snapshot_row", &Engine::snapshot_row)
-    .def("restore_row", &Engine::restore_row)
     .def("save", &Engine::save, "Keep every row's whole state (one copy, overwritten by the next save()).")
     .def("restore_saved", &Engine::restore_saved, "Return every row to the state of the last save().")
     .def_prop_ro("running", &Engine::running)

@@ -212,12 +212,8 @@ namespace multibody_sim
     RowMatrix running_v() const;
     Vec flows_of(int64_t row) const;
     void set_state(int64_t row, const Vec & q, const Vec & v, const Vec & flows);  // by hand: a jump
-    void revive(int64_t row);  // a row stopped by the caller runs again (Stepper's restore)
-    // Row `row`'s whole state (q, v, flows, tau, the solver state's first stage row, whether it holds one), and back
-    // (running again): Stepper's snapshot and restore.
+    // Row `row`'s whole state (q, v, flows, tau, the solver state's first stage row, whether it holds one).
     std::tuple<Vec, Vec, Vec, Vec, Vec, bool> snapshot_row(int64_t row) const;
-    void restore_row(int64_t row, const Vec & q, const Vec & v, const Vec & flows, const Vec & tau, const Vec & first,
-                     bool has_first);
     // Every row's whole state (as snapshot_row, with the contact solver's state and the rows running), kept inside
     // the engine (one copy: the next save() overwrites it), and back: Stepper's undo point before each step.
     void save();
@@ -238,11 +234,9 @@ namespace multibody_sim
     {
       return static_cast<bool>(contact_);
     }
-    ContactRow contact_row(int64_t row) const;  // a row's solver state (Stepper's snapshot) and back
-    void set_contact_row(int64_t row, const ContactRow & state);
+    ContactRow contact_row(int64_t row) const;  // a row's solver state (its counts)
     // Evaluations each run row made beyond the run's count (contact steps cost two), for rows `rows`.
     std::vector<int64_t> extra_evaluations(const std::vector<int64_t> & rows) const;
-    void set_extra_evaluations(int64_t row, int64_t value);  // (Stepper's restore)
 
     const pinocchio::Model & model() const
     {
