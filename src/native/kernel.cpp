@@ -264,12 +264,7 @@ namespace multibody_sim
         settle(j);
         for (int i = 0; i < nv; ++i)
           vn[j][i] = vj[i] + h * acc[i];
-        for (int i = 0; i < nv; ++i)
-          dv[i] = h * vn[j][i];
-        e.integrate_(e.model_, qj, dv, qn[j]);
-        if (e.scene_ && !e.scene_->wrenches.empty())  // Scene.ledger_power at a new point: the wrenches' parts there
-          e.scene_->forces(*sw, e.model_, qn[j], vn[j], t + h, fx);
-        power(vn[j], tj, pbuf.data());
+        move_along_new_velocity(j, h, t);
         for (int i = 0; i < m; ++i)
           fn[j][i] = h * pbuf[i];
         return 1;
@@ -292,6 +287,18 @@ namespace multibody_sim
       return s;
     }
 
+    // SemiImplicitEuler and TimeStepping after v' = vn[j]: q' = q ⊕ h v' into qn[j], and the ledger's power at
+    // (q', v') at t + h into pbuf (the wrenches' parts taken there)
+    void move_along_new_velocity(size_t j, double h, double t)
+    {
+      for (int i = 0; i < nv; ++i)
+        dv[i] = h * vn[j][i];
+      e.integrate_(e.model_, q[j], dv, qn[j]);
+      if (e.scene_ && !e.scene_->wrenches.empty())  // Scene.ledger_power at a new point: the wrenches' parts there
+        e.scene_->forces(*sw, e.model_, qn[j], vn[j], t + h, fx);
+      power(vn[j], tau[j], pbuf.data());
+    }
+
     // ---- TimeStepping.attempt on row j (a contact scene): the pending state in qn, vn, fn -----------------------
     int attempt_contact(size_t j, double h, double t)
     {
@@ -303,12 +310,7 @@ namespace multibody_sim
       double work = 0.0, correction = 0.0, bounce = 0.0;
       const bool problem =
         e.contact_->step(*cw, e.model_, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce);
-      for (int i = 0; i < nv; ++i)
-        dv[i] = h * vn[j][i];
-      e.integrate_(e.model_, qj, dv, qn[j]);
-      if (e.scene_ && !e.scene_->wrenches.empty())  // Scene.ledger_power at a new point: the wrenches' parts there
-        e.scene_->forces(*sw, e.model_, qn[j], vn[j], t + h, fx);
-      power(vn[j], tj, pbuf.data());
+      move_along_new_velocity(j, h, t);
       const int smooth_n = m - 4;  // the contact's elements come last: contact, penetration_correction,
       double smooth = 0.0;         // restitution, timestep_error
       for (int i = 0; i < smooth_n; ++i)
@@ -337,10 +339,7 @@ namespace multibody_sim
     void energies(const Vec & qx, const Vec & vx, double & kinetic, double & potential)
     {
       pinocchio::forwardKinematics(e.model_, data, qx, vx);
-      kinetic = pinocchio::computeKineticEnergy(e.model_, data);
-      potential = pinocchio::computePotentialEnergy(e.model_, data);
-      if (e.scene_ && e.scene_->n_records())
-        potential = potential + e.scene_->spring_energy(qx, nullptr);
+      energies_from_data(qx, vx, nullptr, kinetic, potential);
     }
 
     void evaluate_acceleration(const Vec & qx, const Vec & vx, const Vec & tx, double t)
@@ -562,12 +561,17 @@ namespace multibody_sim
     // Robot.unchecked_energies from data's kinematics at qx (oMi and v, as forwardKinematics(q, v) leaves them)
     void write_energies(const Store & store, int64_t at, const Vec & qx, const Vec & vx)
     {
-      const double kinetic = kinetic_energy(vx);
-      double potential = potential_energy();
-      if (e.scene_ && e.scene_->n_records())  // Scene.unchecked_energies and unchecked_record: the springs'
-        potential = potential + e.scene_->spring_energy(qx, store.EXTRA + at * store.extra_width);
-      store.ENERGY[at * 2] = kinetic;
-      store.ENERGY[at * 2 + 1] = potential;
+      energies_from_data(qx, vx, store.EXTRA + at * store.extra_width, store.ENERGY[at * 2], store.ENERGY[at * 2 + 1]);
+    }
+
+    // (T, V) at (qx, vx) from data's kinematics there; a scene's springs add theirs (Scene.unchecked_energies) and,
+    // given a sample's record, write their potentials into it (unchecked_record)
+    void energies_from_data(const Vec & qx, const Vec & vx, double * record, double & kinetic, double & potential)
+    {
+      kinetic = kinetic_energy(vx);
+      potential = potential_energy();
+      if (e.scene_ && e.scene_->n_records())
+        potential = potential + e.scene_->spring_energy(qx, record);
     }
 
     void stamp(const Store & store, int64_t i, int64_t b, double t) const
