@@ -407,7 +407,7 @@ class NativeKernel:
             rows = list(range(store.B))[index]
         else:
             rows = [int(b) for b in index]
-        self.engine.write_rows(i, rows, store, *store_arrays(store))
+        self.engine.write_rows(i, rows, store, *store.batch_arrays)
 
     def attempt(self, h: float) -> KernelAttempt:
         raise AssertionError("the native kernel steps inside NativeCore.advance")  # pragma: no cover
@@ -496,12 +496,6 @@ def next_budget(budget: int, steps: int, elapsed: float) -> int:
     return max(16, min(1 << 20, 4 * budget, estimate))
 
 
-def store_arrays(store: SampleStore) -> tuple[np.ndarray, ...]:
-    """The store's arrays as the engine takes them: batch-major, (B, capacity, ...) (the store may have grown since
-    the last call)."""
-    return store.batch_arrays
-
-
 class NativeCore(Core):
     """A Core whose loop runs in the engine (see the module docstring); its kernel is a NativeKernel.
 
@@ -528,7 +522,7 @@ class NativeCore(Core):
             limit = self._budget if max_steps is None else min(self._budget, max_steps - taken)
             start = time.perf_counter()
             status, steps, need = kernel.engine.advance(
-                t_stop, limit, tolerance, self, store, sampler, control, *store_arrays(store), self._pending
+                t_stop, limit, tolerance, self, store, sampler, control, *store.batch_arrays, self._pending
             )
             elapsed = time.perf_counter() - start
             self._take_pending()
