@@ -101,6 +101,17 @@ FIELDS = ("t", "q", "v", "tau", "kinetic_energy", "potential_energy", "work", "d
 COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls", "saturated_dofs")
 
 
+def assert_same_stepper(a: Any, b: Any, *, energy_error: bool = True) -> None:
+    """Two Steppers' state, ledger, stats and (unless told not to) energy error equal bit for bit."""
+    import numpy as np
+
+    np.testing.assert_array_equal(a.q, b.q)
+    np.testing.assert_array_equal(a.v, b.v)
+    assert a.ledger == b.ledger and a.stats == b.stats
+    if energy_error:
+        assert a.energy_error == b.energy_error
+
+
 def assert_same_run(a: Any, b: Any, stats: tuple[str, ...] = COUNTS) -> None:
     """Every sample field, every ledger entry, the status and the named stats of two trajectories equal bit for
     bit."""

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import FIELDS, assert_same_run, both, on_kernel
+from conftest import FIELDS, assert_same_run, assert_same_stepper, both, on_kernel
 
 import multibody_sim as ms
 from multibody_sim import native, native_core
@@ -144,10 +144,7 @@ def test_stepper_on_a_contact_scene(monkeypatch):
         return stepper
 
     a, b = both(run, monkeypatch)
-    np.testing.assert_array_equal(a.q, b.q)
-    np.testing.assert_array_equal(a.v, b.v)
-    assert a.ledger == b.ledger and a.energy_error == b.energy_error
-    assert a.stats == b.stats
+    assert_same_stepper(a, b)
     assert b.stats["evaluations"] > b.stats["steps"]  # contact steps (two evaluations each) were taken
 
 
@@ -338,6 +335,4 @@ def test_stepper_restores_the_solver_state_after_a_diverged_interval(monkeypatch
         return stepper
 
     a, b = both(run, monkeypatch)
-    np.testing.assert_array_equal(a.q, b.q)
-    np.testing.assert_array_equal(a.v, b.v)
-    assert a.stats == b.stats and a.ledger == b.ledger
+    assert_same_stepper(a, b, energy_error=False)  # NaN on both: the jump to 1e300 overflowed the reference

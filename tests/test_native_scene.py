@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_same_run, both, on_kernel
+from conftest import assert_same_run, assert_same_stepper, both, on_kernel
 
 import multibody_sim as ms
 from multibody_sim import native, native_core
@@ -122,10 +122,7 @@ def test_bench_scene_variants_stepper(monkeypatch):
         return stepper
 
     a, b = both(run, monkeypatch)
-    np.testing.assert_array_equal(a.q, b.q)
-    np.testing.assert_array_equal(a.v, b.v)
-    assert a.ledger == b.ledger and a.stats == b.stats
-    assert a.energy_error == b.energy_error
+    assert_same_stepper(a, b)
 
 
 # ---- built-in controllers natively -------------------------------------------------------------------------------
