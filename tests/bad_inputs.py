@@ -1784,7 +1784,39 @@ TYPES = [
         ms.InvalidArgumentError,
     ),
 ]
-CATALOGUE += RANGES_AND_NAMES + TYPES
+
+
+# ---- issue 26: the surfaces added since (gym environments, presentation, nested fields) -----------------------
+def vector_env() -> Any:
+    """ur5 in a two-row MultibodyVectorEnv, reset."""
+    from multibody_sim.gym import MultibodyVectorEnv
+
+    envs = MultibodyVectorEnv(ms.load_robot("ur5"), 2, reward=lambda q, v, tau: 0.0, control_dt=0.01)
+    envs.reset(seed=0)
+    return envs
+
+
+ROUND_3 = [
+    BadInput(
+        "vector-env-complex-actions",
+        "Python API",
+        "`MultibodyVectorEnv.step(actions)` with complex actions (NumPy would drop the imaginary parts with a warning)",
+        "actions must be an array of real numbers of shape (2, 6), got dtype complex128",
+        "Give real torques; MultibodyEnv refuses the same actions (strings, objects, complex numbers) the same way.",
+        api(lambda: vector_env().step(np.full((2, 6), 1 + 1j))),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "vector-env-reset-rows",
+        "Python API",
+        "`MultibodyVectorEnv.reset(options={'q': ...})` with one state for two rows (NumPy would raise IndexError)",
+        "options['q'] must have shape (2, 6), one row per reset row, got (1, 6)",
+        "Give one state per row reset (all rows, or the rows of options['reset_mask']).",
+        api(lambda: vector_env().reset(options={"q": np.zeros((1, 6))})),
+        ms.InvalidArgumentError,
+    ),
+]
+CATALOGUE += RANGES_AND_NAMES + TYPES + ROUND_3
 
 BY_ID = {entry.id: entry for entry in CATALOGUE}
 assert len(BY_ID) == len(CATALOGUE), "catalogue ids must be unique"

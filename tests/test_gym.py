@@ -306,3 +306,100 @@ def test_pushing_an_unactuated_base_is_refused(solo12: ms.Robot) -> None:
     env.reset(seed=0)
     with pytest.raises(ms.InvalidArgumentError, match=r"acts on the unactuated floating base and must be zero"):
         env.step(np.ones(18))
+
+
+# Actions the single environment refuses (strings, objects, complex numbers: NumPy would raise its own errors or
+# silently drop the imaginary part), as one row and as the vector environment's batch.
+NOT_TORQUES = {
+    "string": ("abc", "abc", "str"),
+    "objects": (np.array([object()] * 6), np.array([[object()] * 6] * 2), "dtype object"),
+    "complex": (np.full(6, 1 + 1j), np.full((2, 6), 1 + 1j), "dtype complex128"),
+    "a string among numbers": ([0, 0, 0, 0, 0, "x"], [[0, 0, 0, 0, 0, "x"]] * 2, "list"),
+}
+
+
+@pytest.mark.parametrize("kind", NOT_TORQUES)
+def test_vector_env_refuses_what_the_single_env_refuses(ur5: ms.Robot, kind: str) -> None:
+    single, batch, got = NOT_TORQUES[kind]
+    env = MultibodyEnv(ur5, **settings())
+    env.reset(seed=0)
+    with pytest.raises(ms.InvalidArgumentError, match=rf"^tau must be an array of 6 real numbers, got {got}$"):
+        env.step(single)
+    vector = MultibodyVectorEnv(ur5, 2, **settings())
+    vector.reset(seed=0)
+    before = vector.stepper.q
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a complex action is refused, never truncated to its real part with a warning
+        with pytest.raises(
+            ms.InvalidArgumentError, match=rf"^actions must be an array of real numbers of shape \(2, 6\), got {got}$"
+        ):
+            vector.step(batch)
+    np.testing.assert_array_equal(vector.stepper.q, before)  # nothing stepped
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"q": np.zeros((1, 6))}, r"options\['q'\] must have shape \(2, 6\), one row per reset row, got \(1, 6\)"),
+        ({"q": np.zeros((3, 6))}, r"options\['q'\] must have shape \(2, 6\), one row per reset row, got \(3, 6\)"),
+        ({"q": np.zeros(6)}, r"options\['q'\] must have shape \(2, 6\), one row per reset row, got \(6,\)"),
+        (
+            {"q": np.zeros((2, 6)), "v": np.zeros((1, 6))},
+            r"options\['v'\] must have shape \(2, 6\), one row per reset row, got \(1, 6\)",
+        ),
+        (
+            {"q": [["a"] * 6] * 2},
+            r"options\['q'\] must be an array of real numbers of shape \(2, 6\), one row per reset row, got list",
+        ),
+        ({"q": np.full((2, 6), np.nan)}, r"options\['q'\]\[0\] must be finite, got non-finite entries at"),
+    ],
+)
+def test_vector_reset_options_need_one_state_per_reset_row(ur5: ms.Robot, options: dict, message: str) -> None:
+    vector = MultibodyVectorEnv(ur5, 2, **settings())
+    vector.reset(seed=0)
+    with pytest.raises(ms.InvalidArgumentError, match=f"^{message}"):
+        vector.reset(options=options)
+    # With a mask, one row is reset: one state.
+    mask = np.array([False, True])
+    vector.reset(options={"reset_mask": mask, "q": ur5.default_pose()[None]})
+    with pytest.raises(ms.InvalidArgumentError, match=r"^options\['q'\] must have shape \(1, 6\), one row per reset"):
+        vector.reset(options={"reset_mask": mask, "q": np.zeros((2, 6))})
+
+
+# ---- the integrator and steps, as Scene.run() chooses them (issue 27) -------------------------------------------
+def test_contact_scene_runs_in_a_vector_env_with_no_method_argument() -> None:
+    """go2_standing in a MultibodyVectorEnv with nothing but a reward: timestepping at the scene's dt, as
+    Scene.run(); a row started at the scene's state with zero torque is simulate()'s run of the scene, sample for
+    sample."""
+    scene = ms.load_scene("go2_standing")
+    declared = scene.simulation_settings(controller=False)
+    envs = MultibodyVectorEnv(scene, 2, reward=lambda q, v, tau: 0.0)
+    assert (envs.stepper.integrator.name, envs.task.dt, envs.task.control_dt) == ("timestepping", declared["dt"], 1e-3)
+    np.testing.assert_array_equal(envs.task.initial_q, scene.q0)
+    obs, _ = envs.reset(seed=0, options={"q": np.tile(scene.q0, (2, 1))})
+    rows = [obs]
+    for _ in range(5):
+        obs, _, terminated, _, infos = envs.step(np.zeros((2, scene.nv)))
+        assert not terminated.any(), infos
+        rows.append(obs)
+    run = ms.simulate(scene, scene.q0, scene.v0, duration=5e-3, dt=1e-3, integrator="timestepping")
+    for b in range(2):
+        np.testing.assert_array_equal(np.array([r[b] for r in rows]), np.hstack((run.q, run.v)))
+
+
+def test_scene_method_and_steps_are_the_scenes_own() -> None:
+    scene = ms.load_scene("spring_chain")  # [simulation] integrator = "implicit_midpoint", dt = 2e-3
+    env = MultibodyEnv(scene, reward=reward)
+    assert (env.stepper.integrator.name, env.stepper.dt, env.stepper.control_dt) == ("implicit_midpoint", 2e-3, 2e-3)
+    np.testing.assert_array_equal(env.task.initial_q, scene.q0)
+    env = MultibodyEnv(scene, reward=reward, control_dt=0.01)  # a longer control interval over the scene's steps
+    assert (env.stepper.dt, env.stepper.control_dt) == (2e-3, 0.01)
+    env = MultibodyEnv(scene, reward=reward, method="rk4", dt=1e-3)  # what is given wins
+    assert (env.stepper.integrator.name, env.stepper.dt, env.stepper.control_dt) == ("rk4", 1e-3, 1e-3)
+
+
+def test_robot_steps_default_to_the_control_interval(ur5: ms.Robot) -> None:
+    env = MultibodyEnv(ur5, reward=reward, control_dt=0.01)
+    assert (env.stepper.integrator.name, env.stepper.dt, env.stepper.control_dt) == ("rk4", 0.01, 0.01)
+    env = MultibodyEnv(ur5, reward=reward)
+    assert (env.stepper.dt, env.stepper.control_dt) == (1e-3, 1e-3)

@@ -2,7 +2,8 @@
 on the batched stepping core (BatchStepper). Needs gymnasium (`pip install 'multibody-sim[gym]'`).
 
 An environment step is one control interval (``control_dt``) with the action held as the joint torque; the
-observation is the state (q, v). Episodes start from a seeded distribution around the robot's default pose:
+observation is the state (q, v). Episodes start from a seeded distribution around the robot's default pose (a
+scene's own initial state, q0 and v0, in its place):
 
     q0 = default_pose() ⊕ δq,  δq ~ U(-reset_noise_q, reset_noise_q)^nv  (in the tangent space: robot.integrate)
     v0 = δv,                   δv ~ U(-reset_noise_v, reset_noise_v)^nv
@@ -23,7 +24,8 @@ import numpy as np
 
 from .exceptions import InvalidArgumentError, MissingDependencyError, SimulationError
 from .integrators import Integrator
-from .robot import Robot
+from .robot import Robot, real_array
+from .scenes import Scene
 from .stepper import BatchStepper, Stepper
 from .validation import check_callable, is_number, positive_number
 
@@ -69,7 +71,7 @@ class _Task:
         max_episode_steps: Any,
         control_dt: Any,
         dt: Any,
-        method: str | Integrator,
+        method: str | Integrator | None,
         options: dict[str, Any],
         initial_q: Any,
         initial_v: Any,
@@ -90,15 +92,18 @@ class _Task:
             or max_episode_steps < 1
         ):  # fmt: skip
             raise InvalidArgumentError(f"max_episode_steps must be a positive whole number, got {max_episode_steps!r}")
-        control_dt = positive_number(control_dt, "control_dt")
-        dt = control_dt if dt is None else positive_number(dt, "dt")
+        method, dt, control_dt, options = _timing(system, method, dt, control_dt, options)
         noise_q = _non_negative(reset_noise_q, "reset_noise_q")
         noise_v = _non_negative(reset_noise_v, "reset_noise_v")
         failure = float(failure_reward) if is_number(failure_reward) else math.nan
         if not math.isfinite(failure):
             raise InvalidArgumentError(f"failure_reward must be a finite number, got {failure_reward!r}")
-        q = system.default_pose() if initial_q is None else system.check_q(initial_q, "initial_q")
-        v = np.zeros(system.nv) if initial_v is None else system.check_v(initial_v, "initial_v")
+        if isinstance(system, Scene):  # the scene's own start ([initial], objects where it puts them)
+            q_centre, v_centre = system.q0, system.v0
+        else:
+            q_centre, v_centre = system.default_pose(), np.zeros(system.nv)
+        q = q_centre if initial_q is None else system.check_q(initial_q, "initial_q")
+        v = v_centre if initial_v is None else system.check_v(initial_v, "initial_v")
         return cls(
             system,
             reward,
@@ -130,12 +135,15 @@ class _Task:
         return spaces.Box(-high, high, dtype=np.float64)
 
     # ---- episodes --------------------------------------------------------------------------------------------------
-    def initial_state(self, rng: np.random.Generator, options: dict[str, Any] | None) -> tuple[np.ndarray, np.ndarray]:
-        """An episode's start: options' exact "q" (and "v", default zero), else a draw (see the module docstring)."""
+    def initial_state(
+        self, rng: np.random.Generator, options: dict[str, Any] | None, row: str = ""
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """An episode's start: options' exact "q" (and "v", default zero), else a draw (see the module docstring).
+        `row` follows the option names in messages ("[2]": the vector environment's third reset row)."""
         system = self.system
         if options and "q" in options:
-            q = system.check_q(options["q"], "options['q']")
-            v = system.check_v(options.get("v", np.zeros(system.nv)), "options['v']")
+            q = system.check_q(options["q"], f"options['q']{row}")
+            v = system.check_v(options.get("v", np.zeros(system.nv)), f"options['v']{row}")
             return q, v
         if options and "v" in options:
             raise InvalidArgumentError("options['v'] needs options['q'] too (the state to start from)")
@@ -148,6 +156,27 @@ class _Task:
         reward = float(self.reward(q, v, tau))
         terminated = bool(self.terminated(q, v)) if self.terminated is not None else False
         return reward, terminated
+
+
+def _timing(
+    system: Robot, method: str | Integrator | None, dt: Any, control_dt: Any, options: dict[str, Any]
+) -> tuple[str | Integrator, float, float, dict[str, Any]]:
+    """(method, dt, control_dt, options) with the defaults Scene.run() takes: a scene's [simulation] integrator,
+    dt and control_dt (timestepping for a contact scene, rk4 otherwise; dt 1 ms), and its rtol, atol and max_step
+    when its own method runs; for a robot rk4, dt = control_dt (1 ms when neither is given). control_dt defaults
+    to dt."""
+    declared: dict[str, Any] = {}
+    if isinstance(system, Scene):
+        declared = system.simulation_settings(controller=False)
+    elif dt is None and control_dt is not None:
+        declared["dt"] = control_dt
+    if method is None:
+        method = declared.get("integrator", "rk4")
+        adaptive: dict[str, Any] = {k: declared[k] for k in ("rtol", "atol", "max_step") if k in declared}
+        options = {**adaptive, **options}
+    dt = positive_number(declared.get("dt", 1e-3) if dt is None else dt, "dt")
+    control_dt = positive_number(declared.get("control_dt", dt) if control_dt is None else control_dt, "control_dt")
+    return method, dt, control_dt, options
 
 
 def _non_negative(value: Any, name: str) -> float:
@@ -182,10 +211,14 @@ class MultibodyEnv(gymnasium.Env):
         reward: ``reward(q, v, tau) -> float``.
         terminated: ``terminated(q, v) -> bool``, or None (only failures terminate).
         max_episode_steps: truncate after this many steps, or None.
-        control_dt: the environment's step [s] (the Stepper's control interval).
-        dt: the integration step [s] (default control_dt; control_dt must be a multiple of it for fixed-step
-            methods).
-        method: the integrator (`multibody-sim integrators` lists them).
+        control_dt: the environment's step [s] (the Stepper's control interval); default: a scene's [simulation]
+            control_dt, else dt.
+        dt: the integration step [s] (control_dt must be a multiple of it for fixed-step methods); default: a
+            scene's [simulation] dt (1 ms when it gives none, as Scene.run()), for a robot control_dt (1 ms when
+            neither is given).
+        method: the integrator (`multibody-sim integrators` lists them); default: as Scene.run() chooses, the
+            scene's [simulation] integrator, timestepping for a contact scene, else rk4 (with the scene's rtol,
+            atol and max_step).
         initial_q, initial_v: the centre of the start distribution (default: default_pose() and rest).
         reset_noise_q: half-width of the uniform perturbation of q in the tangent space [rad, m].
         reset_noise_v: half-width of the uniform perturbation of v [rad/s, m/s].
@@ -203,9 +236,9 @@ class MultibodyEnv(gymnasium.Env):
         reward: Reward,
         terminated: Termination | None = None,
         max_episode_steps: int | None = None,
-        control_dt: float,
+        control_dt: float | None = None,
         dt: float | None = None,
-        method: str | Integrator = "rk4",
+        method: str | Integrator | None = None,
         initial_q: Any = None,
         initial_v: Any = None,
         reset_noise_q: float = 0.01,
@@ -223,8 +256,8 @@ class MultibodyEnv(gymnasium.Env):
         self.observation_space = task.observation_space()
         self.action_space = task.action_space()
         self.stepper = Stepper(
-            system, dt=task.dt, integrator=method, control_dt=task.control_dt, q0=task.initial_q, v0=task.initial_v,
-            **options,
+            system, dt=task.dt, integrator=task.method, control_dt=task.control_dt, q0=task.initial_q,
+            v0=task.initial_v, **task.options,
         )  # fmt: skip
         self._elapsed = 0
 
@@ -293,9 +326,9 @@ class MultibodyVectorEnv(VectorEnv):
         reward: Reward,
         terminated: Termination | None = None,
         max_episode_steps: int | None = None,
-        control_dt: float,
+        control_dt: float | None = None,
         dt: float | None = None,
-        method: str | Integrator = "rk4",
+        method: str | Integrator | None = None,
         initial_q: Any = None,
         initial_v: Any = None,
         reset_noise_q: float = 0.01,
@@ -329,8 +362,8 @@ class MultibodyVectorEnv(VectorEnv):
         Q0 = np.tile(task.initial_q, (n, 1))
         V0 = np.tile(task.initial_v, (n, 1))
         self.stepper = BatchStepper(
-            system, Q0, V0, dt=task.dt, integrator=method, control_dt=task.control_dt, num_threads=num_threads,
-            **options,
+            system, Q0, V0, dt=task.dt, integrator=task.method, control_dt=task.control_dt, num_threads=num_threads,
+            **task.options,
         )  # fmt: skip
         self._rngs: list[np.random.Generator | None] = [None] * n
         self._elapsed = np.zeros(n, dtype=np.int64)
@@ -378,8 +411,9 @@ class MultibodyVectorEnv(VectorEnv):
                     f"options['reset_mask'] must be a bool array of shape ({n},) with a True entry, got {mask!r}"
                 )
             rows = np.flatnonzero(mask)
-        Qs = options.pop("q", None)
-        Vs = options.pop("v", None)
+        system = self.task.system
+        Qs = self._exact_rows(options.pop("q", None), "q", len(rows), system.nq)
+        Vs = self._exact_rows(options.pop("v", None), "v", len(rows), system.nv)
         infos: dict[str, Any] = {}
         states = []
         for j, i in enumerate(rows.tolist()):
@@ -387,10 +421,8 @@ class MultibodyVectorEnv(VectorEnv):
                 self._rngs[i], _ = seeding.np_random(seeds[i])
             exact: dict[str, Any] | None = None  # an exact start, as MultibodyEnv's options
             if Qs is not None or Vs is not None:
-                exact = {
-                    key: np.asarray(value, dtype=float)[j] for key, value in (("q", Qs), ("v", Vs)) if value is not None
-                }
-            states.append(self.task.initial_state(self._rng(i), exact))
+                exact = {key: value[j] for key, value in (("q", Qs), ("v", Vs)) if value is not None}
+            states.append(self.task.initial_state(self._rng(i), exact, f"[{j}]"))
             infos = self._add_info(infos, {"t": 0.0}, i)
         self.stepper.reset(rows, np.array([q for q, _ in states]), np.array([v for _, v in states]))
         self._elapsed[rows] = 0
@@ -405,7 +437,7 @@ class MultibodyVectorEnv(VectorEnv):
             (observations (num_envs, nq + nv), rewards (num_envs,), terminations, truncations, infos).
         """
         task, n = self.task, self.num_envs
-        TAU = np.array(actions, dtype=np.float64)
+        TAU = real_array(actions, "actions", f"an array of real numbers of shape ({n}, {task.system.nv})")
         if TAU.shape != (n, task.system.nv):
             raise InvalidArgumentError(f"actions must have shape ({n}, {task.system.nv}), got {TAU.shape}")
         resetting = self._autoreset.copy() if self.autoreset_mode == AutoresetMode.NEXT_STEP else np.zeros(n, bool)
@@ -447,6 +479,19 @@ class MultibodyVectorEnv(VectorEnv):
             infos = self._add_info(infos, info, i)
         self._autoreset = ended
         return self._observations(), rewards, terminations, truncations, infos
+
+    @staticmethod
+    def _exact_rows(value: Any, key: str, rows: int, size: int) -> np.ndarray | None:
+        """options' "q" or "v" for `rows` reset rows as a float array (rows, size), or None when not given."""
+        if value is None:
+            return None
+        name = f"options['{key}']"
+        values = real_array(value, name, f"an array of real numbers of shape ({rows}, {size}), one row per reset row")
+        if values.shape != (rows, size):
+            raise InvalidArgumentError(
+                f"{name} must have shape ({rows}, {size}), one row per reset row, got {values.shape}"
+            )
+        return values
 
     def _reset_rows(self, rows: np.ndarray, row_infos: list[dict[str, Any]]) -> None:
         """Autoreset: rows start new episodes drawn from their own generators (their infos become reset infos)."""

@@ -483,8 +483,9 @@ class Scene(Robot):
         q0, v0 = settings.pop("q0"), settings.pop("v0")
         return simulate(self, q0, v0, **settings)
 
-    def simulation_settings(self) -> dict[str, Any]:
-        """simulate()'s keyword arguments as the scene declares them (with q0 and v0), defaults filled in."""
+    def simulation_settings(self, *, controller: bool = True) -> dict[str, Any]:
+        """simulate()'s keyword arguments as the scene declares them (with q0 and v0), defaults filled in; without
+        the scene's controller when `controller` is False (the gym environments take torques as actions)."""
         sim = self.spec.simulation
         integrator = CONTACT_INTEGRATOR if self.contact is not None else "rk4"
         settings: dict[str, Any] = {"q0": self.q0, "v0": self.v0, "duration": 1.0, "dt": 1e-3, "integrator": integrator}
@@ -493,9 +494,9 @@ class Scene(Robot):
                 if getattr(sim, name) is not None:
                     settings[name] = getattr(sim, name)
             settings.update(sim.options)
-        controller = self.make_controller()
-        if controller is not None:
-            settings["controller"] = controller
+        policy = self.make_controller() if controller else None
+        if policy is not None:
+            settings["controller"] = policy
         return settings
 
     def make_controller(self) -> Any:
