@@ -2,9 +2,10 @@
 
 Two engines:
 - hypothesis (tests/test_fuzz.py, its slow tier): structured mutations of valid URDFs, trajectory files and
-  scene files (hostile numbers, names, paths and shapes in every key), random bytes, and the command line's
-  numeric options given hostile numbers (NaN, infinities, subnormals, overflows, ports beyond 65535); CASES
-  examples per fuzzer. The default test suite runs each fuzzer's first 25 cases as a smoke test.
+  scene files, objects in contact among them (hostile numbers, names, paths and shapes in every key), random
+  bytes, the gym environments' settings, actions, seeds and reset options, and the command line's numeric options
+  given hostile numbers (NaN, infinities, subnormals, overflows, ports beyond 65535); CASES examples per fuzzer.
+  The default test suite runs each fuzzer's first 25 cases as a smoke test.
 - atheris (coverage-guided libFuzzer, when `pip install atheris` works): raw bytes into load_robot and
   Trajectory.load, seeded with catalog URDFs and a saved trajectory; RUNS executions per target, each under
   a 10 s timeout and a 2 GiB RSS limit (a slow or memory-hungry input is a failure too).

@@ -7,9 +7,11 @@ bytes; truncation) and valid trajectory files (byte flips and cuts in the zip st
 random JSON headers), and feeds them to load_robot and Trajectory.load. A model that loads must be usable
 (finite, positive-definite mass matrix); a refusal must be a MultibodySimError with a one-line message that
 starts with the file's path, and must leave nothing on stderr (file descriptor 2: C++ logging included).
-Scene files are mutated the same way (every key given hostile numbers, names, paths and shapes, keys deleted and
-added, damaged bytes) and a scene that loads runs a few steps with its own settings; the command line's numeric
-options get hostile numbers, and must exit 0, 1 or 2 with a one-line refusal and never a traceback.
+Scene files (objects in contact among them) are mutated the same way (every key given hostile numbers, names,
+paths and shapes, keys deleted and added, damaged bytes) and a scene that loads runs a few steps with its own
+settings; the gym environments get hostile settings, actions, seeds and reset options, and answer with finite
+observations or one of our errors in one line; the command line's numeric options get hostile numbers, and must
+exit 0, 1 or 2 with a one-line refusal and never a traceback.
 
 Environment: MBS_FUZZ_CASES (examples per fuzzer, default 200), MBS_FUZZ_REPORT (a file to which each fuzzer
 appends one JSON line: its name, the cases it ran, and the failures it saw).
@@ -447,7 +449,10 @@ def test_fuzz_trajectory_files(tmp_path_factory: pytest.TempPathFactory, cases: 
 
 
 # ---- scene files ------------------------------------------------------------------------------------------
-SCENE_SEEDS = ["spring_chain", "double_pendulum_spring_friction", "four_bar", "free_body_torqued", "panda_payload"]
+SCENE_SEEDS = [
+    "spring_chain", "double_pendulum_spring_friction", "four_bar", "free_body_torqued", "panda_payload",
+    "sliding_box", "box_stack", "bouncing_ball",  # scenes with objects: sizes, masses, placements, contact
+]  # fmt: skip
 SCENE_VALUES = [
     float("nan"), float("inf"), float("-inf"), 1e308, -1e308, 1e-320, -1.0, 0.0, 0, -1, 2**63 - 1, -(2**63), True,
     "", "x" * 5000, "a\nb", "\u202eevil", "/etc", "../../..", "/etc/passwd", "ur5", "nope", [], [1.0], [1.0] * 50,
@@ -518,12 +523,14 @@ def mutated_scene(draw: st.DrawFn, seeds: list[dict[str, Any]]) -> bytes:
         for key in path[:-1]:
             parent = parent[key]
         action = draw(st.sampled_from(["value", "value", "value", "delete", "add"]))
+        # Copies: a later mutation must not change SCENE_VALUES' lists and tables (nor make them hold themselves).
         if action == "value":
-            parent[path[-1]] = draw(st.sampled_from(SCENE_VALUES) | st.floats() | st.integers() | st.text(max_size=8))
+            value = draw(st.sampled_from(SCENE_VALUES) | st.floats() | st.integers() | st.text(max_size=8))
+            parent[path[-1]] = copy.deepcopy(value)
         elif action == "delete":
             del parent[path[-1]]
         elif isinstance(parent, dict):
-            parent[draw(st.text(min_size=1, max_size=8))] = draw(st.sampled_from(SCENE_VALUES))
+            parent[draw(st.text(min_size=1, max_size=8))] = copy.deepcopy(draw(st.sampled_from(SCENE_VALUES)))
     text = toml_document(data).encode()
     if draw(st.integers(0, 9)) == 0:  # and now and then damaged bytes, for the TOML parser and the size checks
         at = draw(st.integers(0, len(text)))
@@ -597,6 +604,164 @@ def test_fuzz_scene_files(tmp_path_factory: pytest.TempPathFactory, cases: int):
         case()
 
     run_fuzzer("scene-files", body, cases=cases)
+
+
+# ---- gym environments ------------------------------------------------------------------------------------
+# Hostile entries of actions, states and seeds: non-finite, huge, subnormal, huge integers, booleans, complex numbers,
+# strings, None and objects.
+GYM_ENTRIES = [
+    float("nan"), float("inf"), -float("inf"), 1e308, -1e308, 1e-320, 0.0, 1.0, -1.0, 2**64, -(2**70), True,
+    1 + 1j, "1.0", "x", None, b"\x00",
+]  # fmt: skip
+GYM_SETTINGS = {
+    "control_dt": [0.01, 0.0, -1.0, float("nan"), float("inf"), 1e308, 1e-320, 0.003, "0.01", None, True],
+    "dt": [None, 0.002, 0.0, float("nan"), 1e-320, 1e308, 0.007, "x"],
+    "method": [None, "rk4", "dp54", "implicit_euler", "timestepping", "nope", "", 3],
+    "max_episode_steps": [None, 5, 0, -1, 1.5, 2**70, True, "5"],
+    "reset_noise_q": [0.01, 0.0, -1.0, float("nan"), float("inf"), 1e308, "a"],
+    "reset_noise_v": [0.01, 1e308, float("-inf"), None],
+    "failure_reward": [0.0, float("nan"), float("inf"), -1e308, "0", None],
+    "initial_q": [None, [0.0], [float("nan")] * 6, ["a"] * 6, 1e308],
+    "num_envs": [2, 1, 0, -1, 2.0, True, "2", 2**62, 10**7],
+    "autoreset_mode": ["NextStep", "SameStep", "Disabled", "never", None, 0],
+    "num_threads": [1, 2, 0, -1, 1.5, 2**62],
+}
+
+
+@st.composite
+def gym_array(draw: st.DrawFn, shape: tuple[int, ...]) -> Any:
+    """An array-like of roughly `shape`: numbers, hostile entries, wrong shapes, ragged nesting, scalars, objects."""
+    kind = draw(st.sampled_from(["numbers", "numbers", "hostile", "shape", "ragged", "scalar", "object", "dtype"]))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    if kind == "numbers":
+        return rng.normal(scale=draw(st.sampled_from([1.0, 100.0, 1e6])), size=shape)
+    if kind == "hostile":
+        values = rng.normal(size=shape).astype(object)
+        flat = values.reshape(-1)
+        for _ in range(draw(st.integers(1, 3))):
+            flat[draw(st.integers(0, len(flat) - 1))] = draw(st.sampled_from(GYM_ENTRIES))
+        return values.tolist() if draw(st.booleans()) else values
+    if kind == "shape":
+        other = draw(st.lists(st.integers(0, 8), max_size=3).map(tuple))
+        return np.zeros(other)
+    if kind == "ragged":
+        return [[0.0] * n for n in draw(st.lists(st.integers(0, 7), min_size=1, max_size=3))]
+    if kind == "scalar":
+        return draw(st.sampled_from(GYM_ENTRIES))
+    if kind == "object":
+        return draw(st.sampled_from([{"q": 1}, object(), "abc", [None], ()]))
+    return np.zeros(shape, dtype=draw(st.sampled_from([np.float32, np.int8, np.uint64, np.complex64, np.bool_, "U3"])))
+
+
+@st.composite
+def gym_calls(draw: st.DrawFn, nq: int, nv: int, n: int) -> list[tuple[str, Any]]:
+    """A few calls of an environment of n rows (n = 0: the single environment): steps and resets with seeds and
+    options."""
+    rows = () if n == 0 else (n,)
+    calls: list[tuple[str, Any]] = [("reset", {"seed": draw(st.integers(0, 10))})]
+    for _ in range(draw(st.integers(1, 4))):
+        if draw(st.integers(0, 2)):
+            calls.append(("step", draw(gym_array((*rows, nv)))))
+            continue
+        seed = draw(
+            st.sampled_from([None, 0, 7, -1, 2**70, 1.5, "1", True, [0, 1], [0], [None, None], [-5, 2]])
+            | st.integers(-(2**65), 2**65)
+        )
+        options: Any = draw(st.sampled_from([None, {}, "q", 3]))
+        if isinstance(options, dict) and draw(st.booleans()):
+            options = {"q": draw(gym_array((*rows, nq)))}
+            if draw(st.booleans()):
+                options["v"] = draw(gym_array((*rows, nv)))
+        if n and draw(st.integers(0, 2)) == 0:
+            mask = draw(st.sampled_from([np.array([True, False]), np.array([False, False]), [1, 0], np.ones(3, bool)]))
+            options = {**(options if isinstance(options, dict) else {}), "reset_mask": mask}
+        calls.append(("reset", {"seed": seed, "options": options}))
+    return calls
+
+
+def gym_refusal(exc: BaseException) -> str | None:
+    """None if exc is a proper refusal (one of our errors, one line), else what is wrong with it."""
+    if not isinstance(exc, ms.MultibodySimError):
+        return f"raw {type(exc).__name__}: {exc!s:.300}"
+    if "\n" in str(exc):
+        return f"multi-line message: {str(exc)!r:.300}"
+    return None
+
+
+@pytest.mark.parametrize("cases", BUDGETS)
+def test_fuzz_gym_environments(cases: int):
+    """MultibodyEnv and MultibodyVectorEnv (ur5, solo12's floating base, a scene with a free object in contact) given
+    hostile settings, actions, seeds and reset options: each call returns finite observations of the right shape or
+    raises one of our errors in one line, with no warning and nothing on stderr."""
+    gym = pytest.importorskip("multibody_sim.gym")
+    systems = {
+        "ur5": ms.load_robot("ur5"),
+        "solo12": ms.load_robot("solo12"),
+        "sliding_box": ms.load_scene("sliding_box"),
+    }
+
+    def reward(q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> float:
+        return float(-(v @ v))
+
+    def body(tally: Tally, stderr: Callable[[], str]) -> None:
+        @fuzz_settings(cases)
+        @given(
+            st.sampled_from(sorted(systems)),
+            st.booleans(),
+            st.dictionaries(st.sampled_from(sorted(GYM_SETTINGS)), st.integers(0, 10), max_size=3),
+            st.data(),
+        )
+        def case(name: str, vector: bool, picks: dict[str, int], data: Any) -> None:
+            system = systems[name]
+            chosen = {key: GYM_SETTINGS[key][i % len(GYM_SETTINGS[key])] for key, i in picks.items()}
+            settings = {"reward": reward, "control_dt": 0.01, "dt": 0.002 if name != "sliding_box" else None}
+            settings.update({k: v for k, v in chosen.items() if k not in ("num_envs", "autoreset_mode", "num_threads")})
+            n = 0
+            if vector:
+                n = chosen.get("num_envs", 2)
+                extra = {k: chosen[k] for k in ("autoreset_mode", "num_threads") if k in chosen}
+            stderr()
+            described = f"{name} {'vector' if vector else 'single'} {chosen!r:.300}"
+            try:
+                with warnings.catch_warnings(record=True) as caught, time_limit(5.0):
+                    warnings.simplefilter("always")
+                    if vector:
+                        env = gym.MultibodyVectorEnv(system, n, **settings, **extra)
+                    else:
+                        env = gym.MultibodyEnv(system, **settings)
+                    tally.count("built")
+                    calls = data.draw(gym_calls(system.nq, system.nv, env.num_envs if vector else 0))
+                    described += f" calls {calls!r:.600}"
+                    for call, argument in calls:
+                        try:
+                            result = env.step(argument) if call == "step" else env.reset(**argument)
+                        except ms.MultibodySimError as exc:
+                            if (problem := gym_refusal(exc)) is not None:
+                                tally.fail(f"{problem}\n  case: {described}")
+                            tally.count(f"{call} refused")
+                            continue
+                        observation = result[0]
+                        shape = (env.num_envs, system.nq + system.nv) if vector else (system.nq + system.nv,)
+                        if np.shape(observation) != shape or not np.all(np.isfinite(observation)):
+                            tally.fail(f"{call} gave a bad observation {observation!r:.200}\n  case: {described}")
+                        tally.count(call)
+            except KeyboardInterrupt:  # the case's time ran out: not a finding
+                tally.count("interrupted")
+                return
+            except Exception as exc:
+                tally.count(type(exc).__name__)
+                if (problem := gym_refusal(exc)) is not None:
+                    trace = "".join(traceback.format_exception(exc))[-1500:]
+                    tally.fail(f"{problem}\n  case: {described}\n  {trace}")
+                return
+            if log := stderr():
+                tally.fail(f"output on stderr: {log!r:.300}\n  case: {described}")
+            if caught:
+                tally.fail(f"a warning: {caught[0].message!s:.300}\n  case: {described}")
+
+        case()
+
+    run_fuzzer("gym-environments", body, cases=cases)
 
 
 # ---- command-line numbers ----------------------------------------------------------------------------------

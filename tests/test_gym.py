@@ -287,7 +287,9 @@ def test_bad_arguments_say_what_is_wrong(ur5: ms.Robot) -> None:
         MultibodyEnv(ur5, reward=None, control_dt=0.01)
     with pytest.raises(ms.InvalidArgumentError, match=r"^max_episode_steps must be a positive whole number, got 0$"):
         MultibodyEnv(ur5, **settings(max_episode_steps=0))
-    with pytest.raises(ms.InvalidArgumentError, match=r"^reset_noise_q must be a finite number >= 0, got -1$"):
+    with pytest.raises(
+        ms.InvalidArgumentError, match=r"^reset_noise_q must be a number from 0 to 1e\+06 rad or m, got -1$"
+    ):
         MultibodyEnv(ur5, **settings(reset_noise_q=-1))
     with pytest.raises(ms.InvalidArgumentError, match=r"^control_dt"):
         MultibodyEnv(ur5, **settings(control_dt=0.003))  # not a multiple of dt = 2 ms
@@ -403,3 +405,30 @@ def test_robot_steps_default_to_the_control_interval(ur5: ms.Robot) -> None:
     assert (env.stepper.integrator.name, env.stepper.dt, env.stepper.control_dt) == ("rk4", 0.01, 0.01)
     env = MultibodyEnv(ur5, reward=reward)
     assert (env.stepper.dt, env.stepper.control_dt) == (1e-3, 1e-3)
+
+
+def test_seeds_options_noise_and_sizes_are_refused_in_one_line(ur5: ms.Robot) -> None:
+    """What gymnasium or NumPy would refuse in their own words (or NumPy could not draw) is refused in ours, by both
+    environments alike, and before any row changes."""
+    env = MultibodyEnv(ur5, **settings())
+    vector = MultibodyVectorEnv(ur5, 2, **settings())
+    for e in (env, vector):
+        with pytest.raises(ms.InvalidArgumentError, match=r"^seed must be None or a whole number >= 0, got -1$"):
+            e.reset(seed=-1)
+        with pytest.raises(ms.InvalidArgumentError, match=r"^options must be a dict \(keys 'q', 'v', 'reset_mask'\), "):
+            e.reset(options="q")
+    with pytest.raises(ms.InvalidArgumentError, match=r"^seed must be None or a whole number >= 0, got 1\.5$"):
+        env.reset(seed=1.5)
+    with pytest.raises(ms.InvalidArgumentError, match=r"^seed\[1\] must be None or a whole number >= 0, got 'x'$"):
+        vector.reset(seed=[0, "x"])
+    with pytest.raises(ms.InvalidArgumentError, match=r"^seed must be None, a whole number >= 0 or a list of one per"):
+        vector.reset(seed=[0])
+    obs, _ = vector.reset(seed=3)
+    with pytest.raises(ms.InvalidArgumentError, match=r"^options\['q'\]\[1\] must be finite"):
+        vector.reset(seed=5, options={"q": [ur5.default_pose(), np.full(6, np.nan)]})
+    np.testing.assert_array_equal(vector._observations(), obs)  # refused: nothing reset, no generator reseeded
+    np.testing.assert_array_equal(vector.reset(seed=3)[0], obs)
+    with pytest.raises(ms.InvalidArgumentError, match=r"^reset_noise_v must be a number from 0 to 1e\+06 rad/s or m/s"):
+        MultibodyEnv(ur5, **settings(reset_noise_v=1e308))  # NumPy's uniform draw would overflow
+    with pytest.raises(ms.InvalidArgumentError, match=r"^4611686018427387904 environments would keep their states"):
+        MultibodyVectorEnv(ur5, 2**62, **settings())

@@ -16,7 +16,7 @@ starts from an exact state instead.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,10 +24,12 @@ import numpy as np
 
 from .exceptions import InvalidArgumentError, MissingDependencyError, SimulationError
 from .integrators import Integrator
+from .recording import sample_bytes
 from .robot import Robot, real_array
+from .safety import check_allocation
 from .scenes import Scene
 from .stepper import BatchStepper, Stepper
-from .validation import check_callable, is_number, positive_number
+from .validation import check_callable, in_range, is_number, positive_number
 
 try:
     import gymnasium
@@ -40,6 +42,12 @@ except ImportError:  # pragma: no cover - exercised without the extra only
         "multibody_sim.gym needs the 'gymnasium' package, which is not installed (pip install 'multibody-sim[gym]')"
     ) from None
 
+# The widest start distribution [rad, m; rad/s, m/s]: beyond it the draw means nothing (angles wrap; a base a thousand
+# kilometres away) and its range, 2 x the noise, overflows near 1e308.
+MAX_RESET_NOISE = 1e6
+# A vector environment holds about this many copies of a row's sample: its spaces' bounds, the starts, the stepper's
+# states, torques and ledger, the step's store and the observations returned.
+ROW_COPIES = 8
 Reward = Callable[[np.ndarray, np.ndarray, np.ndarray], float]
 Termination = Callable[[np.ndarray, np.ndarray], bool]
 
@@ -93,8 +101,8 @@ class _Task:
         ):  # fmt: skip
             raise InvalidArgumentError(f"max_episode_steps must be a positive whole number, got {max_episode_steps!r}")
         method, dt, control_dt, options = _timing(system, method, dt, control_dt, options)
-        noise_q = _non_negative(reset_noise_q, "reset_noise_q")
-        noise_v = _non_negative(reset_noise_v, "reset_noise_v")
+        noise_q = in_range(reset_noise_q, "reset_noise_q", 0.0, MAX_RESET_NOISE, "rad or m")
+        noise_v = in_range(reset_noise_v, "reset_noise_v", 0.0, MAX_RESET_NOISE, "rad/s or m/s")
         failure = float(failure_reward) if is_number(failure_reward) else math.nan
         if not math.isfinite(failure):
             raise InvalidArgumentError(f"failure_reward must be a finite number, got {failure_reward!r}")
@@ -179,11 +187,29 @@ def _timing(
     return method, dt, control_dt, options
 
 
-def _non_negative(value: Any, name: str) -> float:
-    number = float(value) if isinstance(value, (int, float, np.number)) and not isinstance(value, bool) else math.nan
-    if not (math.isfinite(number) and number >= 0.0):
-        raise InvalidArgumentError(f"{name} must be a finite number >= 0, got {value!r}")
-    return number
+def _check_seed(seed: Any, name: str = "seed") -> int | None:
+    """A reset's seed: None or a whole number >= 0 (what numpy's SeedSequence takes), else InvalidArgumentError."""
+    if seed is None:
+        return None
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InvalidArgumentError(f"{name} must be None or a whole number >= 0, got {seed!r:.80}")
+    return int(seed)
+
+
+def _check_options(options: Any) -> dict[str, Any]:
+    """A reset's options as a new dict (None: empty), else InvalidArgumentError."""
+    if options is None:
+        return {}
+    if not isinstance(options, Mapping):
+        raise InvalidArgumentError(f"options must be a dict (keys 'q', 'v', 'reset_mask'), got {_described(options)}")
+    return dict(options)
+
+
+def _described(value: Any) -> str:
+    """A short one-line description of a value for a message: an array's shape and dtype, else its type."""
+    if isinstance(value, np.ndarray):
+        return f"an array of shape {value.shape} and dtype {value.dtype}"
+    return type(value).__name__
 
 
 def _observation(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -269,7 +295,8 @@ class MultibodyEnv(gymnasium.Env):
         Returns:
             The observation (q, v), shape (nq + nv,), and info {"t": 0.0}.
         """
-        super().reset(seed=seed)
+        options = _check_options(options)
+        super().reset(seed=_check_seed(seed))
         q, v = self.task.initial_state(self.np_random, options)
         state = self.stepper.reset(q, v, 0.0)
         self._elapsed = 0
@@ -352,6 +379,11 @@ class MultibodyVectorEnv(VectorEnv):
             initial_q, initial_v, reset_noise_q, reset_noise_v, failure_reward,
         )  # fmt: skip
         self.num_envs = n = int(num_envs)
+        check_allocation(
+            ROW_COPIES * sample_bytes(system, n),
+            f"{n} environments would keep their states, spaces and stepping rows",
+            "use fewer environments (num_envs)",
+        )
         self.autoreset_mode = mode
         self.metadata = {"render_modes": [], "autoreset_mode": mode}
         self.render_mode = None
@@ -390,25 +422,28 @@ class MultibodyVectorEnv(VectorEnv):
         """
         n = self.num_envs
         seeds: list[int | None]
-        if seed is None:
-            seeds = [None] * n
-        elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-            seeds = [int(seed) + i for i in range(n)]
+        if seed is None or isinstance(seed, (int, np.integer)):
+            first = _check_seed(seed)
+            seeds = [None if first is None else first + i for i in range(n)]
+        elif isinstance(seed, (list, tuple)) and len(seed) == n:
+            seeds = [_check_seed(s, f"seed[{i}]") for i, s in enumerate(seed)]
         else:
-            seeds = list(seed)  # type: ignore[arg-type]
-            if len(seeds) != n:
-                raise InvalidArgumentError(f"seed as a list must hold one seed per row ({n}), got {len(seeds)}")
-        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-            super().reset(seed=int(seed))
-        options = dict(options or {})
+            got = f"a list of {len(seed)}" if isinstance(seed, (list, tuple)) else f"{seed!r:.80}"
+            raise InvalidArgumentError(
+                f"seed must be None, a whole number >= 0 or a list of one per row ({n}), got {got}"
+            )
+        if seeds[0] is not None and seed is not None and not isinstance(seed, (list, tuple)):
+            super().reset(seed=seeds[0])
+        options = _check_options(options)
         mask = options.pop("reset_mask", None)
         if mask is None:
             rows = np.arange(n)
         else:
-            mask = np.asarray(mask)
+            mask = np.asarray(mask) if isinstance(mask, np.ndarray) else np.asarray(mask, dtype=object)
             if mask.shape != (n,) or mask.dtype != np.bool_ or not mask.any():
                 raise InvalidArgumentError(
-                    f"options['reset_mask'] must be a bool array of shape ({n},) with a True entry, got {mask!r}"
+                    f"options['reset_mask'] must be a bool array of shape ({n},) with a True entry, got "
+                    f"{'no True entry' if mask.shape == (n,) and mask.dtype == np.bool_ else _described(mask)}"
                 )
             rows = np.flatnonzero(mask)
         system = self.task.system
@@ -416,14 +451,15 @@ class MultibodyVectorEnv(VectorEnv):
         Vs = self._exact_rows(options.pop("v", None), "v", len(rows), system.nv)
         infos: dict[str, Any] = {}
         states = []
+        rngs = {i: seeding.np_random(seeds[i])[0] if seeds[i] is not None else self._rng(i) for i in rows.tolist()}
         for j, i in enumerate(rows.tolist()):
-            if seeds[i] is not None:
-                self._rngs[i], _ = seeding.np_random(seeds[i])
             exact: dict[str, Any] | None = None  # an exact start, as MultibodyEnv's options
             if Qs is not None or Vs is not None:
                 exact = {key: value[j] for key, value in (("q", Qs), ("v", Vs)) if value is not None}
-            states.append(self.task.initial_state(self._rng(i), exact, f"[{j}]"))
+            states.append(self.task.initial_state(rngs[i], exact, f"[{j}]"))
             infos = self._add_info(infos, {"t": 0.0}, i)
+        for i, rng in rngs.items():  # every row checked: the rows' generators change only now
+            self._rngs[i] = rng
         self.stepper.reset(rows, np.array([q for q, _ in states]), np.array([v for _, v in states]))
         self._elapsed[rows] = 0
         self._autoreset[rows] = False
