@@ -75,9 +75,10 @@ LIMITS = [
     ),
     ("trajectory compression", "stored or deflate", "bzip2 and LZMA inflate far more per byte read"),
     (
-        "trajectory header nesting",
+        "nesting of JSON and TOML (trajectory headers, scene files, a trajectory's stored scene text, study tables)",
         "64 levels",
-        "counted before parsing (json.loads recurses once per level); the headers we write nest 5 deep",
+        "counted before parsing (json.loads and tomllib recurse per level); the headers we write nest 5 deep, "
+        "scenes 2 (XML: 256, above)",
     ),
     (
         "outputs",

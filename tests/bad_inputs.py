@@ -130,6 +130,7 @@ DISPLAY = {
     "trusted": "<site-packages>/multibody_sim/models, <site-packages>/cmeel.prefix/share, /home/me/robot",
     "joints": UR5_JOINTS,
     "frames": UR5_MOVING_FRAMES,
+    "table": "/home/me/study.json",
 }
 
 
@@ -1796,6 +1797,35 @@ def vector_env() -> Any:
     return envs
 
 
+DEEP = 100_000  # nesting levels: Python's parsers (json, tomllib) recurse once or more per level
+
+
+def deep_scene_file(tmp: Path) -> Trigger:
+    return scene_trigger('[robot]\nsource = "pendulum"\nx = ' + "[" * DEEP + "]" * DEEP + "\n")(tmp)
+
+
+def deep_stored_scene(tmp: Path) -> Trigger:
+    """A run of a scene file whose stored scene text (its metadata) was replaced by one nesting DEEP arrays."""
+    path = tmp / "scene.toml"
+    path.write_text('[robot]\nsource = "pendulum"\n')
+    run = ms.load_scene(path).run(duration=0.002)
+    run.metadata["robot"]["scene"]["toml"] = "x = " + "[" * DEEP + "]" * DEEP + "\n"
+    npz = run.save(tmp / "run.npz")
+
+    def call() -> object:
+        import multibody_sim.viz as viz
+
+        return viz.robot_from_trajectory(ms.Trajectory.load(npz))
+
+    return Trigger(call=call, argv=["play", str(npz), "--html", str(tmp / "view.html")], fields={"scene": str(path)})
+
+
+def deep_table(tmp: Path) -> Trigger:
+    path = tmp / "study.json"
+    path.write_text("[" * DEEP + "]" * DEEP)
+    return Trigger(call=lambda: ms.bench.WorkPrecision.from_json(path), fields={"table": str(path)})
+
+
 ROUND_3 = [
     BadInput(
         "vector-env-complex-actions",
@@ -1813,6 +1843,37 @@ ROUND_3 = [
         "options['q'] must have shape (2, 6), one row per reset row, got (1, 6)",
         "Give one state per row reset (all rows, or the rows of options['reset_mask']).",
         api(lambda: vector_env().reset(options={"q": np.zeros((1, 6))})),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "deep-stored-scene",
+        "Python API",
+        "`viz.robot_from_trajectory(run)` (and `play run.npz`) of a trajectory whose metadata holds a scene text "
+        "nesting arrays 100 000 deep (tomllib would recurse past Python's limit)",
+        "{scene} (the trajectory's stored scene text): refused: it nests arrays and inline tables 100000 levels deep, "
+        "more than the 64 a scene may (the shipped scenes nest 2 deep)",
+        "The file was edited or forged: every nested field read from a file (TOML, JSON, XML) is bounded before it "
+        "is parsed.",
+        deep_stored_scene,
+        ms.SceneError,
+    ),
+    BadInput(
+        "deep-scene-file",
+        "scene file",
+        "a scene file nesting arrays 100 000 deep",
+        "{scene}: refused: it nests arrays and inline tables 100000 levels deep, more than the 64 a scene may (the "
+        "shipped scenes nest 2 deep)",
+        "Check the file: scenes nest arrays two deep (waypoints).",
+        deep_scene_file,
+        ms.SceneError,
+    ),
+    BadInput(
+        "deep-work-precision-table",
+        "Python API",
+        "`bench.WorkPrecision.from_json(path)` (and `bench`'s pilot cache) of a JSON file nesting 100 000 deep",
+        "cannot read work-precision table {table}: it nests 100000 levels deep, more than the 64 a table may",
+        "The file is damaged or forged: delete it (a pilot cache is rebuilt).",
+        deep_table,
         ms.InvalidArgumentError,
     ),
 ]

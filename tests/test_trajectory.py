@@ -332,6 +332,36 @@ def test_the_nesting_count_agrees_with_the_parsed_document(text):
     assert json_depth(text) == depth(json.loads(text))
 
 
+@pytest.mark.parametrize(
+    "text",
+    [
+        'a = "[[[[{{{{"\nb = [1, [2, [3]]]',
+        "a = '[[[' # [[[[[\nb = [[{}]]",
+        'a = """\n[[[\n""" # ]\nb = [{c = [1]}]',
+        "a = '''[[\n[{'''\nb = 1",
+        'a = ["""x"""", [[1]]]',  # a multi-line string ending in a quote of its own, then nesting
+        "a = ['''y''''', [[[2]]], \"z]\"]",
+        'a = "\\\\" # [[\nb = [[], [[]]]',
+        "a = [\n  [1, 2], # ]]]\n  [3],\n]",
+    ],
+)
+def test_the_toml_nesting_count_agrees_with_the_parsed_document(text):
+    """safety.toml_depth counts arrays and inline tables outside strings and comments; the oracle walks what tomllib
+    built (documents of `key = value` lines: table headers would count while open)."""
+    from multibody_sim.safety import toml_depth
+
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python < 3.11
+        import tomli as tomllib  # type: ignore[no-redef]
+
+    def depth(value: Any) -> int:
+        children = value.values() if isinstance(value, dict) else value if isinstance(value, list) else None
+        return 0 if children is None else 1 + max((depth(c) for c in children), default=0)
+
+    assert toml_depth(text) == depth(tomllib.loads(text)) - 1  # the document's own table is no bracket
+
+
 def test_a_header_that_is_not_json(trajectory, tmp_path):
     good = trajectory.save(tmp_path / "good.npz")
     path = rewrite(good, tmp_path / "edited.npz", header=np.array("{not json"))

@@ -39,7 +39,7 @@ from .integrators import INTEGRATORS, Integrator, get_integrator
 from .metadata import versions
 from .native_core import why_not_native
 from .robot import Robot
-from .safety import safe_name
+from .safety import MAX_JSON_DEPTH, json_depth, safe_name
 from .simulation import Controller, simulate
 from .trajectory import Trajectory
 from .validation import (
@@ -394,8 +394,12 @@ class WorkPrecision:
             InvalidArgumentError: the file is unreadable or not a work-precision table.
         """
         try:
-            data = json.loads(Path(path).read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            text = Path(path).read_text(encoding="utf-8")
+            depth = json_depth(text)  # json.loads recurses per level: refuse deep nesting unparsed
+            if depth > MAX_JSON_DEPTH:
+                raise ValueError(f"it nests {depth} levels deep, more than the {MAX_JSON_DEPTH} a table may")
+            data = json.loads(text)
+        except (OSError, UnicodeDecodeError, ValueError) as exc:  # json.JSONDecodeError is a ValueError
             raise InvalidArgumentError(f"cannot read work-precision table {path}: {exc}") from None
         if not isinstance(data, dict):
             raise InvalidArgumentError(f"cannot read work-precision table {path}: not a JSON object")

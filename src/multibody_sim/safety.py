@@ -36,11 +36,20 @@ MAX_HEADER_BYTES = 10_000  # np.load's own default limit on an .npy header
 # A trajectory's JSON header nests 5 deep (header > metadata > robot > load_robot > package_dirs); json.loads
 # recurses once per level and raises RecursionError near 1000, so deeper documents are refused before parsing.
 MAX_JSON_DEPTH = 64
+# Scene files nest arrays and inline tables 2 deep (waypoints); tomllib recurses ~3 frames per level and raises
+# RecursionError near 500, so a scene (a file, or a trajectory's stored scene text) nesting deeper is refused unread.
+MAX_TOML_DEPTH = 64
 # Allocations up to this size are not checked against the memory room: reading it (/proc/meminfo, the cgroup's files)
 # costs 0.2-0.7 ms, as much as a whole short native run or a short rollout's assembly, and no process that got as far
 # as running lacks 16 MiB.
 SMALL_ALLOCATION = 2**24  # [bytes]
 _JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+# TOML's strings and comments, in the order a parser meets them: multi-line basic and literal strings (which may end
+# with one or two quotes of their own before the closing three), basic and literal strings, comments.
+_TOML_SKIPPED = re.compile(
+    r'"""(?:[^\\]|\\.)*?"""(?:"{1,2}(?!"))?|\'\'\'.*?\'\'\'(?:\'{1,2}(?!\'))?|"(?:[^"\\\n]|\\.)*"|\'[^\'\n]*\'|#[^\n]*',
+    re.DOTALL,
+)
 _READABLE_COMPRESSION = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
 _END_OF_DIRECTORY = b"PK\x05\x06"
 _END_RECORD_SIZE = 22  # the fixed part of zip's end-of-central-directory record; a comment (<= 64 KiB) may follow
@@ -107,8 +116,19 @@ def _escape(char: str) -> str:
 def json_depth(text: str) -> int:
     """How deep a JSON text nests its arrays and objects, counted without parsing it (no recursion: linear time,
     whatever the text; brackets inside strings do not count)."""
-    skeleton = _JSON_STRING.sub('""', text).encode("utf-8", "replace")
-    codes = np.frombuffer(skeleton, dtype=np.uint8)
+    return _bracket_depth(_JSON_STRING.sub('""', text))
+
+
+def toml_depth(text: str) -> int:
+    """How deep a TOML text nests its arrays and inline tables (what tomllib recurses on), counted without parsing
+    it, as json_depth does: brackets inside strings and comments do not count; a table header ([a] or [[a]]) counts
+    1 or 2 while it is open."""
+    return _bracket_depth(_TOML_SKIPPED.sub("", text))
+
+
+def _bracket_depth(skeleton: str) -> int:
+    """The deepest nesting of [ and { in a text whose strings are gone (linear time, no recursion)."""
+    codes = np.frombuffer(skeleton.encode("utf-8", "replace"), dtype=np.uint8)
     steps = np.isin(codes, (ord("["), ord("{"))).astype(np.int64) - np.isin(codes, (ord("]"), ord("}")))
     return int(np.cumsum(steps).max(initial=0))
 

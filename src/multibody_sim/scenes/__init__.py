@@ -23,7 +23,7 @@ from ..catalog import (
 from ..exceptions import ModelError, SceneError
 from ..safety import printable
 from .scene import Scene
-from .spec import SceneSpec, parse_scene, read_scene_file
+from .spec import SceneSpec, parse_scene, parse_toml, read_scene_file
 
 __all__ = ["SCENE_PREFIX", "Scene", "SceneSpec", "load_scene", "make_scene", "scene_from_metadata", "shipped_scenes"]
 
@@ -145,16 +145,10 @@ def scene_from_metadata(scene: dict[str, Any], *, allowed_roots: list[str | os.P
         raise SceneError(
             f"{scene.get('source', '<scene>')}: the trajectory's scene was built in Python: its TOML text is not stored"
         )
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python < 3.11
-        import tomli as tomllib  # type: ignore[no-redef]
     base_dir = scene.get("base_dir")
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"{scene.get('source', '<scene>')}: stored scene text is not TOML ({exc})") from None
-    spec = parse_scene(data, str(scene.get("source", "<scene>")), base_dir=Path(base_dir) if base_dir else None)
+    source = printable(str(scene.get("source", "<scene>")))
+    data = parse_toml(text, f"{source} (the trajectory's stored scene text)")
+    spec = parse_scene(data, source, base_dir=Path(base_dir) if base_dir else None)
     roots = folder_list("allowed_roots", allowed_roots)
     # The recorded folder is the file's say: trusted only while it holds the recorded scene file, unchanged (then
     # the user has that scene; a stranger's trajectory cannot name a folder of theirs as the scene's).

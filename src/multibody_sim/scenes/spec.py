@@ -26,7 +26,7 @@ from ..catalog import CATALOG
 from ..controllers import CONTROLLERS
 from ..exceptions import InvalidArgumentError, SceneError
 from ..integrators import INTEGRATORS
-from ..safety import printable
+from ..safety import MAX_TOML_DEPTH, printable, toml_depth
 
 MAX_SCENE_BYTES = 1024 * 1024  # a scene is a few hundred bytes; a megabyte of TOML is not a scene
 TOP_LEVEL_KEYS = (
@@ -479,18 +479,33 @@ def read_scene_file(path: str | os.PathLike[str]) -> SceneSpec:
         raise SceneError(
             f"{source}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start}); save it as UTF-8"
         ) from None
+    spec = parse_scene(parse_toml(text, source), source, base_dir=file.absolute().parent)
+    return dataclasses.replace(spec, text=text)
+
+
+def parse_toml(text: str, source: str) -> dict[str, Any]:
+    """A scene's TOML text as tables (a scene file's, or the text a trajectory stored), its nesting bounded first.
+
+    Raises:
+        SceneError: the text nests arrays and inline tables deeper than MAX_TOML_DEPTH (counted before parsing:
+            tomllib recurses per level), or is not valid TOML (the message gives TOML's line and column).
+    """
+    depth = toml_depth(text)
+    if depth > MAX_TOML_DEPTH:
+        raise SceneError(
+            f"{source}: refused: it nests arrays and inline tables {depth} levels deep, more than the "
+            f"{MAX_TOML_DEPTH} a scene may (the shipped scenes nest 2 deep)"
+        )
     if sys.version_info >= (3, 11):  # here, not at the top: its regular expressions slow `import multibody_sim`
         import tomllib
     else:  # pragma: no cover - exercised on Python 3.10 only
         import tomli as tomllib
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(printable(f"{source}: {_toml_problem(exc)}")) from None
-    except RecursionError:  # tomllib recurses on nested arrays and inline tables
+    except RecursionError:  # what the count above missed (it should miss nothing)
         raise SceneError(f"{source}: TOML syntax error: values nested too deeply") from None
-    spec = parse_scene(data, source, base_dir=file.absolute().parent)
-    return dataclasses.replace(spec, text=text)
 
 
 def _toml_problem(exc: Exception) -> str:
