@@ -594,7 +594,7 @@ def _viz_server_types() -> tuple[type, ...]:
 
 
 # Public callables that take no argument a caller could get wrong, or whose arguments are the documented
-# fast path with no checks (the stepping core's `unchecked_*`, `rows_*`), or result classes built by the package.
+# fast path with no checks (the stepping core's `unchecked_*`), or result classes built by the package.
 EXEMPT = {
     "catalog_table": "no arguments",
     "bench.default_cache_dir": "no arguments",

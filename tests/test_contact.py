@@ -12,9 +12,9 @@ import pinocchio as pin
 import pytest
 
 import multibody_sim as ms
-from multibody_sim import native_core
 from multibody_sim.exceptions import InvalidArgumentError, SimulationError
 from multibody_sim.integrators.timestepping import TimeStepping
+from multibody_sim.kernels import native as native_core
 from multibody_sim.scenes import load_scene, make_scene
 
 G = 9.81

@@ -17,11 +17,12 @@ import pytest
 from conftest import FIELDS, assert_same_run, assert_same_stepper, both, on_kernel
 
 import multibody_sim as ms
-from multibody_sim import native, native_core
+from multibody_sim import native
 from multibody_sim.controllers import PDGravity
 from multibody_sim.integrators import INTEGRATORS
 from multibody_sim.integrators.timestepping import TimeStepping
-from multibody_sim.native_core import BUDGET_SECONDS, next_budget, why_not_native
+from multibody_sim.kernels import native as native_core
+from multibody_sim.kernels.native import BUDGET_SECONDS, next_budget, why_not_native
 from multibody_sim.scenes import contact as contact_module
 from multibody_sim.scenes import make_scene
 

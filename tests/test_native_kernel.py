@@ -1,4 +1,4 @@
-"""The native kernel (src/native/kernel.cpp, native_core.py) against the Python kernel, its specification: the same
+"""The native kernel (src/native/kernel.cpp, kernels/native.py) against the Python kernel, its specification: the same
 samples, counts, statuses and messages for simulate(), Stepper and rollout(), every explicit method, every robot of
 the benchmark set; a perturbed stage coefficient breaks the agreement; Ctrl-C mid-run keeps every sample."""
 
@@ -15,9 +15,10 @@ import pytest
 from conftest import FIELDS, assert_same_run, on_kernel
 
 import multibody_sim as ms
-from multibody_sim import native, native_core
+from multibody_sim import native
 from multibody_sim.driver import choose_kernel
-from multibody_sim.native_core import NativeKernel, why_not_native
+from multibody_sim.kernels import native as native_core
+from multibody_sim.kernels.native import NativeKernel, why_not_native
 
 pytestmark = pytest.mark.skipif(
     not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there

@@ -14,10 +14,11 @@ import pytest
 from conftest import assert_same_run, assert_same_stepper, both, on_kernel
 
 import multibody_sim as ms
-from multibody_sim import native, native_core
+from multibody_sim import native
 from multibody_sim.controllers import PD, GravityCompensation, PDGravity
 from multibody_sim.integrators import INTEGRATORS
-from multibody_sim.native_core import why_not_native
+from multibody_sim.kernels import native as native_core
+from multibody_sim.kernels.native import why_not_native
 from multibody_sim.scenes.elements import ForceElements
 
 pytestmark = pytest.mark.skipif(

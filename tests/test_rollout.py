@@ -71,21 +71,20 @@ def assert_same(batch: ms.BatchTrajectory, reference: list[tuple[ms.Trajectory, 
     assert np.array_equal(batch.mask.sum(axis=1), batch.n_samples)
 
 
-def assert_close(batch: ms.BatchTrajectory, reference: list[tuple[ms.Trajectory, str]], atol: float) -> None:
-    """As assert_same, but the arrays (and the ledger) only within atol + atol * |reference|: for paths whose
-    arithmetic differs from simulate()'s by round-off."""
-    assert len(batch) == len(reference)
-    for b, (traj, message) in enumerate(reference):
-        element = batch.element(b)
-        assert element.status == traj.status and batch.messages[b] == message, b
-        assert batch.n_samples[b] == len(traj)
-        for name in ARRAYS:
-            np.testing.assert_allclose(getattr(element, name), getattr(traj, name), rtol=atol, atol=atol, err_msg=name)
-        for name, entry in traj.ledger.items():
-            np.testing.assert_allclose(element.ledger[name].energy, entry.energy, rtol=atol, atol=atol)
-        for name in COUNTS:
-            assert element.stats[name] == traj.stats[name], (name, b)
-        assert element.limit_violations.count == traj.limit_violations.count, b
+@pytest.fixture(params=["default", "row"])
+def kernel(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """The kernel runs take: "default" (the native one where it runs, as driver.choose_kernel picks) or "row" (the
+    row kernel forced with MULTIBODY_SIM_NATIVE=0, as every run without the compiled extension)."""
+    if request.param == "row":
+        monkeypatch.setenv("MULTIBODY_SIM_NATIVE", "0")
+    return str(request.param)
+
+
+def assert_kernel(batch: ms.BatchTrajectory, kernel: str) -> None:
+    """With the row kernel forced, the batch says it ran on it."""
+    if kernel == "row":
+        assert batch.metadata["kernel"] == "python (row)"
+        assert batch.metadata["why_not_native"] == "MULTIBODY_SIM_NATIVE=0"
 
 
 def random_states(system: ms.Robot, B: int, seed: int, v_scale: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
@@ -112,12 +111,12 @@ def wheel_arm(write_urdf) -> ms.Robot:
 # ---- the batched path reproduces simulate() ------------------------------------------------------------------------
 @pytest.mark.parametrize("integrator", FIXED_STEP_EXPLICIT)
 @pytest.mark.parametrize("case", ["double_pendulum", "ur5_pd", "solo12", "wheel_arm"])
-def test_batch_equals_looped_simulate(robot, request, integrator: str, case: str) -> None:
-    # Every configuration update the batched path can take: vectorised q + dv (double pendulum, ur5), Pinocchio's
-    # integrate over copies of the free-flyer (solo12) or of the continuous joint, with the vectorised chart map
-    # (solo12, methods with more than one stage) and without it; the damping ledger (double pendulum, wheel arm);
-    # saturation at effort limits (ur5's PD asks for too much); a control period and an output period that
-    # differ, and a last step shortened to land on the duration.
+def test_batch_equals_looped_simulate(robot, request, kernel: str, integrator: str, case: str) -> None:
+    # Every configuration update a step takes: q + dv (double pendulum, ur5), Pinocchio's integrate on the
+    # free-flyer (solo12) or the continuous joint, with the chart map (solo12, methods with more than one stage)
+    # and without it; the damping ledger (double pendulum, wheel arm); saturation at effort limits (ur5's PD asks
+    # for too much); a control period and an output period that differ, and a last step shortened to land on the
+    # duration. On either kernel, a batch's rows are simulate()'s runs, bit for bit.
     controllers = None
     if case == "double_pendulum":
         system = robot("double_pendulum")  # damped (URDF 0.05), no limits
@@ -132,25 +131,17 @@ def test_batch_equals_looped_simulate(robot, request, integrator: str, case: str
     Q0, V0 = random_states(system, 4, seed=1, v_scale=0.1 if system.floating_base else 0.5)
     options = dict(duration=0.0305, dt=1e-3, integrator=integrator, output_dt=3e-3, control_dt=2e-3)
     batch = ms.rollout(system, Q0, V0, controller=controllers, **options)
-    reference = looped(system, Q0, V0, controllers, **options)
-    if system.space.is_flat or ms.INTEGRATORS[integrator].evaluations_per_step == 1:
-        assert_same(batch, reference)  # the same arithmetic, bit for bit
-    else:
-        # The free-flyer's chart map xi' = Jexp6(xi)^-1 v is a closed form over the batch here and a 6 x 6 solve
-        # with Pinocchio's Jexp6 in simulate(): both exact to round-off at these rotation increments (below
-        # 1e-4 rad, where Pinocchio's Jexp6 uses its series), a few ulps of |q|, |v| ~ 1 and of the energies
-        # (~25 J) per step, ~30 steps.
-        assert_close(batch, reference, atol=1e-13)
+    assert_same(batch, looped(system, Q0, V0, controllers, **options))
+    assert_kernel(batch, kernel)
     assert np.all(batch.status == "completed")
     assert batch.t.shape == (4, 12) and batch.t[0, -1] == 0.0305  # 0, 3, ..., 30 ms and the end
     if case == "ur5_pd":
         assert batch.stats["saturated_controls"][0] > 0 and batch.stats["saturated_controls"][2] == 0
 
 
-def test_tableaus_whose_stage_sums_need_blas_are_bit_for_bit_too(robot) -> None:
-    # RK4's stage sums have one coefficient each, a power of two: one exact multiplication over the batch. Other
-    # tableaus go through the same per-element BLAS call as ExplicitRungeKutta: Kutta's 3/8 rule (several terms
-    # per stage) and Ralston's method (one term, 2/3, whose product is not exact) must match bit for bit too.
+def test_tableaus_with_many_terms_or_inexact_products_are_bit_for_bit_too(robot, kernel: str) -> None:
+    # Kutta's 3/8 rule (several terms per stage sum) and Ralston's method (one term, 2/3, whose product is not
+    # exact): a tableau built here, not in the registry, runs on the row kernel; rollout and simulate agree on it.
     three_eighths = ButcherTableau(
         a=((0, 0, 0, 0), (1 / 3, 0, 0, 0), (-1 / 3, 1, 0, 0), (1, -1, 1, 0)),
         b=(1 / 8, 3 / 8, 3 / 8, 1 / 8),
@@ -238,7 +229,7 @@ def test_permutation_threads_and_batch_size_do_not_change_an_element(robot, name
         np.testing.assert_array_equal(getattr(alone, field)[0], getattr(whole, field)[2])
 
 
-# ---- configuration updates and the chart map over a batch ---------------------------------------------------------
+# ---- every joint kind over a batch ---------------------------------------------------------------------------------
 JOINT_MODELS = {
     "free_flyer": pin.JointModelFreeFlyer,
     "spherical": pin.JointModelSpherical,
@@ -261,44 +252,22 @@ def chain(*kinds: str) -> ms.Robot:
     return ms.Robot(model, name="chain", floating_base=False)
 
 
-def test_every_joint_kind_integrates_as_pinocchio_and_the_batch_follows_simulate() -> None:
-    # Vector coordinates (revolute, prismatic) are added in numpy; the free-flyer, spherical, planar and continuous
-    # joints go through one pin.integrate call on a model of copies of just those joints: bit for bit as
-    # pin.integrate on each element, for increments from round-off to several radians.
-    mixed = chain("free_flyer", "spherical", "planar", "continuous", "prismatic", "revolute")
-    space = mixed.space.batch
-    assert not space.per_element and not space.vector_space
-    assert space.aligned  # non-vector joints first: the stage sums take the shifted path
-    rng = np.random.default_rng(14)
-    Q = np.array([mixed.random_configuration(rng) for _ in range(6)])
-    DV = rng.normal(size=(6, mixed.nv)) * 10.0 ** rng.uniform(-12, 0.5, (6, 1))
-    out = np.empty_like(Q)
-    space.integrate(Q, DV, out)
-    np.testing.assert_array_equal(out, [pin.integrate(mixed.model, Q[b], DV[b]) for b in range(6)])
+def test_every_joint_kind_in_a_batch_follows_simulate(kernel: str) -> None:
+    # Free-flyer, spherical, planar (the chart map), continuous, prismatic and revolute joints, with the curved
+    # joints first and interleaved with the others: on either kernel each row of a batch is simulate()'s run.
     options = dict(duration=0.02, dt=1e-3, output_dt=5e-3)
-    Q0, V0 = random_states(mixed, 3, seed=15, v_scale=0.1)
-    # The chart map (free-flyer, spherical, planar): the same series for both, ConfigurationSpace.chart_rates over
-    # the batch and chart_velocity per element, whose products are summed in another order and may round
-    # differently by an ulp: the batch equals simulate() to round-off, with RK4 (series truncated after A²) and
-    # midpoint (after A).
-    for integrator in ("rk4", "midpoint", "euler"):
-        reference = looped(mixed, Q0, V0, integrator=integrator, **options)
-        assert_close(ms.rollout(mixed, Q0, V0, integrator=integrator, **options), reference, atol=1e-13)
-    # A vector joint before the others: q's vector coordinates no longer line up with their rates under one
-    # offset, so the stages take the general path, with the same results.
+    mixed = chain("free_flyer", "spherical", "planar", "continuous", "prismatic", "revolute")
     interleaved = chain("revolute", "spherical", "prismatic", "free_flyer", "continuous")
-    assert not interleaved.space.batch.aligned
-    Q0, V0 = random_states(interleaved, 3, seed=17, v_scale=0.1)
-    for integrator in ("rk4", "euler"):
-        reference = looped(interleaved, Q0, V0, integrator=integrator, **options)
-        assert_close(ms.rollout(interleaved, Q0, V0, integrator=integrator, **options), reference, atol=1e-13)
-    flat = chain("continuous", "prismatic", "revolute")  # no chart map: bit for bit
-    Q0, V0 = random_states(flat, 3, seed=16, v_scale=0.1)
-    assert_same(ms.rollout(flat, Q0, V0, **options), looped(flat, Q0, V0, **options))
+    for system, seed in ((mixed, 15), (interleaved, 17)):
+        Q0, V0 = random_states(system, 3, seed=seed, v_scale=0.1)
+        for integrator in ("rk4", "midpoint", "euler"):
+            batch = ms.rollout(system, Q0, V0, integrator=integrator, **options)
+            assert_same(batch, looped(system, Q0, V0, integrator=integrator, **options))
+            assert_kernel(batch, kernel)
 
 
 # ---- early stops: one element's fate does not spoil the others ----------------------------------------------------
-def test_diverging_elements_stop_with_simulates_status_and_message_and_the_rest_complete(robot) -> None:
+def test_diverging_elements_stop_with_simulates_status_and_message_and_the_rest_complete(robot, kernel: str) -> None:
     dp = robot("double_pendulum")
     Q0 = np.array([[3.0, 0.0], [0.1, 0.2], [3.0, 0.1], [1.0, 1.0], [1.0, 1.0]])
     # Element 1 spins so fast that explicit Euler's energy error explodes; element 3's kinetic energy
@@ -354,7 +323,7 @@ def test_ctrl_c_keeps_every_element_so_far(robot) -> None:
 def test_scene_records_are_kept_per_element_also_on_ctrl_c() -> None:
     # Each element keeps what simulate() records besides the state, its springs' potentials (ledger) and its
     # constraints' forces and drift, and so does a batch that a Ctrl-C cut short. Scenes step all their elements
-    # together (the spring chain in the batch kernel, the four-bar's constraint in the row kernel over the rows),
+    # together (the spring chain in the native kernel where it runs, the four-bar's constraint in the row kernel),
     # so a Ctrl-C interrupts every element at the same instant, each with simulate()'s samples up to it.
     four_bar, springs = ms.load_scene("four_bar"), ms.load_scene("spring_chain")
     for scene in (four_bar, springs):

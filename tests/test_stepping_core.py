@@ -101,8 +101,7 @@ def test_stepper_and_rollout_give_simulates_samples_at_every_control_instant(sys
         assert not traj.tau[:, :6].any()  # the controller leaves the base alone
     for counter in ("steps", "rejected_steps", "evaluations", "saturated_controls"):
         assert stepper.stats[counter] == traj.stats[counter], counter
-    # rollout: the same samples for every element (bit for bit on fixed bases; the batched chart map of a
-    # floating base sums its products in another order: round-off)
+    # rollout: the same samples for every element, bit for bit
     Q0 = np.array([q0, start(system, 11)[0], q0])
     V0 = np.array([v0, start(system, 11)[1], -v0])
     batch = ms.rollout(
@@ -112,23 +111,19 @@ def test_stepper_and_rollout_give_simulates_samples_at_every_control_instant(sys
     first = batch.element(0)
     assert first.status == traj.status == "completed"
     for field in ("t", "q", "v", "tau", "kinetic_energy", "potential_energy", "work", "dissipated", "energy_error"):
-        got, want = getattr(first, field), getattr(traj, field)
-        if system.floating_base and not method.adaptive and method.evaluations_per_step > 1:
-            np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13, err_msg=field)
-        else:
-            np.testing.assert_array_equal(got, want, err_msg=field)
+        np.testing.assert_array_equal(getattr(first, field), getattr(traj, field), err_msg=field)
     for name_, entry in traj.ledger.items():
-        np.testing.assert_allclose(first.ledger[name_].energy, entry.energy, rtol=1e-13, atol=1e-13)
+        np.testing.assert_array_equal(first.ledger[name_].energy, entry.energy, err_msg=name_)
 
 
 def test_a_scene_with_springs_friction_and_a_wrench_batches(systems, monkeypatch) -> None:
-    """Scenes take the batch kernel too (no more element by element): the metadata names the kernel. (The native
-    kernel takes them where it is built: tests/test_native_scene.py; here the Python kernels.)"""
+    """Without the native kernel a batch of a scene runs the row kernel over its rows: the metadata names the kernel.
+    (The native kernel takes scenes where it is built: tests/test_native_scene.py; here the Python kernel.)"""
     monkeypatch.setenv("MULTIBODY_SIM_NATIVE", "0")
     scene = systems["scene"]
     Q0 = np.array([start(scene, s)[0] for s in range(4)])
     batch = ms.rollout(scene, Q0, np.zeros((4, scene.nv)), duration=0.01, dt=DT)
-    assert batch.metadata["kernel"] == "python (batch)"
+    assert batch.metadata["kernel"] == "python (row)"
     alone = ms.simulate(scene, Q0[2], np.zeros(scene.nv), duration=0.01, dt=DT)
     assert alone.metadata["kernel"] == "python (row)"
     np.testing.assert_array_equal(batch.element(2).q, alone.q)

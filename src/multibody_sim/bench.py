@@ -36,8 +36,8 @@ from .driver import controller_name
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
 from .files import write_atomically
 from .integrators import INTEGRATORS, Integrator, get_integrator
+from .kernels.native import why_not_native
 from .metadata import versions
-from .native_core import why_not_native
 from .robot import Robot
 from .safety import MAX_JSON_DEPTH, json_depth, safe_name
 from .simulation import Controller, simulate

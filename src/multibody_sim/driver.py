@@ -15,13 +15,13 @@ from typing import Any
 
 import numpy as np
 
-from .core import EMPTY, FULL, REACHED, Core, RowKernel, Sampler, cure_for_dt
+from .core import EMPTY, FULL, REACHED, Core, Sampler, cure_for_dt
 from .exceptions import ControllerOutputError, InvalidArgumentError, MultibodySimError, TrajectoryFileError
 from .files import signals_held
 from .integrators import Integrator
-from .integrators.batch import BatchRungeKutta, batch_kernel_supported
+from .kernels.native import NativeCore, NativeKernel, why_not_native
+from .kernels.row import RowKernel
 from .metadata import run_metadata
-from .native_core import NativeCore, NativeKernel, why_not_native
 from .recording import COUNTERS, SampleStore, check_memory, file_bytes, samples_needed
 from .safety import check_file_size
 from .step_control import SLIVER, ConstantStep, PIController
@@ -318,21 +318,15 @@ def choose_kernel(
     rtol: float | None = None,
     atol: float | None = None,
     num_threads: int = 1,
-    torque_free: bool = False,
     native: bool | None = None,
-) -> RowKernel | BatchRungeKutta | NativeKernel:
+) -> RowKernel | NativeKernel:
     """The kernel a run of these rows takes: the native kernel when it runs the method on the system
-    (native_core.why_not_native; `native`: its answer, when the caller has it), else the batch kernel for several
-    rows when it renders the method on the system, else the row kernel (simulate(), Stepper and rollout() share this
-    rule)."""
+    (kernels.native.why_not_native; `native`: its answer, when the caller has it), else the row kernel, for one row
+    or many (simulate(), Stepper, BatchStepper and rollout() share this rule)."""
     if native is None:
         native = why_not_native(system, method) is None
     if native:
         return NativeKernel(system, method, Q0, V0, rtol=rtol, atol=atol, num_threads=num_threads)
-    if len(Q0) > 1 and batch_kernel_supported(system, method):
-        dynamics = system.rows_dynamics(num_threads)
-        if dynamics is not None:
-            return BatchRungeKutta(system, method, Q0, V0, dynamics=dynamics, torque_free=torque_free)
     return RowKernel(system, method, Q0, V0, rtol=rtol, atol=atol)
 
 
@@ -342,10 +336,8 @@ def core_class(kernel: Any) -> type[Core]:
 
 
 def kernel_name(kernel: Any) -> str:
-    """The kernel's name in the run header and the metadata: "native", "python (batch)" or "python (row)"."""
-    if isinstance(kernel, NativeKernel):
-        return "native"
-    return "python (batch)" if isinstance(kernel, BatchRungeKutta) else "python (row)"
+    """The kernel's name in the run header and the metadata: "native" or "python (row)"."""
+    return "native" if isinstance(kernel, NativeKernel) else "python (row)"
 
 
 # ---- a run ---------------------------------------------------------------------------------------------------------
@@ -570,7 +562,6 @@ class Run:
             rtol=settings.rtol,
             atol=settings.atol,
             num_threads=num_threads,
-            torque_free=torques.kind == "none",
             native=self.why_not_native is None,
         )
         self.kernel_name = kernel_name(kernel)

@@ -39,13 +39,3 @@ def ordered_matvec(H: np.ndarray, y: np.ndarray) -> np.ndarray:
 def ordered_dot(x: np.ndarray, y: np.ndarray) -> float:
     """x · y for vectors, the products added in index order."""
     return float(np.add.accumulate(x * y)[-1])
-
-
-def ordered_rowdot(X: np.ndarray, Y: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """ordered_dot of each row of X and Y (n, m) -> (n,), each exactly as ordered_dot(X[i], Y[i]); into `out` when
-    given."""
-    dots = np.add.accumulate(X * Y, axis=1)[:, -1]
-    if out is None:
-        return dots
-    out[...] = dots
-    return out

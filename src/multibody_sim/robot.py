@@ -9,7 +9,7 @@ import numpy as np
 import pinocchio as pin
 
 from .exceptions import InvalidArgumentError, UnknownNameError
-from .ordered import ordered_dot, ordered_rowdot
+from .ordered import ordered_dot
 from .state import ConfigurationSpace
 
 _WORLD = pin.Convention.WORLD
@@ -267,54 +267,6 @@ class Robot:
             pin.computePotentialEnergy(self.model, self.data)
         )
 
-    # ---- many rows at once (the batch kernel) ------------------------------------------------------
-    def rows_dynamics(self, num_threads: int = 1) -> RowsDynamics | None:
-        """Forward dynamics and ledger powers of many states at once, with this robot's arithmetic per row (None
-        when the system has no batched form)."""
-        return RowsDynamics(self, num_threads)
-
-    def rows_applied(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> np.ndarray:
-        """The generalized forces ABA is given for each row, tau - D v (see unchecked_forward_dynamics), into out."""
-        if self._damped:
-            return np.subtract(TAU, self.damping * V, out=out)
-        out[...] = TAU
-        return out
-
-    def rows_ledger_power(
-        self,
-        Q: np.ndarray,
-        V: np.ndarray,
-        TAU: np.ndarray,
-        t: float,
-        out: np.ndarray,
-        *,
-        fresh: bool = True,
-        torques: bool = True,
-    ) -> None:
-        """ledger_power of each row into out (n, n_elements); `fresh`: rows_applied was just called at (Q, V, t);
-        not `torques`: TAU is zero (no controller), so is the torques' power (tau · v = 0 for finite v)."""
-        if torques:
-            ordered_rowdot(TAU, V, out=out[:, 0])  # ledger_power's ordered_dot, row by row
-        else:
-            out[:, 0] = 0.0
-        if self._damped:
-            ordered_rowdot(V, self.damping * V, out=out[:, 1])
-
-    def rows_energies(self, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
-        """(T, V) [J] of each row, shape (n, 2), each as unchecked_energies computes it."""
-        model, data = self.model, self.data
-        kinetic, potential = pin.computeKineticEnergy, pin.computePotentialEnergy
-        out = np.empty((len(Q), 2))
-        # computeKineticEnergy(model, data, q, v) is forwardKinematics then the data-only call: the same arithmetic
-        # in two Python calls instead of three.
-        out.reshape(-1)[:] = [
-            e for q, v in zip(Q, V, strict=True) for e in (kinetic(model, data, q, v), potential(model, data))
-        ]
-        return out
-
-    def rows_record(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> None:
-        """unchecked_record of each row into out (n, Σ widths) (a robot records nothing)."""
-
     # What a system records at each sample besides the state and energies: (category, name, width) with category
     # "potential" (a spring's stored energy) or "constraint" (forces, then drift and velocity drift). A robot alone
     # records nothing; scenes do.
@@ -394,43 +346,6 @@ class Robot:
         if per_row:
             return head.any(axis=-1) | tail.any(axis=-1)
         return bool(head.any() or tail.any())
-
-
-class RowsDynamics:
-    """Forward dynamics of many rows at once: the system's applied forces per row, then one Pinocchio
-    ``abaInParallel`` call (WORLD convention, as unchecked_forward_dynamics' ``aba``, so each row equals it bit for
-    bit) over a ModelPool of `num_threads` threads."""
-
-    def __init__(self, system: Robot, num_threads: int):
-        self.system = system
-        self.num_threads = num_threads
-        self.pool = pin.ModelPool(system.model, num_threads)
-        self._applied: dict[int, np.ndarray] = {}
-
-    def accelerations(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> None:
-        """out (n, nv) = forward dynamics of the rows (Q (n, nq), V (n, nv), TAU (n, nv)) at time t [s]."""
-        n = len(Q)
-        applied = self._applied.get(n)
-        if applied is None:
-            applied = self._applied[n] = np.empty((n, self.system.nv))
-        self.system.rows_applied(Q, V, TAU, t, applied)
-        # Column-major (nq, n) views of the row-major arrays: abaInParallel reads and writes them in place.
-        pin.abaInParallel(self.num_threads, self.pool, Q.T, V.T, applied.T, out.T)
-
-    def ledger_power(
-        self,
-        Q: np.ndarray,
-        V: np.ndarray,
-        TAU: np.ndarray,
-        t: float,
-        out: np.ndarray,
-        *,
-        fresh: bool = True,
-        torques: bool = True,
-    ) -> None:
-        """Power of each ledger element per row [W], out (n, m); `fresh`: accelerations() was just called at these
-        rows (a scene's wrenches then need no new kinematics); not `torques`: TAU is zero."""
-        self.system.rows_ledger_power(Q, V, TAU, t, out, fresh=fresh, torques=torques)
 
 
 def real_array(value: Any, name: str, expected: str) -> np.ndarray:

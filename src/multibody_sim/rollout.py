@@ -1,11 +1,9 @@
 """Batched rollouts: many initial states, controllers or torque sequences at once, on one machine or on Ray.
 
-A batch is the driver (driver.py) over a stepping core of B rows: the fixed-step explicit methods take the batch
-kernel (integrators/batch.py: the rows' arithmetic vectorised, each row bit for bit the row kernel's, but to
-round-off on free-flyer, spherical and planar joints, whose chart map's products are summed over the whole batch),
-any other fixed-step method the row kernel over the same rows; adaptive methods, whose rows choose their own
-steps, run one row at a time through the same driver. So every element gets ``simulate()``'s samples, status and
-message.
+A batch is the driver (driver.py) over a stepping core of B rows: fixed-step methods step the rows together, in the
+native kernel where it runs (kernels/native.py), else in the row kernel (kernels/row.py); adaptive methods, whose
+rows choose their own steps, run one row at a time through the same driver. So every element gets ``simulate()``'s
+samples, status and message, bit for bit.
 """
 
 from __future__ import annotations
@@ -182,11 +180,9 @@ def rollout(
 ) -> BatchTrajectory:
     """Simulate a batch of initial states (with controllers or open-loop torques) for `duration` seconds.
 
-    Each element gets the samples ``simulate(system, q0s[b], v0s[b], ...)`` would return: bit for bit on the
-    local backend, but to round-off on free-flyer, spherical and planar joints with multi-stage methods (their
-    chart map's products are summed over the batch in another order); an element that stops early (diverges, or
-    its controller raises or returns something that is not a torque: status "failed") keeps its samples, its
-    status and its message, and never stops the others.
+    Each element gets the samples ``simulate(system, q0s[b], v0s[b], ...)`` would return, bit for bit; an element
+    that stops early (diverges, or its controller raises or returns something that is not a torque: status "failed")
+    keeps its samples, its status and its message, and never stops the others.
 
     Args:
         system: the robot (or scene).
@@ -194,8 +190,8 @@ def rollout(
         v0s: initial velocities, shape (B, nv).
         duration: simulated time [s], > 0.
         dt: integration step [s], > 0 (adaptive methods: the first trial step).
-        integrator: a registry name or an Integrator. Fixed-step methods step the whole batch together (the
-            explicit ones vectorised); adaptive ones run one element at a time.
+        integrator: a registry name or an Integrator. Fixed-step methods step the whole batch together; adaptive
+            ones run one element at a time.
         controller: one of: a per-state callable ``(t, q, v) -> tau`` used by every element (an object with a
             ``reset()`` method holds state: each element gets its own deep copy, reset before the run); a
             sequence of B such callables, one per element (parameter sweeps); or a batched controller, an
@@ -211,7 +207,8 @@ def rollout(
             False never.
         backend: "local" (this process) or "ray" (chunks of the batch as Ray tasks on the cluster that
             ``ray.init`` connected to; ``pip install 'multibody-sim[ray]'``).
-        num_threads: threads of Pinocchio's abaInParallel on the local backend (each Ray task uses 1).
+        num_threads: threads the native kernel splits the batch over on the local backend (each Ray task uses 1;
+            the row kernel runs on one).
         chunk_size: elements per Ray task (default: the batch split into two chunks per CPU of the cluster).
         **options: simulate()'s options: ``output_dt``, ``control_dt``; adaptive methods also ``rtol``,
             ``atol``, ``max_step``.

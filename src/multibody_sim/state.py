@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -70,14 +69,7 @@ class ConfigurationSpace:
             (np.argmax(G != 0.0, axis=0).reshape(stop - start, -1), 0.5 * G.sum(axis=0).reshape(stop - start, -1))
             for (start, stop), G in zip(self.curved_blocks, self.chart_generators, strict=True)
         ]
-        # For a stack of rows, H y without per-row matrices: H's non-zero entries (i, j), each ±xi_k / 2, give
-        # the products xi_k y_j (18 on se(3)), which one matrix S (terms, d) of ±1/2 sums into their outputs i.
-        self._chart_products = [
-            _chart_products(G, stop - start)
-            for (start, stop), G in zip(self.curved_blocks, self.chart_generators, strict=True)
-        ]
         self.neutral = pin.neutral(model)
-        self._batch: BatchSpace | None = None
 
     @property
     def is_flat(self) -> bool:
@@ -106,22 +98,6 @@ class ConfigurationSpace:
             out[start:stop] = _chart_series(functools.partial(ordered_matvec, H), v[start:stop], terms)
         return out
 
-    def chart_rates(self, XI: np.ndarray, V: np.ndarray, terms: int, out: np.ndarray) -> np.ndarray:
-        """chart_velocity of n rows at once, shapes (n, nv) × 3; returns out. The same series as chart_velocity,
-        but each H y is summed from its non-zero products by one matrix product over all rows (an order of
-        additions that can differ from chart_velocity's by an ulp); no row's result depends on the batch."""
-        np.copyto(out, V)
-        if terms == 0:
-            return out
-        for (start, stop), (k, j, S) in zip(self.curved_blocks, self._chart_products, strict=True):
-            xi = XI[:, start:stop][:, k]  # (n, terms): the coordinate of xi in each product
-
-            def apply_h(y: np.ndarray, xi: np.ndarray = xi, j: np.ndarray = j, S: np.ndarray = S) -> np.ndarray:
-                return np.multiply(xi, y[:, j]) @ S
-
-            out[:, start:stop] = _chart_series(apply_h, np.ascontiguousarray(V[:, start:stop]), terms)
-        return out
-
     def chart_matrix(self, xi: np.ndarray, terms: int) -> list[np.ndarray]:
         """The truncated J(xi)^-1 = Σ_{n≤terms} b_n A(xi)^n of each curved block, shapes (d, d)."""
         out = []
@@ -147,13 +123,6 @@ class ConfigurationSpace:
             N = _chart_velocity_derivative(G, xi[start:stop], v[start:stop], terms)
             d_rate[start:stop] += N @ d_xi[start:stop]
 
-    @property
-    def batch(self) -> BatchSpace:
-        """The same manifold over many rows at once (made on first use, then kept with this space)."""
-        if self._batch is None:
-            self._batch = BatchSpace(self.model)
-        return self._batch
-
     def is_normalized(self, q: np.ndarray, tolerance: float = 1e-6) -> bool:
         """Whether the unit-quaternion and unit-complex entries of q have unit norm."""
         return bool(pin.isNormalized(self.model, q, tolerance))
@@ -161,7 +130,7 @@ class ConfigurationSpace:
 
 def _chart_series(apply_h: Callable[[np.ndarray], np.ndarray], v: np.ndarray, terms: int) -> np.ndarray:
     """Σ_{n≤terms} c_n Hⁿ v by Horner's rule, with H = A / 2 applied by `apply_h` (c_n: _HALF_SERIES). v is a
-    vector, rows of vectors (chart_rates) or a matrix (then the result is the truncated J⁻¹ itself when v = I)."""
+    vector or a matrix (then the result is the truncated J⁻¹ itself when v = I)."""
     y = v * _HALF_SERIES[terms]
     for k in range(terms - 1, -1, -1):  # y = H y + c_k v
         y = apply_h(y)
@@ -190,16 +159,6 @@ def _chart_velocity_derivative(G: np.ndarray, xi: np.ndarray, V: np.ndarray, ter
             N -= CHART_SERIES[n] * T
         w = A @ w
     return N
-
-
-def _chart_products(G: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(k, j, S) with H(xi) y = (xi[k] * y[j]) @ S for H = A / 2 and A(xi) = (xi @ G).reshape(d, d): one term per
-    non-zero entry G[k, i·d + j] of the generators, which S (terms, d) adds, times G's ±1 / 2, into output i."""
-    k, column = np.nonzero(G)
-    i, j = np.divmod(column, d)
-    S = np.zeros((len(k), d))
-    S[np.arange(len(k)), i] = 0.5 * G[k, column]
-    return k, j, S
 
 
 def _curved_blocks(model: pin.Model) -> list[tuple[int, int]]:
@@ -240,107 +199,3 @@ def _chart_generators(model: pin.Model, start: int, stop: int) -> np.ndarray:
     if np.abs(G.reshape(d, d * d) - rounded).max() > 1e-6 or (np.count_nonzero(rounded, axis=0) > 1).any():
         raise ValueError("a joint's Lie algebra is not one this chart map supports")  # pragma: no cover
     return rounded
-
-
-class BatchSpace:
-    """The configuration manifold over a batch: q ⊕ dv for n rows at once.
-
-    Coordinates of joints whose configuration is a vector (revolute, prismatic: Pinocchio's integrate is
-    q + dv there, checked) are added in one numpy operation per run of them; the other joints (free-flyer,
-    spherical, continuous, planar) go through one ``pin.integrate`` call on a model made of n copies of just
-    those joints: Pinocchio's own per-joint code, so its results bit for bit, in one C++ loop. (The chart map needs no
-    batch version: ConfigurationSpace.chart_rates takes many rows.)
-    """
-
-    def __init__(self, model: pin.Model):
-        self.model = model
-        self.nq, self.nv = model.nq, model.nv
-        runs: list[list[int]] = []  # [q start, v start, length] of consecutive vector-coordinate joints
-        lie: list[Any] = []
-        lie_q: list[int] = []
-        lie_v: list[int] = []
-        for joint in model.joints[1:]:
-            if joint.nq == joint.nv:
-                if joint.nq == 0:
-                    continue
-                last = runs[-1] if runs else None
-                if last is not None and last[0] + last[2] == joint.idx_q and last[1] + last[2] == joint.idx_v:
-                    last[2] += joint.nq
-                else:
-                    runs.append([joint.idx_q, joint.idx_v, joint.nq])
-            else:
-                lie.append(joint)
-                lie_q += range(joint.idx_q, joint.idx_q + joint.nq)
-                lie_v += range(joint.idx_v, joint.idx_v + joint.nv)
-        self.runs = [(q, v, n) for q, v, n in runs]
-        self.lie_joints = lie
-        self.lie_q, self.lie_v = indexer(lie_q), indexer(lie_v)
-        self._lie_models: dict[int, pin.Model] = {}
-        self.per_element = not self._check_integrate()
-        self.vector_space = not lie and self.runs == [(0, 0, model.nq)] and not self.per_element
-        # Whether every vector coordinate sits nq - nv columns after its velocity (the other joints come first,
-        # as a floating base does): then q's vector coordinates and v line up with the stage rates' row under
-        # one offset, as on a vector space (see _rk_step).
-        extra = model.nq - model.nv
-        self.aligned = not self.per_element and all(q - v == extra for q, v, _ in self.runs)
-
-    def _check_integrate(self) -> bool:
-        """Whether the vectorised integrate gives pin.integrate's results bit for bit on this model (a few random
-        rows): vector coordinates must really be q + dv, and the copies-of-joints model must act as the original."""
-        model = self.model
-        rng = np.random.default_rng(0)
-        rows = 3
-        Q = np.array([pin.integrate(model, pin.neutral(model), rng.uniform(-3.0, 3.0, model.nv)) for _ in range(rows)])
-        DV = rng.normal(size=(rows, model.nv)) * 10.0 ** rng.uniform(-8, 1, (rows, model.nv))
-        out = np.empty_like(Q)
-        self._vectorised_integrate(Q, DV, out)
-        return all(np.array_equal(out[b], pin.integrate(model, Q[b], DV[b])) for b in range(rows))
-
-    def _lie_model(self, n: int) -> pin.Model:
-        model = self._lie_models.get(n)
-        if model is None:
-            if len(self._lie_models) >= _LIE_MODELS_KEPT:  # batches shrink as elements stop: keep the latest
-                del self._lie_models[next(iter(self._lie_models))]
-            model = pin.Model()
-            for b in range(n):
-                for j, joint in enumerate(self.lie_joints):
-                    model.addJoint(0, joint, pin.SE3.Identity(), f"element{b}_joint{j}")
-            self._lie_models[n] = model
-        return model
-
-    def integrate(self, Q: np.ndarray, DV: np.ndarray, out: np.ndarray) -> None:
-        """out = Q ⊕ DV row by row, as pin.integrate; shapes (n, nq), (n, nv), (n, nq)."""
-        if self.vector_space:
-            np.add(Q, DV, out=out)
-        elif self.per_element:
-            model = self.model
-            for j in range(len(Q)):
-                out[j] = pin.integrate(model, Q[j], DV[j])
-        else:
-            self._vectorised_integrate(Q, DV, out)
-
-    def _vectorised_integrate(self, Q: np.ndarray, DV: np.ndarray, out: np.ndarray) -> None:
-        for q, v, n in self.runs:
-            np.add(Q[:, q : q + n], DV[:, v : v + n], out=out[:, q : q + n])
-        if self.lie_joints:
-            self.integrate_lie(self.lie_coordinates(Q), DV, out)
-
-    def lie_coordinates(self, Q: np.ndarray) -> np.ndarray:
-        """The coordinates of Q's non-vector joints, flat and contiguous: integrate_lie's argument."""
-        return np.ascontiguousarray(Q[:, self.lie_q]).reshape(-1)
-
-    def integrate_lie(self, q_lie: np.ndarray, DV: np.ndarray, out: np.ndarray) -> None:
-        """The non-vector joints' columns of out = Q ⊕ DV, from q_lie = lie_coordinates(Q); DV (n, nv)."""
-        n = len(DV)
-        dv = np.ascontiguousarray(DV[:, self.lie_v]).reshape(-1)
-        out[:, self.lie_q] = pin.integrate(self._lie_model(n), q_lie, dv).reshape(n, -1)
-
-
-_LIE_MODELS_KEPT = 8  # copies-of-joints models kept per space, one per batch size
-
-
-def indexer(indices: list[int]) -> slice | np.ndarray:
-    """Column indices as a slice when they are consecutive (a view and a fast copy), else as an index array."""
-    if indices and indices == list(range(indices[0], indices[-1] + 1)):
-        return slice(indices[0], indices[-1] + 1)
-    return np.array(indices, dtype=int)

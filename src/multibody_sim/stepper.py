@@ -4,12 +4,11 @@ one control interval per call."""
 from __future__ import annotations
 
 import math
-import re
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from .core import Core, cure_for_dt
+from .core import Core, RowStop, cure_for_dt, stop_message
 from .driver import Monitor, Saturation, check_torque, choose_kernel, core_class
 from .exceptions import InvalidArgumentError, SimulationError
 from .integrators import Integrator, get_integrator
@@ -480,13 +479,12 @@ class BatchStepper:
     Stepper, for vector environments and batched MPC loops.
 
     Fixed-step methods on a system whose dynamics do not depend on time (a robot; a scene without time-varying
-    forces) advance every row through one stepping core over the B rows, as rollout() does (the batch kernel where
-    it renders the method, driver.choose_kernel); each row then gets a Stepper's states bit for bit (to round-off
-    on free-flyer, spherical and planar joints with multi-stage methods, as rollout). Adaptive methods, whose rows
-    choose their own steps, and time-varying scenes, whose rows' clocks differ once rows are reset apart, advance
-    one Stepper per row. A row whose step fails stops at its state before the call and says why (in the step's
-    ``failures``); the others go on. Resetting rows (reset(rows, Q, V)) puts them at a new state with their clock at
-    0, a fresh energy reference and zero torque, as Stepper.reset does.
+    forces) advance every row through one stepping core over the B rows, as rollout() does (the kernel
+    driver.choose_kernel picks: native where it runs, else the row kernel); each row then gets a Stepper's states
+    bit for bit. Adaptive methods, whose rows choose their own steps, and time-varying scenes, whose rows' clocks
+    differ once rows are reset apart, advance one Stepper per row. A row whose step fails stops at its state before
+    the call and says why (in the step's ``failures``); the others go on. Resetting rows (reset(rows, Q, V)) puts
+    them at a new state with their clock at 0, a fresh energy reference and zero torque, as Stepper.reset does.
 
     Attributes:
         system, integrator, dt, control_dt: as Stepper's.
@@ -512,7 +510,7 @@ class BatchStepper:
             system: the robot (or scene).
             Q0: configurations, shape (B, nq); V0: velocities, shape (B, nv).
             dt, integrator, control_dt, check_energy, **options: as Stepper's.
-            num_threads: threads of Pinocchio's abaInParallel in the batch kernel.
+            num_threads: threads the native kernel splits the rows over (the row kernel runs on one).
 
         Raises:
             InvalidArgumentError: a bad argument or option (the message names it).
@@ -597,7 +595,8 @@ class BatchStepper:
         self._steps[index] = 0
         self._TAU[index] = 0.0
         self._ledger[index] = 0.0
-        self._monitor.start(index, self.system.rows_energies(Q, V))
+        unchecked_energies = self.system.unchecked_energies
+        self._monitor.start(index, np.array([unchecked_energies(q, v) for q, v in zip(Q, V, strict=True)]))
         if self._alone is not None:
             for b, q_b, v_b in zip(index.tolist(), Q, V, strict=True):
                 self._alone[b].reset(q_b, v_b, 0.0)
@@ -669,17 +668,14 @@ class BatchStepper:
             self._core = None  # failed rows left the core, or must go back: rebuilt from the rows' states
         return self._result(failures)
 
-    def _on_row_clock(self, stop: Any) -> str:
+    def _on_row_clock(self, stop: RowStop) -> str:
         """The core's message about a row, with the time and step counted from the row's reset (as its Stepper
         would say them) instead of the core's, which started when the core was built."""
-        b = int(stop.row)
-        match = _STOP_CLOCK.match(stop.message)
-        if match is None:
-            return str(stop.message)
-        steps_before = int(self._built_at[b]) * self._interval_steps
+        if stop.step is None:  # not a step's failure: the message names no step
+            return stop.message
+        steps_before = int(self._built_at[stop.row]) * self._interval_steps
         t = steps_before * self.dt + stop.time
-        step = steps_before + int(match["step"])
-        return f"{match['status']} at t = {t:.6g} s (step {step}): {stop.message[match.end() :]}"
+        return stop_message(stop.status, t, steps_before + stop.step, stop.detail)
 
     def _build(self) -> None:
         """A stepping core over every row from the rows' states (its ledger flows count from the rows' ledger)."""
@@ -716,10 +712,6 @@ class BatchStepper:
     def __repr__(self) -> str:
         name = getattr(self.system, "name", type(self.system).__name__)
         return f"<BatchStepper {name} {self.B} rows {self.integrator.name} dt={self.dt:g} s>"
-
-
-# The core's messages about a row begin "<status> at t = <time> s (step <n>): " (core.py).
-_STOP_CLOCK = re.compile(r"(?P<status>\w+) at t = \S+ s \(step (?P<step>\d+)\): ")
 
 
 def _time_invariant(system: Any) -> bool:

@@ -57,8 +57,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..exceptions import InvalidArgumentError
-from ..ordered import ordered_dot, ordered_rowdot, ordered_sum
-from ..state import indexer
+from ..ordered import ordered_dot, ordered_sum
 
 _REFERENCES = {"world": pin.LOCAL_WORLD_ALIGNED, "local": pin.LOCAL}
 
@@ -224,8 +223,7 @@ class ForceElements:
                     hi - lo == nv,
                 )
 
-        # Every element acts on rows of states with elementwise operations only (no per-row product), so a row's
-        # force is the same whether it is evaluated alone or in a batch, and a batch costs a few array operations.
+        # Every element acts with elementwise operations only (no per-row product) on a state or a stack of them.
         self._wrenches = list(wrenches)
         self._inv_vs = 1.0 / self.friction_velocity
         for w in self._wrenches:
@@ -239,16 +237,16 @@ class ForceElements:
         self._scaled = [(k, w.scale) for k, w in enumerate(self._wrenches) if w.scale is not _unit_scale]
         self._scales = np.ones(len(self._wrenches))  # scale(t) of each wrench at the latest evaluation
         self._n_flow_joint = self._damped.size + self._rough.size
-        # A world-fixed force at a frame's origin (no torque) is batched as the gravity of a point mass (_Push);
-        # the other wrenches take a frame Jacobian per row.
+        # A world-fixed force at a frame's origin (no torque) is the gravity of a point mass (_Push); the other
+        # wrenches take a frame Jacobian.
         self._pushes = {
             k: _Push(model, w.frame_id, w.force)
             for k, w in enumerate(self._wrenches)
             if w.reference == "world" and not w.torque.any()
         }
         self._other_wrenches = [k for k in range(len(self._wrenches)) if k not in self._pushes]
-        self._wrench_forces_of: dict[int, np.ndarray] = {}  # per number of rows: each wrench's unscaled Jᵀw
-        self._jacobians_of: dict[int, np.ndarray] = {}  # per number of rows: the frame Jacobians behind them
+        self._unscaled = np.zeros((len(self._wrenches), 1, self.nv))  # each wrench's unscaled Jᵀw, one row
+        self._jacobians = np.zeros((len(self._other_wrenches), 1, 6, self.nv))  # the frame Jacobians behind them
         self._model_g0: pin.Model | None = None  # built on the first jacobians() call with wrenches
 
     # ---- the hot path ---------------------------------------------------------------------------------
@@ -261,23 +259,10 @@ class ForceElements:
         if out is None:
             out = np.empty(self.nv)
         self._joint_forces(q, v, out)
-        if self._wrenches:  # the rows' code over one row: the same products, in the same order
-            forces = self._wrench_forces(q[None, :], t)
+        if self._wrenches:
+            forces = self._wrench_forces(q, t)
             for k in range(len(self._wrenches)):
                 force = forces[k, 0] if self._scales[k] == 1.0 else forces[k, 0] * self._scales[k]
-                np.add(out, force, out=out)
-        return out
-
-    def evaluate_rows(self, Q: np.ndarray, V: np.ndarray, t: float = 0.0, out: np.ndarray | None = None) -> np.ndarray:
-        """evaluate() of n states at once: Q (n, nq), V (n, nv) -> (n, nv), each row exactly as evaluate() gives it
-        (into out when given). The wrenches' parts are remembered for powers_rows()."""
-        if out is None:
-            out = np.empty((len(Q), self.nv))
-        self._joint_forces(Q, V, out)
-        if self._wrenches:
-            forces = self._wrench_forces(Q, t)
-            for k in range(len(self._wrenches)):
-                force = forces[k] if self._scales[k] == 1.0 else forces[k] * self._scales[k]
                 np.add(out, force, out=out)
         return out
 
@@ -307,36 +292,25 @@ class ForceElements:
         if self._rough.size:  # -F_c tanh(v / v_s)
             out[..., self._rough_at] -= np.tanh(V[..., self._rough_at] * self._inv_vs) * self._fc
 
-    def _wrench_forces(self, Q: np.ndarray, t: float) -> np.ndarray:
-        """Each wrench's unscaled Jᵀw for every row, shape (n_wrenches, n, nv) (kept for powers_rows()), and each
-        wrench's scale at t."""
-        n = len(Q)
-        forces = self._wrench_forces_of.get(n)
-        if forces is None:
-            if len(self._wrench_forces_of) >= 8:  # batches shrink as elements stop: keep the latest sizes
-                del self._wrench_forces_of[next(iter(self._wrench_forces_of))]
-            forces = self._wrench_forces_of[n] = np.zeros((len(self._wrenches), n, self.nv))
+    def _wrench_forces(self, q: np.ndarray, t: float) -> np.ndarray:
+        """Each wrench's unscaled Jᵀw at q, shape (n_wrenches, 1, nv) (kept for powers()), and each wrench's scale
+        at t."""
+        forces = self._unscaled
         for k, push in self._pushes.items():
-            push.forces(Q, forces[k])
+            push.forces(q, forces[k, 0])
         others = self._other_wrenches
         if others:
-            model, data = self._model, self._data
-            jacobians = self._jacobians_of.get(n)  # each other wrench's frame Jacobian per row, (n_others, n, 6, nv)
-            if jacobians is None:
-                if len(self._jacobians_of) >= 8:
-                    del self._jacobians_of[next(iter(self._jacobians_of))]
-                jacobians = self._jacobians_of[n] = np.zeros((len(others), n, 6, self.nv))
-            for b, q in enumerate(Q):  # J is (6, nv), but flat (6,) when nv = 1
-                if len(others) == 1:  # kinematics along the frame's support only: cheaper than all joints
-                    k = others[0]
-                    J = pin.computeFrameJacobian(model, data, q, self._wrenches[k].frame_id, self._refs[k])
-                    jacobians[0, b] = J.reshape(6, -1)
-                    continue
+            model, data, jacobians = self._model, self._data, self._jacobians
+            if len(others) == 1:  # kinematics along the frame's support only: cheaper than all joints
+                k = others[0]
+                J = pin.computeFrameJacobian(model, data, q, self._wrenches[k].frame_id, self._refs[k])
+                jacobians[0, 0] = J.reshape(6, -1)  # J is (6, nv), but flat (6,) when nv = 1
+            else:
                 pin.computeJointJacobians(model, data, q)  # one kinematics pass for every wrench
                 for m, k in enumerate(others):
                     J = pin.getFrameJacobian(model, data, self._wrenches[k].frame_id, self._refs[k])
-                    jacobians[m, b] = J.reshape(6, -1)
-            for m, k in enumerate(others):  # wᵀJ of every row, in a fixed order (the native kernel's)
+                    jacobians[m, 0] = J.reshape(6, -1)
+            for m, k in enumerate(others):  # wᵀJ in a fixed order (the native kernel's)
                 ordered_sum(self._w6[k], jacobians[m], axis=1, out=forces[k])
         for k, scale in self._scaled:
             self._scales[k] = scale(t)
@@ -351,22 +325,10 @@ class ForceElements:
         """
         self._joint_powers(v, out)
         if self._wrenches:
-            forces, nf = self._wrench_forces_of[1], self._n_flow_joint
+            forces, nf = self._unscaled, self._n_flow_joint
             for k in range(len(self._wrenches)):
-                work = ordered_dot(forces[k, 0], v)  # as powers_rows computes each row
+                work = ordered_dot(forces[k, 0], v)
                 out[nf + k] = work if self._scales[k] == 1.0 else work * self._scales[k]
-
-    def powers_rows(self, V: np.ndarray, out: np.ndarray) -> None:
-        """powers() of n rows, V (n, nv), into out (n, len(ledger)), with the wrench parts of the latest
-        evaluate_rows() call with as many rows."""
-        self._joint_powers(V, out)
-        if self._wrenches:
-            forces, nf = self._wrench_forces_of[len(V)], self._n_flow_joint
-            for k in range(len(self._wrenches)):
-                work = out[:, nf + k]
-                ordered_rowdot(forces[k], V, out=work)
-                if self._scales[k] != 1.0:
-                    np.multiply(work, self._scales[k], out=work)
 
     def _joint_powers(self, V: np.ndarray, out: np.ndarray) -> None:
         """The joints' dissipated powers at V (..., nv), into the first columns of out (..., len(ledger))."""
@@ -547,11 +509,10 @@ class ForceElements:
 
 
 class _Push:
-    """A force f fixed in the world, applied at a frame's origin p, as a generalized force for many rows at once.
+    """A force f fixed in the world, applied at a frame's origin p, as a generalized force.
 
     Its generalized force J_p(q)ᵀ f is minus the generalized gravity of a unit point mass at p under the gravity f
-    (the potential -fᵀ p(q)): one ``rnea(q, 0, 0)`` of a copy of the model whose only inertia is that point mass,
-    batched over the rows by Pinocchio's ``rneaInParallel`` (which equals ``rnea`` row by row).
+    (the potential -fᵀ p(q)): one ``rnea(q, 0, 0)`` of a copy of the model whose only inertia is that point mass.
     """
 
     def __init__(self, model: pin.Model, frame_id: int, force: np.ndarray):
@@ -561,17 +522,13 @@ class _Push:
             self.model.inertias[i] = pin.Inertia.Zero()
         self.model.inertias[frame.parentJoint] = pin.Inertia(1.0, frame.placement.translation, np.zeros((3, 3)))
         self.model.gravity = pin.Motion(np.asarray(force, dtype=float), np.zeros(3))
-        self.pool = pin.ModelPool(self.model, 1)
-        self._zeros: dict[int, np.ndarray] = {}
+        self.data = self.model.createData()
+        self._zeros = np.zeros(self.model.nv)
 
-    def forces(self, Q: np.ndarray, out: np.ndarray) -> None:
-        """J_p(q)ᵀ f of each row of Q (n, nq), into out (n, nv)."""
-        n = len(Q)
-        zeros = self._zeros.get(n)
-        if zeros is None:
-            zeros = self._zeros[n] = np.zeros((self.model.nv, n))
-        pin.rneaInParallel(1, self.pool, np.ascontiguousarray(Q).T, zeros, zeros, out.T)
-        np.negative(out, out=out)
+    def forces(self, q: np.ndarray, out: np.ndarray) -> None:
+        """J_p(q)ᵀ f at q (nq,), into out (nv,)."""
+        zeros = self._zeros
+        np.negative(pin.rnea(self.model, self.data, q, zeros, zeros), out=out)
 
 
 # spec.ForceSpec.scale's shapes as the native kernel numbers them (src/native/scene.hpp's Shape)
@@ -606,3 +563,10 @@ def _coefficients(values: np.ndarray, nv: int, name: str) -> np.ndarray:
     if not np.all(np.isfinite(arr)) or np.any(arr < 0.0):
         raise InvalidArgumentError(f"{name} must be finite and >= 0, got {arr.tolist()}")
     return arr
+
+
+def indexer(indices: list[int]) -> slice | np.ndarray:
+    """Column indices as a slice when they are consecutive (a view and a fast copy), else as an index array."""
+    if indices and indices == list(range(indices[0], indices[-1] + 1)):
+        return slice(indices[0], indices[-1] + 1)
+    return np.array(indices, dtype=int)

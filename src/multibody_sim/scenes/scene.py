@@ -328,43 +328,6 @@ class Scene(Robot):
             da_dv += da_dtau @ df_dv
         return da_dq, da_dv, da_dtau
 
-    # ---- many rows at once (the batch kernel) ------------------------------------------------------
-    def rows_dynamics(self, num_threads: int = 1) -> Any:
-        """Batched forward dynamics (see Robot), or None: constraints, contact and mimic joints have no batched
-        form."""
-        if self.constraints is not None or self.mimic or self.contact is not None:
-            return None
-        return super().rows_dynamics(num_threads)
-
-    def rows_applied(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> np.ndarray:
-        """tau plus the force elements minus damping for each row, as _applied computes it, into out."""
-        if self.elements is not None:
-            np.add(TAU, self.elements.evaluate_rows(Q, V, t, out), out=out)
-        else:
-            out[...] = TAU
-        if self._damped:
-            np.subtract(out, self.damping * V, out=out)
-        return out
-
-    def rows_ledger_power(
-        self,
-        Q: np.ndarray,
-        V: np.ndarray,
-        TAU: np.ndarray,
-        t: float,
-        out: np.ndarray,
-        *,
-        fresh: bool = True,
-        torques: bool = True,
-    ) -> None:
-        """ledger_power of each row into out (n, n_elements) (see Robot.rows_ledger_power)."""
-        n = self._n_robot_flows
-        super().rows_ledger_power(Q, V, TAU, t, out[:, :n], torques=torques)
-        if self.elements is not None:
-            if not fresh and self.elements.time_dependent:  # the wrenches' parts at this very point
-                self.elements.evaluate_rows(Q, V, t)
-            self.elements.powers_rows(V, out[:, n : n + len(self.elements.ledger)])
-
     # ---- energy ledger -------------------------------------------------------------------------------
     @property
     def ledger_elements(self) -> list[tuple[str, str]]:
@@ -416,29 +379,8 @@ class Scene(Robot):
         else:
             kinetic, potential = super().unchecked_energies(q, v)
         if self.elements is not None and self.elements.potentials:
-            potential += float(self.elements.potential_energy(q))  # the same sum as rows_energies' per row
+            potential += float(self.elements.potential_energy(q))  # in order, as the native kernel sums
         return kinetic, potential
-
-    def rows_energies(self, Q: np.ndarray, V: np.ndarray) -> np.ndarray:
-        """(T, V) [J] of each row, shape (n, 2), each as unchecked_energies computes it."""
-        if self.mimic:
-            out = np.array(
-                [_mimic_energies(self.model, self.data, q, v, self._clear_crba) for q, v in zip(Q, V, strict=True)]
-            )
-        else:
-            out = super().rows_energies(Q, V)
-        if self.elements is not None and self.elements.potentials:
-            out[:, 1] += self.elements.potential_energy(Q)
-        return out
-
-    def rows_record(self, Q: np.ndarray, V: np.ndarray, TAU: np.ndarray, t: float, out: np.ndarray) -> None:
-        """unchecked_record of each row into out (n, Σ widths): the springs' energies for all rows at once."""
-        n = len(self.elements.potentials) if self.elements is not None else 0
-        if n:
-            out[:, :n] = self.elements.potential_energies(Q)  # type: ignore[union-attr]
-        if self.constraints is not None:
-            for j in range(len(Q)):
-                self._record_constraints(Q[j], V[j], TAU[j], t, out[j, n:])
 
     def unchecked_record(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, out: np.ndarray) -> None:
         """Springs' stored energies, then each constraint's forces, drift and velocity drift, into `out`."""

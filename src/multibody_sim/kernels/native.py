@@ -17,18 +17,18 @@ from typing import Any
 
 import numpy as np
 
-from . import native
-from .core import EMPTY, FULL, REACHED, STEPPED, Core, KernelAttempt, RowStop, collapsed_message, diverged_message
-from .exceptions import InvalidArgumentError
-from .integrators import INTEGRATORS, Integrator
-from .integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
-from .integrators.partitioned import SemiImplicitEuler
-from .integrators.timestepping import ANDERSON_CAPACITY, TOLERANCE, TimeStepping, solver_counts
-from .recording import SampleStore
-from .robot import Robot
-from .scenes.scene import Scene
-from .state import _HALF_SERIES
-from .step_control import LANDING_FRACTION, SLIVER, ConstantStep, PIController
+from .. import native
+from ..core import EMPTY, FULL, REACHED, STEPPED, Core, RowStop, collapsed_detail, diverged_detail
+from ..exceptions import InvalidArgumentError
+from ..integrators import INTEGRATORS, Integrator
+from ..integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
+from ..integrators.partitioned import SemiImplicitEuler
+from ..integrators.timestepping import ANDERSON_CAPACITY, TOLERANCE, TimeStepping, solver_counts
+from ..recording import SampleStore
+from ..robot import Robot
+from ..scenes.scene import Scene
+from ..state import _HALF_SERIES
+from ..step_control import LANDING_FRACTION, SLIVER, ConstantStep, PIController
 
 # The registry's explicit methods, which the engine renders (its kinds: kernel.hpp's Kind).
 NATIVE_METHODS = {
@@ -102,22 +102,14 @@ def _scene_reason(scene: Scene) -> str | None:
 
 
 # What the engine computes itself: replaced on an instance (a wrapper), the run stays on the Python kernel.
-_SYSTEM_HOOKS = (
-    "unchecked_forward_dynamics",
-    "ledger_power",
-    "unchecked_energies",
-    "rows_dynamics",
-    "rows_energies",
-    "rows_ledger_power",
-    "rows_applied",
-)
+_SYSTEM_HOOKS = ("unchecked_forward_dynamics", "ledger_power", "unchecked_energies")
 _SPACE_HOOKS = ("integrate", "difference", "chart_velocity")
 
 
 def contact_data(scene: Any, method: TimeStepping) -> dict[str, Any]:
     """A contact scene's geometry, constraints and constants as _native.ContactScene takes them (contact.py's
     ContactModel and module constants, timestepping.py's solver settings), read at each run."""
-    from .scenes import contact as c
+    from ..scenes import contact as c
 
     model = scene.contact
     body_index = {name: k for k, name in enumerate(model.body_names)}
@@ -207,9 +199,9 @@ def method_data(method: Integrator) -> dict[str, Any]:
 
 
 class NativeKernel:
-    """The running rows' states in the engine (the Kernel interface of core.py for Core's own code: records, stops,
-    torques; the steps themselves are taken by NativeCore.advance). The engine is made once the step-size controller
-    is known (bind())."""
+    """The running rows' states in the engine: a Kernel (kernels/base.py) for Core's own code (records, stops,
+    torques, snapshots); the steps themselves are taken by the engine inside NativeCore.advance. The engine is made
+    once the step-size controller is known (bind())."""
 
     def __init__(
         self,
@@ -226,7 +218,7 @@ class NativeKernel:
         self.rtol, self.atol = rtol, atol
         self.num_threads = num_threads
         self._initial = (np.ascontiguousarray(Q0, dtype=float), np.ascontiguousarray(V0, dtype=float))
-        self._start = (0.0, 0)  # (t, k) until the engine exists
+        self._start = 0.0  # t until the engine exists
         self._saves = 0  # snapshots taken (the engine keeps the latest)
         self.engine: Any = None
         self.method_data = method_data(method)
@@ -285,7 +277,7 @@ class NativeKernel:
             V0,
             self.num_threads,
         )
-        self.engine.t, self.engine.k = self._start
+        self.engine.t = self._start
         elements = getattr(system, "elements", None)
         if elements is not None:  # a Scene's force elements (why_not_native said they render)
             data = elements.native_data(native.load_model)
@@ -330,24 +322,20 @@ class NativeKernel:
         self._keep = (taus, calls, saturation.calls, saturation.dofs)
         return True
 
-    # ---- the Kernel interface (core.py) ----------------------------------------------------------------------------
+    # ---- the Kernel interface (kernels/base.py) ---------------------------------------------------------------------
     @property
     def n(self) -> int:
         return len(self._initial[0]) if self.engine is None else int(self.engine.running)
 
     @property
     def t(self) -> float:
-        return self._start[0] if self.engine is None else float(self.engine.t)
+        return self._start if self.engine is None else float(self.engine.t)
 
-    @property
-    def k(self) -> int:
-        return self._start[1] if self.engine is None else int(self.engine.k)
-
-    def start_at(self, t: float, k: int = 0) -> None:
+    def start_at(self, t: float) -> None:
         if self.engine is None:
-            self._start = (t, k)
+            self._start = t
         else:
-            self.engine.t, self.engine.k = t, k
+            self.engine.t = t
 
     def set_torques(self, TAU: np.ndarray, jump: bool) -> None:
         self.engine.set_torques(np.ascontiguousarray(TAU, dtype=float), jump)
@@ -358,9 +346,6 @@ class NativeKernel:
     def states(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
         return list(self.engine.running_q()), list(self.engine.running_v())
 
-    def state_of(self, j: int) -> tuple[np.ndarray, np.ndarray]:
-        return self.engine.running_q()[j].copy(), self.engine.running_v()[j].copy()
-
     def flows_of(self, j: int) -> np.ndarray:
         return np.asarray(self.engine.flows_of(self._row(j)))
 
@@ -368,19 +353,19 @@ class NativeKernel:
         row = self._row(j)
         self.engine.set_state(row, q, v, self.engine.flows_of(row))
 
-    def snapshot(self) -> tuple[Any, ...]:
+    def snapshot(self) -> tuple[int, float]:
         """Every row's whole state (its contact solver's too) and the time (Stepper: one row). The engine keeps
         the state: only the latest snapshot can be restored."""
         self.engine.save()
         self._saves += 1
-        return self._saves, self.t, self.k
+        return self._saves, self.t
 
-    def restore(self, snapshot: tuple[Any, ...]) -> None:
-        saves, t, k = snapshot
+    def restore(self, snapshot: tuple[int, float]) -> None:
+        saves, t = snapshot
         if saves != self._saves:
-            raise AssertionError("the native kernel restores its latest snapshot only")
+            raise RuntimeError("the native kernel restores its latest snapshot only")
         self.engine.restore_saved()
-        self.start_at(t, k)
+        self.start_at(t)
 
     def solver_stats(self, j: int) -> dict[str, int]:
         """Running row j's contact solver counts (TimeStepping.solver_stats), {} without contact."""
@@ -409,30 +394,12 @@ class NativeKernel:
             rows = [int(b) for b in index]
         self.engine.write_rows(i, rows, store, *store.batch_arrays)
 
-    def attempt(self, h: float) -> KernelAttempt:
-        raise AssertionError("the native kernel steps inside NativeCore.advance")  # pragma: no cover
-
-    def nonfinite(self) -> np.ndarray:
-        raise AssertionError("the native kernel checks its steps itself")  # pragma: no cover
-
-    def nonfinite_dof(self, j: int) -> int:
-        raise AssertionError("the native kernel names non-finite coordinates itself")  # pragma: no cover
-
-    def accept(self, t_next: float) -> None:
-        raise AssertionError("the native kernel accepts its steps itself")  # pragma: no cover
-
-    def reject(self) -> None:
-        raise AssertionError("the native kernel rejects its steps itself")  # pragma: no cover
-
-    def write_dense(self, store: SampleStore, i: int, rows: np.ndarray, theta: float, h: float, t_out: float) -> int:
-        raise AssertionError("the native kernel writes its dense output itself")  # pragma: no cover
-
 
 def native_policies(system: Any, torques: Any, settings: Any) -> dict[str, Any] | None:
     """The run's torques as _native.Policies takes them, when the engine renders them: open-loop sequences (taus), or
     one built-in controller per row (PD, GravityCompensation, PDGravity, made for this very system); else None (a
     Python controller, called by the driver at its control instants)."""
-    from .controllers import PD, GravityCompensation, PDGravity
+    from ..controllers import PD, GravityCompensation, PDGravity
 
     nv, actuated = system.nv, system.actuated
     n = actuated.stop - actuated.start
@@ -540,7 +507,7 @@ class NativeCore(Core):
     def _control_failure(self, row: int, t: float) -> InvalidArgumentError:
         """Why row `row`'s native controller output at t was refused: its Python controller's output at the row's
         state, checked as the driver checks it (driver.check_torque)."""
-        from .driver import check_torque
+        from ..driver import check_torque
 
         q, v = self.kernel.engine.snapshot_row(row)[:2]
         try:
@@ -559,21 +526,22 @@ class NativeCore(Core):
         while self._pending:
             code, row, when, step, dof, count, added, steps, rejected, evaluations, h, minimum, error = self._pending[0]
             cause: BaseException | None = None
+            failed_step: int | None = int(step)
             if code == _DIVERGED:
-                status, message = "diverged", diverged_message(self.system, when, step, dof, self.dt_hint)
-            elif code == _CONTROL:
+                status, detail = "diverged", diverged_detail(self.system, dof, self.dt_hint)
+            elif code == _CONTROL:  # at a control instant, not in a step
                 status, cause = "failed", self._control_failure(row, when)
-                message = str(cause)
+                detail, failed_step = str(cause), None
             else:
                 status = "step_collapsed"
-                norm = None if math.isnan(error) else error
-                message = collapsed_message(self.system, when, step, h, minimum, norm)
+                detail = collapsed_detail(self.system, h, minimum, None if math.isnan(error) else error)
             if row in self.rows:
                 stats = self.kernel.row_solver_stats(int(row))
                 if stats:
                     self.solver_stats[int(row)] = stats
+                sample = count + added - 1
                 self.stops.append(
-                    RowStop(int(row), status, message, when, count + added - 1, bool(added), cause, cause is not None)
+                    RowStop(int(row), status, when, failed_step, detail, sample, bool(added), cause, cause is not None)
                 )
                 self.stopped_counts[row] = (steps, rejected, evaluations)
                 self.store.stop(np.array([row]), bool(added), count=count)
