@@ -1826,6 +1826,56 @@ def deep_table(tmp: Path) -> Trigger:
     return Trigger(call=lambda: ms.bench.WorkPrecision.from_json(path), fields={"table": str(path)})
 
 
+def forged_run(tmp: Path, edit: Callable[[ms.Trajectory], None], robot: str = "pendulum") -> Path:
+    """A short saved run of a catalog robot, edited before saving (numbers a real run cannot reach)."""
+    system = ms.load_robot(robot)
+    run = ms.simulate(system, system.default_pose(), np.zeros(system.nv), duration=0.05, dt=0.01)
+    edit(run)
+    return run.save(tmp / "run.npz")
+
+
+def huge_energies(run: ms.Trajectory) -> None:
+    for name in ("kinetic_energy", "total_energy"):
+        values = getattr(run, name).copy()
+        values[2:4] = [1e308, -1e308]
+        setattr(run, name, values)
+
+
+def far_base(run: ms.Trajectory) -> None:
+    q = run.q.copy()
+    q[3:, 0] = 1e300  # the base 1e300 m along x from t = 0.03 s
+    run.q = q
+
+
+def long_run(run: ms.Trajectory) -> None:
+    run.t = np.concatenate((run.t[:-1], [1e300]))
+
+
+def presentation(
+    edit: Callable[[ms.Trajectory], None], call: str, robot: str = "pendulum"
+) -> Callable[[Path], Trigger]:
+    """A forged run shown by viz.plot_trajectory / export_html / export_video (and `play` with the same options)."""
+
+    def build(tmp: Path) -> Trigger:
+        npz = forged_run(tmp, edit, robot)
+
+        def api_call() -> object:
+            import multibody_sim.viz as viz
+
+            run = ms.Trajectory.load(npz)
+            if call == "plot":
+                return viz.plot_trajectory(run)
+            if call == "html":
+                return viz.export_html(run, tmp / "view.html")
+            return viz.export_video(run, tmp / "motion.mp4")
+
+        option = {"plot": ["--html", str(tmp / "view.html"), "--plot"], "html": ["--html", str(tmp / "view.html")]}
+        argv = ["play", str(npz), *option.get(call, ["--video", str(tmp / "motion.mp4")])]
+        return Trigger(call=api_call, argv=argv)
+
+    return build
+
+
 ROUND_3 = [
     BadInput(
         "vector-env-complex-actions",
@@ -1874,6 +1924,53 @@ ROUND_3 = [
         "cannot read work-precision table {table}: it nests 100000 levels deep, more than the 64 a table may",
         "The file is damaged or forged: delete it (a pilot cache is rebuilt).",
         deep_table,
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "camera-near-1e308",
+        "command line",
+        "`play run.npz --video v.mp4 --camera-position 1e308 0 0` (distances overflowed; the overflow warning, shown "
+        "again while warnings were recorded, grew their list until memory ran out)",
+        "--camera-position must lie within 1e+06 m of the world origin (positions reach the page as 32-bit floats), "
+        "got 1e+308 0 0",
+        "Place the camera within 1000 km (meshcat carries positions as 32-bit floats).",
+        lambda tmp: Trigger(
+            argv=["play", str(forged_run(tmp, lambda run: None)), "--video", str(tmp / "v.mp4"), "--camera-position"]
+            + ["1e308", "0", "0"]
+        ),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "plot-energies-1e308",
+        "Python API",
+        "`viz.plot_trajectory(run)` (and `play run.npz --html v.html --plot`) of a trajectory whose energies reach "
+        "±1e308 J (matplotlib's axis span overflowed)",
+        "cannot plot kinetic_energy: it reaches 1e+308 J at t = 0.02 s, beyond the ±1e+300 a plot's axes can span "
+        "(the run diverged, or the file was edited); `multibody-sim export` writes its numbers as a table",
+        "Read the numbers as a table; a run we compute stops long before its energies get there.",
+        presentation(huge_energies, "plot"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "view-body-1e300",
+        "Python API",
+        "`viz.export_html(run, path)` (and `play run.npz --html`) of a trajectory whose base is 1e300 m away (its "
+        "32-bit positions overflowed)",
+        "the body of joint 'root_joint' is 1e+300 m from the world origin at t = 0.0333333 s, beyond the 1e+06 m a "
+        "view can show (positions reach the page as 32-bit floats): the motion left the scene (it diverged, or the "
+        "file was edited)",
+        "Show the part of the motion that stays within 1000 km of the origin.",
+        presentation(far_base, "html", "solo12"),
+        ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "video-of-1e300-seconds",
+        "Python API",
+        "`viz.export_video(run, 'v.mp4')` (and `play --video`) of a trajectory lasting 1e300 s",
+        "a video of 1e+300 s of motion at speed 1 and 30 frames per second would have 3e+301 frames, more than the "
+        "108000 a video may (an hour at 30 fps): choose a higher speed, a lower fps, or film part of the trajectory",
+        "Speed it up (--speed) or film a part of it.",
+        presentation(long_run, "video"),
         ms.InvalidArgumentError,
     ),
 ]

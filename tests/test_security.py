@@ -748,7 +748,7 @@ def test_a_chunk_buffer_that_cannot_fit_is_refused(tmp_path: Path) -> None:
 
 
 def test_playback_frames_gif_frames_and_plot_canvases_are_checked_before_they_are_allocated(tmp_path: Path) -> None:
-    """A trajectory spanning 10^12 s played at 30 fps (3e13 frames), a GIF of 10^6 s at 50 fps, a plot at a
+    """A trajectory spanning 10^12 s played at 30 fps (3e13 frames), a 4K GIF of 2000 s at 50 fps, a plot at a
     dpi of 10^5: each refused in one line before numpy or matplotlib allocates."""
     viz = pytest.importorskip("multibody_sim.viz")
     from multibody_sim.viz.frames import resample
@@ -758,9 +758,9 @@ def test_playback_frames_gif_frames_and_plot_canvases_are_checked_before_they_ar
     run.t = np.array([0.0, 1e6, 1e12])
     with pytest.raises(ms.InvalidArgumentError, match=r"^1e\+12 s at 30 frames per second would keep 3e\+13 frames"):
         resample(robot, run, 30.0)
-    run.t = np.array([0.0, 5e5, 1e6])
-    with pytest.raises(ms.InvalidArgumentError, match=r"^a 1280x720 GIF of 50000000 frames would keep them \("):
-        viz.export_video(run, tmp_path / "motion.gif", robot=robot, fps=50)
+    run.t = np.array([0.0, 1000.0, 2000.0])  # 100 000 frames: fewer than a video may have, too many for memory
+    with pytest.raises(ms.InvalidArgumentError, match=r"^a 3840x2160 GIF of 100000 frames would keep them \("):
+        viz.export_video(run, tmp_path / "motion.gif", robot=robot, fps=50, width=3840, height=2160)
     with pytest.raises(ms.InvalidArgumentError, match=r"^a \d+x\d+-pixel plot of \d+ lines over 3 samples would keep"):
         viz.plot_trajectory(run, tmp_path / "plot.png", robot=robot, dpi=100_000)
     assert sorted(os.listdir(tmp_path)) == []

@@ -10,6 +10,7 @@ import os
 import re
 import shutil
 import socket
+import subprocess
 import sys
 import threading
 import time
@@ -791,3 +792,20 @@ def test_play_serves_until_interrupted(
     if Path("/proc/net/tcp").exists():
         assert seen["listening"] == {"127.0.0.1"}
         assert listening_addresses(seen["port"]) == set()  # closed on the way out
+
+
+def test_a_warning_shown_again_while_warnings_are_recorded_is_shown_once():
+    """The command line records the viewer's warnings and shows the others again as Python would: it does so once
+    recording has ended. Shown while still recording, each was recorded again, into the list being read, until
+    memory ran out (an overflow warning from a camera near 1e308). In a child process with 3 GiB of address space."""
+    code = (
+        "import resource, warnings\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (3 * 2**30, 3 * 2**30))\n"
+        "from multibody_sim import cli, viz\n"
+        "with cli._viewer_warnings(viz):\n"
+        "    warnings.warn('overflow here', RuntimeWarning)\n"
+        "print('done')\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert (result.returncode, result.stdout) == (0, "done\n"), result.stderr[-2000:]
+    assert result.stderr.count("RuntimeWarning: overflow here") == 1, result.stderr[-2000:]

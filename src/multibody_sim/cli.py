@@ -1212,16 +1212,18 @@ def _viewer_warnings(viz: Any) -> Iterator[None]:
     """The viewer's warnings (exposed server, missing meshes) as one line each on stderr."""
     from .safety import printable
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", viz.ViewerWarning)
-        try:
+    caught: list[warnings.WarningMessage] = []
+    try:
+        with warnings.catch_warnings(record=True) as recording:
+            warnings.simplefilter("always", viz.ViewerWarning)
+            caught = recording
             yield
-        finally:
-            for warning in caught:
-                if issubclass(warning.category, viz.ViewerWarning):
-                    _print(f"{PROG}: warning: {printable(str(warning.message))}", sys.stderr)
-                else:  # someone else's: shown as Python would have
-                    warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
+    finally:  # recording has ended: a warning shown again is shown, not recorded into the list being read
+        for warning in caught:
+            if issubclass(warning.category, viz.ViewerWarning):
+                _print(f"{PROG}: warning: {printable(str(warning.message))}", sys.stderr)
+            else:  # someone else's: shown as Python would have
+                warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
 
 
 def _await_browser(viewer: Any, args: argparse.Namespace) -> Any:

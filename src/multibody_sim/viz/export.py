@@ -127,7 +127,7 @@ def recording_page(
     """
     scene = RobotScene(robot) if scene is None else scene
     commands: list[dict[str, Any]] = scene.setup_commands()
-    commands.append(scene.camera_command(Q) if camera is None else camera)
+    commands.append(scene.camera_command(Q, times=times) if camera is None else camera)
     commands += scene.pose_commands(Q[0])
     animation = scene.animation_command(times, Q, play=play, loop=loop, speed=speed, seek=seek)
     if arrows is not None:  # one animation for everything: the arrows keep time with the motion

@@ -25,6 +25,7 @@ FORCES = "/meshcat/forces"
 ARROW_LENGTH = 0.2  # [m]: the largest force of the run
 _ARROW_COLOR = (0.85, 0.1, 0.1, 1.0)
 _HIDDEN = 1e-6  # the scale of an arrow with no contact behind it
+FORCE_LIMIT = 1e300  # [N]: arrows are scaled by the largest force, whose norm must not overflow
 _Z = np.array([0.0, 0.0, 1.0])
 
 
@@ -112,8 +113,11 @@ def arrow_tracks(trajectory: Trajectory, times: np.ndarray) -> ArrowTracks:
     quaternions = np.tile([0.0, 0.0, 0.0, 1.0], (slots, len(times), 1))
     scales = np.full((slots, len(times), 3), _HIDDEN)
     if slots:
-        forces = contacts.impulse / dt
-        largest = float(np.linalg.norm(forces, axis=1).max()) or 1.0
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below, in one line
+            forces = contacts.impulse / dt
+            sizes = np.linalg.norm(forces, axis=1)
+        _check_contacts(contacts.point, sizes, contacts.sample, t)
+        largest = float(sizes.max()) or 1.0
         starts = np.searchsorted(contacts.sample, np.arange(len(t)))
         for f, i in enumerate(shown):
             for k in range(int(counts[i])):
@@ -121,6 +125,24 @@ def arrow_tracks(trajectory: Trajectory, times: np.ndarray) -> ArrowTracks:
                 positions[k, f] = contacts.point[row]
                 quaternions[k, f], scales[k, f] = arrow_pose(forces[row], largest)
     return ArrowTracks(positions, quaternions, scales)
+
+
+def _check_contacts(points: np.ndarray, sizes: np.ndarray, sample: np.ndarray, t: np.ndarray) -> None:
+    """Refuse contacts a view cannot draw: a point beyond VIEW_REACH or a force beyond FORCE_LIMIT (not finite)."""
+    from .scene import VIEW_REACH
+
+    far = np.abs(points).max(axis=1) if len(points) else np.zeros(0)
+    for what, values, limit, unit in (
+        ("point", far, VIEW_REACH, "m from the world origin"),
+        ("force", sizes, FORCE_LIMIT, "N"),
+    ):
+        bad = ~(values <= limit)  # NaN is bad too
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise InvalidArgumentError(
+                f"a contact {what} of the trajectory is {values[k]:.3g} {unit} at t = {t[sample[k]]:.6g} s, beyond "
+                f"the {limit:g} an arrow can show (the run diverged, or the file was edited)"
+            )
 
 
 def arrow_pose(force: np.ndarray, reference: float) -> tuple[np.ndarray, np.ndarray]:

@@ -134,12 +134,14 @@ def frame_times(t_start: float, t_end: float, fps: float, frame_bytes: int = 8) 
     """
     t_start, t_end = finite_number(t_start, "t_start"), finite_number(t_end, "t_end")
     fps = positive_number(fps, "fps", None)
-    count = int(math.floor((t_end - t_start) * fps + 1e-9))
+    frames = (t_end - t_start) * fps  # Python floats: a span that overflows is inf, refused below
+    frames = math.floor(frames + 1e-9) if math.isfinite(frames) else frames
     check_allocation(
-        (count + 2) * frame_bytes,
-        f"{t_end - t_start:g} s at {fps:g} frames per second would keep {count + 2:.3g} frames",
+        (frames + 2) * frame_bytes,
+        f"{t_end - t_start:g} s at {fps:g} frames per second would keep {frames + 2:.3g} frames",
         "choose a lower frame rate (fps), or play a shorter trajectory",
     )
+    count = int(frames)
     times = t_start + np.arange(count + 1) / fps
     if t_end - times[-1] > 1e-9 / fps:
         times = np.append(times, t_end)

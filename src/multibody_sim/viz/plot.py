@@ -31,6 +31,10 @@ _STYLES = ("-", "--", ":", "-.")
 # to a total (or to another element) still shows.
 _MARKERS = ("o", "s", "^", "v", "D", "P", "X", "*")
 _MARKS_PER_LINE = 12
+# The largest magnitude a plotted value may have: matplotlib's axis span (max - min, with margins) overflows near
+# 8e307 and its tick locator then fails; 1e300 leaves it room.
+PLOT_LIMIT = 1e300
+ENERGY_CURVES = ("kinetic_energy", "potential_energy", "total_energy", "work", "dissipated", "energy_error")
 
 
 @dataclass(frozen=True)
@@ -91,6 +95,7 @@ def plot_trajectory(
         chosen = _check_joints(joints, [*([root] if root else []), *dict.fromkeys(s.joint for s in series)])
         series = [s for s in series if s.joint in chosen]
         base = base if root in chosen else None
+    _check_plottable(t, trajectory, series, base)
     legend_columns = max(1, math.ceil(len(series) / LEGEND_ROWS))
     joint_height = max(PANEL_HEIGHT, 0.17 * min(len(series), LEGEND_ROWS) + 0.5)
     heights = [PANEL_HEIGHT] * 3 + ([joint_height] if series else []) + ([PANEL_HEIGHT] if base is not None else [])
@@ -171,6 +176,26 @@ def _check_plot_arguments(trajectory: Any, robot: Any) -> None:
     check_trajectory(trajectory, "trajectory")
     if robot is not None:
         check_system(robot, "robot")
+
+
+def _check_plottable(t: np.ndarray, trajectory: Trajectory, series: list[_Series], base: np.ndarray | None) -> None:
+    """Refuse a curve matplotlib cannot scale: a value beyond ±PLOT_LIMIT (its axis span overflows, its tick
+    locator fails) or not finite, naming the curve, the value and its time."""
+    curves: list[tuple[str, str, Any]] = [("time", "s", t)]
+    curves += [(name, "J", getattr(trajectory, name)) for name in ENERGY_CURVES]
+    curves += [(f"ledger element '{safe_name(name)}'", "J", entry.energy) for name, entry in trajectory.ledger.items()]
+    curves += [(f"joint position {item.label}", "rad or m", item.values) for item in series]
+    if base is not None:
+        curves += [(f"base position {axis}", "m", base[:, k]) for k, axis in enumerate("xyz")]
+    for name, unit, values in curves:
+        values = np.asarray(values, dtype=float)
+        if values.size and not np.abs(values).max() <= PLOT_LIMIT:  # NaN fails too
+            i = int(np.argmax(np.nan_to_num(np.abs(values), nan=np.inf)))
+            raise InvalidArgumentError(
+                f"cannot plot {name}: it reaches {values[i]:.3g} {unit} at t = {t[i]:.6g} s, beyond the "
+                f"±{PLOT_LIMIT:g} a plot's axes can span (the run diverged, or the file was edited); `multibody-sim "
+                "export` writes its numbers as a table"
+            )
 
 
 def _ledger_lines(axis: Any, t: np.ndarray, trajectory: Trajectory) -> None:

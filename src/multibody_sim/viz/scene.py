@@ -19,7 +19,7 @@ import pinocchio as pin
 from ..catalog import build_geometry, mesh_roots
 from ..exceptions import InvalidArgumentError, UnknownNameError
 from ..robot import Robot
-from ..safety import printable
+from ..safety import printable, safe_name
 from ..validation import check_system, check_text
 from ._deps import ViewerWarning, require
 from .meshes import MeshPart, geometry_parts, skeleton_parts
@@ -44,6 +44,9 @@ CAMERA_VIEWS = {
 _CAMERA_DISTANCE = 1.7  # in bounding-sphere radii: the sphere overestimates the robot, which still fits
 _CAMERA_SAMPLES = 60  # frames sampled to frame the whole motion
 _REACH_FACTOR = 1.5
+# The farthest from the world origin a body, a contact point or the camera may be in a view [m]: meshcat sends
+# positions as 32-bit floats (6 cm apart here; beyond 3.4e38 they overflow) and three.js squares distances.
+VIEW_REACH = 1e6
 
 
 class MissingVisualsWarning(ViewerWarning):
@@ -136,10 +139,24 @@ class RobotScene:
         return visuals
 
     # ---- kinematics -----------------------------------------------------------------------------------
-    def placements(self, q: np.ndarray) -> list[np.ndarray]:
-        """World placement (4x4) of each body in `joints` at configuration q."""
+    def placements(self, q: np.ndarray, t: float | None = None) -> list[np.ndarray]:
+        """World placement (4x4) of each body in `joints` at configuration q (at time t [s], for messages).
+
+        Raises:
+            InvalidArgumentError: a body is farther than VIEW_REACH from the world origin (or not finite).
+        """
         pin.forwardKinematics(self.model, self._data, np.asarray(q, dtype=float))
-        return [np.asarray(self._data.oMi[j].homogeneous) for j in self.joints]
+        poses = [np.asarray(self._data.oMi[j].homogeneous) for j in self.joints]
+        far = np.abs([pose[:3, 3] for pose in poses]).max(axis=1)
+        if not np.all(far <= VIEW_REACH):  # NaN fails too
+            b = int(np.argmax(np.where(far <= VIEW_REACH, -1.0, np.nan_to_num(far, nan=np.inf))))
+            when = "" if t is None else f" at t = {t:.6g} s"
+            raise InvalidArgumentError(
+                f"the body of joint '{safe_name(self.model.names[self.joints[b]])}' is {far[b]:.3g} m from the world "
+                f"origin{when}, beyond the {VIEW_REACH:g} m a view can show (positions reach the page as 32-bit "
+                "floats): the motion left the scene (it diverged, or the file was edited)"
+            )
+        return poses
 
     # ---- commands -------------------------------------------------------------------------------------
     def setup_commands(self) -> list[dict[str, Any]]:
@@ -177,7 +194,7 @@ class RobotScene:
             seek: show this animation time [s] when loaded (with play=False).
         """
         rotation = require("scipy.spatial.transform", "the meshcat viewer").Rotation
-        poses = np.array([self.placements(q) for q in Q])  # (n, bodies, 4, 4)
+        poses = np.array([self.placements(q, t) for t, q in zip(np.asarray(times, dtype=float), Q, strict=True)])
         keys = (np.asarray(times, dtype=float) - float(times[0])).tolist()  # clip fps is 1: keys in seconds
         animations = []
         for b, path in enumerate(self.body_paths):
@@ -208,18 +225,21 @@ class RobotScene:
         view: str = "default",
         position: Any = None,
         target: Any = None,
+        times: np.ndarray | None = None,
     ) -> dict[str, Any]:
         """Aim the camera at the box swept by the robot over the configurations Q (shape (n, nq)).
 
         Args:
             Q: configurations to frame, shape (n, nq).
+            times: their times [s], shape (n,), for messages; None names no time.
             view: a name of CAMERA_VIEWS: the direction the camera looks from, at a distance that fits the box.
             position: the camera's position [m], world frame (3,); None places it by `view`.
             target: the point it looks at [m], world frame (3,); None takes the box's centre.
 
         Raises:
             UnknownNameError: `view` is not a camera view.
-            InvalidArgumentError: position or target is not 3 finite numbers, or they coincide.
+            InvalidArgumentError: position or target is not 3 numbers within VIEW_REACH, or they coincide; a body
+                is beyond VIEW_REACH.
         """
         fixed_position, fixed_target = check_camera(view, position, target)
         Q = np.atleast_2d(np.asarray(Q, dtype=float))
@@ -238,7 +258,7 @@ class RobotScene:
         reach: float | None = None
         points = []
         for i in picks:
-            poses = self.placements(Q[i])
+            poses = self.placements(Q[i], None if times is None else float(times[i]))
             world = [(corners @ pose.T)[:, :3] for corners, pose in zip(local, poses, strict=True)]
             spread = [float(np.linalg.norm(w - poses[root][:3, 3], axis=1).max()) for w in world]
             if reach is None:
@@ -358,12 +378,12 @@ def check_camera(
 
     Args:
         view: a name of CAMERA_VIEWS.
-        position, target: 3 finite numbers x y z [m], or None.
+        position, target: 3 numbers x y z [m] within ±VIEW_REACH, or None.
         prefix: "--" names them as the command line's options (--camera, --camera-position, --camera-target).
 
     Raises:
         UnknownNameError: `view` is not a camera view.
-        InvalidArgumentError: position or target is not 3 finite numbers, or they coincide.
+        InvalidArgumentError: position or target is not 3 numbers within ±VIEW_REACH, or they coincide.
     """
     check_text(view, f"{prefix}camera", optional=False)
     if view not in CAMERA_VIEWS:
@@ -381,13 +401,18 @@ def check_camera(
 
 
 def _point(value: Any, subject: str) -> np.ndarray:
-    """A point in space: 3 finite numbers [m]."""
+    """A point in space: 3 numbers [m] within ±VIEW_REACH."""
     try:
         point = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         point = np.array([np.nan])
     if point.shape != (3,) or not np.all(np.isfinite(point)):
         raise InvalidArgumentError(f"{subject} must be 3 finite numbers (x y z in metres), got {value!r}")
+    if np.abs(point).max() > VIEW_REACH:
+        raise InvalidArgumentError(
+            f"{subject} must lie within {VIEW_REACH:g} m of the world origin (positions reach the page as 32-bit "
+            f"floats), got {' '.join(f'{x:g}' for x in point)}"
+        )
     return point
 
 

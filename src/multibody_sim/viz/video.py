@@ -47,6 +47,7 @@ VIDEO_FORMATS = (".gif", ".mp4")
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 FPS_RANGE = {".mp4": (1.0, 120.0), ".gif": (1.0, 50.0)}  # browsers play GIF delays under 20 ms as 100 ms
 SIZE_RANGE = (64, 3840)
+MAX_VIDEO_FRAMES = 108_000  # an hour at 30 fps; each frame is rendered by a browser (~0.05 s)
 # A pixel shows the robot when some channel differs from the empty scene (same camera, robot hidden) by more
 # than this; a frame needs at least ROBOT_PIXELS such pixels.
 ROBOT_STEP = 24
@@ -124,8 +125,8 @@ def export_video(
     check_flag(forces, "forces")
     target, fps = check_video_options(path, fps=fps, speed=speed, width=width, height=height)
     suffix = target.suffix.lower()
+    count = frame_count(trajectory, fps=fps, speed=speed)
     if suffix == ".gif":  # a GIF is assembled in memory: one palette byte per pixel per frame
-        count = frame_count(trajectory, fps=fps, speed=speed)
         check_allocation(
             count * width * height,
             f"a {width}x{height} GIF of {count} frames would keep them",
@@ -138,10 +139,9 @@ def export_video(
 
     robot = robot_from_trajectory(trajectory) if robot is None else robot
     times, Q = resample(robot, trajectory, fps / speed)
-    count = frame_count(trajectory, fps=fps, speed=speed)
     times, Q = times[:count], Q[:count]  # frame k at t0 + k speed / fps: the grid, not the end appended to it
     scene = RobotScene(robot)
-    aim = scene.camera_command(Q, view=camera, position=camera_position, target=camera_target)
+    aim = scene.camera_command(Q, view=camera, position=camera_position, target=camera_target, times=times)
     title = page_title(trajectory, robot)
     arrows = force_arrows(trajectory, times) if forces else None
     page = recording_page(robot, times, Q, title=title, play=False, loop=False, camera=aim, scene=scene, arrows=arrows)
@@ -204,8 +204,20 @@ def check_video_options(
 
 
 def frame_count(trajectory: Trajectory, *, fps: float, speed: float = 1.0) -> int:
-    """How many frames export_video writes: round((t[-1] - t[0]) / speed x fps), at least 1."""
-    return max(1, round(float(trajectory.t[-1] - trajectory.t[0]) / speed * fps))
+    """How many frames export_video writes: round((t[-1] - t[0]) / speed x fps), at least 1.
+
+    Raises:
+        InvalidArgumentError: more than MAX_VIDEO_FRAMES (or a span that overflows).
+    """
+    span = float(trajectory.t[-1]) - float(trajectory.t[0])  # Python floats: an overflow is inf, refused below
+    frames = span / speed * fps
+    if not frames <= MAX_VIDEO_FRAMES:
+        raise InvalidArgumentError(
+            f"a video of {span:.6g} s of motion at speed {speed:g} and {fps:g} frames per second would have "
+            f"{frames:.3g} frames, more than the {MAX_VIDEO_FRAMES} a video may (an hour at 30 fps): choose a higher "
+            "speed, a lower fps, or film part of the trajectory"
+        )
+    return max(1, round(frames))
 
 
 def find_browser(browser: str | None = None) -> str:
