@@ -81,6 +81,12 @@ LIMITS = [
         "scenes 2 (XML: 256, above)",
     ),
     (
+        "what a view, plot or video shows",
+        "positions within 1e6 m of the origin; plotted values within ±1e300; videos up to 108 000 frames",
+        "meshcat sends positions as 32-bit floats; matplotlib's axis span overflows near 8e307; a browser renders "
+        "each frame (an hour at 30 fps)",
+    ),
+    (
         "outputs",
         "regular files only; symbolic links written through",
         "a FIFO would block, a device or socket would be replaced by a file; checked before any work",
