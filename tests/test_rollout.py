@@ -1,9 +1,9 @@
-"""Batched rollouts against looped simulate(): the same samples, statuses and messages; Ray; progress bars."""
+"""Batched rollouts against looped simulate(): the same samples, statuses and messages; progress bars (the Ray
+backend: tests/test_determinism.py)."""
 
 from __future__ import annotations
 
 import importlib
-import os
 import re
 from typing import Any
 
@@ -541,41 +541,6 @@ def test_progress_bar_only_when_asked_or_on_a_terminal(robot, capsys) -> None:
     assert "rollout" in err and "100/100" in err  # 2 elements × 50 steps, all done
     ms.rollout(dp, Q0, V0, duration=0.05, dt=1e-3, progress=False)
     assert capsys.readouterr().err == ""
-
-
-# ---- Ray -----------------------------------------------------------------------------------------------------------
-def test_ray_backend_splits_the_batch_into_chunks_and_gives_the_local_result(monkeypatch) -> None:
-    # Ray replaces a node address of 127.0.0.1 by the machine's reachable one unless it runs without cluster
-    # support: the test instance then binds every server to the loopback interface only.
-    monkeypatch.setenv("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-    try:
-        import ray
-        import ray._private.ray_constants
-    except ImportError:
-        if os.environ.get("CI") == "true":
-            raise  # CI installs the test extra, which has Ray: its absence is a failure there
-        pytest.skip("Ray is not installed (pip install 'multibody-sim[ray]'); CI runs this test")
-    ur5 = ms.load_robot("ur5")  # loaded here: what the tasks receive is this object, pickled
-    Q0, V0 = random_states(ur5, 7, seed=11)
-    V0[4] = [0.0, 3e3, 0.0, -3e3, 0.0, 0.0]  # diverges: one chunk holds a failure, the others must not care
-    options = dict(duration=0.02, dt=2e-3, output_dt=4e-3)
-    gain = 50.0
-    controller = lambda t, q, v: gain * (0.1 - q) - v  # noqa: E731  (a closure: shipped by value)
-    local = ms.rollout(ur5, Q0, V0, controller=controller, **options)
-    monkeypatch.setattr(ray._private.ray_constants, "ENABLE_RAY_CLUSTER", False)  # if Ray was imported before
-    ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1", log_to_driver=False)
-    try:
-        assert ray.util.get_node_ip_address() == "127.0.0.1"
-        distributed = ms.rollout(ur5, Q0, V0, controller=controller, backend="ray", chunk_size=3, **options)
-    finally:
-        ray.shutdown()
-    assert distributed.metadata["backend"] == "ray" and distributed.metadata["chunks"] == 3
-    assert distributed.status.tolist() == local.status.tolist() and "diverged" in local.status.tolist()
-    assert distributed.messages == local.messages
-    for name in ARRAYS:
-        np.testing.assert_array_equal(getattr(distributed, name), getattr(local, name))
-    for name in COUNTS:
-        np.testing.assert_array_equal(distributed.stats[name], local.stats[name])
 
 
 def test_a_batch_that_cannot_fit_in_memory_is_refused_before_it_is_allocated() -> None:

@@ -230,6 +230,12 @@ class Scene(Robot):
         ]
         return names + (self.elements.potentials if self.elements is not None else [])
 
+    def __reduce__(self) -> tuple[Any, tuple[SceneSpec]]:
+        """Pickled as its declaration and built again where it is unpickled (a Ray worker): Pinocchio's collision
+        data and joint-friction constraints do not pickle; the same declaration builds the same scene, which steps
+        to the same bytes. Its robot's files must be at the same paths there."""
+        return (Scene, (self.spec,))
+
     def describe(self) -> str:
         """What the scene modelled, a few lines for the run summary."""
         spec = self.spec
