@@ -193,7 +193,7 @@ def closest_pair_seen_as(colors: list[str], matrix: list[list[float]]) -> float:
 
 
 def test_every_integrator_has_its_own_colour_blind_safe_colour(tmp_path: Path) -> None:
-    colors = [bench.METHOD_COLORS[bench._color_index(name)] for name in ms.INTEGRATORS]
+    colors = [bench.METHOD_COLORS[bench.results._color_index(name)] for name in ms.INTEGRATORS]
     assert len(set(colors)) == len(ms.INTEGRATORS)
     for matrix in COLOR_VISION.values():
         assert closest_pair_seen_as(colors, matrix) > 0.1
@@ -223,7 +223,7 @@ def test_every_integrator_has_its_own_colour_blind_safe_colour(tmp_path: Path) -
     png = np.asarray(Image.open(bench.plot_work_precision(study, tmp_path / "wp.png")).convert("RGB")).reshape(-1, 3)
     palette = {tuple(int(c[i : i + 2], 16) for i in (1, 3, 5)) for c in bench.METHOD_COLORS} - {(0, 0, 0)}
     present = palette & set(map(tuple, png))  # black is the axes' colour too: not counted
-    drawn = {bench.METHOD_COLORS[bench._color_index(name)] for name in ("euler", "midpoint", "rk4")}
+    drawn = {bench.METHOD_COLORS[bench.results._color_index(name)] for name in ("euler", "midpoint", "rk4")}
     assert {f"#{r:02X}{g:02X}{b:02X}" for r, g, b in present} == drawn
 
 
@@ -451,7 +451,7 @@ def count_studies(monkeypatch: pytest.MonkeyPatch) -> list[int]:
         studies.append(1)
         return work_precision(*args, **kw)
 
-    monkeypatch.setattr(bench, "work_precision", counted)
+    monkeypatch.setattr(bench.pilot, "work_precision", counted)  # where choose_integrator finds it
     return studies
 
 

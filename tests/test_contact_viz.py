@@ -211,7 +211,7 @@ def test_play_forces_serves_the_arrows_and_the_commands_refuse_runs_without_cont
             page.close()
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli.time, "sleep", ctrl_c)
+    monkeypatch.setattr(cli.view.time, "sleep", ctrl_c)
     assert cli.main(["play", str(run), "--port", "0", "--forces"]) == 0
     assert seen == [True]
     monkeypatch.undo()

@@ -466,7 +466,7 @@ def _serve(argv: list[str], monkeypatch: pytest.MonkeyPatch, capsys: pytest.Capt
         raise KeyboardInterrupt
 
     with monkeypatch.context() as patch:
-        patch.setattr(cli.time, "sleep", ctrl_c)
+        patch.setattr(cli.view.time, "sleep", ctrl_c)
         code = main(argv)
     assert "<title>ur5 - multibody-sim</title>" in seen["page"]
     return code, seen["out"] + capsys.readouterr().out

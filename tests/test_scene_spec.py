@@ -16,8 +16,8 @@ from conftest import joint, link, urdf
 
 import multibody_sim as ms
 from multibody_sim.exceptions import InvalidArgumentError, SceneError
+from multibody_sim.scenes.parse import MAX_SCENE_BYTES, parse_scene, read_scene_file
 from multibody_sim.scenes.spec import (
-    MAX_SCENE_BYTES,
     ConstraintSpec,
     ControllerSpec,
     ForceSpec,
@@ -26,8 +26,6 @@ from multibody_sim.scenes.spec import (
     RobotSpec,
     SceneSpec,
     SimulationSpec,
-    parse_scene,
-    read_scene_file,
 )
 
 if sys.version_info >= (3, 11):

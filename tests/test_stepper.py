@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import multibody_sim as ms
-from multibody_sim.driver import BLOWUP_FACTOR, Monitor
 from multibody_sim.integrators.implicit import ImplicitEuler
+from multibody_sim.monitor import BLOWUP_FACTOR, Monitor
 from multibody_sim.recording import SampleStore
 
 DT = 2.0**-10  # a power of two: k·dt is exact, so every step of simulate() is exactly dt long

@@ -59,7 +59,7 @@ def assert_escaped(*texts: str) -> None:
 
 
 def test_safe_name_escapes_every_class_visibly():
-    from multibody_sim.safety import safe_name, terminal_text
+    from multibody_sim.text import safe_name, terminal_text
 
     for char, shown in [
         ("\n", "\\x0a"),

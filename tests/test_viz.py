@@ -783,7 +783,7 @@ def test_play_serves_until_interrupted(
             seen["page"] = response.read().decode()
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli.time, "sleep", ctrl_c)
+    monkeypatch.setattr(cli.view.time, "sleep", ctrl_c)
     run, _ = pendulum_run
     code = main(["play", str(run), "--port", "0"])
     assert code == 0
@@ -802,7 +802,7 @@ def test_a_warning_shown_again_while_warnings_are_recorded_is_shown_once():
         "import resource, warnings\n"
         "resource.setrlimit(resource.RLIMIT_AS, (3 * 2**30, 3 * 2**30))\n"
         "from multibody_sim import cli, viz\n"
-        "with cli._viewer_warnings(viz):\n"
+        "with cli.view.viewer_warnings(viz):\n"
         "    warnings.warn('overflow here', RuntimeWarning)\n"
         "print('done')\n"
     )

@@ -26,7 +26,7 @@ import pinocchio as pin
 
 from .exceptions import InvalidArgumentError, UnknownNameError
 from .robot import Robot
-from .safety import safe_name
+from .text import safe_name
 from .validation import check_system, check_text
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED

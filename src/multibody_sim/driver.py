@@ -1,14 +1,13 @@
-"""The driver of a run: control instants, torques, sampling, the energy monitor, recording, interrupts and early
-stops, for one row (simulate, Stepper) or many (rollout). It knows nothing of Runge–Kutta: the stepping core
-(core.py) advances the rows between its events.
+"""The driver of a run: control instants, sampling, recording, interrupts and early stops, for one row (simulate,
+Stepper) or many (rollout), with the torques of torques.py and the energy monitor of monitor.py. It knows nothing of
+Runge–Kutta: the stepping core (core.py) advances the rows between its events.
 """
 
 from __future__ import annotations
 
-import copy
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -16,15 +15,17 @@ from typing import Any
 import numpy as np
 
 from .core import EMPTY, FULL, REACHED, Core, Sampler, cure_for_dt
-from .exceptions import ControllerOutputError, InvalidArgumentError, MultibodySimError, TrajectoryFileError
+from .exceptions import ControllerOutputError, MultibodySimError, TrajectoryFileError
 from .files import signals_held
 from .integrators import Integrator
 from .kernels.native import NativeCore, NativeKernel, why_not_native
 from .kernels.row import RowKernel
 from .metadata import run_metadata
+from .monitor import Monitor
 from .recording import COUNTERS, SampleStore, check_memory, file_bytes, samples_needed
 from .safety import check_file_size
 from .step_control import SLIVER, ConstantStep, PIController
+from .torques import Saturation, Torques
 from .trajectory import (
     PARTS_SUFFIX,
     LimitViolations,
@@ -36,8 +37,6 @@ from .trajectory import (
 )
 from .validation import run_numbers, step_count
 
-# Energy blow-up: |energy_error| beyond this many times the run's energy scale is divergence, not error.
-BLOWUP_FACTOR = 1e3
 # The core returns to the driver at least every this many steps (progress, interrupts, the monitor).
 BLOCK_STEPS = 2048
 # ... and whenever the store holds this many more samples (in-memory runs).
@@ -46,266 +45,6 @@ BLOCK_SAMPLES = 1024
 
 # A run whose contact solver stopped at its iteration cap on more than this fraction of its steps failed.
 SOLVER_FAILURE_FRACTION = 0.01
-
-
-# ---- torques -----------------------------------------------------------------------------------------------------
-def check_torque(system: Any, tau: Any, t: float | None, what: str = "controller output") -> np.ndarray:
-    """tau as a float array (nv,) if it is a valid torque, else InvalidArgumentError naming the time and reason."""
-    fast = type(tau) is np.ndarray and tau.dtype == np.float64 and tau.shape == (system.nv,)
-    # max - min in Python floats: finite exactly when every entry is, and a huge finite torque overflows to inf
-    # silently (tau @ tau made NumPy warn), taking the full check.
-    if fast and math.isfinite(float(tau.max()) - float(tau.min())) and not system.unactuated_load(tau):
-        return tau
-    try:  # the full check, with the precise reason
-        return system.check_tau(tau)
-    except InvalidArgumentError as exc:
-        if t is None:
-            raise
-        raise InvalidArgumentError(f"{what} at t = {t:.6g} s: {exc}") from None
-
-
-class Saturation:
-    """Actuators saturate at the URDF's effort limits: torques are clipped, and the calls and dofs counted.
-
-    Attributes:
-        effort: |tau| bounds, shape (nv,), or None when the URDF gives none.
-        calls: per row, how many control instants clipped something, shape (B,).
-        dofs: per row and dof, how many times it was clipped, shape (B, nv).
-    """
-
-    def __init__(self, system: Any, B: int):
-        limited = np.isfinite(system.effort_limit)
-        self.effort = system.effort_limit if limited.any() else None
-        self.calls = np.zeros(B, dtype=np.int64)
-        self.dofs = np.zeros((B, system.nv), dtype=np.int64)
-
-    def apply(self, TAU: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """TAU (n, nv) of `rows`, clipped (a new array where anything was clipped)."""
-        if self.effort is None:
-            return TAU
-        over = np.abs(TAU) > self.effort
-        if not over.any():
-            return TAU
-        self.calls[rows] += over.any(axis=1)
-        self.dofs[rows] += over
-        return np.clip(TAU, -self.effort, self.effort)
-
-    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.calls.copy(), self.dofs.copy()
-
-    def restore(self, snapshot: tuple[np.ndarray, np.ndarray]) -> None:
-        self.calls, self.dofs = snapshot[0].copy(), snapshot[1].copy()
-
-
-class Torques:
-    """Where the rows' torques come from: nothing, one callable per row, a batched callable, or open-loop sequences.
-
-    Attributes:
-        kind: "none", "callables", "batched" or "taus".
-        label: the controller's name for the metadata.
-    """
-
-    def __init__(
-        self,
-        kind: str,
-        *,
-        callables: list[Any] | None = None,
-        batched: Any = None,
-        taus: np.ndarray | None = None,
-        label: str | None = None,
-    ):
-        self.kind, self.callables, self.batched, self.taus, self.label = kind, callables, batched, taus, label
-
-    @classmethod
-    def single(cls, controller: Any) -> Torques:
-        """simulate()'s and Stepper's: one callable or None."""
-        if controller is None:
-            return cls("none")
-        return cls("callables", callables=[controller], label=controller_name(controller))
-
-    def subset(self, rows: np.ndarray) -> Torques:
-        """The same torques for the rows `rows` only (Ray chunks, element-by-element runs)."""
-        return Torques(
-            self.kind,
-            callables=[self.callables[b] for b in rows] if self.callables is not None else None,
-            batched=self.batched,
-            taus=self.taus[rows] if self.taus is not None else None,
-            label=self.label,
-        )
-
-    def compute(
-        self, system: Any, t: float, instant: int, rows: np.ndarray, states: Callable[[], tuple[list, list]]
-    ) -> tuple[np.ndarray, list[tuple[int, BaseException, bool]]]:
-        """The torques of the running rows at time t (control instant number `instant`), shape (n, nv), and the
-        rows whose controller failed: (position, exception, is_bad_output)."""
-        n, nv = len(rows), system.nv
-        failures: list[tuple[int, BaseException, bool]] = []
-        if self.kind == "taus":
-            assert self.taus is not None
-            return self.taus[rows, min(instant, self.taus.shape[1] - 1)], failures
-        Qs, Vs = states()
-        if self.kind == "batched":
-            Q, V = np.array(Qs), np.array(Vs)
-            Q.setflags(write=False)  # the controller sees the state; it must not edit it
-            V.setflags(write=False)
-            try:
-                out = self.batched(t, Q, V)
-            except Exception as exc:  # user code: every row fails with it
-                return np.zeros((n, nv)), [(j, exc, False) for j in range(n)]
-            shape = np.shape(out)
-            if shape != (n, nv):
-                error = InvalidArgumentError(
-                    f"batched controller output at t = {t:.6g} s must have shape ({n}, {nv}), got {shape}"
-                )
-                return np.zeros((n, nv)), [(j, error, True) for j in range(n)]
-            TAU = np.array(out, dtype=float)
-            suspect = ~np.isfinite(TAU).all(axis=1) | system.unactuated_load(TAU, per_row=True)
-            for j in np.flatnonzero(suspect).tolist():
-                try:  # the full check, with the precise reason
-                    system.check_tau(TAU[j])
-                except InvalidArgumentError as exc:
-                    failures.append(
-                        (
-                            j,
-                            InvalidArgumentError(
-                                f"batched controller output at t = {t:.6g} s, element {rows[j]}: {exc}"
-                            ),
-                            True,
-                        )
-                    )
-            return TAU, failures
-        assert self.callables is not None
-        TAU = np.empty((n, nv))
-        for j, b in enumerate(rows.tolist()):
-            q, v = Qs[j], Vs[j]
-            q.setflags(write=False)  # the controller sees the state; it must not edit it
-            v.setflags(write=False)
-            try:
-                out = self.callables[b](t, q, v)
-            except Exception as exc:  # user code: this row fails with it
-                failures.append((j, exc, False))
-                TAU[j] = 0.0
-                continue
-            try:
-                TAU[j] = check_torque(system, out, t)
-            except InvalidArgumentError as exc:
-                failures.append((j, exc, True))
-                TAU[j] = 0.0
-        return TAU, failures
-
-
-def controller_name(controller: Any) -> str:
-    return str(getattr(controller, "__qualname__", type(controller).__qualname__))
-
-
-# ---- the energy monitor --------------------------------------------------------------------------------------------
-class Monitor:
-    """Energy blow-up detection at the samples: a run whose energy becomes non-finite, or whose energy error or
-    dissipated energy exceeds BLOWUP_FACTOR times its energy scale, has diverged.
-
-    The scale of a row is T0 + |V0| + the system's natural energy unit (lifting it by one metre); dissipation is
-    left out of the bound (a diverging damped mode inflates it without bound, while a real run can only dissipate
-    what it had or was given: the scale and the work).
-    """
-
-    def __init__(self, system: Any, B: int):
-        self.system = system
-        elements = system.ledger_elements
-        self.is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
-        self._work_only = bool(self.is_work.all()) and len(self.is_work) == 1
-        self._work_index = np.flatnonzero(self.is_work).tolist()
-        self._dissipated_index = np.flatnonzero(~self.is_work).tolist()
-        self.initial = np.zeros(B)  # H at the start [J]
-        self.scale = np.zeros(B)
-        self.started = np.zeros(B, dtype=bool)
-        self.all_started = False
-
-    def start(self, rows: np.ndarray, energies: np.ndarray) -> None:
-        """The rows' initial (T, V), shape (n, 2)."""
-        self.initial[rows] = energies.sum(axis=1)
-        self.scale[rows] = energies[:, 0] + np.abs(energies[:, 1]) + self.system.energy_scale
-        self.started[rows] = True
-        self.all_started = bool(self.started.all())
-
-    def suspects(self, store: SampleStore, rows: np.ndarray, start: int, limits: np.ndarray) -> np.ndarray:
-        """The rows among `rows` that may have a problem among their samples start..limits[j]-1: every row that
-        first_problem() would flag, and maybe a few more (judged at half the bound, all rows at once)."""
-        stop = int(limits.max(initial=start))
-        if stop <= start:
-            return rows[:0]
-        whole = len(rows) == store.B and (store.B == 1 or bool((rows == np.arange(store.B)).all()))
-        index: Any = slice(None) if whole else rows  # every row in order (simulate, a rollout): views, not copies
-        E = store.ENERGY[start:stop, index]
-        flows = store.FLOWS[start:stop, index]
-        total = E[..., 0] + E[..., 1]
-        if self._work_only:  # the ledger's one element: the joint torques' work
-            work, dissipated = flows[..., 0], None
-        else:
-            work = flows[..., self.is_work].sum(axis=-1)
-            dissipated = flows[..., ~self.is_work].sum(axis=-1)
-        with np.errstate(over="ignore", invalid="ignore"):
-            error = total - self.initial[index] - work
-            if dissipated is not None:
-                error += dissipated
-            bound = np.abs(work)
-            bound += self.scale[index]
-            bound *= 0.5 * BLOWUP_FACTOR
-            bad = np.abs(error) > bound
-            bad |= ~np.isfinite(total)
-            if dissipated is not None:
-                bad |= dissipated > bound
-        if (limits != stop).any():  # some rows hold fewer samples
-            bad &= np.arange(stop - start)[:, None] < limits[None, :] - start
-        return rows[bad.any(axis=0)]
-
-    def surely_fine(self, store: SampleStore, b: int, i: int) -> bool:
-        """Whether row b's sample i surely has no problem: first_problem's test at half its bound, in Python
-        floats (for one sample, NumPy's calls cost more than the arithmetic; the sums' rounding may differ from
-        NumPy's, by far less than the factor 2 kept)."""
-        kinetic, potential = store.ENERGY[i, b].tolist()
-        flows = store.FLOWS[i, b].tolist()
-        work = sum([flows[k] for k in self._work_index])
-        dissipated = sum([flows[k] for k in self._dissipated_index])
-        total = kinetic + potential
-        error = total - float(self.initial[b]) - work + dissipated
-        bound = 0.5 * BLOWUP_FACTOR * (float(self.scale[b]) + abs(work))
-        return math.isfinite(total) and abs(error) <= bound and dissipated <= bound
-
-    def first_problem(self, store: SampleStore, b: int, start: int, stop: int) -> tuple[int, str, bool] | None:
-        """(sample index, what, whether the sample is kept) of row b's first problem among samples start..stop-1,
-        or None."""
-        if stop <= start or (stop == start + 1 and self.surely_fine(store, b, start)):
-            return None
-        E = store.ENERGY[start:stop, b]
-        total = E[:, 0] + E[:, 1]
-        flows = store.FLOWS[start:stop, b]
-        work = flows[:, self.is_work].sum(axis=1)
-        dissipated = flows[:, ~self.is_work].sum(axis=1)
-        with np.errstate(over="ignore", invalid="ignore"):
-            error = total - self.initial[b] - work + dissipated
-            bound = BLOWUP_FACTOR * (self.scale[b] + np.abs(work))
-        nonfinite = ~np.isfinite(total)
-        blown = (np.abs(error) > bound) | (dissipated > bound)
-        bad = nonfinite | blown
-        if not bad.any():
-            return None
-        i = int(np.argmax(bad))
-        V = store.V[start + i, b]
-        fastest = int(np.argmax(np.abs(V)))
-        where = f"fastest in '{self.system.dof_names[fastest]}' ({V[fastest]:.3g})"
-        if nonfinite[i]:
-            return start + i, f"the energy became non-finite, {where}", False
-        what = (
-            f"the energy error {error[i]:.3g} J"
-            if abs(error[i]) > bound[i]
-            else f"the dissipated energy {dissipated[i]:.3g} J"
-        )
-        scale = bound[i] / BLOWUP_FACTOR
-        return (
-            start + i,
-            f"{what} exceeds {BLOWUP_FACTOR:g} times the run's energy scale ({scale:.3g} J), {where}",
-            True,
-        )
 
 
 # ---- kernels ------------------------------------------------------------------------------------------------------
@@ -998,15 +737,3 @@ def stop_error(
     else:
         error = SimulationError(message, status=outcome.status, trajectory=trajectory, saved_to=saved_to)
     return error
-
-
-def fresh_copies(controller: Any, n: int, shared: dict[int, Any]) -> list[Any]:
-    """n deep copies of a stateful controller (the objects in `shared` stay shared), each reset."""
-    copies = [copy.deepcopy(controller, dict(shared)) for _ in range(n)]
-    for c in copies:
-        c.reset()
-    return copies
-
-
-def is_sequence_of_callables(value: Any) -> bool:
-    return isinstance(value, Sequence) and not isinstance(value, (str, bytes))

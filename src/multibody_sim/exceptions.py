@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from .text import printable
+
 if TYPE_CHECKING:
     from pathlib import Path
-
-    from .trajectory import Trajectory
 
 
 class MultibodySimError(Exception):
@@ -27,8 +27,6 @@ class UnknownNameError(MultibodySimError, LookupError):
 
     def __str__(self) -> str:  # LookupError would quote the message like a dict key
         # The names it lists may come from a file (joints, frames, poses): escaped, one line.
-        from .safety import printable
-
         return printable(str(self.args[0])) if self.args else ""
 
 
@@ -57,7 +55,8 @@ class SimulationError(MultibodySimError, RuntimeError):
 
     Attributes:
         status: why it stopped ("diverged", "failed", "write_failed", "out_of_memory", ...).
-        trajectory: every finite sample computed before the stop.
+        trajectory: every finite sample computed before the stop (a Trajectory; typed Any: errors sit below the
+            modules that build trajectories and import none of them).
         saved_to: the file (or a chunked run's parts folder) holding them, or None when they are in memory only.
     """
 
@@ -66,7 +65,7 @@ class SimulationError(MultibodySimError, RuntimeError):
         message: str,
         *,
         status: str,
-        trajectory: Trajectory | None = None,
+        trajectory: Any = None,
         saved_to: Path | None = None,
         **details: Any,
     ):
@@ -85,7 +84,7 @@ class SimulationInterrupted(KeyboardInterrupt):
         self,
         message: str,
         *,
-        trajectory: Trajectory | None = None,
+        trajectory: Any = None,
         signal_name: str = "SIGINT",
         saved_to: Path | None = None,
     ):

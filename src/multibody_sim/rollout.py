@@ -18,13 +18,14 @@ from typing import Any
 
 import numpy as np
 
-from .driver import Run, RunSettings, Torques, controller_name
+from .driver import Run, RunSettings
 from .exceptions import InvalidArgumentError, SimulationInterrupted
 from .integrators import Integrator, get_integrator
 from .integrators.timestepping import SOLVER_COUNTS  # a contact scene's, in stats only when kept
 from .progress import ProgressBar
 from .recording import limit_reports, split_records
 from .robot import Robot, real_array
+from .torques import Torques, controller_name
 from .trajectory import ARRAYS, ConstraintRecord, Contacts, LedgerEntry, LimitViolations, Trajectory
 from .validation import check_options, check_system, positive_count, positive_number
 

@@ -5,8 +5,8 @@ inflates whatever the archive holds, so a 10 MB file can ask for gigabytes: a me
 shape, a highly compressed member (a zip bomb), a bzip2 or LZMA member (which inflate far more per byte read),
 or millions of tiny members. `check_npz` refuses all of these from the archive's directory and the members'
 headers alone, reading at most a few kilobytes of each member; `read_npz` is np.load behind that check, with
-every failure turned into a TrajectoryFileError. `printable` makes messages that quote a file's contents (names,
-paths) safe to print: one line, no terminal escapes, bounded length.
+every failure turned into a TrajectoryFileError. It also says what this process may allocate (`memory_room`,
+`check_allocation`) and write (`file_size_limit`, `check_file_size`).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from typing import BinaryIO
 import numpy as np
 
 from .exceptions import TrajectoryFileError
+from .text import printable
 
 MAX_NPZ_MEMBERS = 4096  # a trajectory has ~11 arrays plus one per ledger element
 # A file may expand to MAX_EXPANSION times its size, or MIN_BUDGET_BYTES whatever its size. Trajectory.save
@@ -55,9 +56,6 @@ _END_OF_DIRECTORY = b"PK\x05\x06"
 _END_RECORD_SIZE = 22  # the fixed part of zip's end-of-central-directory record; a comment (<= 64 KiB) may follow
 
 
-# C0 and C1 controls (line breaks, ESC and CSI start terminal escapes), DEL, zero-width and bidi overrides.
-_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u061c\u200b-\u200f\u2028-\u202e\u2060-\u2069\ufeff]")
-MAX_MESSAGE_CHARS = 2000
 # What reading a damaged or hostile archive raises besides our own errors: zlib.error for a corrupted deflate
 # stream, struct.error for a damaged header, NotImplementedError / RuntimeError for a zip version, compression
 # method or encryption zipfile cannot read (fuzzing found each of them).
@@ -72,45 +70,6 @@ ARCHIVE_ERRORS = (
     NotImplementedError,
     RuntimeError,
 )
-
-
-def printable(message: str) -> str:
-    """A message safe to print: control and bidi characters escaped (\\x0a, \\u202e), and at most
-    MAX_MESSAGE_CHARS characters: the first 1500 and the last 400 kept (a name from a file may be megabytes).
-    """
-    message = _UNPRINTABLE.sub(lambda m: _escape(m.group()), message)
-    if len(message) > MAX_MESSAGE_CHARS:
-        omitted = len(message) - 1900
-        message = f"{message[:1500]} [... {omitted} characters omitted ...] {message[-400:]}"
-    return message
-
-
-MAX_NAME_CHARS = 200  # a name longer than this is cut (its start and end kept) in tables and summaries
-
-
-def safe_name(name: object) -> str:
-    """A name from a file (link, joint, frame, file name) as it may be shown on a terminal, inside a line.
-
-    Control characters (C0, C1, DEL), line and paragraph separators, zero-width and bidirectional overrides
-    are escaped visibly (\\x0a, \\u202e): a name cannot break a line, colour or clear the terminal, or reorder
-    what is printed around it. At most MAX_NAME_CHARS characters are kept (the first 150 and the last 40).
-    Every place that prints names uses this (messages use printable, which applies the same escapes).
-    """
-    text = _UNPRINTABLE.sub(lambda m: _escape(m.group()), str(name))
-    if len(text) > MAX_NAME_CHARS:
-        text = f"{text[:150]}[... {len(text) - 190} characters ...]{text[-40:]}"
-    return text
-
-
-def terminal_text(text: str) -> str:
-    """Text for a terminal whose own line breaks are kept: every other unprintable character is escaped as
-    safe_name does (the last defence of the command line's output; names are escaped where they are inserted)."""
-    return "\n".join(_UNPRINTABLE.sub(lambda m: _escape(m.group()), line) for line in text.split("\n"))
-
-
-def _escape(char: str) -> str:
-    code = ord(char)
-    return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}"
 
 
 def json_depth(text: str) -> int:

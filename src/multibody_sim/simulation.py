@@ -10,12 +10,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from .driver import Run, RunSettings, Sink, Torques, stop_error
+from .driver import Run, RunSettings, Sink, stop_error
 from .exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
 from .files import RunLock, SigtermAsInterrupt, check_output, check_unlocked
 from .integrators import Integrator, get_integrator
 from .progress import ProgressBar
 from .robot import Robot
+from .torques import Torques
 from .trajectory import PARTS_SUFFIX, Trajectory
 from .validation import (
     check_callable,

@@ -9,14 +9,16 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .core import Core, RowStop, cure_for_dt, stop_message
-from .driver import Monitor, Saturation, check_torque, choose_kernel, core_class
+from .driver import choose_kernel, core_class
 from .exceptions import InvalidArgumentError, SimulationError
 from .integrators import Integrator, get_integrator
+from .monitor import Monitor
 from .recording import SampleStore
 from .robot import Robot, real_array
 from .rollout import check_batch
 from .simulation import Controller
 from .step_control import SLIVER, ConstantStep, PIController
+from .torques import Saturation, check_torque
 from .trajectory import LedgerEntry, Trajectory
 from .validation import (
     check_callable,

@@ -15,7 +15,8 @@ import numpy as np
 
 from .exceptions import InvalidArgumentError, TrajectoryFileError
 from .files import write_atomically
-from .safety import ARCHIVE_ERRORS, MAX_JSON_DEPTH, check_npz, json_depth, printable, read_npz, safe_name
+from .safety import ARCHIVE_ERRORS, MAX_JSON_DEPTH, check_npz, json_depth, read_npz
+from .text import printable, safe_name
 from .validation import check_flag, check_path, sample_times
 
 FORMAT = "multibody-sim trajectory"

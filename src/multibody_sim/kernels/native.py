@@ -506,8 +506,8 @@ class NativeCore(Core):
 
     def _control_failure(self, row: int, t: float) -> InvalidArgumentError:
         """Why row `row`'s native controller output at t was refused: its Python controller's output at the row's
-        state, checked as the driver checks it (driver.check_torque)."""
-        from ..driver import check_torque
+        state, checked as the driver checks it (torques.check_torque)."""
+        from ..torques import check_torque
 
         q, v = self.kernel.engine.snapshot_row(row)[:2]
         try:

@@ -21,9 +21,10 @@ from ..catalog import (
     shipped_models_dir,
 )
 from ..exceptions import ModelError, SceneError
-from ..safety import printable
+from ..text import printable
+from .parse import parse_scene, parse_toml, read_scene_file
 from .scene import Scene
-from .spec import SceneSpec, parse_scene, parse_toml, read_scene_file
+from .spec import SceneSpec
 
 __all__ = ["SCENE_PREFIX", "Scene", "SceneSpec", "load_scene", "make_scene", "scene_from_metadata", "shipped_scenes"]
 

@@ -49,7 +49,7 @@ import pinocchio as pin
 
 from ..exceptions import SceneError
 from ..ordered import ordered_dot, ordered_matvec
-from ..safety import safe_name
+from ..text import safe_name
 
 # Gaps below this are contact candidates [m]: a pair closing faster than SPECULATIVE_MARGIN / dt (10 m/s at 1 ms)
 # may end a step inside each other, which the penetration correction then undoes.

@@ -21,7 +21,7 @@ import pinocchio as pin
 from ..catalog import load_robot, read_urdf, reduce_configuration
 from ..exceptions import InvalidArgumentError, SceneError
 from ..robot import Robot
-from ..safety import safe_name
+from ..text import safe_name
 from ..trajectory import Trajectory
 from .spec import CONTACT_INTEGRATOR, RobotSpec, SceneSpec
 

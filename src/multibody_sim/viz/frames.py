@@ -21,7 +21,8 @@ from ..catalog import (
 )
 from ..exceptions import InvalidArgumentError, ModelError, TrajectoryFileError
 from ..robot import Robot
-from ..safety import check_allocation, printable
+from ..safety import check_allocation
+from ..text import printable
 from ..trajectory import Trajectory
 from ..validation import check_system, check_trajectory, finite_number, positive_number
 

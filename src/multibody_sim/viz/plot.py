@@ -16,7 +16,8 @@ import numpy as np
 from ..exceptions import InvalidArgumentError, ModelError, TrajectoryFileError, UnknownNameError
 from ..files import check_output, write_atomically
 from ..robot import Robot
-from ..safety import check_allocation, safe_name
+from ..safety import check_allocation
+from ..text import safe_name
 from ..trajectory import Trajectory
 from ..validation import check_path, check_system, check_text, check_trajectory, positive_count
 from ._deps import require

@@ -19,7 +19,7 @@ import pinocchio as pin
 from ..catalog import build_geometry, mesh_roots
 from ..exceptions import InvalidArgumentError, UnknownNameError
 from ..robot import Robot
-from ..safety import printable, safe_name
+from ..text import printable, safe_name
 from ..validation import check_system, check_text
 from ._deps import ViewerWarning, require
 from .meshes import MeshPart, geometry_parts, skeleton_parts

@@ -19,7 +19,7 @@ import numpy as np
 import pinocchio as pin
 from lxml import etree
 
-from .exceptions import ModelError
+from ..exceptions import ModelError
 
 _JOINT_TYPES = {"revolute": "revolute", "prismatic": "prismatic", "fixed": "fixed", "continuous": "continuous"}
 

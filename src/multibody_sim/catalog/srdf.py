@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from .catalog import parse_xml, read_xml_file
-from .exceptions import ModelError
+from ..exceptions import ModelError
+from .reading import parse_xml, read_xml_file
 
 
 def read_poses(path: Path, model: pin.Model) -> dict[str, np.ndarray]:
