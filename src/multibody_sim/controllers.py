@@ -202,8 +202,9 @@ class TrackingLog:
 
     Attributes:
         t: call times [s], shape (n,).
-        position_error: ``q_des(t) ⊖ q``, shape (n, nv) [rad or m].
-        velocity_error: ``v_des(t) − v``, shape (n, nv) [rad/s or m/s].
+        position_error: ``q_des(t) ⊖ q`` of the actuated coordinates (a scene's free objects, which the controller
+            does not drive, left out), shape (n, nv_actuated) [rad or m].
+        velocity_error: ``v_des(t) − v``, likewise [rad/s or m/s].
     """
 
     t: np.ndarray
@@ -318,9 +319,10 @@ class ComputedTorque:
         q_des, v_des, a_des = self.reference(t)
         error = pin.difference(self._model, q, q_des)
         d_error = v_des - v
+        actuated = _actuated(self.robot)  # a scene's free objects only ride along: their "error" is no error
         self._log_t.append(float(t))
-        self._log_e.append(error)
-        self._log_de.append(d_error)
+        self._log_e.append(error[actuated])
+        self._log_de.append(d_error[actuated])
         tau = pin.rnea(self._model, self._data, q, v, a_des + self.kp * error + self.kd * d_error).copy()
         if self._damping is not None:  # the URDF damping takes D v away: give it back
             tau += self._damping * v
@@ -329,7 +331,8 @@ class ComputedTorque:
 
     def tracking_error(self) -> TrackingLog:
         """The log since the last reset, as arrays."""
-        nv = self.robot.nv
+        actuated = _actuated(self.robot)
+        nv = actuated.stop - actuated.start
         return TrackingLog(
             t=np.array(self._log_t),
             position_error=np.array(self._log_e).reshape(-1, nv),
@@ -344,7 +347,7 @@ class ComputedTorque:
         worst = int(np.argmax(np.abs(log.position_error).max(axis=0)))
         return (
             f"computed torque: max tracking error {log.max_position_error:.3g} "
-            f"(in '{safe_name(self.robot.dof_names[worst])}'), "
+            f"(in '{safe_name(self.robot.dof_names[_actuated(self.robot)][worst])}'), "
             f"max velocity error {log.max_velocity_error:.3g}, over {len(log.t)} controller calls"
         )
 

@@ -255,7 +255,8 @@ def limit_reports(system: Any, T: np.ndarray, Q: np.ndarray, n: np.ndarray) -> l
 
     Each row's extreme coordinates pick the (row, coordinate) pairs to look at: Robot.limit_excess at (the lowest,
     the highest) value of a coordinate bounds its excess at every sample (a rounded difference is monotone in each
-    operand), so no violation is missed, and the other pairs cost two reductions.
+    operand; the tolerance is least at the start), so no violation is missed, and the other pairs cost two
+    reductions. Times count from 0, where every run starts.
     """
     none = LimitViolations()  # frozen: one instance serves every row without violations
     B, N, _ = Q.shape
@@ -270,7 +271,7 @@ def limit_reports(system: Any, T: np.ndarray, Q: np.ndarray, n: np.ndarray) -> l
     pair_rows, pair_cols = np.nonzero(suspect)
     if not len(pair_rows):
         return reports
-    excess = system.limit_excess(Q[pair_rows, :, pair_cols].T, columns=pair_cols).T  # (pairs, N)
+    excess = system.limit_excess(Q[pair_rows, :, pair_cols].T, columns=pair_cols, t=T[pair_rows].T).T  # (pairs, N)
     excess[np.arange(N)[None, :] >= n[pair_rows][:, None]] = 0.0  # past a row's samples
     outside = excess > 0
     rows, starts = np.unique(pair_rows, return_index=True)

@@ -42,6 +42,9 @@ class Robot:
         lower_limit, upper_limit: position limits, shape (nq,); ±inf where there is none.
         limit_tolerance: how far past a limit a coordinate may lie before it counts as a violation (round-off),
             shape (nq,): LIMIT_TOLERANCE_ULPS x machine epsilon x max(|lower|, |upper|, 1); inf where there is no limit.
+        limit_drift: how fast the tolerance grows with time [rad/s or m/s], shape (nq,): zero for a robot; a contact
+            scene's coordinates whose velocity its contact solve holds (enforced limits, exact joint friction) drift
+            by up to the solve's accuracy every second (scenes.contact.HELD_DRIFT_RATE).
         space: the configuration manifold (integrate, difference).
         source: how the robot was loaded (the full load_robot arguments, URDF path and SHA-256).
         poses: names of the named poses (pose(name) gives one); default_pose_name: the one default_pose() returns,
@@ -78,6 +81,7 @@ class Robot:
         self._limited = np.isfinite(self.lower_limit)
         scale = np.maximum(np.maximum(np.abs(self.lower_limit), np.abs(self.upper_limit)), 1.0)
         self.limit_tolerance = np.where(self._limited, LIMIT_TOLERANCE_ULPS * np.finfo(float).eps * scale, np.inf)
+        self.limit_drift = np.zeros(self.nq)
         self._n_base = 6 if floating_base else 0
         # The actuated velocity coordinates: all but a floating base's 6 (a scene's free objects are left out too).
         self.actuated = slice(self._n_base, self.nv)
@@ -281,16 +285,18 @@ class Robot:
         return max(self.total_mass * float(np.linalg.norm(self.model.gravity.linear)), 1e-6)
 
     # ---- limits --------------------------------------------------------------------------------------
-    def limit_excess(self, Q: np.ndarray, *, columns: np.ndarray | None = None) -> np.ndarray:
+    def limit_excess(self, Q: np.ndarray, *, columns: np.ndarray | None = None, t: Any = None) -> np.ndarray:
         """How far each configuration coordinate is outside its position limits, shape like Q (0 inside).
 
         Round-off is not a violation: an excess counts (and is returned as it is) only when it exceeds
-        `limit_tolerance`: LIMIT_TOLERANCE_ULPS (8) machine epsilons times max(|lower|, |upper|, 1) for that
-        coordinate, a few units in the last place (1.8e-15 rad or m for limits within ±1).
+        `limit_tolerance + limit_drift t`: LIMIT_TOLERANCE_ULPS (8) machine epsilons times max(|lower|, |upper|, 1)
+        for that coordinate, a few units in the last place (1.8e-15 rad or m for limits within ±1), and on a
+        coordinate a contact solve holds, what the solve's accuracy lets it drift by time t.
 
         Args:
             Q: one configuration (nq,) or a stack of them (n, nq); with `columns`, only those coordinates.
             columns: the coordinate each column of Q holds (indices), or None for all of them in order.
+            t: the time since the run's start [s], broadcastable to Q's rows ((n,) or (n, 1), or like Q); None: 0.
         """
         single = np.ndim(Q) == 1
         Q = np.atleast_2d(np.asarray(Q, dtype=float))
@@ -304,7 +310,12 @@ class Robot:
             outside = np.maximum(self.lower_limit[at] - Q[:, lim], 0.0) + np.maximum(
                 Q[:, lim] - self.upper_limit[at], 0.0
             )
-            excess[:, lim] = np.where(outside > self.limit_tolerance[at], outside, 0.0)
+            tolerance = self.limit_tolerance[at]
+            if t is not None and self.limit_drift[at].any():
+                elapsed = np.asarray(t, dtype=float)
+                elapsed = elapsed[:, None] if elapsed.ndim == 1 else elapsed[:, lim]
+                tolerance = tolerance + self.limit_drift[at] * np.abs(elapsed)
+            excess[:, lim] = np.where(outside > tolerance, outside, 0.0)
         return excess[0] if single else excess
 
     # ---- argument checks ----------------------------------------------------------------------------
