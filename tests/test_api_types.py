@@ -490,7 +490,7 @@ ROWS = [
             "reward": CALLABLE,
             "terminated": CALLABLE,
             "max_episode_steps": WHOLE,
-            "control_dt": NUMBER,
+            "control_dt": ("1", [1.0], True),  # None: the default (a scene's, else dt)
             "initial_q": ARRAY[:3],
             "reset_noise_q": NUMBER,
             "failure_reward": NUMBER[:2],

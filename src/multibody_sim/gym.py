@@ -173,17 +173,19 @@ def _timing(
     dt and control_dt (timestepping for a contact scene, rk4 otherwise; dt 1 ms), and its rtol, atol and max_step
     when its own method runs; for a robot rk4, dt = control_dt (1 ms when neither is given). control_dt defaults
     to dt."""
+    control_dt = None if control_dt is None else positive_number(control_dt, "control_dt")
+    dt = None if dt is None else positive_number(dt, "dt")
     declared: dict[str, Any] = {}
     if isinstance(system, Scene):
         declared = system.simulation_settings(controller=False)
-    elif dt is None and control_dt is not None:
+    elif control_dt is not None:
         declared["dt"] = control_dt
     if method is None:
         method = declared.get("integrator", "rk4")
         adaptive: dict[str, Any] = {k: declared[k] for k in ("rtol", "atol", "max_step") if k in declared}
         options = {**adaptive, **options}
-    dt = positive_number(declared.get("dt", 1e-3) if dt is None else dt, "dt")
-    control_dt = positive_number(declared.get("control_dt", dt) if control_dt is None else control_dt, "control_dt")
+    dt = float(declared.get("dt", 1e-3)) if dt is None else dt
+    control_dt = float(declared.get("control_dt", dt)) if control_dt is None else control_dt
     return method, dt, control_dt, options
 
 
