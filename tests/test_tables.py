@@ -241,3 +241,92 @@ def test_bad_table_requests(robot: Callable[..., ms.Robot], tmp_path: Path, caps
         assert capsys.readouterr() == ("", f"{PREFIX}{message}\n")
     assert main(["export", str(tmp_path / "missing.npz"), "--csv", str(tmp_path / "x.csv")]) == 2
     assert capsys.readouterr().err == f"{PREFIX}{tmp_path / 'missing.npz'}: no such trajectory file\n"
+
+
+# ---- contacts (issue 27) -------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def stack() -> tuple[ms.Scene, ms.Trajectory]:
+    """box_stack resting for 0.0205 s: the last step is shortened to 0.5 ms."""
+    scene = ms.load_scene("box_stack")
+    return scene, scene.run(duration=0.0205)
+
+
+def test_contact_columns_carry_the_weights_a_resting_stack_holds(stack: tuple[ms.Scene, ms.Trajectory]) -> None:
+    """Each body's normal force is the weight resting on it plus the weight it rests with (statics, independent of
+    the solver), its tangential force zero; the counts are its contact points; at every sample, the last one (over a
+    shortened step) included."""
+    scene, run = stack
+    frame = run.to_dataframe()
+    bodies = run.contacts.bodies
+    assert bodies == ["ground", "bottom", "middle", "top"]
+    columns = [f"contact.{b}.{part}" for b in bodies for part in ("normal", "tangential", "count")]
+    assert list(frame.columns[-len(columns) - 1 :]) == [*columns, "contact.count"]
+    g = float(np.linalg.norm(scene.model.gravity.linear))
+    mass = {name: scene.model.inertias[scene.model.getJointId(name)].mass for name in bodies[1:]}
+    above = {"bottom": mass["middle"] + mass["top"], "middle": mass["top"], "top": 0.0}
+    later = frame.iloc[1:]  # sample 0 has no contacts: no step has ended there
+    total = sum(mass.values()) * g
+    np.testing.assert_allclose(later["contact.ground.normal"], total, rtol=1e-9)
+    for body in bodies[1:]:  # what rests on it, and its own weight with that, on what is below
+        np.testing.assert_allclose(later[f"contact.{body}.normal"], (2 * above[body] + mass[body]) * g, rtol=1e-9)
+        # At rest: no net friction, to what the box-box patches' normals (tilted by ~1e-6 rad) leak into it.
+        assert later[f"contact.{body}.tangential"].max() < 1e-5 * later[f"contact.{body}.normal"].min()
+    counts = {"ground": 4, "bottom": 8, "middle": 8, "top": 4}  # the face-to-face patches: four corners each
+    for body, count in counts.items():
+        assert (later[f"contact.{body}.count"] == count).all()
+    assert (later["contact.count"] == 12).all() and (frame.iloc[0, -len(columns) - 1 :] == 0).all()
+    assert run.t[-1] - run.t[-2] == pytest.approx(5e-4)
+
+
+def test_contact_columns_of_a_sliding_box_follow_coulomb(tmp_path: Path) -> None:
+    """The sliding box, while it slides: tangential = mu normal = mu m g."""
+    scene = ms.load_scene("sliding_box")
+    run = scene.run(duration=0.1)
+    frame = run.to_dataframe()
+    m, g, mu = 1.0, float(np.linalg.norm(scene.model.gravity.linear)), 0.8
+    sliding = frame.iloc[5:]  # it slides at 2 m/s for 0.25 s
+    np.testing.assert_allclose(sliding["contact.box.normal"], m * g, rtol=1e-7)  # the solve's accuracy: ~3e-9
+    np.testing.assert_allclose(sliding["contact.box.tangential"], mu * m * g, rtol=1e-7)
+    np.testing.assert_array_equal(sliding["contact.ground.tangential"], sliding["contact.box.tangential"])
+
+
+def test_contacts_in_long_form_add_up_to_the_columns(stack: tuple[ms.Scene, ms.Trajectory]) -> None:
+    _, run = stack
+    wide = run.to_dataframe()
+    long = run.contacts_dataframe()
+    assert len(long) == len(run.contacts.sample)
+    assert list(long.columns[:4]) == ["t", "sample", "body1", "body2"]
+    np.testing.assert_array_equal(long[["force.x", "force.y", "force.z"]].to_numpy(), run.contact_forces())
+    # The last sample's step was half as long: its impulses are half, its forces the same.
+    last = long[long["sample"] == len(run.t) - 1]
+    before = long[long["sample"] == len(run.t) - 2]
+    np.testing.assert_allclose(last["impulse.z"].to_numpy(), before["impulse.z"].to_numpy() / 2, rtol=1e-6)
+    np.testing.assert_allclose(last["normal_force"].to_numpy(), before["normal_force"].to_numpy(), rtol=1e-6)
+    for body in run.contacts.bodies:
+        touching = long[(long["body1"] == body) | (long["body2"] == body)]
+        sums = touching.groupby("sample")["normal_force"].sum().reindex(range(len(run.t)), fill_value=0.0)
+        np.testing.assert_allclose(sums.to_numpy(), wide[f"contact.{body}.normal"].to_numpy(), rtol=1e-12)
+    no_contact = _run(ms.load_robot("pendulum"))
+    with pytest.raises(ms.InvalidArgumentError, match=r"^the trajectory records no contacts"):
+        no_contact.contacts_dataframe()
+
+
+@pytest.mark.parametrize("block", [7, 50_000])
+def test_contact_columns_in_csv_and_parquet(
+    stack: tuple[ms.Scene, ms.Trajectory],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    block: int,
+) -> None:
+    """export --csv/--parquet of a saved contact run, written in blocks of 7 rows or in one: the dataframe's bits."""
+    monkeypatch.setattr(tables, "_BLOCK_ROWS", block)
+    _, run = stack
+    path = run.save(tmp_path / "stack.npz")
+    csv, parquet = tmp_path / "stack.csv", tmp_path / "stack.parquet"
+    assert main(["export", str(path), "--csv", str(csv), "--parquet", str(parquet)]) == 0
+    capsys.readouterr()
+    expected = run.to_dataframe()
+    assert "contact.count" in expected.columns
+    pd.testing.assert_frame_equal(pd.read_csv(csv), expected, check_exact=True)
+    pd.testing.assert_frame_equal(pd.read_parquet(parquet), expected, check_exact=True)

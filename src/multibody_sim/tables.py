@@ -4,8 +4,13 @@ Columns, in order: `t`; `q.<coordinate>` per configuration coordinate (a joint's
 `<joint>.x .y .z .qx .qy .qz .qw`, a continuous joint's `<joint>.cos .sin`, a spherical joint's `.qx .qy .qz .qw`,
 a planar joint's `.x .y .cos .sin`); `v.<dof>` and `tau.<dof>` per velocity coordinate (Robot.dof_names);
 `kinetic_energy`, `potential_energy`, `total_energy`, `work`, `dissipated`, `energy_error`; `ledger.<element>`
-per ledger element; `constraint.<name>.force[k]`, `.drift` and `.velocity_drift` per scene constraint. A
-trajectory without the robot's names in its metadata gets `q[k]`, `v[k]`, `tau[k]`.
+per ledger element; `constraint.<name>.force[k]`, `.drift` and `.velocity_drift` per scene constraint; for a
+contact scene's run, per contact body (Contacts.bodies: "ground", objects, declared collision frames)
+`contact.<body>.normal`, the sum over its contact points of the normal forces (each along its contact's normal,
+positive when it presses), `.tangential`, the size of the sum of the tangential forces on it (its net friction
+force), both [N] and the mean forces over the step that ended at the sample, and `.count`, its contact points;
+then `contact.count`, all the sample's contact points. A trajectory without the robot's names in its
+metadata gets `q[k]`, `v[k]`, `tau[k]`. `contacts_dataframe()` gives every contact point in long form.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from .trajectory import Trajectory
 TABLE_FORMATS = (".csv", ".parquet")
 ENERGY_COLUMNS = ("kinetic_energy", "potential_energy", "total_energy", "work", "dissipated", "energy_error")
 INSTALL_HINT = "pip install 'multibody-sim[dataframe]'"
+CONTACT_PARTS = ("normal", "tangential", "count")  # a contact body's columns, in order
 _BLOCK_ROWS = 50_000  # rows per block written: files of any length in bounded memory
 _FREE_FLYER = ("x", "y", "z", "qx", "qy", "qz", "qw")
 
@@ -69,6 +75,9 @@ def column_names(trajectory: Trajectory, robot: Robot | None = None) -> list[str
         rows = np.shape(record.force)[1] if np.ndim(record.force) == 2 else 0
         columns += [f"constraint.{name}.force[{k}]" for k in range(rows)]
         columns += [f"constraint.{name}.drift", f"constraint.{name}.velocity_drift"]
+    if trajectory.contacts is not None:
+        columns += [f"contact.{body}.{part}" for body in trajectory.contacts.bodies for part in CONTACT_PARTS]
+        columns.append("contact.count")
     return columns
 
 
@@ -174,7 +183,81 @@ def _block(trajectory: Trajectory, rows: slice) -> np.ndarray:
         parts.append(np.asarray(record.force[rows], dtype=float).reshape(len(parts[0]), -1))
         parts += [np.asarray(record.drift[rows], dtype=float)[:, None]]
         parts += [np.asarray(record.velocity_drift[rows], dtype=float)[:, None]]
+    if trajectory.contacts is not None:
+        parts.append(_contact_block(trajectory, rows, len(parts[0])))
     return np.hstack(parts)
+
+
+def _contact_block(trajectory: Trajectory, rows: slice, n: int) -> np.ndarray:
+    """The contact columns of some rows, shape (n, 3 x bodies + 1): per body its normal force, its tangential force
+    and its contact count, then the sample's count."""
+    contacts = trajectory.contacts
+    assert contacts is not None
+    start = rows.indices(len(trajectory.t))[0]
+    bodies = len(contacts.bodies)
+    block = np.zeros((n, len(CONTACT_PARTS) * bodies + 1))
+    first, last = np.searchsorted(contacts.sample, [start, start + n])  # rows are sorted by sample
+    if first == last:
+        return block
+    normal, tangent = _force_components(trajectory)
+    normal, tangent = normal[first:last], tangent[first:last]
+    sample = np.asarray(contacts.sample[first:last]) - start
+    cells = n * bodies
+    tangential = np.zeros((cells, 3))
+    for side, sign in ((0, -1.0), (1, 1.0)):  # the force acts on the pair's second body, its opposite on the first
+        index = sample * bodies + np.asarray(contacts.pair[first:last, side])
+        block[:, 0 : 3 * bodies : 3] += np.bincount(index, normal, minlength=cells).reshape(n, bodies)
+        block[:, 2 : 3 * bodies : 3] += np.bincount(index, minlength=cells).reshape(n, bodies)
+        for axis in range(3):
+            tangential[:, axis] += np.bincount(index, sign * tangent[:, axis], minlength=cells)
+    block[:, 1 : 3 * bodies : 3] = np.linalg.norm(tangential, axis=1).reshape(n, bodies)
+    block[:, -1] = np.bincount(sample, minlength=n)
+    return block
+
+
+def _force_components(trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """Each contact row's normal force, along its normal (positive pushes the bodies apart), shape (m,) [N], and
+    its tangential force, the rest, on the pair's second body, world axes, shape (m, 3) [N]."""
+    assert trajectory.contacts is not None
+    force = trajectory.contact_forces()
+    normals = np.asarray(trajectory.contacts.normal, dtype=float)
+    normal = np.einsum("ij,ij->i", force, normals)
+    return normal, force - normal[:, None] * normals
+
+
+def contacts_dataframe(trajectory: Trajectory) -> Any:
+    """A contact scene's contacts in long form: a pandas DataFrame of one row per contact point per sample.
+
+    Columns: t [s], sample, body1, body2 (names; the force acts on body2, its opposite on body1), point.x .y .z
+    [m], normal.x .y .z (unit, from body1 to body2), impulse.x .y .z [N·s] (over the step that ended at the
+    sample), force.x .y .z [N] (the mean force over that step), normal_force and tangential_force [N] (the force's
+    component along the normal and the size of the rest).
+
+    Raises:
+        InvalidArgumentError: the trajectory records no contacts (or no step in its metadata).
+        MissingDependencyError: pandas is not installed.
+    """
+    pandas = _require("pandas", "dataframes")
+    contacts = trajectory.contacts
+    if contacts is None:
+        raise InvalidArgumentError("the trajectory records no contacts (it is not a run of a scene with contact)")
+    force = trajectory.contact_forces()
+    normal, tangent = _force_components(trajectory)
+    tangential = np.linalg.norm(tangent, axis=1)
+    names = np.array(list(contacts.bodies) or [""], dtype=object)
+    columns: dict[str, Any] = {
+        "t": np.asarray(trajectory.t, dtype=float)[contacts.sample],
+        "sample": np.asarray(contacts.sample, dtype=np.int64),
+        "body1": names[contacts.pair[:, 0]] if len(contacts.sample) else np.zeros(0, dtype=object),
+        "body2": names[contacts.pair[:, 1]] if len(contacts.sample) else np.zeros(0, dtype=object),
+    }
+    for name, values in (("point", contacts.point), ("normal", contacts.normal), ("impulse", contacts.impulse)):
+        columns.update({f"{name}.{axis}": np.asarray(values, dtype=float)[:, k] for k, axis in enumerate("xyz")})
+    columns.update({f"force.{axis}": force[:, k] for k, axis in enumerate("xyz")})
+    columns.update(normal_force=normal, tangential_force=tangential)
+    frame = pandas.DataFrame(columns)
+    frame.attrs.update(_attributes(trajectory))
+    return frame
 
 
 def _attributes(trajectory: Trajectory) -> dict[str, Any]:

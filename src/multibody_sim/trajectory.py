@@ -194,6 +194,28 @@ class Trajectory:
         span = f"t = {self.t[0]:g}..{self.t[-1]:g} s" if len(self.t) else "empty"
         return f"<Trajectory {len(self)} samples, {span}, status {self.status!r}>"
 
+    def contact_forces(self) -> np.ndarray:
+        """Each contact row's mean force over the step that ended at its sample [N], world axes, on the second
+        body of its pair, shape (m, 3) (Contacts.impulse over that step: dt, or the last step's shortened length).
+
+        Raises:
+            InvalidArgumentError: the trajectory records no contacts, or its metadata no step (options.dt).
+        """
+        contacts = self.contacts
+        if contacts is None:
+            raise InvalidArgumentError("the trajectory records no contacts (it is not a run of a scene with contact)")
+        options = self.metadata.get("options")
+        dt = options.get("dt") if isinstance(options, dict) else None
+        if not (isinstance(dt, (int, float)) and not isinstance(dt, bool) and math.isfinite(dt) and dt > 0):
+            raise InvalidArgumentError("the trajectory's metadata has no step (options.dt): its forces are unknown")
+        t = np.asarray(self.t, dtype=float)[contacts.sample]
+        # Steps end on the grid k dt (counted, so t == k * dt exactly) but for the last one, shortened to land on
+        # the duration: its length is what lies past the grid point below it.
+        k = np.floor(t / dt)
+        step = np.where(t == np.round(t / dt) * dt, dt, t - k * dt)
+        with np.errstate(over="ignore"):  # an impulse near 1e308 (a forged file) is an infinite force: left to callers
+            return np.asarray(contacts.impulse, dtype=float) / step[:, None]
+
     @property
     def max_abs_energy_error(self) -> float:
         """max |energy_error| over the samples [J] (a chunked run's merge records it, so its mapped arrays are
@@ -304,7 +326,9 @@ class Trajectory:
 
         Columns: t; q.<coordinate> (a free-flyer's <joint>.x .y .z .qx .qy .qz .qw); v.<dof> and tau.<dof> per
         dof name; kinetic_energy, potential_energy, total_energy, work, dissipated, energy_error;
-        ledger.<element>; constraint.<name>.force[k], .drift, .velocity_drift. See multibody_sim.tables.
+        ledger.<element>; constraint.<name>.force[k], .drift, .velocity_drift; for a contact scene's run
+        contact.<body>.normal, .tangential [N] and .count per contact body, and contact.count. See
+        multibody_sim.tables.
 
         Args:
             robot: its Robot, for the coordinate names; None reads them from the metadata.
@@ -312,6 +336,19 @@ class Trajectory:
         from .tables import to_dataframe
 
         return to_dataframe(self, robot)
+
+    def contacts_dataframe(self) -> Any:
+        """The contacts in long form, a pandas DataFrame of one row per contact point per sample: t, sample, body1,
+        body2 (the impulse acts on body2), point.x .y .z [m], normal.x .y .z (from body1 to body2), impulse.x .y .z
+        [N·s], force.x .y .z [N] (the mean force over the step), normal_force and tangential_force [N]. See
+        multibody_sim.tables.
+
+        Raises:
+            InvalidArgumentError: the trajectory records no contacts.
+        """
+        from .tables import contacts_dataframe
+
+        return contacts_dataframe(self)
 
     def show(
         self, *, robot: Any = None, fps: float = 30.0, speed: float = 1.0, height: int = 480, plot: bool = False

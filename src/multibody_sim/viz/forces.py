@@ -1,10 +1,10 @@
 """Contact forces as arrows over a recording: one arrow per simultaneous contact, animated with the motion.
 
 An arrow starts at a contact point and points along the force on the second body of the pair (the impulse of the
-step that ended at the sample shown, over that step: the mean force [N]); the largest force of the run is
-ARROW_LENGTH long, the others in proportion. Arrows of contacts that are not active are shrunk to nothing. The
-HTML export (and videos) animate them with the motion; the live viewer animates them too, or moves them frame by
-frame when it streams a recording (Viewer.play).
+step that ended at the sample shown, over that step: the mean force [N], Trajectory.contact_forces); the largest
+force of the run is ARROW_LENGTH long, the others in proportion. Arrows of contacts that are not active are shrunk
+to nothing. The HTML export (and videos) animate them with the motion; the live viewer animates them too, or moves
+them frame by frame when it streams a recording (Viewer.play).
 """
 
 from __future__ import annotations
@@ -101,9 +101,6 @@ def arrow_tracks(trajectory: Trajectory, times: np.ndarray) -> ArrowTracks:
         raise InvalidArgumentError(
             "the trajectory records no contacts (forces are drawn for runs of scenes with contact)"
         )
-    dt = float(trajectory.metadata.get("options", {}).get("dt", math.nan))
-    if not (math.isfinite(dt) and dt > 0):
-        raise InvalidArgumentError("the trajectory's metadata has no step (options.dt): its forces are unknown")
     t = np.asarray(trajectory.t, dtype=float)
     times = np.asarray(times, dtype=float)
     shown = np.clip(np.searchsorted(t, times, side="right") - 1, 0, len(t) - 1)  # the sample on display
@@ -113,8 +110,8 @@ def arrow_tracks(trajectory: Trajectory, times: np.ndarray) -> ArrowTracks:
     quaternions = np.tile([0.0, 0.0, 0.0, 1.0], (slots, len(times), 1))
     scales = np.full((slots, len(times), 3), _HIDDEN)
     if slots:
+        forces = trajectory.contact_forces()  # the mean force over each step [N]
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below, in one line
-            forces = contacts.impulse / dt
             sizes = np.linalg.norm(forces, axis=1)
         _check_contacts(contacts.point, sizes, contacts.sample, t)
         largest = float(sizes.max()) or 1.0
