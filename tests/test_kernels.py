@@ -5,16 +5,24 @@ row's stop carries its step number as data, which BatchStepper recounts from the
 
 from __future__ import annotations
 
+import ast
 import inspect
+import os
+import re
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
 import multibody_sim as ms
+from multibody_sim import native
+from multibody_sim.controllers import PD, GravityCompensation, PDGravity
+from multibody_sim.kernels import native as native_kernel
 from multibody_sim.kernels.base import Kernel, StepKernel
 from multibody_sim.kernels.native import NativeKernel
 from multibody_sim.kernels.row import RowKernel, RowState
+from multibody_sim.step_control import ConstantStep, PIController
 
 
 def members(protocol: type) -> set[str]:
@@ -128,3 +136,128 @@ def test_the_vector_environment_on_a_floating_base_equals_single_environments(ke
     for _ in range(9):  # two episodes of 4 steps each and a reset
         actions = vector.action_space.sample() * 0.02
         assert data_equivalence(vector.step(actions), reference.step(actions), exact=True)
+
+
+# ---- the native boundary: named data -------------------------------------------------------------------------------
+needs_native = pytest.mark.skipif(
+    not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
+    reason=f"the native kernel is not available: {native.why_unavailable}",
+)
+NATIVE_SOURCES = Path(__file__).resolve().parents[1] / "src" / "native"
+
+
+@needs_native
+def test_a_misnamed_missing_or_mistyped_field_fails_naming_it() -> None:
+    module = native.module
+    data = ms.INTEGRATORS["rk4"].native_data()
+    fields = ", ".join(module.Method.fields)
+    misnamed = {("stagse" if k == "stages" else k): v for k, v in data.items()}
+    with pytest.raises(TypeError, match=rf"^Method has no field 'stagse' \(its fields: {fields}\)$"):
+        module.Method(**misnamed)
+    missing = {k: v for k, v in data.items() if k != "chart_terms"}
+    with pytest.raises(TypeError, match=r"^Method is missing the field 'chart_terms'$"):
+        module.Method(**missing)
+    with pytest.raises(TypeError, match=r"^Method.stages: expected int, got str$"):
+        module.Method(**{**data, "stages": "four"})
+    with pytest.raises(ValueError, match=r"^Method.kind must be one of 'explicit_rk', .*'timestepping', got 'rk4'$"):
+        module.Method(**{**data, "kind": "rk4"})
+    with pytest.raises(ValueError, match=r"^Method.a must hold stages x stages entries$"):
+        module.Method(**{**data, "a": data["a"][:-1]})
+    # A nested struct of a kernel's data: a scene's term, and a field a contact model's constants lack.
+    with pytest.raises(TypeError, match=r"^SpringTerm has no field 'k' \(its fields: dof, iq, rest, minus_k\)$"):
+        module.SpringTerm(dof=0, iq=0, rest=0.0, k=1.0)
+    scene = ms.load_scene("sliding_box")
+    constants = native_kernel.contact_data(scene, ms.INTEGRATORS["timestepping"])["constants"]
+    del constants["touching"]
+    with pytest.raises(TypeError, match=r"^ContactConstants is missing the field 'touching'$"):
+        module.ContactConstants(**constants)
+
+
+@needs_native
+def test_every_exporter_fills_its_struct_exactly() -> None:
+    # Each object the engine renders exports its own native_data(), whose names are the struct's fields: the
+    # registry's native methods, both step-size controllers, a floating base's chart map, the built-in controllers,
+    # a scene's elements and a contact scene's model.
+    module = native.module
+    rendered = [m for m in ms.INTEGRATORS.values() if type(m) in native_kernel.NATIVE_METHODS]
+    assert {m.name for m in rendered} >= {"euler", "rk4", "dp54", "dop853", "semi_implicit_euler", "timestepping"}
+    for method in rendered:
+        data = method.native_data()
+        assert set(data) <= set(module.Method.fields), method.name
+        assert module.Method(**data).kind == data["kind"]
+    solo = ms.load_robot("solo12")
+    for control in (ConstantStep(1e-3), PIController(4, first_step=1e-3)):
+        data = control.native_data()
+        struct = module.ConstantStep if isinstance(control, ConstantStep) else module.PIController
+        assert set(data) == set(struct.fields)
+        struct(**data)
+    chart = solo.space.native_data()
+    assert [set(block) for block in chart["blocks"]] == [set(module.ChartBlock.fields)]
+    assert module.ChartBlock(**chart["blocks"][0]).size == 6
+    for controller in (
+        PD(solo, solo.neutral(), kp=1.0),
+        GravityCompensation(solo),
+        PDGravity(solo, solo.neutral(), kp=1.0),
+    ):
+        data = controller.native_data(solo)
+        assert set(data) == set(module.Policy.fields)
+        module.Policy(**data)
+        assert controller.native_data(ms.load_robot("solo12")) is None  # made for another robot
+    scene = ms.load_scene("ur5_ceiling_push")
+    elements = scene.elements.native_data(native.load_model)
+    assert set(elements) == set(module.SceneForces.fields)
+    contact = native_kernel.contact_data(ms.load_scene("sliding_box"), ms.INTEGRATORS["timestepping"])
+    assert set(contact) == set(module.ContactScene.fields)
+    assert set(contact["constants"]) == set(module.ContactConstants.fields)
+
+
+def test_the_kernel_module_reads_no_private_attribute_of_another_object() -> None:
+    # kernels/native.py reads public data only (each object's native_data(), public attributes): every attribute it
+    # names with a leading underscore is its own (self._...).
+    tree = ast.parse(inspect.getsource(native_kernel))
+    foreign = sorted(
+        f"line {node.lineno}: .{node.attr}"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Attribute)
+        and node.attr.startswith("_")
+        and not node.attr.startswith("__")
+        and not (isinstance(node.value, ast.Name) and node.value.id == "self")
+    )
+    assert foreign == []
+
+
+def test_no_private_python_attribute_is_named_in_cpp() -> None:
+    # C++ reads and writes Python objects through arguments and named structs only: no name with a leading
+    # underscore in a string (an attribute's, "_previous_error"), nor any setattr at all.
+    sources = sorted(NATIVE_SOURCES.glob("*.[ch]pp"))
+    assert len(sources) >= 8
+    for path in sources:
+        text = path.read_text()
+        assert "setattr" not in text, path.name
+        assert re.findall(r'"_[A-Za-z]\w*"', text) == [], path.name
+
+
+@needs_native
+def test_no_binding_takes_more_than_8_positional_arguments() -> None:
+    # nanobind's signatures: the parameters before a bare `*` (or all of them), `self` and **kwargs excluded.
+    module = native.module
+    counted = 0
+    for name in dir(module):
+        owner = getattr(module, name)
+        functions = [owner] if callable(owner) and not isinstance(owner, type) else []
+        if isinstance(owner, type):
+            functions = [getattr(owner, attribute) for attribute in vars(owner) if not attribute.startswith("__")]
+            functions.append(owner.__init__)
+        for function in functions:
+            for signature, *_ in getattr(function, "__nb_signature__", ()):
+                params = signature[signature.index("(") + 1 : signature.rindex(")")]
+                parts = [p.strip() for p in re.split(r",(?![^\[]*\])", params) if p.strip()]
+                positional = []
+                for part in parts:
+                    if part == "*" or part.startswith("**"):
+                        break
+                    positional.append(part)
+                positional = [p for p in positional if not p.startswith("self")]
+                counted += 1
+                assert len(positional) <= 8, (name, signature)
+    assert counted > 40

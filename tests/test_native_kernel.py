@@ -17,7 +17,7 @@ from conftest import FIELDS, assert_same_run, on_kernel
 import multibody_sim as ms
 from multibody_sim import native
 from multibody_sim.driver import choose_kernel
-from multibody_sim.kernels import native as native_core
+from multibody_sim.integrators.explicit_rk import ExplicitRungeKutta
 from multibody_sim.kernels.native import NativeKernel, why_not_native
 
 pytestmark = pytest.mark.skipif(
@@ -105,7 +105,7 @@ def test_a_perturbed_stage_coefficient_breaks_the_agreement(robot, monkeypatch):
 
     reference = on_kernel(False, run, monkeypatch)
     assert_same(on_kernel(True, run, monkeypatch), reference)
-    honest = native_core.method_data
+    honest = ExplicitRungeKutta.native_data
 
     def perturbed(method):
         data = honest(method)
@@ -113,7 +113,7 @@ def test_a_perturbed_stage_coefficient_breaks_the_agreement(robot, monkeypatch):
         a[2 * 4 + 1] += 1e-6  # a[2][1] = 1/2: the third stage's weight on the second
         return {**data, "a": a}
 
-    monkeypatch.setattr(native_core, "method_data", perturbed)
+    monkeypatch.setattr(ExplicitRungeKutta, "native_data", perturbed)
     fast = on_kernel(True, run, monkeypatch)
     assert fast.metadata["kernel"] == "native"
     gap = float(np.max(np.abs(fast.v - reference.v)) / np.max(np.abs(reference.v)))

@@ -205,28 +205,28 @@ def test_a_python_controller_keeps_the_drivers_events(monkeypatch):
 
 
 # ---- the test can fail: a perturbed coefficient --------------------------------------------------------------------
-def nudged(entry: tuple, i: int) -> tuple:
-    """The term `entry` with its i-th number (or each number of its i-th list) times 1 + 1e-9."""
-    value = entry[i]
+def nudged(term: dict, field: str) -> dict:
+    """The term (a native term's fields) with its number `field` (or each number of its list) times 1 + 1e-9."""
+    value = term[field]
     value = [x * (1 + 1e-9) for x in value] if isinstance(value, list) else value * (1 + 1e-9)
-    return (*entry[:i], value, *entry[i + 1 :])
+    return {**term, field: value}
 
 
-# (the scene variant, the native data's list, the number's place in its first term); viscous damping is the
-# robot's (the kernel's own), not an element
+# (the scene variant, the native data's list, the field nudged in its first term); viscous damping is the robot's
+# (the kernel's own), not an element
 PERTURBATIONS = {
-    "spring": ("+ a world force", "springs", 3),
-    "friction": ("+ a world force", "rough", 1),
-    "spring energy": ("+ a world force", "energies", 5),
-    "world force's ramp": ("+ a world force", "wrenches", 5),
-    "local wrench": ("+ a local wrench", "wrenches", 3),
-    "local wrench's sine": ("+ a local wrench", "wrenches", 5),
+    "spring": ("+ a world force", "springs", "minus_k"),
+    "friction": ("+ a world force", "rough", "c"),
+    "spring energy": ("+ a world force", "energies", "k"),
+    "world force's ramp": ("+ a world force", "wrenches", "ramp_time"),
+    "local wrench": ("+ a local wrench", "wrenches", "w6"),
+    "local wrench's sine": ("+ a local wrench", "wrenches", "frequency"),
 }
 
 
 @pytest.mark.parametrize("what", sorted(PERTURBATIONS))
 def test_a_perturbed_element_coefficient_breaks_the_agreement(what, monkeypatch):
-    label, terms, i = PERTURBATIONS[what]
+    label, terms, field = PERTURBATIONS[what]
     scene = scene_variants()[label]
     q0, v0 = start(scene)
     run = lambda: ms.simulate(scene, q0, v0, duration=0.3, dt=1e-3, progress=False)  # noqa: E731
@@ -236,7 +236,7 @@ def test_a_perturbed_element_coefficient_breaks_the_agreement(what, monkeypatch)
 
     def perturbed(self, load_model):
         data = native_data(self, load_model)
-        data[terms][0] = nudged(data[terms][0], i)
+        data[terms][0] = nudged(data[terms][0], field)
         return data
 
     monkeypatch.setattr(ForceElements, "native_data", perturbed)

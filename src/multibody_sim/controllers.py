@@ -142,6 +142,13 @@ class PD(_Stateless):
         self.kd = _critical_damping(robot, self.q_ref, self.kp) if kd is None else _gain(kd, n, "kd")
         self._model = robot.model
 
+    def native_data(self, system: Any) -> dict[str, Any] | None:
+        """The controller as the native kernel renders it on `system`'s run (_native.Policy's fields), or None when
+        it was not made for that system (another robot, model or actuated range)."""
+        if self.robot is not system or self._model is not system.model or self._a != system.actuated:
+            return None
+        return {"kind": "pd", "q_ref": self.q_ref, "v_ref": self.v_ref, "kp": self.kp, "kd": self.kd}
+
     def __call__(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Joint torques [N·m or N], shape (nv,), zero on a floating base's 6 entries."""
         a = self._a
@@ -166,6 +173,19 @@ class GravityCompensation(_Stateless):
         self._a = _actuated(robot)
         self._model, self._data = robot.model, robot.model.createData()  # its own workspace
 
+    def native_data(self, system: Any) -> dict[str, Any] | None:
+        """As PD.native_data: kind "gravity" (no references or gains: zeros of their sizes)."""
+        if self.robot is not system or self._model is not system.model or self._a != system.actuated:
+            return None
+        nv, n = system.nv, self._a.stop - self._a.start
+        return {
+            "kind": "gravity",
+            "q_ref": system.neutral(),
+            "v_ref": np.zeros(nv),
+            "kp": np.zeros(n),
+            "kd": np.zeros(n),
+        }
+
     def __call__(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Joint torques [N·m or N], shape (nv,)."""
         tau = pin.computeGeneralizedGravity(self._model, self._data, q).copy()
@@ -189,6 +209,18 @@ class PDGravity(_Stateless):
         self.robot = robot
         self.pd = PD(robot, q_ref, kp=kp, kd=kd, v_ref=v_ref)
         self.gravity = GravityCompensation(robot)
+
+    def native_data(self, system: Any) -> dict[str, Any] | None:
+        """As PD.native_data, kind "pd_gravity": its PD's data, when its parts are the built-in ones unchanged."""
+        pd, gravity = self.pd, self.gravity
+        if type(pd) is not PD or type(gravity) is not GravityCompensation:
+            return None
+        if "__call__" in vars(pd) or "__call__" in vars(gravity) or self.robot is not system:
+            return None
+        data = pd.native_data(system)
+        if data is None or gravity.native_data(system) is None:
+            return None
+        return {**data, "kind": "pd_gravity"}
 
     def __call__(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Joint torques [N·m or N], shape (nv,)."""

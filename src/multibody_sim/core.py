@@ -75,6 +75,10 @@ class Sampler:
         self.every, self.period = every, period
         self.next_output = 1  # index of the next multiple of period
 
+    def native_data(self) -> dict[str, Any]:
+        """The sampling rule as the native kernel takes it (_native.Sampler's fields; 0: none)."""
+        return {"every": self.every or 0, "period": self.period or 0.0}
+
     def due(self, t: float, k: int, tolerance: float) -> bool:
         """Whether the state at (t, k) is a sample."""
         if self.period is not None:

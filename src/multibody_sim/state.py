@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -70,6 +71,23 @@ class ConfigurationSpace:
             for (start, stop), G in zip(self.curved_blocks, self.chart_generators, strict=True)
         ]
         self.neutral = pin.neutral(model)
+
+    def native_data(self) -> dict[str, Any]:
+        """The chart map as the native kernel takes it (_native.Chart's fields): each curved block's start and size
+        with H = A / 2 as indices into the block's xi and signs (H[r, c] = xi[start + index[r d + c]] ·
+        half_sign[r d + c]), and the series' coefficients in H."""
+        return {
+            "blocks": [
+                {
+                    "start": start,
+                    "size": stop - start,
+                    "index": index.ravel().astype(int).tolist(),
+                    "half_sign": half_sign.ravel().tolist(),
+                }
+                for (start, stop), (index, half_sign) in zip(self.curved_blocks, self._chart_entries, strict=True)
+            ],
+            "half_series": list(_HALF_SERIES),
+        }
 
     @property
     def is_flat(self) -> bool:

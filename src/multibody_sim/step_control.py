@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 # A step is landed on the stop time when it comes within this fraction of the step's time scale, max(dt, |t_stop|),
 # and an adaptive step below the same fraction has collapsed. The scale needs no duration: it follows the
@@ -16,6 +17,24 @@ from dataclasses import dataclass, field
 LANDING_FRACTION = 1e-12
 # Fixed steps: a remainder below this fraction of dt is round-off, not a step (1.0 / 0.1 is 10 steps, not 11).
 SLIVER = 1e-9
+
+
+class ConstantStepState(NamedTuple):
+    """What a ConstantStep advances: the grid's start t0 [s], the steps k taken on it, the current time [s]."""
+
+    t0: float
+    k: int
+    time: float
+
+
+class PIState(NamedTuple):
+    """What a PIController advances: the current time [s], the next trial step h [s], the latest accepted error
+    norm and whether the latest attempt was rejected."""
+
+    time: float
+    h: float
+    previous_error: float
+    rejected_last: bool
 
 
 class ConstantStep:
@@ -74,11 +93,16 @@ class ConstantStep:
         """Continue from time t (set by hand), on a grid starting there."""
         self._t0, self._k, self.time = t, 0, t
 
-    def snapshot(self) -> tuple[float, int, float]:
-        return self._t0, self._k, self.time
+    def snapshot(self) -> ConstantStepState:
+        """The controller's state (restore() returns to it; the native kernel advances it as data)."""
+        return ConstantStepState(self._t0, self._k, self.time)
 
-    def restore(self, snapshot: tuple[float, int, float]) -> None:
-        self._t0, self._k, self.time = snapshot
+    def restore(self, state: ConstantStepState) -> None:
+        self._t0, self._k, self.time = state
+
+    def native_data(self) -> dict[str, Any]:
+        """The constants as the native kernel takes them (_native.ConstantStep's fields)."""
+        return {"dt": self.dt, "sliver": SLIVER, "landing": LANDING_FRACTION}
 
 
 @dataclass
@@ -163,8 +187,22 @@ class PIController:
     def restart(self, t: float) -> None:
         self.time = t
 
-    def snapshot(self) -> tuple[float, float, float, bool]:
-        return self.time, self.h, self._previous_error, self._rejected_last
+    def snapshot(self) -> PIState:
+        """The controller's state (restore() returns to it; the native kernel advances it as data)."""
+        return PIState(self.time, self.h, self._previous_error, self._rejected_last)
 
-    def restore(self, snapshot: tuple[float, float, float, bool]) -> None:
-        self.time, self.h, self._previous_error, self._rejected_last = snapshot
+    def restore(self, state: PIState) -> None:
+        self.time, self.h, self._previous_error, self._rejected_last = state
+
+    def native_data(self) -> dict[str, Any]:
+        """The constants as the native kernel takes them (_native.PIController's fields)."""
+        return {
+            "alpha": self.alpha,
+            "beta": self.beta,
+            "safety": self.safety,
+            "factor_min": self.factor_min,
+            "factor_max": self.factor_max,
+            "max_step": self.max_step,
+            "first_step": self.first_step,
+            "landing": LANDING_FRACTION,
+        }

@@ -543,72 +543,87 @@ namespace multibody_sim
   }
 } // namespace multibody_sim
 
-// ---- Python bindings: class _native.ContactScene (native_core.py is its only user) -------------------------------
+// ---- Python bindings: _native.ContactScene and its named data (kernels/native.py is their only user) ------------
 #include <nanobind/eigen/dense.h>
 #include <nanobind/nanobind.h>
 #include <nanobind/stl/pair.h>
-#include <nanobind/stl/tuple.h>
+#include <nanobind/stl/string.h>
 #include <nanobind/stl/vector.h>
+
+#include "structs.hpp"
 
 namespace nb = nanobind;
 
+namespace
+{
+  // ContactModel.native_data(): the geometry and constraints, by name
+  struct ContactData
+  {
+    std::vector<multibody_sim::ContactShape> shapes;
+    std::vector<std::pair<int, int>> pairs;
+    std::vector<double> friction, restitution;
+    std::vector<int> limited_joints, friction_joints;
+    Eigen::VectorXd limit_margin, friction_bound;
+    multibody_sim::ContactConstants constants;
+  };
+} // namespace
+
 void multibody_sim::bind_contact(nb::module_ & m)  // called by module.cpp
 {
-  using multibody_sim::ContactScene;
-  nb::class_<multibody_sim::ContactRow>(m, "ContactRow", "One row's contact solver state (a snapshot's part).")
+  using namespace multibody_sim;
+  nb::class_<ContactRow>(m, "ContactRow", "One row's contact solver state (a snapshot's part).")
     .def(nb::init<>())
-    .def_prop_ro("steps", [](const multibody_sim::ContactRow & r) { return r.steps; })
-    .def_prop_ro("unconverged", [](const multibody_sim::ContactRow & r) { return r.unconverged; })
-    .def_prop_ro("iterations", [](const multibody_sim::ContactRow & r) { return r.iterations; });
+    .def_prop_ro("steps", [](const ContactRow & r) { return r.steps; })
+    .def_prop_ro("unconverged", [](const ContactRow & r) { return r.unconverged; })
+    .def_prop_ro("iterations", [](const ContactRow & r) { return r.iterations; });
+  Struct<ContactShape>(m, "ContactShape", "A collision shape (contact.Geometry) and the joint it moves with.")
+    .choice("kind", &ContactShape::kind,
+            {{"halfspace", ShapeKind::halfspace}, {"box", ShapeKind::box}, {"sphere", ShapeKind::sphere},
+             {"cylinder", ShapeKind::cylinder}})
+    .field("joint", &ContactShape::joint, "int")
+    .field("body", &ContactShape::body, "int")
+    .field("rotation", &ContactShape::rotation, "a 3 x 3 float array")
+    .field("translation", &ContactShape::translation, "3 floats")
+    .field("dimensions", &ContactShape::dims, "list[float]")
+    .finish([](ContactShape & s) {
+      const size_t need = s.kind == ShapeKind::box ? 3 : (s.kind == ShapeKind::cylinder ? 2 : 1);
+      if (s.dims.size() != need)
+        throw std::invalid_argument("ContactShape.dimensions disagree with its kind (box 3, cylinder 2, else 1)");
+    });
+  Struct<ContactConstants>(m, "ContactConstants", "contact.py's and timestepping.py's constants of a contact step.")
+    .field("speculative_margin", &ContactConstants::speculative_margin, "float")
+    .field("penetration_correction", &ContactConstants::penetration_correction, "float")
+    .field("penetration_slop", &ContactConstants::penetration_slop, "float")
+    .field("max_correction_speed", &ContactConstants::max_correction_speed, "float")
+    .field("touching", &ContactConstants::touching, "float")
+    .field("delassus_damping", &ContactConstants::delassus_damping, "float")
+    .field("tolerance", &ContactConstants::tolerance, "float")
+    .field("max_patch_points", &ContactConstants::max_patch_points, "int")
+    .field("anderson_capacity", &ContactConstants::anderson_capacity, "int")
+    .field("max_iterations", &ContactConstants::max_iterations, "int")
+    .field("pgs", &ContactConstants::pgs, "bool")
+    .field("gravity", &ContactConstants::gravity, "float")
+    .finish();
+  auto fields = std::make_shared<Fields<ContactData>>("ContactScene");
+  fields->member("shapes", &ContactData::shapes, "list[ContactShape]")
+    .member("pairs", &ContactData::pairs, "list[tuple[int, int]]")
+    .member("friction", &ContactData::friction, "list[float]")
+    .member("restitution", &ContactData::restitution, "list[float]")
+    .member("limited_joints", &ContactData::limited_joints, "list[int]")
+    .member("limit_margin", &ContactData::limit_margin, "an array of nq floats")
+    .member("friction_joints", &ContactData::friction_joints, "list[int]")
+    .member("friction_bound", &ContactData::friction_bound, "an array of nv floats")
+    .member("constants", &ContactData::constants, "ContactConstants");
   nb::class_<ContactScene>(m, "ContactScene", "A scene's collision geometry and unilateral constraints.")
     .def(
       "__init__",
-      [](
-        ContactScene * self, const multibody_sim::NativeModel & model,
-        std::vector<std::tuple<int, int, int, Eigen::Matrix3d, Eigen::Vector3d, std::vector<double>>> shapes,
-        std::vector<std::pair<int, int>> pairs, std::vector<double> friction, std::vector<double> restitution,
-        std::vector<int> limited_joints, const Eigen::VectorXd & limit_margin, std::vector<int> friction_joints,
-        const Eigen::VectorXd & friction_bound, std::vector<double> reals, std::vector<int> ints) {
-        std::vector<multibody_sim::ContactShape> out;
-        for (auto & [kind, joint, body, rotation, translation, dims] : shapes)
-        {
-          if (kind < 0 || kind > 3)
-            throw std::invalid_argument("a contact shape's kind must be 0..3 (halfspace, box, sphere, cylinder)");
-          const size_t need = kind == 1 ? 3 : (kind == 3 ? 2 : 1);
-          if (dims.size() != need)
-            throw std::invalid_argument("a contact shape's dimensions disagree with its kind");
-          multibody_sim::ContactShape s;
-          s.kind = static_cast<multibody_sim::ShapeKind>(kind);
-          s.joint = joint;
-          s.body = body;
-          s.rotation = rotation;
-          s.translation = translation;
-          s.dims = dims;
-          out.push_back(s);
-        }
-        if (reals.size() != 8 || ints.size() != 4)
-          throw std::invalid_argument("ContactScene takes 8 real and 4 integer constants");
-        multibody_sim::ContactConstants c;
-        c.speculative_margin = reals[0];
-        c.penetration_correction = reals[1];
-        c.penetration_slop = reals[2];
-        c.max_correction_speed = reals[3];
-        c.touching = reals[4];
-        c.delassus_damping = reals[5];
-        c.tolerance = reals[6];
-        c.gravity = reals[7];
-        c.max_patch_points = ints[0];
-        c.anderson_capacity = ints[1];
-        c.max_iterations = ints[2];
-        c.pgs = ints[3] != 0;
+      [fields](ContactScene * self, const NativeModel & model, nb::kwargs kwargs) {
+        const ContactData d = fields->parse(kwargs);
         new (self) ContactScene(
-          model.model, out, pairs, friction, restitution, limited_joints, limit_margin, friction_joints,
-          friction_bound, c);
+          model.model, d.shapes, d.pairs, d.friction, d.restitution, d.limited_joints, d.limit_margin,
+          d.friction_joints, d.friction_bound, d.constants);
       },
-      nb::arg("model"), nb::arg("shapes"), nb::arg("pairs"), nb::arg("friction"), nb::arg("restitution"),
-      nb::arg("limited_joints"), nb::arg("limit_margin"), nb::arg("friction_joints"), nb::arg("friction_bound"),
-      nb::arg("reals"), nb::arg("ints"),
-      "shapes: (kind, joint, body, rotation, translation, dims) each; reals: speculative margin, penetration "
-      "correction, slop, max correction speed, touching, Delassus damping, solver tolerance, |g|; ints: max patch "
-      "points, Anderson capacity, max iterations, PGS (1) or ADMM (0).");
+      nb::arg("model"), nb::arg("kwargs"),
+      "From the scene's model and the contact model's named data (kernels/native.contact_data()).")
+    .attr("fields") = fields->names();
 }

@@ -688,14 +688,14 @@ namespace multibody_sim
       if (c.adaptive)
       {
         const double scale = std::max(c.first_step, std::abs(t_stop));
-        if (st.c_time + st.c_h >= t_stop - c.landing * scale)
+        if (st.step_time + st.step_h >= t_stop - c.landing * scale)
           return t_stop;
-        return st.c_time + st.c_h;
+        return st.step_time + st.step_h;
       }
       const int64_t k_stop = std::max<int64_t>(
-        st.c_k + 1, static_cast<int64_t>(std::ceil((t_stop - st.c_t0) / c.dt - c.sliver)));
-      if (st.c_k + 1 < k_stop)
-        return st.c_t0 + static_cast<double>(st.c_k + 1) * c.dt;
+        st.step_k + 1, static_cast<int64_t>(std::ceil((t_stop - st.step_t0) / c.dt - c.sliver)));
+      if (st.step_k + 1 < k_stop)
+        return st.step_t0 + static_cast<double>(st.step_k + 1) * c.dt;
       return t_stop;
     }
 
@@ -703,9 +703,9 @@ namespace multibody_sim
     {
       const Control & c = e.control_;
       if (c.adaptive)
-        return t_next - st.c_time;
-      const double grid = st.c_t0 + static_cast<double>(st.c_k + 1) * c.dt;
-      return t_next == grid ? c.dt : t_next - st.c_time;
+        return t_next - st.step_time;
+      const double grid = st.step_t0 + static_cast<double>(st.step_k + 1) * c.dt;
+      return t_next == grid ? c.dt : t_next - st.step_time;
     }
 
     bool judge(double h, double error)  // PIController.next_step
@@ -713,23 +713,23 @@ namespace multibody_sim
       const Control & c = e.control_;
       if (!std::isfinite(error))
       {
-        st.c_rejected_last = true;
-        st.c_h = h * c.factor_min;
+        st.rejected_last = true;
+        st.step_h = h * c.factor_min;
         return false;
       }
       if (error <= 1.0)
       {
         error = std::max(error, 1e-10);
-        double factor = c.safety * std::pow(error, -c.alpha) * std::pow(st.c_previous_error, c.beta);
-        factor = std::min(st.c_rejected_last ? 1.0 : c.factor_max, std::max(c.factor_min, factor));
-        st.c_previous_error = error;
-        st.c_rejected_last = false;
-        st.c_h = std::min(h * factor, c.max_step);
+        double factor = c.safety * std::pow(error, -c.alpha) * std::pow(st.previous_error, c.beta);
+        factor = std::min(st.rejected_last ? 1.0 : c.factor_max, std::max(c.factor_min, factor));
+        st.previous_error = error;
+        st.rejected_last = false;
+        st.step_h = std::min(h * factor, c.max_step);
         return true;
       }
       const double factor = std::max(c.factor_min, c.safety * std::pow(error, -c.alpha));
-      st.c_rejected_last = true;
-      st.c_h = h * factor;
+      st.rejected_last = true;
+      st.step_h = h * factor;
       return false;
     }
 
@@ -738,15 +738,15 @@ namespace multibody_sim
       const Control & c = e.control_;
       if (!c.adaptive)
       {
-        if (t_next == st.c_t0 + static_cast<double>(st.c_k + 1) * c.dt)
-          st.c_k += 1;
+        if (t_next == st.step_t0 + static_cast<double>(st.step_k + 1) * c.dt)
+          st.step_k += 1;
         else
         {
-          st.c_t0 = t_next;
-          st.c_k = 0;
+          st.step_t0 = t_next;
+          st.step_k = 0;
         }
       }
-      st.c_time = t_next;
+      st.step_time = t_next;
     }
 
     // Sampler.due
@@ -930,14 +930,14 @@ namespace multibody_sim
             st.rejected += 1;
             first[0] = K.row(0).transpose();  // the retry state: the same start, the same torque
             has_first[0] = 1;
-            if (st.c_h < tolerance)
+            if (st.step_h < tolerance)
             {
               collapse(store, t, tolerance, error);
               return;
             }
             continue;
           }
-          if (st.c_h < tolerance)
+          if (st.step_h < tolerance)
           {
             collapse(store, t, tolerance, std::numeric_limits<double>::quiet_NaN());
             return;
@@ -996,7 +996,6 @@ namespace multibody_sim
             }
           }
         st.t = t_next;
-        st.k += 1;
         commit(t_next);
         st.steps += 1;
         res.taken += 1;
@@ -1011,7 +1010,7 @@ namespace multibody_sim
       const bool added = record_stopping(store, js);
       stop_event(STOP_COLLAPSED, 0, t, added, st.steps);
       StopEvent & ev = res.stops.back();
-      ev.h = st.c_h;
+      ev.h = st.step_h;
       ev.minimum = minimum;
       ev.error = error;
       kill(0);
@@ -1459,14 +1458,17 @@ namespace multibody_sim
 
 } // namespace multibody_sim
 
-// ---- Python bindings: class _native.Kernel (native_core.py is its only user) ------------------------------------
+// ---- Python bindings: _native.Kernel and the named structs it takes (kernels/native.py is their only user) -------
 #include <nanobind/eigen/dense.h>
 #include <nanobind/ndarray.h>
 #include <nanobind/nanobind.h>
+#include <nanobind/stl/shared_ptr.h>
 #include <nanobind/stl/string.h>
 #include <nanobind/stl/tuple.h>
-#include <nanobind/stl/shared_ptr.h>
+#include <nanobind/stl/variant.h>
 #include <nanobind/stl/vector.h>
+
+#include "structs.hpp"
 
 namespace nb = nanobind;
 
@@ -1474,39 +1476,49 @@ namespace
 {
   using Doubles = nb::ndarray<double, nb::c_contig, nb::device::cpu>;
   using Ints = nb::ndarray<int64_t, nb::c_contig, nb::device::cpu>;
-  multibody_sim::Store store_of(
-    Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY, Doubles FLOWS, Ints COUNTS, Doubles EXTRA)
+
+  // recording.SampleStore's batch-major arrays (STORE_ARRAYS), shape (B, capacity, ...) each: _native.Store. The
+  // struct holds references to them while the engine writes into them.
+  struct StoreArrays
+  {
+    Doubles T, Q, V, TAU, ENERGY, FLOWS;
+    Ints COUNTS;
+    Doubles EXTRA;
+  };
+
+  void check_store(const StoreArrays & a)
+  {
+    const auto cells = [&](const Doubles & X) {
+      return X.ndim() == 3 && X.shape(0) == a.T.shape(0) && X.shape(1) == a.T.shape(1);
+    };
+    const size_t n = a.T.ndim() == 2 ? a.T.shape(0) * a.T.shape(1) : 0;
+    if (a.T.ndim() != 2 || a.COUNTS.size() != 3 * n || a.ENERGY.size() != 2 * n || !cells(a.Q) || !cells(a.V)
+        || !cells(a.TAU) || !cells(a.ENERGY) || !cells(a.FLOWS) || !cells(a.EXTRA))
+      throw std::invalid_argument("Store: the sample store's arrays disagree in shape");
+  }
+
+  multibody_sim::Store store_of(const StoreArrays & a)
   {
     multibody_sim::Store s;
-    s.T = T.data();
-    s.Q = Q.data();
-    s.V = V.data();
-    s.TAU = TAU.data();
-    s.ENERGY = ENERGY.data();
-    s.FLOWS = FLOWS.data();
-    s.COUNTS = COUNTS.data();
-    s.EXTRA = EXTRA.data();
-    s.extra_width = EXTRA.ndim() == 3 ? static_cast<int64_t>(EXTRA.shape(2)) : 0;
-    s.B = static_cast<int64_t>(T.shape(0));  // batch-major: (B, capacity, ...)
-    s.capacity = static_cast<int64_t>(T.shape(1));
-    const auto cells = [&](const Doubles & X) {
-      return X.ndim() == 3 && X.shape(0) == T.shape(0) && X.shape(1) == T.shape(1);
-    };
-    const size_t n = T.shape(0) * T.shape(1);
-    if (T.ndim() != 2 || COUNTS.size() != 3 * n || ENERGY.size() != 2 * n || !cells(Q) || !cells(V) || !cells(TAU)
-        || !cells(ENERGY) || !cells(FLOWS) || !cells(EXTRA))
-      throw std::invalid_argument("the sample store's arrays disagree in shape");
+    s.T = a.T.data();
+    s.Q = a.Q.data();
+    s.V = a.V.data();
+    s.TAU = a.TAU.data();
+    s.ENERGY = a.ENERGY.data();
+    s.FLOWS = a.FLOWS.data();
+    s.COUNTS = a.COUNTS.data();
+    s.EXTRA = a.EXTRA.data();
+    s.extra_width = static_cast<int64_t>(a.EXTRA.shape(2));
+    s.B = static_cast<int64_t>(a.T.shape(0));  // batch-major: (B, capacity, ...)
+    s.capacity = static_cast<int64_t>(a.T.shape(1));
     return s;
   }
 
   // recording.SampleStore.write_contacts for the samples the engine wrote, on the store's `contacts` dict itself
   // (row b -> {sample index: rows (k, 11)}): dict operations run no Python code, so a signal handler (Ctrl-C)
   // never sees the samples counted without their contacts.
-  void write_contacts(nb::handle store, std::vector<multibody_sim::ContactRecord> & records)
+  void write_contacts(nb::dict contacts, std::vector<multibody_sim::ContactRecord> & records)
   {
-    if (records.empty())
-      return;
-    nb::dict contacts = nb::borrow<nb::dict>(store.attr("contacts"));
     for (multibody_sim::ContactRecord & r : records)
     {
       nb::int_ b(r.b), i(r.i);
@@ -1529,216 +1541,269 @@ namespace
     records.clear();
   }
 
-  // A contact run's evaluations beyond the core's count, per running position of the Python core (its `rows`,
-  // the rows stopped in this call included: NativeCore._take_pending compacts both).
-  void write_extra_evaluations(const multibody_sim::Engine & engine, nb::handle core)
+  // A contact run's evaluations beyond the core's count, per running position of the Python core (`rows`, the rows
+  // stopped in this call included: NativeCore._take_pending compacts both) into `extra`.
+  void write_extra_evaluations(const multibody_sim::Engine & engine, const Ints & rows, Ints & extra)
   {
     if (!engine.has_contact())
       return;
-    Ints positions = nb::cast<Ints>(core.attr("rows"));
-    Ints extra = nb::cast<Ints>(core.attr("extra_evaluations"));
-    std::vector<int64_t> rows(positions.data(), positions.data() + positions.size());
-    const std::vector<int64_t> counts = engine.extra_evaluations(rows);
+    std::vector<int64_t> wanted(rows.data(), rows.data() + rows.size());
+    const std::vector<int64_t> counts = engine.extra_evaluations(wanted);
     for (size_t p = 0; p < counts.size() && p < extra.size(); ++p)
       extra.data()[p] = counts[p];
   }
 
-  template<typename T>
-  T get(const nb::handle & obj, const char * name)
+  // What advance() did: why it returned (core.py's REACHED, STEPPED, FULL, EMPTY, or "need_room"), the steps it
+  // took, and the samples the store must have room for beyond its count (need_room): _native.Advance.
+  struct Advance
   {
-    return nb::cast<T>(nb::getattr(obj, name));
-  }
+    std::string status;
+    int64_t taken = 0, need = 0;
+  };
 
-  // The core's state from the Python objects that hold it (core.Core, recording.SampleStore, core.Sampler,
-  // step_control.ConstantStep / PIController: the attribute names are native_core.py's contract with this file).
-  void read_state(
-    const multibody_sim::Engine & engine, nb::handle core, nb::handle store, nb::handle sampler, nb::handle control,
-    multibody_sim::CoreState & s)
+  const char * status_name(int status)
   {
-    s.t = engine.t;
-    s.k = engine.k;
-    s.instant = engine.instant;
-    s.last_control = engine.last_control;
-    s.steps = get<int64_t>(core, "steps");
-    s.rejected = get<int64_t>(core, "rejected");
-    s.evaluations = get<int64_t>(core, "evaluations");
-    s.recorded = get<double>(core, "recorded");
-    s.count = get<int64_t>(store, "count");
-    s.full = get<bool>(store, "full");
-    s.soft_capacity = get<double>(store, "soft_capacity");
-    s.next_output = sampler.is_none() ? 1 : get<int64_t>(sampler, "next_output");
-    if (get<bool>(control, "adaptive"))
+    switch (status)
     {
-      s.c_time = get<double>(control, "time");
-      s.c_h = get<double>(control, "h");
-      s.c_previous_error = get<double>(control, "_previous_error");
-      s.c_rejected_last = get<bool>(control, "_rejected_last");
-    }
-    else
-    {
-      s.c_t0 = get<double>(control, "_t0");
-      s.c_k = get<int64_t>(control, "_k");
-      s.c_time = get<double>(control, "time");
+    case multibody_sim::REACHED:
+      return "reached";
+    case multibody_sim::STEPPED:
+      return "stepped";
+    case multibody_sim::FULL:
+      return "full";
+    case multibody_sim::EMPTY:
+      return "empty";
+    default:
+      return "need_room";
     }
   }
 
-  // ... and back, with plain attribute assignments while the GIL is held: no Python code runs between them, so a
-  // signal handler (Ctrl-C) that runs when this call returns never sees the engine's work half recorded.
-  void write_state(
-    multibody_sim::Engine & engine, nb::handle core, nb::handle store, nb::handle sampler, nb::handle control,
-    const multibody_sim::CoreState & s)
+  const char * stop_name(int code)
   {
-    engine.t = s.t;
-    engine.k = s.k;
-    engine.instant = s.instant;
-    engine.last_control = s.last_control;
-    nb::setattr(core, "steps", nb::int_(s.steps));
-    nb::setattr(core, "rejected", nb::int_(s.rejected));
-    nb::setattr(core, "evaluations", nb::int_(s.evaluations));
-    nb::setattr(core, "recorded", nb::float_(s.recorded));
-    nb::setattr(store, "count", nb::int_(s.count));
-    nb::setattr(store, "full", nb::bool_(s.full));
-    if (!sampler.is_none())
-      nb::setattr(sampler, "next_output", nb::int_(s.next_output));
-    nb::setattr(control, "time", nb::float_(s.c_time));
-    if (get<bool>(control, "adaptive"))
-    {
-      nb::setattr(control, "h", nb::float_(s.c_h));
-      nb::setattr(control, "_previous_error", nb::float_(s.c_previous_error));
-      nb::setattr(control, "_rejected_last", nb::bool_(s.c_rejected_last));
-    }
-    else
-    {
-      nb::setattr(control, "_t0", nb::float_(s.c_t0));
-      nb::setattr(control, "_k", nb::int_(s.c_k));
-    }
+    return code == multibody_sim::STOP_DIVERGED ? "diverged" : code == multibody_sim::STOP_COLLAPSED ? "collapsed" : "control";
   }
 
+  // Method's shapes, by field.
+  void check_method(multibody_sim::Method & me)
+  {
+    const auto need = [](bool ok, const std::string & what) {
+      if (!ok)
+        throw std::invalid_argument("Method." + what);
+    };
+    const size_t s = static_cast<size_t>(me.stages);
+    need(me.stages >= 1, "stages must be >= 1");
+    need(me.a.size() == s * s, "a must hold stages x stages entries");
+    need(me.b.size() == s && me.c.size() == s, "b and c must hold `stages` entries each");
+    need(me.chart_terms >= 0, "chart_terms must be >= 0");
+    if (me.kind == multibody_sim::Kind::embedded)
+      need(me.e.size() == s && (me.dense.empty() || me.dense.size() == s), "e (and dense) must hold `stages` entries");
+    if (me.kind == multibody_sim::Kind::dop853)
+    {
+      const size_t x = static_cast<size_t>(me.extended_stages);
+      need(me.e5.size() == s && me.e3.size() == s, "e5 and e3 must hold `stages` entries each");
+      need(x >= s && me.a_extended.size() == x * x && me.c_extended.size() == x && me.dense_weights.size() == 4 * x,
+           "a_extended, c_extended, dense_weights must be extended_stages x extended_stages, extended_stages, 4 x "
+           "extended_stages");
+    }
+  }
 } // namespace
 
 void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
 {
-  using multibody_sim::Engine;
-  nb::class_<Engine>(m, "Kernel", "The native stepping kernel of one run (multibody_sim.native_core drives it).")
+  using namespace multibody_sim;
+  Struct<Method>(m, "Method", "A stepping method as the engine renders it (Integrator.native_data()).")
+    .choice("kind", &Method::kind,
+            {{"explicit_rk", Kind::explicit_rk}, {"embedded", Kind::embedded}, {"dop853", Kind::dop853},
+             {"semi_implicit_euler", Kind::semi_implicit_euler}, {"timestepping", Kind::timestepping}})
+    .field("stages", &Method::stages, "int")
+    .field("a", &Method::a, "list[float]")
+    .field("b", &Method::b, "list[float]")
+    .field("c", &Method::c, "list[float]")
+    .field("chart_terms", &Method::chart_terms, "int")
+    .optional("fsal", &Method::fsal, "bool")
+    .optional("e", &Method::e, "list[float]")
+    .optional("dense", &Method::dense, "list[float]")
+    .optional("e5", &Method::e5, "list[float]")
+    .optional("e3", &Method::e3, "list[float]")
+    .optional("extended_stages", &Method::extended_stages, "int")
+    .optional("a_extended", &Method::a_extended, "list[float]")
+    .optional("c_extended", &Method::c_extended, "list[float]")
+    .optional("dense_weights", &Method::dense_weights, "list[float]")
+    .finish(check_method);
+  Struct<ChartBlock>(m, "ChartBlock", "One curved block of the chart map (ConfigurationSpace.native_data()).")
+    .field("start", &ChartBlock::start, "int")
+    .field("size", &ChartBlock::d, "int")
+    .field("index", &ChartBlock::index, "list[int]")
+    .field("half_sign", &ChartBlock::half_sign, "list[float]")
+    .finish([](ChartBlock & b) {
+      const size_t n = static_cast<size_t>(b.d) * static_cast<size_t>(b.d);
+      if (b.d < 1 || b.d > 6 || b.index.size() != n || b.half_sign.size() != n)
+        throw std::invalid_argument("ChartBlock: index and half_sign must be size x size with 1 <= size <= 6");
+    });
+  Struct<Chart>(m, "Chart", "The configuration space's chart map (ConfigurationSpace.native_data()).")
+    .field("blocks", &Chart::blocks, "list[ChartBlock]")
+    .field("half_series", &Chart::half_series, "list[float]")
+    .finish();
+  Struct<ConstantStepData>(m, "ConstantStep", "Constant steps' constants (step_control.ConstantStep.native_data()).")
+    .field("dt", &ConstantStepData::dt, "float")
+    .field("sliver", &ConstantStepData::sliver, "float")
+    .field("landing", &ConstantStepData::landing, "float")
+    .finish();
+  Struct<PIControllerData>(m, "PIController", "The PI controller's constants (PIController.native_data()).")
+    .field("alpha", &PIControllerData::alpha, "float")
+    .field("beta", &PIControllerData::beta, "float")
+    .field("safety", &PIControllerData::safety, "float")
+    .field("factor_min", &PIControllerData::factor_min, "float")
+    .field("factor_max", &PIControllerData::factor_max, "float")
+    .field("max_step", &PIControllerData::max_step, "float")
+    .field("first_step", &PIControllerData::first_step, "float")
+    .field("landing", &PIControllerData::landing, "float")
+    .finish();
+  Struct<Sampler>(m, "Sampler", "When the loop records samples (core.Sampler.native_data(); 0: none).")
+    .field("every", &Sampler::every, "int")
+    .field("period", &Sampler::period, "float")
+    .finish([](Sampler & s) { s.present = true; });
+  Struct<LoopState>(
+    m, "LoopState",
+    "What the Python side owns and the engine advances, in and out of advance(): the core's counts, the store's "
+    "count, the sampler's next output, the step-size controller's state.")
+    .field("steps", &LoopState::steps, "int")
+    .field("rejected", &LoopState::rejected, "int")
+    .field("evaluations", &LoopState::evaluations, "int")
+    .field("recorded", &LoopState::recorded, "float")
+    .field("count", &LoopState::count, "int")
+    .field("full", &LoopState::full, "bool")
+    .field("soft_capacity", &LoopState::soft_capacity, "float")
+    .field("next_output", &LoopState::next_output, "int")
+    .field("step_t0", &LoopState::step_t0, "float")
+    .field("step_k", &LoopState::step_k, "int")
+    .field("step_time", &LoopState::step_time, "float")
+    .field("step_h", &LoopState::step_h, "float")
+    .field("previous_error", &LoopState::previous_error, "float")
+    .field("rejected_last", &LoopState::rejected_last, "bool")
+    .finish();
+  Struct<StoreArrays>(m, "Store", "The sample store's batch-major arrays (recording.STORE_ARRAYS).")
+    .field("T", &StoreArrays::T, "a C-contiguous float64 array")
+    .field("Q", &StoreArrays::Q, "a C-contiguous float64 array")
+    .field("V", &StoreArrays::V, "a C-contiguous float64 array")
+    .field("TAU", &StoreArrays::TAU, "a C-contiguous float64 array")
+    .field("ENERGY", &StoreArrays::ENERGY, "a C-contiguous float64 array")
+    .field("FLOWS", &StoreArrays::FLOWS, "a C-contiguous float64 array")
+    .field("COUNTS", &StoreArrays::COUNTS, "a C-contiguous int64 array")
+    .field("EXTRA", &StoreArrays::EXTRA, "a C-contiguous float64 array")
+    .finish(check_store);
+
+  nb::class_<StopEvent>(m, "StopEvent", "A row the engine stopped (core.RowStop's evidence).")
+    .def_prop_ro("kind", [](const StopEvent & e) { return std::string(stop_name(e.code)); },
+                 "\"diverged\", \"collapsed\" (an adaptive step) or \"control\" (a native controller's output)")
+    .def_ro("row", &StopEvent::row)
+    .def_ro("time", &StopEvent::time)
+    .def_ro("step", &StopEvent::step, "the step that failed: the core's steps + 1 then")
+    .def_ro("dof", &StopEvent::dof, "diverged: the first non-finite velocity coordinate")
+    .def_ro("count", &StopEvent::count, "store.count when it stopped")
+    .def_ro("added", &StopEvent::added, "whether a last sample was written for it at index count")
+    .def_prop_ro("steps", [](const StopEvent & e) { return e.counts[0]; }, "its frozen step count")
+    .def_prop_ro("rejected", [](const StopEvent & e) { return e.counts[1]; })
+    .def_prop_ro("evaluations", [](const StopEvent & e) { return e.counts[2]; })
+    .def_ro("h", &StopEvent::h, "collapsed: the step [s]")
+    .def_ro("minimum", &StopEvent::minimum, "collapsed: the smallest step allowed [s]")
+    .def_ro("error", &StopEvent::error, "collapsed: the error norm (NaN: not judged)");
+  nb::class_<Advance>(m, "Advance", "What Kernel.advance() did.")
+    .def_ro("status", &Advance::status)
+    .def_ro("taken", &Advance::taken)
+    .def_ro("need", &Advance::need);
+
+  nb::class_<Engine>(m, "Kernel", "The native stepping kernel of one run (multibody_sim.kernels.native drives it).")
     .def(
       "__init__",
-      [](
-        Engine * self, const multibody_sim::NativeModel & model, int kind, int stages, std::vector<double> a, std::vector<double> b,
-        std::vector<double> c, int chart_terms, bool fsal, std::vector<double> e, std::vector<double> dense,
-        std::vector<double> e5, std::vector<double> e3, int extended_stages, std::vector<double> a_extended,
-        std::vector<double> c_extended, std::vector<double> dense_weights,
-        std::vector<std::tuple<int, int, std::vector<int>, std::vector<double>>> blocks,
-        std::vector<double> half_series, const Eigen::VectorXd & damping, int n_ledger, bool adaptive, double dt,
-        double sliver, std::vector<double> pi, double landing, const multibody_sim::RowMatrix & Q0,
-        const multibody_sim::RowMatrix & V0, int num_threads) {
-        multibody_sim::Method me;
-        me.kind = static_cast<multibody_sim::Kind>(kind);
-        me.stages = stages;
-        me.a = a;
-        me.b = b;
-        me.c = c;
-        me.chart_terms = chart_terms;
-        me.fsal = fsal;
-        me.e = e;
-        me.dense = dense;
-        me.e5 = e5;
-        me.e3 = e3;
-        me.extended_stages = extended_stages;
-        me.a_extended = a_extended;
-        me.c_extended = c_extended;
-        me.dense_weights = dense_weights;
-        if (static_cast<int>(a.size()) != stages * stages || static_cast<int>(b.size()) != stages)
-          throw std::invalid_argument("the tableau's shapes disagree with its number of stages");
-        std::vector<multibody_sim::ChartBlock> chart;
-        for (auto & [start, d, index, sign] : blocks)
+      [](Engine * self, const NativeModel & model, const Method & method, const Chart & chart,
+         const std::variant<ConstantStepData, PIControllerData> & control, const Eigen::VectorXd & damping,
+         int n_ledger, double rtol, double atol, const RowMatrix & Q0, const RowMatrix & V0, int num_threads) {
+        Control c;
+        if (const auto * fixed = std::get_if<ConstantStepData>(&control))
         {
-          multibody_sim::ChartBlock block;
-          block.start = start;
-          block.d = d;
-          block.index = index;
-          block.half_sign = sign;
-          if (d > 6 || static_cast<int>(index.size()) != d * d || static_cast<int>(sign.size()) != d * d)
-            throw std::invalid_argument("a chart block must be d x d with d <= 6");
-          chart.push_back(block);
+          c.dt = fixed->dt;
+          c.sliver = fixed->sliver;
+          c.landing = fixed->landing;
         }
-        multibody_sim::Control control;
-        control.adaptive = adaptive;
-        control.dt = dt;
-        control.sliver = sliver;
-        control.landing = landing;
-        if (adaptive)
+        else
         {
-          if (pi.size() != 9)
-            throw std::invalid_argument("the PI controller takes 9 constants");
-          control.alpha = pi[0];
-          control.beta = pi[1];
-          control.safety = pi[2];
-          control.factor_min = pi[3];
-          control.factor_max = pi[4];
-          control.max_step = pi[5];
-          control.first_step = pi[6];
-          control.rtol = pi[7];
-          control.atol = pi[8];
+          const PIControllerData & pi = std::get<PIControllerData>(control);
+          c.adaptive = true;
+          c.alpha = pi.alpha;
+          c.beta = pi.beta;
+          c.safety = pi.safety;
+          c.factor_min = pi.factor_min;
+          c.factor_max = pi.factor_max;
+          c.max_step = pi.max_step;
+          c.first_step = pi.first_step;
+          c.landing = pi.landing;
+          c.rtol = rtol;
+          c.atol = atol;
         }
         const pinocchio::Model & robot = model.model;
         if (Q0.cols() != robot.nq || V0.cols() != robot.nv || Q0.rows() != V0.rows() || damping.size() != robot.nv)
           throw std::invalid_argument("initial states or damping disagree with the model's sizes");
-        new (self) Engine(robot, me, chart, half_series, damping, n_ledger, control, Q0, V0, num_threads);
-      })
+        new (self)
+          Engine(robot, method, chart.blocks, chart.half_series, damping, n_ledger, c, Q0, V0, num_threads);
+      },
+      nb::arg("model"), nb::kw_only(), nb::arg("method"), nb::arg("chart"), nb::arg("control"), nb::arg("damping"),
+      nb::arg("n_ledger"), nb::arg("rtol"), nb::arg("atol"), nb::arg("Q0"), nb::arg("V0"), nb::arg("num_threads"),
+      "The engine of one run: the robot, its method, chart map and step-size controller (named structs), the "
+      "damping (nv,), the ledger's size, the tolerances (adaptive methods), the rows' initial states (B, nq), "
+      "(B, nv) and the threads the rows are split over.")
     .def(
       "advance",
-      [](
-        Engine & self, double t_stop, int64_t limit, double tolerance, nb::handle core, nb::handle store,
-        nb::handle sampler, nb::handle control, Doubles T, Doubles Q, Doubles V, Doubles TAU, Doubles ENERGY,
-        Doubles FLOWS, Ints COUNTS, Doubles EXTRA, nb::list stops) {
-        multibody_sim::Store arrays = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS, EXTRA);
-        multibody_sim::Sampler sampling;
-        if (!sampler.is_none())
-        {
-          sampling.present = true;
-          nb::object every = nb::getattr(sampler, "every"), period = nb::getattr(sampler, "period");
-          sampling.every = every.is_none() ? 0 : nb::cast<int64_t>(every);
-          sampling.period = period.is_none() ? 0.0 : nb::cast<double>(period);
-        }
-        multibody_sim::CoreState s;
-        read_state(self, core, store, sampler, control, s);
-        multibody_sim::AdvanceResult result;
+      [](Engine & self, double t_stop, int64_t limit, double tolerance, LoopState & state, const StoreArrays & store,
+         const Sampler * sampler, nb::list stops, nb::dict contacts, Ints rows, Ints extra_evaluations) {
+        CoreState s;
+        static_cast<LoopState &>(s) = state;
+        s.t = self.t;
+        s.instant = self.instant;
+        s.last_control = self.last_control;
+        const Sampler sampling = sampler ? *sampler : Sampler();
+        const Store arrays = store_of(store);
+        AdvanceResult result;
         {
           nb::gil_scoped_release release;
           result = self.advance(t_stop, limit, tolerance, sampling, arrays, s);
         }
-        for (const multibody_sim::StopEvent & ev : result.stops)
-          stops.append(nb::make_tuple(
-            ev.code, ev.row, ev.time, ev.step, ev.dof, ev.count, ev.added, ev.counts[0], ev.counts[1], ev.counts[2],
-            ev.h, ev.minimum, ev.error));
-        write_state(self, core, store, sampler, control, s);
-        write_contacts(store, result.records);
-        write_extra_evaluations(self, core);
-        return std::make_tuple(result.status, result.taken, result.need);
+        // The state comes back in `state` and the stops in `stops` before this call returns: no Python code runs
+        // in between, so a signal handler (Ctrl-C) that runs when it returns never sees the work half recorded.
+        self.t = s.t;
+        self.instant = s.instant;
+        self.last_control = s.last_control;
+        state = s;
+        for (const StopEvent & ev : result.stops)
+          stops.append(nb::cast(ev));
+        write_contacts(contacts, result.records);
+        write_extra_evaluations(self, rows, extra_evaluations);
+        return Advance{status_name(result.status), result.taken, result.need};
       },
-      nb::arg("t_stop"), nb::arg("limit"), nb::arg("tolerance"), nb::arg("core"), nb::arg("store"),
-      nb::arg("sampler").none(), nb::arg("control"), nb::arg("T"), nb::arg("Q"), nb::arg("V"), nb::arg("TAU"),
-      nb::arg("ENERGY"), nb::arg("FLOWS"), nb::arg("COUNTS"), nb::arg("EXTRA"), nb::arg("stops"),
-      "Core.advance towards t_stop: reads and writes the core's, store's, sampler's and controller's state "
-      "attributes; rows that stop are appended to `stops` as tuples.")
+      nb::arg("t_stop"), nb::arg("limit"), nb::arg("tolerance"), nb::kw_only(), nb::arg("state"), nb::arg("store"),
+      nb::arg("sampler").none(), nb::arg("stops"), nb::arg("contacts"), nb::arg("rows"),
+      nb::arg("extra_evaluations"),
+      "Core.advance towards t_stop, at most `limit` accepted steps, with the landing `tolerance`: advances `state` "
+      "(a LoopState) in place, appends the rows that stop to `stops` (StopEvent), their contacts to `contacts` "
+      "(the store's dict) and the evaluations beyond the core's count of the running `rows` to "
+      "`extra_evaluations`.")
     .def(
       "write_rows",
-      [](
-        Engine & self, int64_t i, std::vector<int64_t> rows, nb::handle owner, Doubles T, Doubles Q, Doubles V,
-        Doubles TAU, Doubles ENERGY, Doubles FLOWS, Ints COUNTS, Doubles EXTRA) {
-        multibody_sim::Store store = store_of(T, Q, V, TAU, ENERGY, FLOWS, COUNTS, EXTRA);
-        if (i < 0 || i >= store.capacity)
+      [](Engine & self, int64_t i, std::vector<int64_t> rows, const StoreArrays & store, nb::dict contacts) {
+        const Store arrays = store_of(store);
+        if (i < 0 || i >= arrays.capacity)
           throw std::invalid_argument("sample index out of the store");
         for (int64_t b : rows)
-          if (b < 0 || b >= store.B)
+          if (b < 0 || b >= arrays.B)
             throw std::invalid_argument("row out of the store");
-        std::vector<multibody_sim::ContactRecord> records = self.write_rows(i, rows, store);
-        write_contacts(owner, records);
+        std::vector<ContactRecord> records = self.write_rows(i, rows, arrays);
+        write_contacts(contacts, records);
       },
-      "Write run rows `rows` as sample i of `store` (its arrays follow), with their contacts.")
+      nb::arg("i"), nb::arg("rows"), nb::kw_only(), nb::arg("store"), nb::arg("contacts"),
+      "Write run rows `rows` as sample i of the store, their contacts into `contacts` (the store's dict).")
     .def(
       "set_contact",
-      [](Engine & self, std::shared_ptr<multibody_sim::ContactScene> contact, std::vector<bool> flow_work) {
+      [](Engine & self, std::shared_ptr<ContactScene> contact, std::vector<bool> flow_work) {
         self.set_contact(contact, flow_work);
       },
       nb::arg("contact"), nb::arg("flow_work"),
@@ -1747,12 +1812,11 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
     .def_prop_ro("has_contact", &Engine::has_contact)
     .def("contact_row", &Engine::contact_row)
     .def(
-      "set_scene", [](Engine & self, std::shared_ptr<multibody_sim::SceneForces> scene) { self.set_scene(scene); },
+      "set_scene", [](Engine & self, std::shared_ptr<SceneForces> scene) { self.set_scene(scene); },
       nb::arg("scene"), "A scene's force elements (_native.SceneForces) join the dynamics (scene.cpp).")
     .def(
       "set_policies",
-      [](Engine & self, std::shared_ptr<multibody_sim::Policies> policies, Ints calls, Ints saturated,
-         Ints saturated_dofs) {
+      [](Engine & self, std::shared_ptr<Policies> policies, Ints calls, Ints saturated, Ints saturated_dofs) {
         const size_t B = static_cast<size_t>(self.running());
         if (calls.size() != B || saturated.size() != B || saturated_dofs.size() != B * self.model().nv)
           throw std::invalid_argument("set_policies: the count arrays must have shapes (B,), (B,), (B, nv)");
@@ -1760,7 +1824,7 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
       },
       nb::arg("policies"), nb::arg("calls"), nb::arg("saturated"), nb::arg("saturated_dofs"),
       "Torques from native controllers at the control instants (scene.cpp); the count arrays stay alive for the "
-      "run (native_core keeps them).")
+      "run (kernels/native.py keeps them).")
     .def("set_torques", &Engine::set_torques)
     .def("keep", &Engine::keep)
     .def("running_rows", &Engine::running_rows)
@@ -1768,10 +1832,15 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by module.cpp
     .def("running_v", &Engine::running_v)
     .def("flows_of", &Engine::flows_of)
     .def("set_state", &Engine::set_state)
-    .def("snapshot_row", &Engine::snapshot_row)
+    .def(
+      "row_state",
+      [](const Engine & self, int64_t row) {
+        const auto [q, v, flows, tau, first, has_first] = self.snapshot_row(row);
+        return std::make_tuple(q, v);
+      },
+      nb::arg("row"), "Run row `row`'s current (q, v).")
     .def("save", &Engine::save, "Keep every row's whole state (one copy, overwritten by the next save()).")
     .def("restore_saved", &Engine::restore_saved, "Return every row to the state of the last save().")
     .def_prop_ro("running", &Engine::running)
-    .def_rw("t", &Engine::t)
-    .def_rw("k", &Engine::k);
+    .def_rw("t", &Engine::t);
 }

@@ -27,7 +27,7 @@ namespace multibody_sim
   using Vec = Eigen::VectorXd;
   using RowMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
 
-  // What a method is, from the Python integrator's own arrays.
+  // What a method is (the Python integrator's native_data(): its kind and its own arrays).
   enum class Kind : int
   {
     explicit_rk = 0,  // ExplicitRungeKutta: a tableau, fixed steps
@@ -37,7 +37,7 @@ namespace multibody_sim
     timestepping = 4,  // TimeStepping on a contact scene (contact.hpp): semi-implicit Euler with impulses
   };
 
-  struct Method
+  struct Method  // _native.Method
   {
     Kind kind = Kind::explicit_rk;
     int stages = 0;
@@ -51,15 +51,33 @@ namespace multibody_sim
     std::vector<double> a_extended, c_extended, dense_weights;  // dense_weights: 4 x extended_stages
   };
 
-  // One curved block of the chart map (state.ConfigurationSpace._chart_entries): H = xi[start + index] * half_sign.
-  struct ChartBlock
+  // One curved block of the chart map (state.ConfigurationSpace.native_data()): H = xi[start + index] * half_sign.
+  struct ChartBlock  // _native.ChartBlock
   {
-    int start = 0, d = 0;
+    int start = 0, d = 0;  // d: the block's size
     std::vector<int> index;
     std::vector<double> half_sign;
   };
 
-  // The step-size controller's constants (step_control.ConstantStep, PIController).
+  struct Chart  // _native.Chart: the curved blocks and the series' coefficients in H = A / 2 (state._HALF_SERIES)
+  {
+    std::vector<ChartBlock> blocks;
+    std::vector<double> half_series;
+  };
+
+  // The step-size controllers' constants (step_control.ConstantStep / PIController.native_data()).
+  struct ConstantStepData  // _native.ConstantStep
+  {
+    double dt = 0.0, sliver = 0.0, landing = 0.0;
+  };
+
+  struct PIControllerData  // _native.PIController
+  {
+    double alpha = 0.0, beta = 0.0, safety = 0.0, factor_min = 0.0, factor_max = 0.0;
+    double max_step = 0.0, first_step = 0.0, landing = 0.0;
+  };
+
+  // The controller the engine runs: either one's constants, and the run's tolerances (adaptive methods).
   struct Control
   {
     bool adaptive = false;
@@ -70,22 +88,28 @@ namespace multibody_sim
     double landing = 0.0;  // step_control.LANDING_FRACTION
   };
 
-  // What the Python core owns and the native loop advances: passed in and out of every advance() call.
-  struct CoreState
+  // What the Python side owns and the native loop advances (_native.LoopState, in and out of every advance()): the
+  // core's counts (core.Core), the store's count (recording.SampleStore), the sampler's next output (core.Sampler)
+  // and the step-size controller's state (ConstantStep: step_t0, step_k, step_time; PIController: step_time,
+  // step_h, previous_error, rejected_last).
+  struct LoopState
   {
-    double t = 0.0;  // the kernel's time [s] (kernel.t)
-    int64_t k = 0;   // the kernel's accepted steps (kernel.k)
     int64_t steps = 0, rejected = 0, evaluations = 0;
     double recorded = 0.0;  // the time of the latest sample
     int64_t count = 0;      // store.count
     bool full = false;      // store.full
     double soft_capacity = 0.0;
     int64_t next_output = 1;  // Sampler.next_output
-    // ConstantStep: (t0, k, time); PIController: (time, h, previous error, rejected last)
-    double c_t0 = 0.0;
-    int64_t c_k = 0;
-    double c_time = 0.0, c_h = 0.0, c_previous_error = 1.0;
-    bool c_rejected_last = false;
+    double step_t0 = 0.0;
+    int64_t step_k = 0;
+    double step_time = 0.0, step_h = 0.0, previous_error = 1.0;
+    bool rejected_last = false;
+  };
+
+  // ... with what the engine keeps itself: each thread's copy while it runs.
+  struct CoreState : LoopState
+  {
+    double t = 0.0;       // the kernel's time [s] (kernel.t)
     int64_t instant = 0;  // native control: the next control instant's number (driver.Run._loop's `instant`)
     double last_control = std::numeric_limits<double>::quiet_NaN();  // ... every step: the latest (`passed`)
   };
@@ -110,10 +134,10 @@ namespace multibody_sim
     int64_t capacity = 0, B = 0, extra_width = 0;
   };
 
-  // A row that stopped inside the loop (core.RowStop's evidence; Python writes the message).
+  // A row that stopped inside the loop (core.RowStop's evidence; Python writes the message): _native.StopEvent.
   struct StopEvent
   {
-    int code = 0;  // STOP_DIVERGED or STOP_COLLAPSED
+    int code = 0;  // a StopCode
     int64_t row = 0;
     double time = 0.0;
     int64_t step = 0;  // the step that failed (steps + 1 then)
@@ -139,7 +163,7 @@ namespace multibody_sim
     STOP_CONTROL = 3,  // a native controller's output is not finite (Python says why)
   };
 
-  struct Sampler
+  struct Sampler  // core.Sampler.native_data(): _native.Sampler
   {
     bool present = false;
     int64_t every = 0;  // 0: none
@@ -244,7 +268,6 @@ namespace multibody_sim
     }
 
     double t = 0.0;  // the running rows' time [s] (kernel.t)
-    int64_t k = 0;   // accepted steps (kernel.k)
     int64_t instant = 0;  // native control (CoreState.instant, last_control)
     double last_control = std::numeric_limits<double>::quiet_NaN();
 
@@ -283,6 +306,7 @@ namespace nanobind
 
 namespace multibody_sim
 {
-  // The kernel's Python bindings (class _native.Kernel over a _native.Model), added by module.cpp.
+  // The kernel's Python bindings (class _native.Kernel over a _native.Model, and the named structs it takes),
+  // added by module.cpp.
   void bind_kernel(nanobind::module_ & m);
 } // namespace multibody_sim

@@ -273,11 +273,12 @@ namespace multibody_sim
   }
 } // namespace multibody_sim
 
-// ---- Python bindings: _native.SceneForces, _native.Policies (native_core.py is their only user) ---------------
+// ---- Python bindings: _native.SceneForces, _native.Policies and their terms (kernels/native.py is their user) ----
 #include <nanobind/eigen/dense.h>
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
-#include <nanobind/stl/tuple.h>
+#include <nanobind/stl/array.h>
+#include <nanobind/stl/string.h>
 #include <nanobind/stl/vector.h>
 
 #define NO_IMPORT_ARRAY
@@ -285,6 +286,9 @@ namespace multibody_sim
 #define NPY_NO_DEPRECATED_API NPY_1_7_API_VERSION
 #include <numpy/ndarraytypes.h>
 #include <numpy/ufuncobject.h>
+
+#include "model.hpp"
+#include "structs.hpp"
 
 namespace nb = nanobind;
 
@@ -317,92 +321,107 @@ namespace
 void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
 {
   using namespace multibody_sim;
+  // ---- a scene's force elements: ForceElements.native_data()
+  Struct<SpringTerm>(m, "SpringTerm", "out[dof] = (q[iq] - rest) * minus_k")
+    .field("dof", &SpringTerm::dof, "int")
+    .field("iq", &SpringTerm::iq, "int")
+    .field("rest", &SpringTerm::rest, "float")
+    .field("minus_k", &SpringTerm::minus_k, "float")
+    .finish();
+  Struct<CircularTerm>(m, "CircularTerm", "out[dof] = wrapped angle from the rest angle * minus_k (continuous joint)")
+    .field("dof", &CircularTerm::dof, "int")
+    .field("ic", &CircularTerm::ic, "int")
+    .field("cos_rest", &CircularTerm::cos_rest, "float")
+    .field("sin_rest", &CircularTerm::sin_rest, "float")
+    .field("minus_k", &CircularTerm::minus_k, "float")
+    .finish();
+  Struct<CoefficientTerm>(m, "CoefficientTerm", "A damping (c = d) or friction (c = F_c) coefficient on dof.")
+    .field("dof", &CoefficientTerm::dof, "int")
+    .field("c", &CoefficientTerm::c, "float")
+    .finish();
+  Struct<WrenchTerm>(m, "WrenchTerm", "A wrench on a frame, with its declared shape in time (spec.ForceSpec.scale).")
+    .field("push", &WrenchTerm::push, "int")
+    .field("frame", &WrenchTerm::frame, "int")
+    .field("local", &WrenchTerm::local, "bool")
+    .field("w6", &WrenchTerm::w6, "6 floats")
+    .choice("shape", &WrenchTerm::shape,
+            {{"constant", Shape::unit}, {"step", Shape::step}, {"ramp", Shape::ramp}, {"sine", Shape::sine}})
+    .field("start", &WrenchTerm::start, "float")
+    .field("ramp_time", &WrenchTerm::ramp_time, "float")
+    .field("frequency", &WrenchTerm::frequency, "float")
+    .field("phase", &WrenchTerm::phase, "float")
+    .finish();
+  Struct<SpringEnergy>(m, "SpringEnergy", "A spring's stored energy ½ k x² (x: q[iq] - rest, or the wrapped angle).")
+    .field("circular", &SpringEnergy::circular, "bool")
+    .field("iq", &SpringEnergy::iq, "int")
+    .field("rest", &SpringEnergy::rest, "float")
+    .field("cos_rest", &SpringEnergy::cos_rest, "float")
+    .field("sin_rest", &SpringEnergy::sin_rest, "float")
+    .field("k", &SpringEnergy::k, "float")
+    .finish();
+
+  auto forces = std::make_shared<Fields<SceneForces>>("SceneForces");
+  forces->member("zero_all", &SceneForces::zero_all, "bool")
+    .member("inv_vs", &SceneForces::inv_vs, "float")
+    .member("springs", &SceneForces::springs, "list[SpringTerm]")
+    .member("circular", &SceneForces::circular, "list[CircularTerm]")
+    .member("damped", &SceneForces::damped, "list[CoefficientTerm]")
+    .member("rough", &SceneForces::rough, "list[CoefficientTerm]")
+    .member("ledger_damped", &SceneForces::ledger_damped, "list[CoefficientTerm]")
+    .member("ledger_rough", &SceneForces::ledger_rough, "list[CoefficientTerm]")
+    .member("wrenches", &SceneForces::wrenches, "list[WrenchTerm]")
+    .custom("push_models",
+            [](SceneForces & self, nb::handle value) {
+              std::vector<const NativeModel *> models;
+              Fields<SceneForces>::cast_into(models, value, "SceneForces.push_models", "list[Model]");
+              for (const NativeModel * push : models)
+              {
+                if (!push)
+                  throw nb::type_error("SceneForces.push_models: expected list[Model], got None");
+                self.push_models.push_back(push->model);
+              }
+            })
+    .member("energies", &SceneForces::energies, "list[SpringEnergy]");
   nb::class_<SceneForces>(m, "SceneForces", "A scene's force elements (scenes/elements.py), for the native kernel.")
     .def(
       "__init__",
-      [](
-        SceneForces * self, const NativeModel & model, bool zero_all, double inv_vs,
-        std::vector<std::tuple<int, int, double, double>> springs,
-        std::vector<std::tuple<int, int, double, double, double>> circular,
-        std::vector<std::tuple<int, double>> damped, std::vector<std::tuple<int, double>> rough,
-        std::vector<std::tuple<int, double>> ledger_damped, std::vector<std::tuple<int, double>> ledger_rough,
-        std::vector<std::tuple<int, int, bool, std::vector<double>, int, std::vector<double>>> wrenches,
-        std::vector<const NativeModel *> push_models,
-        std::vector<std::tuple<bool, int, double, double, double, double>> energies) {
-        new (self) SceneForces();
-        self->tanh_loop = numpy_loop("tanh");
-        self->atan2_loop = numpy_loop("arctan2");
+      [forces](SceneForces * self, const NativeModel & model, nb::kwargs kwargs) {
+        SceneForces s = forces->parse(kwargs);
         const pinocchio::Model & robot = model.model;
         const int nv = robot.nv, nq = robot.nq;
-        self->nv = nv;
-        self->zero_all = zero_all;
-        self->inv_vs = inv_vs;
         const auto check = [](bool ok, const char * what) {
           if (!ok)
-            throw std::invalid_argument(std::string("scene elements: ") + what + " out of range");
+            throw std::invalid_argument(std::string("SceneForces: ") + what + " out of range");
         };
-        for (auto & [dof, iq, rest, minus_k] : springs)
+        s.nv = nv;
+        s.tanh_loop = numpy_loop("tanh");
+        s.atan2_loop = numpy_loop("arctan2");
+        for (const SpringTerm & t : s.springs)
+          check(0 <= t.dof && t.dof < nv && 0 <= t.iq && t.iq < nq, "a spring's dof or coordinate");
+        for (const CircularTerm & t : s.circular)
+          check(0 <= t.dof && t.dof < nv && 0 <= t.ic && t.ic + 1 < nq, "a continuous spring's dof or coordinate");
+        for (const auto * terms : {&s.damped, &s.rough, &s.ledger_damped, &s.ledger_rough})
+          for (const CoefficientTerm & t : *terms)
+            check(0 <= t.dof && t.dof < nv, "a damping or friction dof");
+        for (const pinocchio::Model & push : s.push_models)
+          check(push.nq == nq && push.nv == nv, "a point-mass model");
+        s.others.clear();
+        for (size_t k = 0; k < s.wrenches.size(); ++k)
         {
-          check(0 <= dof && dof < nv && 0 <= iq && iq < nq, "a spring's dof or coordinate");
-          self->springs.push_back({dof, iq, rest, minus_k});
+          const WrenchTerm & w = s.wrenches[k];
+          check(w.push < static_cast<int>(s.push_models.size()), "a wrench's point-mass model");
+          check(0 <= w.frame && w.frame < static_cast<int>(robot.nframes), "a wrench's frame");
+          if (w.push < 0)
+            s.others.push_back(static_cast<int>(k));
         }
-        for (auto & [dof, ic, cos_rest, sin_rest, minus_k] : circular)
-        {
-          check(0 <= dof && dof < nv && 0 <= ic && ic + 1 < nq, "a continuous spring's dof or coordinate");
-          self->circular.push_back({dof, ic, cos_rest, sin_rest, minus_k});
-        }
-        const auto terms = [&](std::vector<std::tuple<int, double>> & from, std::vector<CoefficientTerm> & to) {
-          for (auto & [dof, c] : from)
-          {
-            check(0 <= dof && dof < nv, "a damping or friction dof");
-            to.push_back({dof, c});
-          }
-        };
-        terms(damped, self->damped);
-        terms(rough, self->rough);
-        terms(ledger_damped, self->ledger_damped);
-        terms(ledger_rough, self->ledger_rough);
-        for (const NativeModel * push : push_models)
-        {
-          check(push && push->model.nq == nq && push->model.nv == nv, "a point-mass model");
-          self->push_models.push_back(push->model);
-        }
-        for (auto & [push, frame, local, w6, shape, shape_params] : wrenches)
-        {
-          WrenchTerm w;
-          w.push = push;
-          w.frame = frame;
-          w.local = local;
-          check(w6.size() == 6 && shape_params.size() == 4 && 0 <= shape && shape <= 3, "a wrench's data");
-          check(push < static_cast<int>(self->push_models.size()), "a wrench's point-mass model");
-          check(0 <= frame && frame < static_cast<int>(robot.nframes), "a wrench's frame");
-          for (int i = 0; i < 6; ++i)
-            w.w6[i] = w6[static_cast<size_t>(i)];
-          w.shape = static_cast<Shape>(shape);
-          w.start = shape_params[0];
-          w.ramp_time = shape_params[1];
-          w.frequency = shape_params[2];
-          w.phase = shape_params[3];
-          if (push < 0)
-            self->others.push_back(static_cast<int>(self->wrenches.size()));
-          self->wrenches.push_back(w);
-        }
-        for (auto & [circ, iq, rest, cos_rest, sin_rest, k] : energies)
-        {
-          check(0 <= iq && iq + (circ ? 1 : 0) < nq, "a spring's coordinate");
-          SpringEnergy e;
-          e.circular = circ;
-          e.iq = iq;
-          e.rest = rest;
-          e.cos_rest = cos_rest;
-          e.sin_rest = sin_rest;
-          e.k = k;
-          self->energies.push_back(e);
-        }
+        for (const SpringEnergy & e : s.energies)
+          check(0 <= e.iq && e.iq + (e.circular ? 1 : 0) < nq, "a spring's coordinate");
+        new (self) SceneForces(std::move(s));
       },
-      nb::arg("model"), nb::arg("zero_all"), nb::arg("inv_vs"), nb::arg("springs"), nb::arg("circular"),
-      nb::arg("damped"), nb::arg("rough"), nb::arg("ledger_damped"), nb::arg("ledger_rough"), nb::arg("wrenches"),
-      nb::arg("push_models"), nb::arg("energies"))
+      nb::arg("model"), nb::arg("kwargs"),
+      "From the scene's model and the elements' named data (ForceElements.native_data()).")
+    .def_ro("springs", &SceneForces::springs)
+    .def_ro("wrenches", &SceneForces::wrenches)
     .def_prop_ro("n_flows", &SceneForces::n_flows)
     .def_prop_ro("n_records", &SceneForces::n_records)
     .def_prop_ro(
@@ -421,57 +440,65 @@ void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
         self.powers(*work, v, flows.data());
         Vec record = Vec::Zero(self.n_records());
         const double total = self.spring_energy(q, record.data());
-        return std::make_tuple(out, flows, record, total);
+        return nb::make_tuple(out, flows, record, total);
       },
       nb::arg("model"), nb::arg("q"), nb::arg("v"), nb::arg("t"),
-      "(force (nv,), ledger powers, spring energies, their sum) at (q, v, t): the kernel's arithmetic, for tests.");
+      "(force (nv,), ledger powers, spring energies, their sum) at (q, v, t): the kernel's arithmetic, for tests.")
+    .attr("fields") = forces->names();
 
+  // ---- the torques at control instants: kernels/native.native_policies() and the controllers' native_data()
+  Struct<Policy>(m, "Policy", "One row's built-in controller (PD, GravityCompensation, PDGravity .native_data()).")
+    .choice("kind", &Policy::kind,
+            {{"pd", PolicyKind::pd}, {"gravity", PolicyKind::gravity}, {"pd_gravity", PolicyKind::pd_gravity}})
+    .field("q_ref", &Policy::q_ref, "an array of nq floats")
+    .field("v_ref", &Policy::v_ref, "an array of nv floats")
+    .field("kp", &Policy::kp, "an array of floats, one per actuated dof")
+    .field("kd", &Policy::kd, "an array of floats, one per actuated dof")
+    .finish();
+  auto policies = std::make_shared<Fields<Policies>>("Policies");
+  policies->member("nv", &Policies::nv, "int")
+    .member("a_start", &Policies::a_start, "int")
+    .member("a_stop", &Policies::a_stop, "int")
+    .member("rows", &Policies::rows, "list[Policy]")
+    .custom("taus",
+            [](Policies & self, nb::handle value) {
+              using Taus = nb::ndarray<double, nb::c_contig, nb::device::cpu>;
+              Taus taus;
+              Fields<Policies>::cast_into(taus, value, "Policies.taus", "a C-contiguous float64 array");
+              if (taus.ndim() == 3 && taus.shape(0) > 0)
+              {
+                if (taus.shape(1) == 0)
+                  throw std::invalid_argument("Policies.taus must have shape (B, n_control, nv)");
+                self.taus = taus.data();  // kept alive by the caller for the run (kernels/native.py)
+                self.n_taus = static_cast<int64_t>(taus.shape(1));
+                self.taus_width = static_cast<int64_t>(taus.shape(2));
+              }
+            })
+    .member("effort", &Policies::effort, "an array of nv floats")
+    .member("saturate", &Policies::saturate, "bool")
+    .member("adaptive", &Policies::adaptive, "bool")
+    .member("every_step", &Policies::every_step, "bool")
+    .member("dt", &Policies::dt, "float")
+    .member("duration", &Policies::duration, "float")
+    .member("period", &Policies::period, "float")
+    .member("every", &Policies::every, "int")
+    .member("n_steps", &Policies::n_steps, "int");
   nb::class_<Policies>(m, "Policies", "Built-in controllers or open-loop torques at control instants (native).")
     .def(
       "__init__",
-      [](
-        Policies * self, int nv, int a_start, int a_stop,
-        std::vector<std::tuple<int, Vec, Vec, Vec, Vec>> rows, nb::ndarray<double, nb::c_contig, nb::device::cpu> taus,
-        Vec effort, bool saturate, bool adaptive, bool every_step, double dt, double duration, double period,
-        int64_t every, int64_t n_steps) {
-        new (self) Policies();
-        self->nv = nv;
-        self->a_start = a_start;
-        self->a_stop = a_stop;
-        if (!(0 <= a_start && a_start <= a_stop && a_stop <= nv) || effort.size() != nv)
-          throw std::invalid_argument("policies: actuated range or effort out of range");
-        const int n = a_stop - a_start;
-        for (auto & [kind, q_ref, v_ref, kp, kd] : rows)
-        {
-          if (kind < 0 || kind > 2 || v_ref.size() != nv || kp.size() != n || kd.size() != n)
-            throw std::invalid_argument("policies: a controller's data disagree with the model's sizes");
-          Policy p;
-          p.kind = static_cast<PolicyKind>(kind);
-          p.q_ref = q_ref;
-          p.v_ref = v_ref;
-          p.kp = kp;
-          p.kd = kd;
-          self->rows.push_back(p);
-        }
-        if (taus.ndim() == 3 && taus.shape(0) > 0)
-        {
-          if (static_cast<int>(taus.shape(2)) != nv || taus.shape(1) == 0)
-            throw std::invalid_argument("policies: taus must have shape (B, n_control, nv)");
-          self->taus = taus.data();
-          self->n_taus = static_cast<int64_t>(taus.shape(1));
-        }
-        self->effort = effort;
-        self->saturate = saturate;
-        self->adaptive = adaptive;
-        self->every_step = every_step;
-        self->dt = dt;
-        self->duration = duration;
-        self->period = period;
-        self->every = every;
-        self->n_steps = n_steps;
+      [policies](Policies * self, nb::kwargs kwargs) {
+        Policies p = policies->parse(kwargs);
+        const int nv = p.nv, n = p.a_stop - p.a_start;
+        if (!(0 <= p.a_start && p.a_start <= p.a_stop && p.a_stop <= nv) || p.effort.size() != nv)
+          throw std::invalid_argument("Policies: actuated range or effort out of range");
+        if (p.taus && p.taus_width != nv)
+          throw std::invalid_argument("Policies.taus must have shape (B, n_control, nv)");
+        for (const Policy & row : p.rows)
+          if (row.v_ref.size() != nv || row.kp.size() != n || row.kd.size() != n)
+            throw std::invalid_argument("Policies: a controller's data disagree with the model's sizes");
+        new (self) Policies(std::move(p));
       },
-      nb::arg("nv"), nb::arg("a_start"), nb::arg("a_stop"), nb::arg("rows"), nb::arg("taus"), nb::arg("effort"),
-      nb::arg("saturate"), nb::arg("adaptive"), nb::arg("every_step"), nb::arg("dt"), nb::arg("duration"), nb::arg("period"),
-      nb::arg("every"), nb::arg("n_steps"),
-      "taus (B, n_control, nv) must stay alive as long as the kernel runs (native_core keeps it).");
+      nb::arg("kwargs"),
+      "taus (B, n_control, nv) must stay alive as long as the kernel runs (kernels/native.py keeps it).")
+    .attr("fields") = policies->names();
 }

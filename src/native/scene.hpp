@@ -3,10 +3,11 @@
 // The Python code is the specification: scenes/elements.py (ForceElements: springs plain and continuous, damping,
 // regularized Coulomb friction, wrenches with their declared shapes; their ledger powers and the springs'
 // energies), scenes/scene.py (how they join the dynamics) and controllers.py (PD, GravityCompensation, PDGravity)
-// with driver.Saturation. Every coefficient arrives as data from Python (ForceElements.native_data(),
-// native_core.controller_data()); the arithmetic is theirs, in their order.
+// with driver.Saturation. Every coefficient arrives as named data from Python (ForceElements.native_data(), the
+// controllers' native_data(), kernels/native.native_policies()); the arithmetic is theirs, in their order.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <memory>
 #include <vector>
@@ -56,7 +57,7 @@ namespace multibody_sim
     int push = -1;  // >= 0: a world force without torque, the point-mass model push_models[push] (elements._Push)
     int frame = 0;
     bool local = false;  // reference "local" (pinocchio LOCAL), else "world" (LOCAL_WORLD_ALIGNED)
-    double w6[6] = {0, 0, 0, 0, 0, 0};
+    std::array<double, 6> w6 = {0, 0, 0, 0, 0, 0};
     Shape shape = Shape::unit;
     double start = 0.0, ramp_time = 1.0, frequency = 1.0, phase = 0.0;
 
@@ -161,7 +162,7 @@ namespace multibody_sim
     int nv = 0, a_start = 0, a_stop = 0;  // the actuated dofs [a_start, a_stop)
     std::vector<Policy> rows;             // per run row (empty with taus)
     const double * taus = nullptr;        // (B, n_taus, nv), row-major (owned by Python for the run)
-    int64_t n_taus = 0;
+    int64_t n_taus = 0, taus_width = 0;
     bool saturate = false;
     Vec effort;
     // control instants: fixed steps: k·dt for k = j·every < n_steps, else the duration; adaptive: min(duration, j·period)

@@ -37,6 +37,18 @@ class ExplicitRungeKutta(Integrator):
         self.b = np.array(tableau.b, dtype=float)
         self.c = np.array(tableau.c, dtype=float)
 
+    def native_data(self) -> dict[str, Any]:
+        """The method as the native kernel renders it (_native.Method's fields): its kind, its tableau (a row-major)
+        and the chart map's truncation."""
+        return {
+            "kind": "explicit_rk",
+            "stages": len(self.b),
+            "a": self.a.ravel().tolist(),
+            "b": self.b.tolist(),
+            "c": self.c.tolist(),
+            "chart_terms": self.chart_terms,
+        }
+
     def attempt(
         self,
         system: System,
@@ -250,6 +262,12 @@ class EmbeddedRungeKutta(AdaptiveRungeKutta):
         self._e = self.b - np.array(tableau.b_hat, dtype=float)
         self._d = np.array(tableau.dense, dtype=float) if tableau.dense else None
 
+    def native_data(self) -> dict[str, Any]:
+        """ExplicitRungeKutta's, with the error weights e = b - b_hat, FSAL and the dense output's quartic weights
+        (none: cubic Hermite)."""
+        dense = self._d.tolist() if self._d is not None and self._d.any() else []
+        return {**super().native_data(), "kind": "embedded", "fsal": self.fsal, "e": self._e.tolist(), "dense": dense}
+
     def _error_norm(self, K: np.ndarray, h: float, scale: np.ndarray) -> float:
         scaled = ordered_sum(self._e, K) * h / scale
         return math.sqrt(ordered_dot(scaled, scaled) / len(scale))
@@ -317,6 +335,20 @@ class DormandPrince853(AdaptiveRungeKutta):
         self._a_extended = np.array(tables.A, dtype=float)  # rows 13..15: the dense output's extra stages
         self._c_extended = np.array(tables.C, dtype=float)
         self._dense_weights = np.array(tables.D, dtype=float)
+
+    def native_data(self) -> dict[str, Any]:
+        """ExplicitRungeKutta's, with the combined error estimate's weights and the dense output's extra stages."""
+        return {
+            **super().native_data(),
+            "kind": "dop853",
+            "fsal": True,
+            "e5": self._e5.tolist(),
+            "e3": self._e3.tolist(),
+            "extended_stages": len(self._c_extended),
+            "a_extended": self._a_extended.ravel().tolist(),
+            "c_extended": self._c_extended.tolist(),
+            "dense_weights": self._dense_weights.ravel().tolist(),
+        }
 
     def _error_norm(self, K: np.ndarray, h: float, scale: np.ndarray) -> float:
         """Hairer's combined estimate: h |err5|² / sqrt((|err5|² + 0.01 |err3|²) · 2 nv)."""

@@ -23,6 +23,10 @@ class SemiImplicitEuler(Integrator):
     evaluations_per_step = 1
     notes = "symplectic only where M is constant (e.g. a single pendulum), not for general M(q)"
 
+    def native_data(self) -> dict[str, Any]:
+        """The method as the native kernel renders it (_native.Method's fields): one stage, no chart map."""
+        return {"kind": "semi_implicit_euler", "stages": 1, "a": [0.0], "b": [1.0], "c": [0.0], "chart_terms": 0}
+
     def attempt(
         self,
         system: System,

@@ -132,6 +132,11 @@ class TimeStepping(Integrator):
             raise ValueError(f"max_iterations must be a positive integer, got {max_iterations!r}")
         self.max_iterations = int(max_iterations)
 
+    def native_data(self) -> dict[str, Any]:
+        """The method as the native kernel renders it (_native.Method's fields; its solver's constants and the
+        scene's geometry cross as _native.ContactScene, kernels/native.contact_data)."""
+        return {"kind": "timestepping", "stages": 1, "a": [0.0], "b": [1.0], "c": [0.0], "chart_terms": 0}
+
     def init(self, system: System, q: np.ndarray, v: np.ndarray) -> ContactState:
         return ContactState()
 

@@ -1,11 +1,17 @@
 """The native kernel: the stepping core's loop (core.Core.advance) run in C++ for an eligible run.
 
-The Python core is the specification; the C++ engine (src/native/kernel.cpp, ``_native.Kernel``) renders the same
-loop and arithmetic: the method arrives as data (its tableau, error weights and dense-output coefficients, read from
-the Python integrator), the chart map as the Python space's own tables, the step-size controller as its constants
-and state. NativeCore is a Core whose advance() hands the whole loop to the engine between the driver's events and
-returns at least every ~50 ms of work (so Ctrl-C and SIGTERM are honoured with every sample kept); everything else
-(recording at the driver's request, stopping rows, the messages of rows that stop) is Core's own code.
+The Python core is the specification; the C++ engine (src/native/, ``_native.Kernel``) renders the same loop and
+arithmetic. Everything crosses as named data: each object the engine renders exports its own ``native_data()``
+(the method, the configuration space's chart map, the step-size controller, a scene's force elements and contact
+model, the built-in controllers), which this module hands over as the bound structs of the same field names
+(``_native.Method``, ``Chart``, ``ConstantStep`` / ``PIController``, ``SceneForces``, ``ContactScene``, ``Policies``);
+a field missing or misnamed on either side fails there, naming it. The state the loop advances (the core's counts,
+the store's count, the sampler's next output, the controller's state) crosses as a ``_native.LoopState`` the engine
+advances in place.
+
+NativeCore is a Core whose advance() hands the whole loop to the engine between the driver's events and returns at
+least every ~30 ms of work (so Ctrl-C and SIGTERM are honoured with every sample kept); everything else (recording
+at the driver's request, stopping rows, the messages of rows that stop) is Core's own code.
 """
 
 from __future__ import annotations
@@ -18,33 +24,24 @@ from typing import Any
 import numpy as np
 
 from .. import native
-from ..core import EMPTY, FULL, REACHED, STEPPED, Core, RowStop, collapsed_detail, diverged_detail
+from ..core import STEPPED, Core, RowStop, collapsed_detail, diverged_detail
 from ..exceptions import InvalidArgumentError
 from ..integrators import INTEGRATORS, Integrator
 from ..integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
 from ..integrators.partitioned import SemiImplicitEuler
 from ..integrators.timestepping import ANDERSON_CAPACITY, TOLERANCE, TimeStepping, solver_counts
-from ..recording import SampleStore
+from ..recording import STORE_ARRAYS, SampleStore
 from ..robot import Robot
 from ..scenes.scene import Scene
-from ..state import _HALF_SERIES
-from ..step_control import LANDING_FRACTION, SLIVER, ConstantStep, PIController
+from ..step_control import LANDING_FRACTION, ConstantStep, ConstantStepState, PIController, PIState
 
-# The registry's explicit methods, which the engine renders (its kinds: kernel.hpp's Kind).
-NATIVE_METHODS = {
-    ExplicitRungeKutta: 0,
-    EmbeddedRungeKutta: 1,
-    DormandPrince853: 2,
-    SemiImplicitEuler: 3,
-    TimeStepping: 4,  # on contact scenes (contact_data)
-}
+# The registry's explicit methods (and the contact time-stepper), which the engine renders from their native_data().
+NATIVE_METHODS = (ExplicitRungeKutta, EmbeddedRungeKutta, DormandPrince853, SemiImplicitEuler, TimeStepping)
 # The collision shapes the engine rebuilds (src/native/contact.cpp's ShapeKind); others stay on the Python kernel.
-NATIVE_SHAPES = {"halfspace": 0, "box": 1, "sphere": 2, "cylinder": 3}
+NATIVE_SHAPES = ("halfspace", "box", "sphere", "cylinder")
 # advance() returns to Python after about this much work [s] (interrupts, signals)
 BUDGET_SECONDS = 0.03
-_STATUSES = (REACHED, STEPPED, FULL, EMPTY)
-_NEED_ROOM = 4
-_DIVERGED, _COLLAPSED, _CONTROL = 1, 2, 3
+_NEED_ROOM = "need_room"  # the engine's status besides core.py's REACHED, STEPPED, FULL, EMPTY
 
 
 def why_not_native(system: Any, method: Integrator) -> str | None:
@@ -107,95 +104,53 @@ _SPACE_HOOKS = ("integrate", "difference", "chart_velocity")
 
 
 def contact_data(scene: Any, method: TimeStepping) -> dict[str, Any]:
-    """A contact scene's geometry, constraints and constants as _native.ContactScene takes them (contact.py's
-    ContactModel and module constants, timestepping.py's solver settings), read at each run."""
-    from ..scenes import contact as c
-
-    model = scene.contact
-    body_index = {name: k for k, name in enumerate(model.body_names)}
-    shapes = [
-        (
-            NATIVE_SHAPES[g.kind],
-            int(g.joint),
-            body_index[g.body],
-            np.array(g.placement.rotation, dtype=float),
-            np.array(g.placement.translation, dtype=float),
-            [float(x) for x in g.dimensions],
-        )
-        for g in model.geometries
-    ]
-    nv = scene.model.nv
-    bound = np.zeros(nv)
-    for jid, force in model.friction_joints:
-        bound[scene.model.joints[jid].idx_v] = force
-    return {
-        "shapes": shapes,
-        "pairs": [(int(a), int(b)) for a, b in model.pairs],
-        "friction": [float(mu) for mu, _ in model._coefficients],
-        "restitution": [float(e) for _, e in model._coefficients],
-        "limited_joints": [int(j) for j in model.limited_joints],
-        "limit_margin": np.full(scene.model.nq, c.LIMIT_MARGIN),
-        "friction_joints": [int(j) for j, _ in model.friction_joints],
-        "friction_bound": bound,
-        "reals": [
-            c.SPECULATIVE_MARGIN,
-            c.PENETRATION_CORRECTION,
-            c.PENETRATION_SLOP,
-            c.MAX_CORRECTION_SPEED,
-            c.TOUCHING,
-            c.DELASSUS_DAMPING,
-            TOLERANCE,
-            model.gravity,
-        ],
-        "ints": [c.MAX_PATCH_POINTS, ANDERSON_CAPACITY, method.max_iterations, int(model.solver == "pgs")],
-        "flow_work": [kind == "work" for _, kind in scene.ledger_elements[:-4]],
+    """A contact scene's geometry, constraints and constants as _native.ContactScene takes them: the contact model's
+    native_data() with the time-stepper's solver constants (timestepping.py) among its constants, read at each run."""
+    data = scene.contact.native_data()
+    constants = {
+        **data["constants"],
+        "tolerance": TOLERANCE,
+        "anderson_capacity": ANDERSON_CAPACITY,
+        "max_iterations": method.max_iterations,
     }
+    return {**data, "constants": constants}
 
 
-def method_data(method: Integrator) -> dict[str, Any]:
-    """The method as the engine takes it: kind, tableau (a row-major), error and dense-output weights."""
-    kind = NATIVE_METHODS[type(method)]
-    data: dict[str, Any] = {
-        "kind": kind,
-        "stages": 1,
-        "a": [0.0],
-        "b": [1.0],
-        "c": [0.0],
-        "chart_terms": 0,
-        "fsal": False,
-        "e": [],
-        "dense": [],
-        "e5": [],
-        "e3": [],
-        "extended_stages": 0,
-        "a_extended": [],
-        "c_extended": [],
-        "dense_weights": [],
+def _chart(space: Any) -> Any:
+    """The configuration space's chart map as _native.Chart."""
+    module = native.module
+    data = space.native_data()
+    return module.Chart(  # type: ignore[union-attr]
+        blocks=[module.ChartBlock(**block) for block in data["blocks"]],  # type: ignore[union-attr]
+        half_series=data["half_series"],
+    )
+
+
+def _scene_forces(elements: Any, model: Any) -> Any:
+    """A scene's force elements (ForceElements.native_data()) as _native.SceneForces."""
+    module = native.module
+    data = elements.native_data(native.load_model)
+    terms = {
+        "springs": module.SpringTerm,  # type: ignore[union-attr]
+        "circular": module.CircularTerm,  # type: ignore[union-attr]
+        "damped": module.CoefficientTerm,  # type: ignore[union-attr]
+        "rough": module.CoefficientTerm,  # type: ignore[union-attr]
+        "ledger_damped": module.CoefficientTerm,  # type: ignore[union-attr]
+        "ledger_rough": module.CoefficientTerm,  # type: ignore[union-attr]
+        "wrenches": module.WrenchTerm,  # type: ignore[union-attr]
+        "energies": module.SpringEnergy,  # type: ignore[union-attr]
     }
-    if isinstance(method, ExplicitRungeKutta):
-        data.update(
-            stages=len(method.b),
-            a=method.a.ravel().tolist(),
-            b=method.b.tolist(),
-            c=method.c.tolist(),
-            chart_terms=method.chart_terms,
-        )
-    if isinstance(method, EmbeddedRungeKutta):
-        dense = method._d
-        data.update(
-            fsal=method.fsal, e=method._e.tolist(), dense=dense.tolist() if dense is not None and dense.any() else []
-        )
-    if isinstance(method, DormandPrince853):
-        data.update(
-            fsal=True,
-            e5=method._e5.tolist(),
-            e3=method._e3.tolist(),
-            extended_stages=len(method._c_extended),
-            a_extended=method._a_extended.ravel().tolist(),
-            c_extended=method._c_extended.tolist(),
-            dense_weights=method._dense_weights.ravel().tolist(),
-        )
-    return data
+    for name, struct in terms.items():
+        data[name] = [struct(**term) for term in data[name]]
+    return module.SceneForces(model, **data)  # type: ignore[union-attr]
+
+
+def _contact_scene(data: dict[str, Any], model: Any) -> Any:
+    """contact_data()'s dict as _native.ContactScene."""
+    module = native.module
+    shapes = [module.ContactShape(**shape) for shape in data["shapes"]]  # type: ignore[union-attr]
+    constants = module.ContactConstants(**data["constants"])  # type: ignore[union-attr]
+    return module.ContactScene(model, **{**data, "shapes": shapes, "constants": constants})  # type: ignore[union-attr]
 
 
 class NativeKernel:
@@ -221,105 +176,48 @@ class NativeKernel:
         self._start = 0.0  # t until the engine exists
         self._saves = 0  # snapshots taken (the engine keeps the latest)
         self.engine: Any = None
-        self.method_data = method_data(method)
         self.torques: Any = None  # native control: the driver's Torques (the Python controllers, for messages)
         self._keep: tuple[Any, ...] = ()  # arrays the engine writes or reads for the run
+        self._store: tuple[Any, Any] = ((), None)  # a store's arrays and their _native.Store
 
     def bind(self, control: ConstantStep | PIController) -> None:
         """Make the engine for this controller."""
-        system, data = self.system, self.method_data
-        space = system.space
-        blocks = [
-            (start, stop - start, index.ravel().astype(int).tolist(), sign.ravel().tolist())
-            for (start, stop), (index, sign) in zip(space.curved_blocks, space._chart_entries, strict=True)
-        ]
-        pi = []
-        if isinstance(control, PIController):
-            pi = [
-                control.alpha,
-                control.beta,
-                control.safety,
-                control.factor_min,
-                control.factor_max,
-                control.max_step,
-                control.first_step,
-                float(self.rtol),  # type: ignore[arg-type]
-                float(self.atol),  # type: ignore[arg-type]
-            ]
+        system, module = self.system, native.module
+        assert module is not None  # why_not_native said the extension runs
+        model = native.load_model(system.model)
+        step = module.ConstantStep if isinstance(control, ConstantStep) else module.PIController
         Q0, V0 = self._initial
-        self.engine = native.module.Kernel(  # type: ignore[union-attr]
-            native.load_model(system.model),
-            data["kind"],
-            data["stages"],
-            data["a"],
-            data["b"],
-            data["c"],
-            data["chart_terms"],
-            data["fsal"],
-            data["e"],
-            data["dense"],
-            data["e5"],
-            data["e3"],
-            data["extended_stages"],
-            data["a_extended"],
-            data["c_extended"],
-            data["dense_weights"],
-            blocks,
-            list(_HALF_SERIES),
-            np.asarray(system.damping, dtype=float),
-            len(system.ledger_elements),
-            control.adaptive,
-            control.dt if isinstance(control, ConstantStep) else math.nan,
-            SLIVER,
-            pi,
-            LANDING_FRACTION,
-            Q0,
-            V0,
-            self.num_threads,
+        self.engine = module.Kernel(
+            model,
+            method=module.Method(**self.method.native_data()),  # type: ignore[attr-defined]
+            chart=_chart(system.space),
+            control=step(**control.native_data()),
+            damping=np.asarray(system.damping, dtype=float),
+            n_ledger=len(system.ledger_elements),
+            rtol=math.nan if self.rtol is None else float(self.rtol),
+            atol=math.nan if self.atol is None else float(self.atol),
+            Q0=Q0,
+            V0=V0,
+            num_threads=self.num_threads,
         )
         self.engine.t = self._start
         elements = getattr(system, "elements", None)
         if elements is not None:  # a Scene's force elements (why_not_native said they render)
-            data = elements.native_data(native.load_model)
-            self.engine.set_scene(
-                native.module.SceneForces(  # type: ignore[union-attr]
-                    native.load_model(system.model),
-                    data["zero_all"],
-                    data["inv_vs"],
-                    data["springs"],
-                    data["circular"],
-                    data["damped"],
-                    data["rough"],
-                    data["ledger_damped"],
-                    data["ledger_rough"],
-                    data["wrenches"],
-                    data["push_models"],
-                    data["energies"],
-                )
-            )
+            self.engine.set_scene(_scene_forces(elements, model))
         if type(self.method) is TimeStepping:  # a contact scene (why_not_native said it renders)
-            data = contact_data(system, self.method)
-            flow_work = data.pop("flow_work")
-            self.engine.set_contact(
-                native.module.ContactScene(native.load_model(system.model), **data),  # type: ignore[union-attr]
-                flow_work,
-            )
+            flow_work = [kind == "work" for _, kind in system.ledger_elements[:-4]]  # the contact's four come last
+            self.engine.set_contact(_contact_scene(contact_data(system, self.method), model), flow_work)
 
     def control_natively(self, torques: Any, settings: Any, saturation: Any, calls: np.ndarray) -> bool:
         """Hand the run's torques to the engine when it renders them (native_policies): it then computes them at its
         own control instants, counted into `calls` and `saturation`'s arrays. Returns whether it does."""
-        policies = native_policies(self.system, torques, settings)
-        if policies is None:
+        native_torques = native_policies(self.system, torques, settings)
+        if native_torques is None:
             return False
-        taus = policies.pop("taus")
-        self.engine.set_policies(
-            native.module.Policies(taus=taus, **policies),  # type: ignore[union-attr]
-            calls,
-            saturation.calls,
-            saturation.dofs,
-        )
+        policies, taus = native_torques
+        self.engine.set_policies(policies, calls, saturation.calls, saturation.dofs)
         self.torques = torques
-        self._keep = (taus, calls, saturation.calls, saturation.dofs)
+        self._keep = (policies, taus, calls, saturation.calls, saturation.dofs)
         return True
 
     # ---- the Kernel interface (kernels/base.py) ---------------------------------------------------------------------
@@ -392,66 +290,58 @@ class NativeKernel:
             rows = list(range(store.B))[index]
         else:
             rows = [int(b) for b in index]
-        self.engine.write_rows(i, rows, store, *store.batch_arrays)
+        self.engine.write_rows(i, rows, store=self.store_arrays(store), contacts=store.contacts)
+
+    def store_arrays(self, store: SampleStore) -> Any:
+        """The store's batch-major arrays as _native.Store (made again only when the store reallocates them)."""
+        arrays, struct = self._store
+        if arrays is not store.batch_arrays:
+            arrays = store.batch_arrays
+            struct = native.module.Store(**dict(zip(STORE_ARRAYS, arrays, strict=True)))  # type: ignore[union-attr]
+            self._store = (arrays, struct)
+        return struct
 
 
-def native_policies(system: Any, torques: Any, settings: Any) -> dict[str, Any] | None:
-    """The run's torques as _native.Policies takes them, when the engine renders them: open-loop sequences (taus), or
-    one built-in controller per row (PD, GravityCompensation, PDGravity, made for this very system); else None (a
-    Python controller, called by the driver at its control instants)."""
-    from ..controllers import PD, GravityCompensation, PDGravity
-
-    nv, actuated = system.nv, system.actuated
-    n = actuated.stop - actuated.start
-    rows: list[tuple[Any, ...]] = []
+def native_policies(system: Any, torques: Any, settings: Any) -> tuple[Any, np.ndarray] | None:
+    """The run's torques as _native.Policies (with the open-loop torques it reads, which must stay alive for the
+    run), when the engine renders them: open-loop sequences (taus), or one built-in controller per row (PD,
+    GravityCompensation, PDGravity, made for this very system: their native_data()); else None (a Python
+    controller, called by the driver at its control instants)."""
+    module = native.module
+    assert module is not None
+    rows = []
     taus = np.zeros((0, 0, 0))
     if torques.kind == "taus":
         taus = np.ascontiguousarray(torques.taus, dtype=float)
     elif torques.kind == "callables":
         for controller in torques.callables:
-            kind = type(controller)
-            if kind not in (PD, GravityCompensation, PDGravity) or "__call__" in vars(controller):
+            # a built-in controller (its class defines native_data; a subclass may compute otherwise), unwrapped
+            if "native_data" not in vars(type(controller)) or "__call__" in vars(controller):
                 return None
-            if controller.robot is not system:
+            data = controller.native_data(system)
+            if data is None:  # made for another model
                 return None
-            if kind is GravityCompensation:
-                if controller._model is not system.model or controller._a != actuated:
-                    return None
-                rows.append((1, system.neutral(), np.zeros(nv), np.zeros(n), np.zeros(n)))
-                continue
-            pd = controller if kind is PD else controller.pd
-            if kind is PDGravity and (
-                type(pd) is not PD
-                or type(controller.gravity) is not GravityCompensation
-                or "__call__" in vars(pd)
-                or "__call__" in vars(controller.gravity)
-                or controller.gravity._model is not system.model
-                or controller.gravity._a != actuated
-            ):
-                return None
-            if pd._model is not system.model or pd._a != actuated:
-                return None
-            rows.append((0 if kind is PD else 2, pd.q_ref, pd.v_ref, pd.kp, pd.kd))
+            rows.append(module.Policy(**data))
     else:
         return None
-    limited = np.isfinite(system.effort_limit)
     adaptive = bool(settings.adaptive)
-    return {
-        "nv": nv,
-        "a_start": actuated.start,
-        "a_stop": actuated.stop,
-        "rows": rows,
-        "taus": taus,
-        "effort": np.array(system.effort_limit, dtype=float),
-        "saturate": bool(limited.any()),
-        "adaptive": adaptive,
-        "every_step": adaptive and settings.control_dt is None,
-        "dt": float(settings.dt),
-        "duration": float(settings.duration),
-        "period": float(settings.control_dt) if settings.control_dt is not None else 0.0,
-        "every": int(settings.control_every),
-        "n_steps": int(settings.n_steps),
-    }
+    policies = module.Policies(
+        nv=system.nv,
+        a_start=system.actuated.start,
+        a_stop=system.actuated.stop,
+        rows=rows,
+        taus=taus,
+        effort=np.array(system.effort_limit, dtype=float),
+        saturate=bool(np.isfinite(system.effort_limit).any()),
+        adaptive=adaptive,
+        every_step=adaptive and settings.control_dt is None,
+        dt=float(settings.dt),
+        duration=float(settings.duration),
+        period=float(settings.control_dt) if settings.control_dt is not None else 0.0,
+        every=int(settings.control_every),
+        n_steps=int(settings.n_steps),
+    )
+    return policies, taus
 
 
 def next_budget(budget: int, steps: int, elapsed: float) -> int:
@@ -463,53 +353,100 @@ def next_budget(budget: int, steps: int, elapsed: float) -> int:
     return max(16, min(1 << 20, 4 * budget, estimate))
 
 
+def _in_loop(name: str) -> property:
+    """An attribute of NativeCore kept in its loop state (a _native.LoopState field of this name)."""
+    return property(lambda self: getattr(self.loop, name), lambda self, value: setattr(self.loop, name, value))
+
+
 class NativeCore(Core):
     """A Core whose loop runs in the engine (see the module docstring); its kernel is a NativeKernel.
 
-    The engine writes the core's counts, the store's count, the sampler's and the controller's state itself before
-    it returns (plain attribute assignments with the GIL held), and appends the rows it stopped to `_pending`: a
-    Ctrl-C, whose handler runs as soon as the engine returns, finds the run's samples and counts consistent, and the
-    stops are taken into account whenever the driver next looks (take_stops()).
+    The core's counts (steps, rejected, evaluations, recorded) live in the LoopState the engine advances in place:
+    a Ctrl-C, whose handler runs as soon as the engine returns, finds them consistent with the samples. The store's
+    count, the sampler's next output and the controller's state are copied from it when the engine returns (in a
+    `finally`, so a Ctrl-C raised on the return itself still finds them copied). The rows the engine stopped are
+    appended to `_pending` (StopEvent) and taken into account whenever the driver next looks (take_stops()).
     """
 
     kernel: NativeKernel  # type: ignore[assignment]
 
     def __init__(self, **kwargs: Any):
+        self.loop = native.module.LoopState(  # type: ignore[union-attr]
+            steps=0, rejected=0, evaluations=0, recorded=-math.inf, count=0, full=False, soft_capacity=0.0,
+            next_output=1, step_t0=0.0, step_k=0, step_time=0.0, step_h=0.0, previous_error=1.0,
+            rejected_last=False,
+        )  # fmt: skip
         super().__init__(**kwargs)
         self.kernel.bind(self.control)
+        sampler = self.sampler
+        self._sampler = None if sampler is None else native.module.Sampler(**sampler.native_data())  # type: ignore[union-attr]
         self._budget = 64  # steps per engine call, adapted to take about BUDGET_SECONDS
-        self._pending: list[tuple[Any, ...]] = []  # rows the engine stopped, not yet recorded as RowStops
+        self._pending: list[Any] = []  # rows the engine stopped (StopEvent), not yet recorded as RowStops
+
+    # The core's counts, in the engine's loop state (Core's code reads and writes them as attributes).
+    steps = _in_loop("steps")
+    rejected = _in_loop("rejected")
+    evaluations = _in_loop("evaluations")
+    recorded = _in_loop("recorded")
 
     def advance(self, t_stop: float, *, max_steps: int | None = None) -> str:
         """Core.advance, in the engine: the same statuses, samples, counts and stops."""
-        kernel, control, sampler, store = self.kernel, self.control, self.sampler, self.store
+        kernel, control, store, loop = self.kernel, self.control, self.store, self.loop
         tolerance = LANDING_FRACTION * control.scale(t_stop) if control.adaptive else 0.0
         taken = 0
         while True:
             limit = self._budget if max_steps is None else min(self._budget, max_steps - taken)
+            self._load()
             start = time.perf_counter()
-            status, steps, need = kernel.engine.advance(
-                t_stop, limit, tolerance, self, store, sampler, control, *store.batch_arrays, self._pending
-            )
+            try:
+                result = kernel.engine.advance(
+                    t_stop, limit, tolerance, state=loop, store=kernel.store_arrays(store), sampler=self._sampler,
+                    stops=self._pending, contacts=store.contacts, rows=self.rows,
+                    extra_evaluations=self.extra_evaluations,
+                )  # fmt: skip
+            finally:
+                self._unload()
             elapsed = time.perf_counter() - start
             self._take_pending()
-            taken += steps
-            if steps:
-                self._budget = next_budget(self._budget, steps, elapsed)
-            if status == _NEED_ROOM:
-                store.room(need)
+            taken += result.taken
+            if result.taken:
+                self._budget = next_budget(self._budget, result.taken, elapsed)
+            if result.status == _NEED_ROOM:
+                store.room(result.need)
                 continue
-            reason = _STATUSES[status]
-            if reason == STEPPED and (max_steps is None or taken < max_steps):
+            if result.status == STEPPED and (max_steps is None or taken < max_steps):
                 continue  # the budget, not the caller's limit: Python runs here (signals), then the engine again
-            return reason
+            return str(result.status)
+
+    def _load(self) -> None:
+        """The loop state from the store, the sampler and the controller (the core's counts live there already)."""
+        loop, store, control = self.loop, self.store, self.control
+        loop.count, loop.full, loop.soft_capacity = store.count, store.full, store.soft_capacity
+        if self.sampler is not None:
+            loop.next_output = self.sampler.next_output
+        state = control.snapshot()
+        if isinstance(state, PIState):
+            loop.step_time, loop.step_h, loop.previous_error, loop.rejected_last = state
+        else:
+            loop.step_t0, loop.step_k, loop.step_time = state
+
+    def _unload(self) -> None:
+        """... and back, once the engine returned."""
+        loop, store, control = self.loop, self.store, self.control
+        store.count, store.full = loop.count, loop.full
+        if self.sampler is not None:
+            self.sampler.next_output = loop.next_output
+        if isinstance(control, PIController):
+            control.restore(PIState(loop.step_time, loop.step_h, loop.previous_error, loop.rejected_last))
+        else:
+            control.restore(ConstantStepState(loop.step_t0, loop.step_k, loop.step_time))
 
     def _control_failure(self, row: int, t: float) -> InvalidArgumentError:
         """Why row `row`'s native controller output at t was refused: its Python controller's output at the row's
         state, checked as the driver checks it (torques.check_torque)."""
         from ..torques import check_torque
 
-        q, v = self.kernel.engine.snapshot_row(row)[:2]
+        q, v = self.kernel.engine.row_state(row)
         try:
             check_torque(self.system, self.kernel.torques.callables[row](t, q, v), t)
         except InvalidArgumentError as exc:
@@ -524,27 +461,29 @@ class NativeCore(Core):
         """Record the rows the engine stopped (it already took them out of its running rows): their RowStop, frozen
         counts and last samples, as Core._note_stops and Core.stop record them. Each is taken whole or again."""
         while self._pending:
-            code, row, when, step, dof, count, added, steps, rejected, evaluations, h, minimum, error = self._pending[0]
+            event = self._pending[0]
+            row = int(event.row)
             cause: BaseException | None = None
-            failed_step: int | None = int(step)
-            if code == _DIVERGED:
-                status, detail = "diverged", diverged_detail(self.system, dof, self.dt_hint)
-            elif code == _CONTROL:  # at a control instant, not in a step
-                status, cause = "failed", self._control_failure(row, when)
+            failed_step: int | None = int(event.step)
+            if event.kind == "diverged":
+                status, detail = "diverged", diverged_detail(self.system, event.dof, self.dt_hint)
+            elif event.kind == "control":  # at a control instant, not in a step
+                status, cause = "failed", self._control_failure(row, event.time)
                 detail, failed_step = str(cause), None
             else:
                 status = "step_collapsed"
-                detail = collapsed_detail(self.system, h, minimum, None if math.isnan(error) else error)
+                error = None if math.isnan(event.error) else event.error
+                detail = collapsed_detail(self.system, event.h, event.minimum, error)
             if row in self.rows:
-                stats = self.kernel.row_solver_stats(int(row))
+                stats = self.kernel.row_solver_stats(row)
                 if stats:
-                    self.solver_stats[int(row)] = stats
-                sample = count + added - 1
+                    self.solver_stats[row] = stats
+                sample = event.count + event.added - 1
                 self.stops.append(
-                    RowStop(int(row), status, when, failed_step, detail, sample, bool(added), cause, cause is not None)
+                    RowStop(row, status, event.time, failed_step, detail, sample, event.added, cause, cause is not None)
                 )
-                self.stopped_counts[row] = (steps, rejected, evaluations)
-                self.store.stop(np.array([row]), bool(added), count=count)
+                self.stopped_counts[row] = (event.steps, event.rejected, event.evaluations)
+                self.store.stop(np.array([row]), event.added, count=event.count)
                 keep = self.rows != row
                 n = int(keep.sum())
                 self.extra_evaluations[:n] = self.extra_evaluations[: len(keep)][keep]

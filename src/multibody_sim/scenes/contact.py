@@ -289,6 +289,46 @@ class ContactModel:
         """Every body with collision geometry, in the order Trajectory.contacts indexes them."""
         return list(dict.fromkeys(g.body for g in self.geometries))
 
+    def native_data(self) -> dict[str, Any]:
+        """The geometry, constraints and this module's constants as the native kernel takes them
+        (_native.ContactScene's fields, shapes as _native.ContactShape's; the time-stepper adds its solver's
+        constants: kernels/native.contact_data)."""
+        model = self.model
+        bound = np.zeros(model.nv)
+        for jid, force in self.friction_joints:
+            bound[model.joints[jid].idx_v] = force
+        return {
+            "shapes": [
+                {
+                    "kind": g.kind,
+                    "joint": int(g.joint),
+                    "body": self._body_index[g.body],
+                    "rotation": np.array(g.placement.rotation, dtype=float),
+                    "translation": np.array(g.placement.translation, dtype=float),
+                    "dimensions": [float(x) for x in g.dimensions],
+                }
+                for g in self.geometries
+            ],
+            "pairs": [(int(a), int(b)) for a, b in self.pairs],
+            "friction": [float(mu) for mu, _ in self._coefficients],
+            "restitution": [float(e) for _, e in self._coefficients],
+            "limited_joints": [int(j) for j in self.limited_joints],
+            "limit_margin": np.full(model.nq, LIMIT_MARGIN),
+            "friction_joints": [int(j) for j, _ in self.friction_joints],
+            "friction_bound": bound,
+            "constants": {
+                "speculative_margin": SPECULATIVE_MARGIN,
+                "penetration_correction": PENETRATION_CORRECTION,
+                "penetration_slop": PENETRATION_SLOP,
+                "max_correction_speed": MAX_CORRECTION_SPEED,
+                "touching": TOUCHING,
+                "delassus_damping": DELASSUS_DAMPING,
+                "max_patch_points": MAX_PATCH_POINTS,
+                "pgs": self.solver == "pgs",
+                "gravity": self.gravity,
+            },
+        }
+
     def records(self, problem: ContactProblem, impulses: np.ndarray) -> np.ndarray | None:
         """The contact points of a solved problem as (k, 11) rows: pair (2 indices into body_names), point (3),
         normal (3), impulse on body 2 in world axes (3) [N·s]; None without points."""

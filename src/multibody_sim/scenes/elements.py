@@ -51,7 +51,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import pinocchio as pin
@@ -377,33 +377,40 @@ class ForceElements:
 
     def native_data(self, load_model: Callable[[pin.Model], object]) -> dict[str, object]:
         """The elements as _native.SceneForces takes them: each term of evaluate(), powers() and
-        potential_energies() with its coefficients, in their arithmetic order (`load_model` hands a Pinocchio model
-        to C++: the point-mass models of world forces)."""
-        nv = self.nv
+        potential_energies() with its coefficients, in their arithmetic order, as dicts of the native terms' field
+        names (SpringTerm, CircularTerm, CoefficientTerm, WrenchTerm, SpringEnergy); `load_model` hands a Pinocchio
+        model to C++ (the point-mass models of world forces)."""
+
+        def spring(dof: Any, iq: Any, rest: Any, minus_k: Any) -> dict[str, object]:
+            return {"dof": int(dof), "iq": int(iq), "rest": float(rest), "minus_k": float(minus_k)}
+
+        def coefficient(dof: Any, c: Any) -> dict[str, object]:
+            return {"dof": int(dof), "c": float(c)}
+
         springs, circular, damped, rough = [], [], [], []
         zero_all = True
         if self._span is not None:
             at, q_at, rest, minus_k, d, fc, whole = self._span
             zero_all = not whole
             dofs = range(at.start, at.stop)
-            springs = [(i, q_at.start + n, float(rest[n]), float(minus_k[n])) for n, i in enumerate(dofs)]
+            springs = [spring(i, q_at.start + n, rest[n], minus_k[n]) for n, i in enumerate(dofs)]
             if d is not None:
-                damped = [(i, float(d[n])) for n, i in enumerate(dofs)]
+                damped = [coefficient(i, d[n]) for n, i in enumerate(dofs)]
             if fc is not None:
-                rough = [(i, float(fc[n])) for n, i in enumerate(dofs)]
+                rough = [coefficient(i, fc[n]) for n, i in enumerate(dofs)]
         else:
             springs = [
-                (int(i), int(j), float(r), float(-k))
+                spring(i, j, r, -k)
                 for i, j, r, k in zip(self._plain, self._plain_q, self._plain_rest, self._plain_k, strict=True)
             ]
             circular = [
-                (int(i), int(c), float(cr), float(sr), float(-k))
+                {"dof": int(i), "ic": int(c), "cos_rest": float(cr), "sin_rest": float(sr), "minus_k": float(-k)}
                 for i, c, cr, sr, k in zip(
                     self._circular, self._cos_q, self._cos_rest, self._sin_rest, self._circular_k, strict=True
                 )
             ]
-            damped = [(int(i), float(d)) for i, d in zip(self._damped, self._d, strict=True)]
-            rough = [(int(i), float(f)) for i, f in zip(self._rough, self._fc, strict=True)]
+            damped = [coefficient(i, d) for i, d in zip(self._damped, self._d, strict=True)]
+            rough = [coefficient(i, f) for i, f in zip(self._rough, self._fc, strict=True)]
         pushes: list[object] = []
         wrenches = []
         for k, w in enumerate(self._wrenches):
@@ -413,17 +420,32 @@ class ForceElements:
                 pushes.append(load_model(self._pushes[k].model))
             shape = _shape_data(w)
             assert shape is not None, "native_reason() says why"
-            wrenches.append((push, w.frame_id, w.reference == "local", self._w6[k].tolist(), *shape))
+            kind, (start, ramp_time, frequency, phase) = shape
+            wrenches.append(
+                {
+                    "push": push,
+                    "frame": w.frame_id,
+                    "local": w.reference == "local",
+                    "w6": self._w6[k].tolist(),
+                    "shape": kind,
+                    "start": start,
+                    "ramp_time": ramp_time,
+                    "frequency": frequency,
+                    "phase": phase,
+                }
+            )
         energies = []
         plain_rest = dict(zip(self._plain.tolist(), self._plain_rest.tolist(), strict=True))
         circular_at = {int(i): n for n, i in enumerate(self._circular)}
         for i, k in zip(self._sprung.tolist(), self._k.tolist(), strict=True):
+            energy: dict[str, object] = {"circular": False, "rest": 0.0, "cos_rest": 1.0, "sin_rest": 0.0, "k": k}
             if i in circular_at:
                 n = circular_at[i]
-                energies.append((True, int(self._cos_q[n]), 0.0, float(self._cos_rest[n]), float(self._sin_rest[n]), k))
+                energy.update(circular=True, iq=int(self._cos_q[n]))
+                energy.update(cos_rest=float(self._cos_rest[n]), sin_rest=float(self._sin_rest[n]))
             else:
-                q_index = int(self._plain_q[list(self._plain).index(i)])
-                energies.append((False, q_index, plain_rest[i], 1.0, 0.0, k))
+                energy.update(iq=int(self._plain_q[list(self._plain).index(i)]), rest=plain_rest[i])
+            energies.append(energy)
         return {
             "zero_all": zero_all,
             "inv_vs": self._inv_vs,
@@ -431,12 +453,11 @@ class ForceElements:
             "circular": circular,
             "damped": damped,
             "rough": rough,
-            "ledger_damped": [(int(i), float(d)) for i, d in zip(self._damped, self._d, strict=True)],
-            "ledger_rough": [(int(i), float(f)) for i, f in zip(self._rough, self._fc, strict=True)],
+            "ledger_damped": [coefficient(i, d) for i, d in zip(self._damped, self._d, strict=True)],
+            "ledger_rough": [coefficient(i, f) for i, f in zip(self._rough, self._fc, strict=True)],
             "wrenches": wrenches,
             "push_models": pushes,
             "energies": energies,
-            "nv": nv,
         }
 
     def jacobians(self, q: np.ndarray, v: np.ndarray, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -531,24 +552,24 @@ class _Push:
         np.negative(pin.rnea(self.model, self.data, q, zeros, zeros), out=out)
 
 
-# spec.ForceSpec.scale's shapes as the native kernel numbers them (src/native/scene.hpp's Shape)
-_SHAPES = {"constant": 0, "step": 1, "ramp": 2, "sine": 3}
+# spec.ForceSpec.scale's shapes the native kernel renders (src/native/scene.hpp's Shape; "constant": no scale)
+_SHAPES = ("constant", "step", "ramp", "sine")
 
 
-def _shape_data(wrench: Wrench) -> tuple[int, list[float]] | None:
-    """(shape number, [start, ramp_time, frequency, phase]) of a wrench whose scale is a ForceSpec's declared shape
-    (or the unit scale), else None (a Python callable)."""
+def _shape_data(wrench: Wrench) -> tuple[str, list[float]] | None:
+    """(shape, [start, ramp_time, frequency, phase]) of a wrench whose scale is a ForceSpec's declared shape (or the
+    unit scale: "constant"), else None (a Python callable)."""
     from .spec import ForceSpec
 
     scale = wrench.scale
     if scale is _unit_scale:
-        return 0, [0.0, 1.0, 1.0, 0.0]
+        return "constant", [0.0, 1.0, 1.0, 0.0]
     spec = getattr(scale, "__self__", None)
     if type(spec) is not ForceSpec or getattr(scale, "__func__", None) is not ForceSpec.scale:
         return None
-    if not isinstance(spec.shape, str):
+    if not isinstance(spec.shape, str) or spec.shape not in _SHAPES:
         return None
-    return _SHAPES[spec.shape], [float(spec.start), float(spec.ramp_time), float(spec.frequency), float(spec.phase)]
+    return spec.shape, [float(spec.start), float(spec.ramp_time), float(spec.frequency), float(spec.phase)]
 
 
 def _skew(a: np.ndarray) -> np.ndarray:
