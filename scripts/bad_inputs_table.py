@@ -51,9 +51,9 @@ LIMITS = [
     ),
     (
         "degrees of freedom",
-        "128",
+        "128, a scene's robot and objects (6 each) together",
         "Pinocchio's workspace grows as ~64·nv³ bytes: 136 MB at 128 dof, 1.7 GB at 300; the largest "
-        "example-robot-data model has 107",
+        "example-robot-data model has 107; a scene's dense dynamics and contact solve grow the same way",
     ),
     ("XML nesting", "256", "libxml2's limit without its 'huge' option"),
     (

@@ -1876,6 +1876,16 @@ def presentation(
     return build
 
 
+def object_scene(*objects: str, robot: str | None = None) -> Callable[[Path], Trigger]:
+    """A scene file of the given [[object]] bodies (TOML fragments), beside a robot when one is named."""
+    head = f'[robot]\nsource = "{robot}"\n' if robot else ""
+    return scene_trigger(head + "".join(f"[[object]]\n{body}" for body in objects))
+
+
+def ball(i: int) -> str:
+    return f'name = "ball{i}"\nshape = "sphere"\nradius = 0.05\nmass = 1.0\nposition = [1.0, 0.0, {i}]\n'
+
+
 ROUND_3 = [
     BadInput(
         "vector-env-complex-actions",
@@ -1925,6 +1935,47 @@ ROUND_3 = [
         "The file is damaged or forged: delete it (a pilot cache is rebuilt).",
         deep_table,
         ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "scene-object-size-1e308",
+        "scene file",
+        "a scene object 1e308 m wide (its inertia overflows: it ran, then 'diverged ... try a smaller dt')",
+        "{scene}: object[0] ('crate'): a box of 1e+308 x 1 x 1 m and 1 kg has principal inertias 0.167, inf, inf "
+        "kg·m²: they overflow (sizes in m, masses in kg)",
+        "Give sizes in metres and masses in kilograms; a URDF body like it is refused the same way.",
+        object_scene('name = "crate"\nshape = "box"\nsize = [1e308, 1.0, 1.0]\nmass = 1.0\nposition = [0, 0, 1]\n'),
+        ms.SceneError,
+    ),
+    BadInput(
+        "scene-object-size-1e-300",
+        "scene file",
+        "a scene object 1e-300 m wide (its inertia underflows to 0: it ran, then diverged)",
+        "{scene}: object[0] ('dust'): a sphere of 1e-300 m and 1 kg has principal inertias 0, 0, 0 kg·m²: they "
+        "underflow to 0 (sizes in m, masses in kg)",
+        "Give sizes in metres and masses in kilograms.",
+        object_scene('name = "dust"\nshape = "sphere"\nradius = 1e-300\nmass = 1.0\nposition = [0, 0, 1]\n'),
+        ms.SceneError,
+    ),
+    BadInput(
+        "scene-10000-objects",
+        "scene file",
+        "a scene of 10 000 objects (it ran for 23 s, then died of a MemoryError)",
+        "{scene}: object: 10000 objects have 60000 degrees of freedom, more than the 128 this simulator accepts (21 "
+        "objects at most, fewer beside a robot)",
+        "Simulate fewer bodies: the dense dynamics and contact solve cost grows as the cube of the degrees of "
+        "freedom, for objects as for robots.",
+        object_scene(*(ball(i) for i in range(10_000))),
+        ms.SceneError,
+    ),
+    BadInput(
+        "scene-objects-beside-a-robot-past-128-dof",
+        "scene file",
+        "solo12 (18 degrees of freedom) with 19 free objects (114 more)",
+        "{scene}: the scene has 132 degrees of freedom (18 of its robot, 6 for each of its 19 objects), more than "
+        "the 128 this simulator accepts",
+        "The 128-dof limit counts a scene's objects (6 each) with its robot's joints.",
+        object_scene(*(ball(i) for i in range(19)), robot="solo12"),
+        ms.SceneError,
     ),
     BadInput(
         "camera-near-1e308",

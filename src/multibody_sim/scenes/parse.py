@@ -21,7 +21,7 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from ..catalog import CATALOG
+from ..catalog import CATALOG, MAX_DOFS
 from ..controllers import CONTROLLERS
 from ..exceptions import SceneError
 from ..integrators import INTEGRATORS
@@ -71,6 +71,7 @@ from .spec import (
     SimulationSpec,
 )
 
+OBJECT_DOFS = 6  # a free object's degrees of freedom (a free-flyer joint)
 MAX_SCENE_BYTES = 1024 * 1024  # a scene is a few hundred bytes; a megabyte of TOML is not a scene
 # Ledger names become keys of trajectory files ("ledger/force:<name>"): keep them short and plain.
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
@@ -319,10 +320,14 @@ class _Parser:
         if not isinstance(data, Mapping):
             self.fail("", f"a scene must be a table of keys, got {_describe(data)}")
         self.table(data, "", TOP_LEVEL_KEYS)
-        objects = tuple(
-            self.object(value, f"object[{i}]", i)
-            for i, value in enumerate(self.array_of_tables(data.get("object", []), "object"))
-        )
+        tables = self.array_of_tables(data.get("object", []), "object")
+        if OBJECT_DOFS * len(tables) > MAX_DOFS:  # before building any: 10 000 objects ran 23 s into a MemoryError
+            self.fail(
+                "object",
+                f"{len(tables)} objects have {OBJECT_DOFS * len(tables)} degrees of freedom, more than the "
+                f"{MAX_DOFS} this simulator accepts ({MAX_DOFS // OBJECT_DOFS} objects at most, fewer beside a robot)",
+            )
+        objects = tuple(self.object(value, f"object[{i}]", i) for i, value in enumerate(tables))
         self.unique([o.name for o in objects], "object")
         if "robot" not in data and not objects:
             self.fail(

@@ -18,8 +18,9 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from ..catalog import load_robot, read_urdf, reduce_configuration
-from ..exceptions import InvalidArgumentError, SceneError
+from ..catalog import MAX_DOFS, load_robot, read_urdf, reduce_configuration
+from ..catalog.checks import check_body_inertias, check_mass_matrix, check_model_numbers
+from ..exceptions import InvalidArgumentError, ModelError, SceneError
 from ..integrators.timestepping import TOLERANCE
 from ..robot import Robot
 from ..text import safe_name
@@ -132,6 +133,7 @@ class Scene(Robot):
             poses=poses,
             default_pose=robot.default_pose_name,
         )
+        _check_scene_model(self, where, robot_nv, len(object_joints))
         self.actuated = slice(self.actuated.start, robot_nv)  # free objects are unactuated
         self.robot_nq, self.robot_nv = robot_nq, robot_nv
         self.object_joints = object_joints
@@ -225,6 +227,7 @@ class Scene(Robot):
         elif self.mimic:
             self.no_derivatives_reason = "it honours mimic joints, which Pinocchio's ABA derivatives do not support"
         self.has_derivatives = not self.no_derivatives_reason
+        _check_scene_mass_matrix(self, where)
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, nq={self.nq}, nv={self.nv}, elements={len(self._flow_elements) - 1})"
@@ -686,6 +689,32 @@ def _initial_state(scene: Scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarra
     return q, v
 
 
+def _check_scene_model(scene: Robot, source: str, robot_nv: int, objects: int) -> None:
+    """The checks a URDF's model passes, on the scene's (objects, payloads, locked joints): its size, finite numbers
+    and physical inertias (an object whose size makes its inertia overflow is refused as a URDF body would be, not
+    run into divergence; one whose inertia underflows, by _check_scene_mass_matrix)."""
+    if scene.nv > MAX_DOFS:
+        raise SceneError(
+            f"{source}: the scene has {scene.nv} degrees of freedom ({robot_nv} of its robot, 6 for each of its "
+            f"{objects} objects), more than the {MAX_DOFS} this simulator accepts"
+        )
+    try:
+        check_model_numbers(scene.model, Path(source))
+        check_body_inertias(scene.model, Path(source))
+    except ModelError as exc:
+        raise SceneError(str(exc)) from None
+
+
+def _check_scene_mass_matrix(scene: Scene, source: str) -> None:
+    """The scene's mass matrix at a few configurations: finite and not singular (catalog.check_mass_matrix)."""
+    if not scene.nv:
+        return
+    try:
+        check_mass_matrix(scene, Path(source))
+    except ModelError as exc:
+        raise SceneError(str(exc)) from None
+
+
 def _add_objects(model: pin.Model, spec: SceneSpec) -> dict[str, int]:
     """Append each [[object]] as a free-flyer joint of the world carrying its body (uniform density) and a body
     frame of its name; returns {name: joint id}."""
@@ -698,10 +727,18 @@ def _add_objects(model: pin.Model, spec: SceneSpec) -> dict[str, int]:
                 f"{spec.source}: object[{i}].name: '{item.name}' is already a joint or frame of the robot; "
                 "choose another name"
             )
+        with np.errstate(over="ignore", under="ignore"):
+            inertia = shape_inertia(item.shape.shape, _dimensions(item.shape), item.mass)
+        moments = np.diag(inertia.inertia)
+        if not (np.all(np.isfinite(moments)) and np.all(moments > 0)):
+            what = "overflow" if not np.all(np.isfinite(moments)) else "underflow to 0"
+            raise SceneError(
+                f"{spec.source}: object[{i}] ('{safe_name(item.name)}'): a {item.shape.shape} of "
+                f"{' x '.join(f'{d:g}' for d in _dimensions(item.shape))} m and {item.mass:g} kg has principal "
+                f"inertias {', '.join(f'{m:.3g}' for m in moments)} kg·m²: they {what} (sizes in m, masses in kg)"
+            )
         jid = model.addJoint(0, pin.JointModelFreeFlyer(), pin.SE3.Identity(), item.name)
-        model.appendBodyToJoint(
-            jid, shape_inertia(item.shape.shape, _dimensions(item.shape), item.mass), pin.SE3.Identity()
-        )
+        model.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
         model.addBodyFrame(item.name, jid, pin.SE3.Identity(), 0)
         joints[item.name] = jid
     return joints
