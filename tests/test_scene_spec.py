@@ -445,8 +445,8 @@ def test_controller_rows_flags_and_exact_floats(robot):
 
 # ---- errors --------------------------------------------------------------------------------------------
 TOP = (
-    "valid: constraint, contact, controller, description, force, friction_velocity, gravity, ground, initial, joints, "
-    "lock, object, payload, robot, simulation"
+    "valid: actuator, actuators, constraint, contact, controller, description, force, friction_velocity, gravity, "
+    "ground, initial, joints, lock, object, payload, robot, simulation"
 )
 TRIANGLE = "break the triangle inequality (each at most the sum of the others)"
 ROBOT_KEYS = "valid: base, damping, mimic, package_dirs, position, rpy, source"
@@ -971,7 +971,7 @@ def test_messages_quoting_the_file_stay_on_one_line():
     with pytest.raises(SceneError) as info:
         parse(scene(**{"evil\n\x1b[31mkey": 1}))
     message = str(info.value)
-    assert message.startswith("scene.toml: unknown key 'evil\\x0a\\x1b[31mkey' (valid: constraint,")
+    assert message.startswith("scene.toml: unknown key 'evil\\x0a\\x1b[31mkey' (valid: actuator,")
     assert "\n" not in message and "\x1b" not in message
 
 

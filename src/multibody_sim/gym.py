@@ -29,6 +29,7 @@ from .robot import Robot, real_array
 from .safety import check_allocation
 from .scenes import Scene
 from .stepper import BatchStepper, Stepper
+from .torques import command_bounds
 from .validation import check_callable, in_range, is_number, positive_number
 
 try:
@@ -136,11 +137,12 @@ class _Task:
 
     def action_space(self) -> spaces.Box:
         """Joint torques, float64, shape (nv,), within ± the effort limits (±inf where the URDF gives none), of width
-        zero on the unactuated entries (a floating base's 6)."""
-        high = np.array(self.system.effort_limit, dtype=np.float64)
+        zero on the unactuated entries (a floating base's 6); with a scene's actuators, their commands within their
+        bounds (torques.command_bounds: a position servo's target within its joint's range)."""
+        low, high = command_bounds(self.system)
         if self.system.floating_base:
-            high[:6] = 0.0
-        return spaces.Box(-high, high, dtype=np.float64)
+            low[:6] = high[:6] = 0.0
+        return spaces.Box(low, high, dtype=np.float64)
 
     # ---- episodes --------------------------------------------------------------------------------------------------
     def initial_state(

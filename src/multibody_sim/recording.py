@@ -183,6 +183,7 @@ class SampleStore:
         ledger = {name: LedgerEntry(kind, take(flows[:, j])) for j, (name, kind) in enumerate(elements)}
         potentials, constraints = split_records(system.record_fields, self.EXTRA[:n, b])
         ledger.update(potentials)
+        delivered = delivered_torques(system.record_fields, self.EXTRA[:n, b])
         work = flows[:, is_work].sum(axis=1)
         dissipated = flows[:, ~is_work].sum(axis=1)
         total = kinetic + potential
@@ -190,7 +191,8 @@ class SampleStore:
             t=t,
             q=Q,
             v=take(self.V[:n, b]),
-            tau=take(self.TAU[:n, b]),
+            tau=take(self.TAU[:n, b]) if delivered is None else delivered,
+            ctrl=None if delivered is None else take(self.TAU[:n, b]),
             kinetic_energy=kinetic,
             potential_energy=potential,
             total_energy=total,
@@ -239,9 +241,20 @@ def split_records(
         column += width
         if category == "potential":
             potentials[name] = LedgerEntry("potential", block[..., 0].copy())
-        else:  # "constraint": the forces, then the drift and the velocity drift
+        elif category == "constraint":  # the forces, then the drift and the velocity drift
             constraints[name] = ConstraintRecord(block[..., :-2].copy(), block[..., -2].copy(), block[..., -1].copy())
     return potentials, constraints
+
+
+def delivered_torques(record_fields: tuple[tuple[str, str, int], ...], extra: np.ndarray) -> np.ndarray | None:
+    """The joint torques a scene's actuators delivered at each sample (its "torque" record: the trajectory's tau, the
+    commands being its ctrl), a copy of shape (..., nv); None for a system without actuators."""
+    column = 0
+    for category, _, width in record_fields:
+        if category == "torque":
+            return extra[..., column : column + width].copy()
+        column += width
+    return None
 
 
 def find_limit_violations(system: Any, t: np.ndarray, Q: np.ndarray) -> LimitViolations:

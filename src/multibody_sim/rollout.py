@@ -23,7 +23,7 @@ from .exceptions import InvalidArgumentError, SimulationInterrupted
 from .integrators import Integrator, get_integrator
 from .integrators.timestepping import SOLVER_COUNTS  # a contact scene's, in stats only when kept
 from .progress import ProgressBar
-from .recording import limit_reports, split_records
+from .recording import delivered_torques, limit_reports, split_records
 from .robot import Robot, real_array
 from .torques import Torques, controller_name
 from .trajectory import ARRAYS, ConstraintRecord, Contacts, LedgerEntry, LimitViolations, Trajectory
@@ -61,6 +61,8 @@ class BatchTrajectory:
         limit_violations: position-limit violations of each element, length B.
         contacts: a contact scene's active contacts of each element, as Trajectory.contacts (sample indices
             within its real samples), length B; None for an element of a run without contact.
+        ctrl: a scene with actuators: the commands, shape (B, N, nv), as Trajectory.ctrl (tau then holds the joint
+            torques the actuators delivered); None otherwise.
         stats: per-element counts as arrays of shape (B,): steps, rejected_steps, evaluations,
             controller_calls, saturated_controls; saturated_dofs, shape (B, nv); and wall_time [s] of the
             whole batch (a float).
@@ -86,6 +88,7 @@ class BatchTrajectory:
     metadata: dict[str, Any] = field(default_factory=dict)
     constraints: dict[str, ConstraintRecord] = field(default_factory=dict)
     contacts: list[Contacts | None] = field(default_factory=list)
+    ctrl: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.n_samples)
@@ -132,6 +135,7 @@ class BatchTrajectory:
             status=str(self.status[b]),
             metadata={**self.metadata, "element": b % len(self)},
             contacts=self.contacts[b] if self.contacts else None,
+            ctrl=self.ctrl[b, :n].copy() if self.ctrl is not None else None,
         )
 
     def summary(self) -> str:
@@ -345,7 +349,13 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
     ledger = {name: LedgerEntry(kind, flows[:, :, j].copy()) for j, (name, kind) in enumerate(elements)}
     potentials, constraints = split_records(system.record_fields, store.batch_major("EXTRA")[:, :N])  # (copies)
     ledger.update(potentials)
+    delivered = delivered_torques(system.record_fields, store.batch_major("EXTRA")[:, :N])
+    ctrl = None
+    if delivered is not None:  # actuators: tau is what they delivered, the commands are ctrl
+        ctrl, arrays["tau"] = arrays["tau"], delivered
     records = {f"{name}.{part}": getattr(r, part) for name, r in constraints.items() for part in _RECORD_PARTS}
+    if ctrl is not None:
+        records["ctrl"] = ctrl
     _pad({**arrays, **records}, ledger, n, run.Q0, run.V0)
     stats: dict[str, Any] = run.count_arrays()
     if run.core.solver_stats:  # a contact method's counts, per element
@@ -366,6 +376,7 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
         contacts=[store.contacts_record(b, int(n[b]), system) for b in range(run.B)]
         if getattr(system, "contact", None) is not None
         else [None] * run.B,  # (what contacts_record gives without contact)
+        ctrl=ctrl,
     )
 
 
@@ -532,11 +543,13 @@ def _initial_only(system: Robot, q0: np.ndarray, v0: np.ndarray) -> Trajectory:
     extra = np.zeros((1, sum(width for _, _, width in system.record_fields)))
     system.unchecked_record(q0, v0, np.zeros(system.nv), 0.0, extra[0])  # a scene's springs and constraints
     potentials, constraints = split_records(system.record_fields, extra)
+    delivered = delivered_torques(system.record_fields, extra)
     return Trajectory(
         t=zero.copy(),
         q=q0[None, :].copy(),
         v=v0[None, :].copy(),
-        tau=np.zeros((1, system.nv)),
+        tau=np.zeros((1, system.nv)) if delivered is None else delivered,
+        ctrl=None if delivered is None else np.zeros((1, system.nv)),
         kinetic_energy=np.array([T]),
         potential_energy=np.array([V]),
         total_energy=np.array([T + V]),
@@ -582,6 +595,12 @@ def _stack(
             parts.append(arr)
         constraints[name] = ConstraintRecord(*parts)
     records = {f"{name}.{part}": getattr(r, part) for name, r in constraints.items() for part in _RECORD_PARTS}
+    ctrl = None
+    if first.ctrl is not None:
+        ctrl = np.zeros((B, N, first.ctrl.shape[1]))
+        for b, tr in enumerate(trajectories):
+            ctrl[b, : n[b]] = tr.ctrl
+        records["ctrl"] = ctrl
     _pad({**arrays, **records}, ledger, n, Q0, V0)  # (records keyed apart from the field names)
     nv = first.v.shape[1]
     dof_index = {name: i for i, name in enumerate(first.metadata.get("robot", {}).get("dof_names", []))}
@@ -605,6 +624,7 @@ def _stack(
         limit_violations=[tr.limit_violations for tr in trajectories],
         stats=stats,
         contacts=[tr.contacts for tr in trajectories],
+        ctrl=ctrl,
     )
 
 
@@ -645,6 +665,7 @@ def _concatenate(batches: list[BatchTrajectory], wall_time: float | None = None)
         stats=stats,
         metadata=dict(batches[0].metadata),
         contacts=[c for bt in batches for c in (bt.contacts or [None] * len(bt))],
+        ctrl=np.concatenate([widen(bt.ctrl) for bt in batches]) if batches[0].ctrl is not None else None,  # type: ignore[arg-type]
     )
 
 

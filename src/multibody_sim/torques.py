@@ -1,5 +1,5 @@
-"""Torques: where a run's torques come from (nothing, one controller per row, a batched controller, open-loop
-sequences), the check every torque passes, and actuator saturation at the URDF's effort limits."""
+"""Torques: where a run's torques (commands, with a scene's actuators) come from (nothing, one controller per row, a
+batched controller, open-loop sequences), the check every torque passes, and saturation at the commands' bounds."""
 
 from __future__ import annotations
 
@@ -27,31 +27,46 @@ def check_torque(system: Any, tau: Any, t: float | None, what: str = "controller
         raise InvalidArgumentError(f"{what} at t = {t:.6g} s: {exc}") from None
 
 
+def command_bounds(system: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The range of each entry of a command, (low, high), each shape (nv,) (±inf where unbounded): ± the effort limit
+    for a torque; for a scene's actuators (scenes/actuators.py) ± the effort limit (kind torque), the joint's position
+    limits (position servo) or ± the velocity limit (velocity servo)."""
+    high = np.array(system.effort_limit, dtype=float)
+    low = -high
+    actuators = getattr(system, "actuators", None)
+    if actuators is not None:
+        actuators.command_bounds(low, high, system.lower_limit, system.upper_limit)
+    return low, high
+
+
 class Saturation:
-    """Actuators saturate at the URDF's effort limits: torques are clipped, and the calls and dofs counted.
+    """Commands saturate at their bounds (command_bounds: torques at the URDF's effort limits, a scene's servo targets
+    at their joints' ranges): they are clipped, and the calls and dofs counted.
 
     Attributes:
-        effort: |tau| bounds, shape (nv,), or None when the URDF gives none.
+        low, high: the bounds, shape (nv,) each, or None when nothing is bounded.
         calls: per row, how many control instants clipped something, shape (B,).
         dofs: per row and dof, how many times it was clipped, shape (B, nv).
     """
 
     def __init__(self, system: Any, B: int):
-        limited = np.isfinite(system.effort_limit)
-        self.effort = system.effort_limit if limited.any() else None
+        low, high = command_bounds(system)
+        bounded = (np.isfinite(low) | np.isfinite(high)).any()
+        self.low: np.ndarray | None = low if bounded else None
+        self.high: np.ndarray | None = high if bounded else None
         self.calls = np.zeros(B, dtype=np.int64)
         self.dofs = np.zeros((B, system.nv), dtype=np.int64)
 
     def apply(self, TAU: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """TAU (n, nv) of `rows`, clipped (a new array where anything was clipped)."""
-        if self.effort is None:
+        if self.low is None or self.high is None:
             return TAU
-        over = np.abs(TAU) > self.effort
+        over = (self.low > TAU) | (self.high < TAU)
         if not over.any():
             return TAU
         self.calls[rows] += over.any(axis=1)
         self.dofs[rows] += over
-        return np.clip(TAU, -self.effort, self.effort)
+        return np.minimum(np.maximum(TAU, self.low), self.high)
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
         return self.calls.copy(), self.dofs.copy()

@@ -167,6 +167,9 @@ class Trajectory:
         status: "completed", or why the run stopped early ("diverged", "interrupted", ...).
         metadata: package versions, how the robot was loaded, integrator and options (JSON-serializable).
         contacts: a contact scene's active contacts per sample (points, normals, impulses), else None.
+        ctrl: a scene with actuators: the command held from each sample to the next (torques, position or
+            velocity targets, per actuator kind), shape (n, nv), tau being the joint torques the actuators delivered
+            at each sample; None otherwise (tau is then the command).
     """
 
     t: np.ndarray
@@ -186,6 +189,7 @@ class Trajectory:
     status: str = "completed"
     metadata: dict[str, Any] = field(default_factory=dict)
     contacts: Contacts | None = None
+    ctrl: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t)
@@ -379,6 +383,8 @@ class Trajectory:
         """
         path = Path(check_path(path, "path", "a trajectory file (.npz)"))
         arrays = {name: np.asarray(getattr(self, name)) for name in ARRAYS}
+        if self.ctrl is not None:
+            arrays["ctrl"] = np.asarray(self.ctrl)
         for name, entry in self.ledger.items():
             arrays[_LEDGER_PREFIX + name] = np.asarray(entry.energy)
         for name, record in self.constraints.items():
@@ -463,6 +469,12 @@ class Trajectory:
                     f"{path}: array '{name}' has shape {contents[name].shape}, but the metadata's robot has "
                     f"{size} = {printable(repr(width))}"
                 )
+        ctrl = contents.get("ctrl")
+        if ctrl is not None and (ctrl.dtype.kind != "f" or ctrl.shape != contents["tau"].shape):
+            raise TrajectoryFileError(
+                f"{path}: array 'ctrl' has shape {ctrl.shape} and dtype {ctrl.dtype}, unlike tau's "
+                f"{contents['tau'].shape}"
+            )
         kinds = header["ledger_kinds"]
         ledger = {}
         for name, kind in kinds.items():
@@ -499,6 +511,7 @@ class Trajectory:
             status=header["status"],
             metadata=dict(header["metadata"]),
             contacts=_read_contacts(contents, header, n, path),
+            ctrl=ctrl,
         )
 
     @classmethod
@@ -536,6 +549,7 @@ class Trajectory:
             status=last.status,
             metadata={k: v for k, v in last.metadata.items() if k != "chunk"},
             contacts=_joined_contacts(pieces),
+            ctrl=np.concatenate([p.ctrl for p in pieces]) if all(p.ctrl is not None for p in pieces) else None,
         )
 
 

@@ -91,6 +91,17 @@ class Attempt:
     detail: Any = None
 
 
+def begin_implicit_servos(system: Any, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float) -> Any:
+    """For the steps that take servo terms implicitly (semi-implicit Euler, the contact time-stepper): the system's
+    actuators with those terms begun over a step of h from (q, v) under the command tau (scenes/actuators.py:
+    armature raised, torques shifted), to end with their end_implicit() before any energy; None when there are none
+    (a robot, a scene without servos, or servos all saturated at this state)."""
+    actuators = getattr(system, "actuators", None)
+    if actuators is not None and actuators.begin_implicit(q, v, tau, h):
+        return actuators
+    return None
+
+
 def failed(status: str, message: str, evaluations: int, state: Any = None) -> Attempt:
     """An Attempt that did not produce a state."""
     return Attempt(None, None, None, None, state, evaluations, status, message)

@@ -6,7 +6,8 @@ from typing import Any
 
 import numpy as np
 
-from .base import Attempt, Integrator, System, split_jacobian, tangent_selectors
+from ..exceptions import InvalidArgumentError
+from .base import Attempt, Integrator, System, begin_implicit_servos, split_jacobian, tangent_selectors
 
 
 class SemiImplicitEuler(Integrator):
@@ -40,15 +41,36 @@ class SemiImplicitEuler(Integrator):
         rtol: float | None = None,
         atol: float | None = None,
     ) -> Attempt:
-        v_next = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
+        servos = begin_implicit_servos(system, q, v, tau, h)
+        evaluations = 1
+        try:
+            v_next = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
+            while servos is not None and servos.revise(v_next):  # a servo's limit reached or left within the step
+                v_next = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
+                evaluations += 1
+        finally:
+            if servos is not None:
+                servos.end_implicit()
         q_next = system.space.integrate(q, h * v_next)
-        # The configuration moved along v_next, so that is the velocity the torques and dampers work against.
-        return Attempt(q_next, v_next, h * system.ledger_power(q_next, v_next, tau, None, t + h), None, None, 1)
+        # The configuration moved along v_next, so that is the velocity the torques and dampers work against (and
+        # the servo terms taken implicitly are the servos' torques at the step's end).
+        flows = h * system.ledger_power(q_next, v_next, tau, None, t + h)
+        return Attempt(q_next, v_next, flows, None, None, evaluations)
 
     def jacobians(
         self, system: System, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, t: float
     ) -> tuple[np.ndarray, np.ndarray]:
-        """v' = v + h a(q, v, tau), q' = q ⊕ h v' (see multibody_sim.linearize)."""
+        """v' = v + h a(q, v, tau), q' = q ⊕ h v' (see multibody_sim.linearize).
+
+        Raises:
+            InvalidArgumentError: the system has servos, whose terms this step takes implicitly (not differentiated).
+        """
+        actuators = getattr(system, "actuators", None)
+        if actuators is not None and actuators.servos:
+            raise InvalidArgumentError(
+                f"linearize: {self.name} takes the scene's servo terms implicitly, which linearize does not "
+                "differentiate yet; use rk4 or implicit_euler"
+            )
         nv = system.nv
         select_q, select_v, _ = tangent_selectors(nv)
         da_dq, da_dv, da_dtau = system.unchecked_dynamics_derivatives(q, v, tau, t)

@@ -38,7 +38,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..ordered import ordered_dot, ordered_matvec
-from .base import Attempt, Integrator, System
+from .base import Attempt, Integrator, System, begin_implicit_servos
 from .partitioned import SemiImplicitEuler
 
 MAX_ITERATIONS = 1000
@@ -180,31 +180,44 @@ class TimeStepping(Integrator):
     ) -> Attempt:
         scene: Any = system
         contact = getattr(scene, "contact", None)
-        a = system.unchecked_forward_dynamics(q, v, tau, t)
-        v_free = v + h * a
-        if contact is None:  # nothing to touch: semi-implicit Euler, with the end-point rule for the ledger
-            q_next = system.space.integrate(q, h * v_free)
-            return Attempt(q_next, v_free, h * system.ledger_power(q_next, v_free, tau, None, t + h), None, state, 1)
-        state = state if isinstance(state, ContactState) else ContactState()
-        problem = contact.problem(q, v, v_free, h, state.landed)
-        new = ContactState(state.impulses, state.steps, state.unconverged, state.iterations)
-        if problem is None:
-            v_next, impulses, work, correction, bounce = v_free, np.zeros(0), 0.0, 0.0, 0.0
-            new.impulses = {}
-        else:
-            impulses, converged, iterations = self._solve(contact.solver, problem, state.impulses)
-            new.steps += 1
-            new.iterations += iterations
-            new.unconverged += not converged
-            new.impulses = _split(impulses, problem.keys, problem.sizes)
-            # sums in index order (ordered.py), as the native kernel (src/native/contact.cpp) forms them
-            generalized = ordered_matvec(problem.jacobian.T, impulses)
-            v_next = v_free + contact.inverse_mass_times(generalized)
-            work = 0.5 * ordered_dot(generalized, v_next + v_free)  # ½ λᵀ J (v⁺ + v_free)
-            correction = -ordered_dot(impulses, problem.correction)
-            bounce = -ordered_dot(impulses, problem.restitution)
-            new.active = (problem, impulses)
-            new.landed = problem.landings
+        # Servo terms taken implicitly raise the armature for the whole velocity update, the contact problem's
+        # M included (scenes/actuators.py), and come off before the energies below.
+        servos = begin_implicit_servos(system, q, v, tau, h)
+        evaluations = 1
+        try:
+            v_free = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
+            while servos is not None and servos.revise(v_free):  # a servo's limit reached or left within the step
+                v_free = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
+                evaluations += 1
+            if contact is None:  # nothing to touch: semi-implicit Euler, with the end-point rule for the ledger
+                if servos is not None:
+                    servos.end_implicit()
+                q_next = system.space.integrate(q, h * v_free)
+                flows = h * system.ledger_power(q_next, v_free, tau, None, t + h)
+                return Attempt(q_next, v_free, flows, None, state, evaluations)
+            state = state if isinstance(state, ContactState) else ContactState()
+            problem = contact.problem(q, v, v_free, h, state.landed)
+            new = ContactState(state.impulses, state.steps, state.unconverged, state.iterations)
+            if problem is None:
+                v_next, impulses, work, correction, bounce = v_free, np.zeros(0), 0.0, 0.0, 0.0
+                new.impulses = {}
+            else:
+                impulses, converged, iterations = self._solve(contact.solver, problem, state.impulses)
+                new.steps += 1
+                new.iterations += iterations
+                new.unconverged += not converged
+                new.impulses = _split(impulses, problem.keys, problem.sizes)
+                # sums in index order (ordered.py), as the native kernel (src/native/contact.cpp) forms them
+                generalized = ordered_matvec(problem.jacobian.T, impulses)
+                v_next = v_free + contact.inverse_mass_times(generalized)
+                work = 0.5 * ordered_dot(generalized, v_next + v_free)  # ½ λᵀ J (v⁺ + v_free)
+                correction = -ordered_dot(impulses, problem.correction)
+                bounce = -ordered_dot(impulses, problem.restitution)
+                new.active = (problem, impulses)
+                new.landed = problem.landings
+        finally:
+            if servos is not None:
+                servos.end_implicit()
         q_next = system.space.integrate(q, h * v_next)
         flows = h * system.ledger_power(q_next, v_next, tau, None, t + h)
         # The contact's elements come last: contact, penetration_correction, restitution, timestep_error.
@@ -220,7 +233,10 @@ class TimeStepping(Integrator):
         flows[-3] = correction
         flows[-2] = bounce
         flows[-1] = (kinetic_free - kinetic) + (kinetic_end - kinetic_next) + (potential_end - potential) - smooth
-        return Attempt(q_next, v_next, flows, None, new, 2 if problem is not None else 1)
+        if servos is not None and problem is not None:
+            # λᵀJ(v⁺ + v_free)/2 is T's change under the raised armature; the rest of that change is the step's
+            flows[-1] += (kinetic_next - kinetic_free) - work
+        return Attempt(q_next, v_next, flows, None, new, evaluations + (problem is not None))
 
     def _solve(
         self, solver_name: str, problem: Any, guesses: dict[tuple[Any, ...], np.ndarray]

@@ -87,6 +87,8 @@ def _scene_reason(scene: Scene) -> str | None:
         return f"the scene has constraints ({', '.join(scene.constraints.names)}), which run on the Python kernel"
     if scene.mimic:
         return "the scene honours mimic joints (forward dynamics by CRBA), which run on the Python kernel"
+    if scene.actuators is not None:
+        return "the scene has actuators, which run on the Python kernel"
     elements = scene.elements
     if elements is not None:
         reason = elements.native_reason()

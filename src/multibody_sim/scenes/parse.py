@@ -28,6 +28,10 @@ from ..integrators import INTEGRATORS
 from ..safety import MAX_TOML_DEPTH, toml_depth
 from ..text import printable
 from .spec import (
+    ACTUATOR_GAINS,
+    ACTUATOR_KEYS,
+    ACTUATOR_KINDS,
+    ACTUATOR_SOURCES,
     BASES,
     CONSTRAINT_FRAMES,
     CONSTRAINT_KEYS,
@@ -56,6 +60,7 @@ from .spec import (
     SIMULATION_KEYS,
     SIMULATION_OPTIONS,
     TOP_LEVEL_KEYS,
+    ActuatorSpec,
     ConstraintSpec,
     ContactSpec,
     ControllerSpec,
@@ -160,6 +165,17 @@ def _toml_problem(exc: Exception) -> str:
     if match:
         return f"TOML syntax error at line {match[2]}, column {match[3]}: {match[1]}"
     return f"TOML syntax error: {message}"
+
+
+def parse_actuator_file(path: Path) -> tuple[ActuatorSpec, ...]:
+    """A catalog robot's published motor data (models/actuators/<robot>.toml): its [[actuator]] tables, checked as
+    a scene's are (besides them the file holds only `description` and `sources`, the citations)."""
+    source = printable(str(path))
+    data = parse_toml(path.read_text(encoding="utf-8"), source)
+    parser = _Parser(source, None)
+    parser.table(data, "", ("description", "sources", "actuator"))
+    tables = parser.array_of_tables(data.get("actuator", []), "actuator")
+    return tuple(parser.actuator(value, f"actuator[{i}]") for i, value in enumerate(tables))
 
 
 def parse_scene(data: Mapping[str, Any], source: str, *, base_dir: Path | None) -> SceneSpec:
@@ -336,7 +352,7 @@ class _Parser:
             )
         robot = self.robot(data["robot"]) if "robot" in data else None
         if robot is None:
-            for key in ("lock", "joints", "payload", "constraint", "controller"):
+            for key in ("lock", "joints", "payload", "constraint", "controller", "actuator", "actuators"):
                 if key in data:
                     self.fail(key, "needs a robot: this scene has objects only (add a [robot] table)")
         ground = self.ground(data["ground"]) if "ground" in data else None
@@ -381,6 +397,10 @@ class _Parser:
                 "holonomic constraints and contact cannot be combined yet: the contact time-stepper does not solve "
                 "[[constraint]] rows with its cones (drop [[constraint]], or [ground], [contact] and [[object]])",
             )
+        actuators = tuple(
+            self.actuator(value, f"actuator[{i}]")
+            for i, value in enumerate(self.array_of_tables(data.get("actuator", []), "actuator"))
+        )
         simulation = self.simulation(data["simulation"]) if "simulation" in data else None
         declared = simulation.integrator if simulation is not None else None
         if has_contact and declared is not None and declared != CONTACT_INTEGRATOR:
@@ -408,6 +428,10 @@ class _Parser:
             ground=ground,
             contact=contact,
             objects=objects,
+            actuators=actuators,
+            actuator_defaults=(
+                self.choice(data["actuators"], "actuators", ACTUATOR_SOURCES) if "actuators" in data else None
+            ),
             source=self.source,
             text=None,
             base_dir=self.base_dir,
@@ -465,6 +489,33 @@ class _Parser:
                     self.number(table[key], sub) if key == "rest" else self.positive(table[key], sub, allow_zero=True)
                 )
         return JointSpec(**values)
+
+    def actuator(self, value: Any, path: str) -> ActuatorSpec:
+        table = self.table(value, path, ACTUATOR_KEYS)
+        joints_value = self.required(
+            table, "joints", path, 'a joint name, a list of names or a glob pattern ("*": every actuated joint)'
+        )
+        if isinstance(joints_value, str):
+            joints: tuple[str, ...] = (self.string(joints_value, f"{path}.joints"),)
+        elif isinstance(joints_value, (list, tuple)):
+            joints = tuple(self.string(j, f"{path}.joints[{i}]") for i, j in enumerate(joints_value))
+            if not joints:
+                self.fail(f"{path}.joints", "must not be empty")
+        else:
+            self.fail(f"{path}.joints", f"must be a joint name or a list of names, got {_describe(joints_value)}")
+        kind = self.choice(table["kind"], f"{path}.kind", ACTUATOR_KINDS) if "kind" in table else None
+        if kind is not None:
+            for gain in ("kp", "kv"):
+                if gain in table and gain not in ACTUATOR_GAINS[kind]:
+                    users = [k for k in ACTUATOR_KINDS if gain in ACTUATOR_GAINS[k]]
+                    self.fail(f"{path}.{gain}", f"only for kind {' or '.join(users)}, not {kind}")
+        values: dict[str, float] = {}
+        for key in ACTUATOR_KEYS[2:]:
+            if key in table:
+                values[key] = self.positive(
+                    table[key], f"{path}.{key}", allow_zero=key in ("kp", "kv", "rotor_inertia")
+                )
+        return ActuatorSpec(joints=joints, kind=kind, **values)
 
     def force(self, value: Any, path: str, index: int) -> ForceSpec:
         table = self.table(value, path, FORCE_KEYS)

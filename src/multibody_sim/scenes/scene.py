@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from ..catalog import MAX_DOFS, load_robot, read_urdf, reduce_configuration
+from ..catalog import CATALOG, MAX_DOFS, ROBOT_PREFIX, load_robot, read_urdf, reduce_configuration
 from ..catalog.checks import check_body_inertias, check_mass_matrix, check_model_numbers
 from ..exceptions import InvalidArgumentError, ModelError, SceneError
 from ..integrators.timestepping import TOLERANCE
@@ -115,6 +115,9 @@ class Scene(Robot):
         model.friction = friction
         built = model  # before locking: the dof indices the per-joint arrays above use
         model, lock_config = _lock_joints(model, spec, robot.floating_base)
+        actuators = _actuators(model, spec)
+        for actuator in actuators:  # the rotors' inertia, reflected onto the joints
+            model.armature[actuator.dof] += actuator.armature
         self.locked = dict(spec.lock)
         robot_nv, robot_nq = model.nv, model.nq
         object_joints = _add_objects(model, spec)  # free-flyers after the robot's joints
@@ -135,6 +138,13 @@ class Scene(Robot):
         )
         _check_scene_model(self, where, robot_nv, len(object_joints))
         self.actuated = slice(self.actuated.start, robot_nv)  # free objects are unactuated
+        self.actuators = None
+        if actuators:
+            from .actuators import Actuators
+
+            self.actuators = Actuators(model, actuators)
+            for actuator in actuators:
+                self.effort_limit[actuator.dof] = actuator.effort_limit
         self.robot_nq, self.robot_nv = robot_nq, robot_nv
         self.object_joints = object_joints
         self.mimic = robot_spec.mimic
@@ -203,6 +213,8 @@ class Scene(Robot):
                 self.limit_drift[model.joints[jid].idx_q] = HELD_DRIFT_RATE
         self._flow_elements = list(super().ledger_elements)
         self._n_robot_flows = len(self._flow_elements)
+        if self.actuators is not None:
+            self._flow_elements += self.actuators.ledger
         if self.elements is not None:
             self._flow_elements += self.elements.ledger
         if self.constraints is not None:
@@ -217,6 +229,8 @@ class Scene(Robot):
                 ("constraint", name, rows + 2)
                 for name, rows in zip(self.constraints.names, self.constraints.rows, strict=True)
             ]
+        if self.actuators is not None:  # the joint torques the actuators deliver (the trajectory's tau)
+            fields.append(("torque", "tau", self.nv))
         self.record_fields = tuple(fields)
         self._last: tuple[Any, Any, float] | None = None  # (q, v, t) of the latest element/constraint evaluation
         self.no_derivatives_reason = ""
@@ -277,7 +291,11 @@ class Scene(Robot):
             lines.append("  armature [kg·m²]: " + ", ".join(armature))
         if self.mimic:
             lines.append("  mimic joints honoured (forward dynamics by CRBA: ABA does not support them)")
-        elements = self.element_names
+        if self.actuators is not None:
+            from .actuators import describe_actuators
+
+            lines += describe_actuators(self.actuators)
+        elements = [name for name in self.element_names if not name.startswith(("actuator:", "actuator_limit:"))]
         lines.append("  force elements: " + (", ".join(map(safe_name, elements)) if elements else "none"))
         friction = np.array(self.model.friction, dtype=float)
         if self.elements is not None and friction.any():
@@ -312,7 +330,10 @@ class Scene(Robot):
 
     # ---- dynamics (the hot path) ---------------------------------------------------------------------
     def _applied(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float) -> np.ndarray:
-        """tau plus the force elements and minus damping: everything but the constraints."""
+        """The actuators' torques under the command tau (tau itself without actuators), plus the force elements and
+        minus damping: everything but the constraints."""
+        if self.actuators is not None:
+            tau = self.actuators.joint_torques(q, v, tau)
         if self.elements is not None:
             tau = tau + self.elements.evaluate(q, v, t)
         if self._damped:
@@ -346,6 +367,11 @@ class Scene(Robot):
             df_dq, df_dv = self.elements.jacobians(q, v, t)
             da_dq += da_dtau @ df_dq
             da_dv += da_dtau @ df_dv
+        if self.actuators is not None:  # the command u enters through the actuators' torques
+            dtau_dq, dtau_dv, dtau_du = self.actuators.jacobians(q, v, tau)
+            da_dq += da_dtau @ dtau_dq
+            da_dv += da_dtau @ dtau_dv
+            da_dtau = da_dtau @ dtau_du
         return da_dq, da_dv, da_dtau
 
     # ---- energy ledger -------------------------------------------------------------------------------
@@ -361,7 +387,16 @@ class Scene(Robot):
         if out is None:
             out = np.empty(len(self._flow_elements))
         n = self._n_robot_flows
-        super().ledger_power(q, v, tau, out[:n])
+        actuators = self.actuators
+        if actuators is None:
+            super().ledger_power(q, v, tau, out[:n])
+        else:  # joint_torques: the ideal torque sources only (joints without an actuator)
+            sources = tau.copy()
+            sources[actuators.dofs] = 0.0
+            super().ledger_power(q, v, sources, out[:n])
+            m = n + len(actuators.ledger)
+            actuators.powers(q, v, tau, out[n:m])
+            n = m
         if len(out) == n:
             return out
         last = self._last
@@ -410,10 +445,12 @@ class Scene(Robot):
             out[:n] = self.elements.potential_energies(q)
             i = n
         if self.constraints is not None:
-            self._record_constraints(q, v, tau, t, out[i:])
+            i += self._record_constraints(q, v, tau, t, out[i:])
+        if self.actuators is not None:
+            out[i : i + self.nv] = self.actuators.joint_torques(q, v, tau)
 
-    def _record_constraints(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, out: np.ndarray) -> None:
-        """Each constraint's forces, drift and velocity drift at (q, v, tau, t), into `out`."""
+    def _record_constraints(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, out: np.ndarray) -> int:
+        """Each constraint's forces, drift and velocity drift at (q, v, tau, t), into `out`; returns the width."""
         i = 0
         if self.constraints is not None:
             self.unchecked_forward_dynamics(q, v, tau, t)  # the multipliers in force at this sample
@@ -425,6 +462,7 @@ class Scene(Robot):
                 out[i + rows], out[i + rows + 1] = drift[k], velocity_drift[k]
                 i += rows + 2
                 row += rows
+        return i
 
     # ---- running -------------------------------------------------------------------------------------
     def run(self, **overrides: Any) -> Trajectory:
@@ -529,6 +567,30 @@ class Scene(Robot):
 
 
 # ---- building ----------------------------------------------------------------------------------------
+def _actuators(model: pin.Model, spec: SceneSpec) -> list[Any]:
+    """The scene's actuators on its model (locked joints removed): the catalog's defaults when it asks for them,
+    then its [[actuator]] tables, merged joint by joint (scenes/actuators.py)."""
+    if not spec.actuators and spec.actuator_defaults is None:
+        return []
+    from .actuators import catalog_actuators, resolve_actuators
+
+    where = spec.source
+    assert spec.robot is not None, "the parser refuses actuators without a robot"
+    if spec.robot.mimic:
+        raise SceneError(f"{where}: actuator: actuators and mimic joints cannot be combined yet (drop robot.mimic)")
+    tables: list[tuple[str, Any]] = []
+    if spec.actuator_defaults == "catalog":
+        name = spec.robot.source.removeprefix(ROBOT_PREFIX)
+        if name not in CATALOG:
+            raise SceneError(
+                f'{where}: actuators: "catalog" needs a catalog robot, and robot.source is a file; declare '
+                "[[actuator]] tables instead"
+            )
+        tables += [(f"catalog {name}: actuator[{i}]", t) for i, t in enumerate(catalog_actuators(name, where))]
+    tables += [(f"actuator[{i}]", t) for i, t in enumerate(spec.actuators)]
+    return resolve_actuators(model, tables, candidates=_one_dof_joints(model), locked=list(spec.lock), where=where)
+
+
 def _load_robot(spec: SceneSpec) -> Robot:
     r = spec.robot
     if r is None:  # objects only: an empty world to add them to

@@ -33,6 +33,8 @@ TOP_LEVEL_KEYS = (
     "ground",
     "contact",
     "object",
+    "actuator",
+    "actuators",
 )
 ROBOT_KEYS = ("source", "base", "position", "rpy", "damping", "mimic", "package_dirs")
 JOINT_KEYS = ("damping", "friction", "stiffness", "rest", "armature")
@@ -77,6 +79,22 @@ SHAPE_DIMENSIONS = {"box": ("size",), "sphere": ("radius",), "cylinder": ("radiu
 GEOMETRY_KEYS = ("frame", "shape", "size", "radius", "length", "position", "rpy")
 OBJECT_KEYS = ("name", "shape", "size", "radius", "length", "mass", "position", "rpy", "velocity")
 DEFAULT_GROUND_FRICTION = 0.5
+ACTUATOR_KEYS = (
+    "joints",
+    "kind",
+    "kp",
+    "kv",
+    "gear",
+    "rotor_inertia",
+    "effort_limit",
+    "velocity_limit",
+    "stall_torque",
+    "no_load_speed",
+)
+ACTUATOR_KINDS = ("torque", "position", "velocity")
+# Which gains each kind takes (any other is a mistake worth reporting).
+ACTUATOR_GAINS = {"torque": (), "position": ("kp", "kv"), "velocity": ("kv",)}
+ACTUATOR_SOURCES = ("catalog",)  # the top-level `actuators` key: where default actuators come from
 CONTACT_INTEGRATOR = "timestepping"  # the one integrator that steps contact scenes
 
 
@@ -325,6 +343,40 @@ class ContactSpec:
 
 
 @dataclass(frozen=True)
+class ActuatorSpec:
+    """One [[actuator]] table: the actuator of a group of joints; None leaves a property to earlier tables (or the
+    default). Later tables override earlier ones joint by joint, key by key (scenes/actuators.py merges them).
+
+    Attributes:
+        joints: joint names or glob patterns (``"*"``: every actuated joint), as given.
+        kind: "torque" (the command is the torque), "position" (a servo to a position target: kp, kv) or
+            "velocity" (a servo to a velocity target: kv).
+        kp: position servo stiffness [N·m/rad or N/m], >= 0.
+        kv: servo damping [N·m·s/rad or N·s/m], >= 0.
+        gear: gear ratio N > 0 (joint torque = N × motor torque); the rotor's inertia is reflected onto the joint
+            as the armature N² × rotor_inertia.
+        rotor_inertia: the rotor's inertia about its axis at the motor [kg·m²], >= 0.
+        effort_limit: the largest |torque| at the joint [N·m or N], > 0 (default: the URDF's).
+        velocity_limit: the largest |speed| the actuator drives the joint at [rad/s or m/s], > 0 (default: the
+            URDF's).
+        stall_torque: the torque–speed curve: available |torque| at rest [N·m or N], > 0, falling linearly to 0 at
+            no_load_speed [rad/s or m/s], > 0, while the torque drives the motion (both or neither).
+        no_load_speed: see stall_torque.
+    """
+
+    joints: tuple[str, ...]
+    kind: str | None = None
+    kp: float | None = None
+    kv: float | None = None
+    gear: float | None = None
+    rotor_inertia: float | None = None
+    effort_limit: float | None = None
+    velocity_limit: float | None = None
+    stall_torque: float | None = None
+    no_load_speed: float | None = None
+
+
+@dataclass(frozen=True)
 class SimulationSpec:
     """How to run the scene; None leaves a setting to the caller (the command line or simulate's defaults).
 
@@ -388,6 +440,10 @@ class SceneSpec:
         ground: the ground plane, or None.
         contact: the [contact] table (None without one: no limits enforced, regularized friction).
         objects: free rigid bodies.
+        actuators: the [[actuator]] tables, in order (later ones override earlier ones joint by joint).
+        actuator_defaults: where default actuators come from before those tables: "catalog" (the robot's published
+            motor data, models/actuators/<robot>.toml) or None (none: the commands of joints without an actuator
+            are ideal torques).
         source: the name used in messages (the file path as given, or "<scene>").
         text: the scene file's text (for trajectory metadata); None for a dict.
         base_dir: the folder relative paths were resolved against (the scene file's); None for a dict.
@@ -411,6 +467,8 @@ class SceneSpec:
     ground: GroundSpec | None = None
     contact: ContactSpec | None = None
     objects: tuple[ObjectSpec, ...] = ()
+    actuators: tuple[ActuatorSpec, ...] = ()
+    actuator_defaults: str | None = None
     source: str = "<scene>"
     text: str | None = None
     base_dir: Path | None = None

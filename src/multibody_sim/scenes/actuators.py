@@ -1,0 +1,436 @@
+"""Actuators of a scene: per joint, a torque source or a position or velocity servo, with gear ratio, rotor inertia,
+effort and velocity limits and a torque–speed curve, evaluated inside the step (at every stage) from the held command.
+
+The command u (the controller's output, ``Stepper.step``'s argument, a rollout's ``taus``, a gym action), shape (nv,),
+is per actuated joint: a torque [N·m or N] for kind "torque", a position target [rad or m] for kind "position", a
+velocity target [rad/s or m/s] for kind "velocity". Joints without an actuator keep today's ideal torque source (u
+is their torque). Each actuator's joint torque at (q, v, u):
+
+1. the command law: torque ``τ_c = u``; position servo ``τ_c = kp (u − q) − kv v``; velocity servo ``τ_c = kv (u − v)``;
+2. the limits: ``τ = clip(τ_c, −b, b)`` with b the torque available: the effort limit, and while τ_c drives the
+   motion (τ_c v ≥ 0) also the torque–speed curve ``stall_torque · max(0, 1 − |v| / no_load_speed)`` and, at or
+   beyond the velocity limit (|v| ≥ velocity_limit), nothing. Braking torque (τ_c v < 0) is limited by the effort
+   limit only. That is how the velocity limit is enforced: the actuator never drives a joint at or past its
+   velocity limit, and it brakes it with up to its full torque; loads from elsewhere (gravity, contact, the other
+   joints) can still carry a joint past it, which the speeds of a run show.
+
+The rotor's inertia is reflected onto the joint as armature ``gear² · rotor_inertia`` (added to the model's
+``armature``: ABA, CRBA and the kinetic energy include it).
+
+Energy ledger, per actuator: ``actuator:<joint>`` (work), the command law's power ``τ_c v``, and, for an actuator
+with a limit, ``actuator_limit:<joint>`` (dissipated), what the limits and the curve took out of it, ``(τ_c − τ) v``
+(negative where they cut a braking torque); the two net to the delivered power ``τ v``.
+
+Implicit servo terms
+--------------------
+Semi-implicit Euler and the contact time-stepper take each unsaturated servo's linear terms implicitly, as MuJoCo's
+implicitfast does with damping: over a step of h from (q, v), with c = 1 where the servo's torque at (q, v) is
+within its limits (else 0, as its torque then does not depend on the state), the velocity update solves
+
+    (M + h c kv + h² c kp) (v⁺ − v) = h (f(q, v) − h c kp v)
+
+(f every force at (q, v), the servo's clipped torque included), which is the servo evaluated at the step's end,
+τ(q + h v⁺, v⁺), linearised exactly. The extra ``h c kv + h² c kp`` goes onto the model's armature for the step's
+ABA (and the contact problem's CRBA and Cholesky), and comes off again before the energies. Explicit methods
+evaluate the servo at every stage. With implicit terms, a stiff servo (kp 1e4 N·m/rad, kv 100 N·m·s/rad on ur5) is
+stable at any step semi-implicit Euler takes.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from ..exceptions import SceneError
+from ..text import safe_name
+from .spec import ACTUATOR_GAINS, ActuatorSpec
+
+_UNBOUNDED = 1e300  # Pinocchio writes ±DBL_MAX for "no limit"
+KINDS = {"torque": 0, "position": 1, "velocity": 2}  # as the native kernel numbers them
+# How many times a step's velocity update is made again for servos that change between free and clipped in it.
+MAX_REVISIONS = 4
+
+
+@dataclass(frozen=True)
+class Actuator:
+    """One joint's actuator, its tables merged and defaults filled in.
+
+    Attributes:
+        joint: the joint's name.
+        dof: its velocity index; iq: its configuration index.
+        kind: "torque", "position" or "velocity".
+        kp, kv: servo gains [N·m/rad, N·m·s/rad] (0 where the kind takes none).
+        gear: gear ratio; rotor_inertia: [kg·m²] at the motor.
+        effort_limit, velocity_limit: [N·m, rad/s] (inf: none).
+        stall_torque, no_load_speed: the torque–speed curve (inf and inf: none).
+        sources: which tables set it ("actuator[i]" or "catalog:<robot>[i]").
+    """
+
+    joint: str
+    dof: int
+    iq: int
+    kind: str
+    kp: float
+    kv: float
+    gear: float
+    rotor_inertia: float
+    effort_limit: float
+    velocity_limit: float
+    stall_torque: float
+    no_load_speed: float
+    sources: tuple[str, ...]
+
+    @property
+    def armature(self) -> float:
+        """The rotor's inertia reflected onto the joint, gear² · rotor_inertia [kg·m² or kg]."""
+        return self.gear * self.gear * self.rotor_inertia
+
+    @property
+    def limited(self) -> bool:
+        """Whether a limit or the curve can cut its torque (it then has an actuator_limit ledger line)."""
+        return math.isfinite(self.effort_limit) or math.isfinite(self.velocity_limit) or self.curve
+
+    @property
+    def curve(self) -> bool:
+        return math.isfinite(self.stall_torque)
+
+    def describe(self) -> str:
+        """One line: kind, gains, gear, armature, limits, curve."""
+        parts = [self.kind]
+        if self.kind == "position":
+            parts.append(f"kp {self.kp:g} kv {self.kv:g}")
+        elif self.kind == "velocity":
+            parts.append(f"kv {self.kv:g}")
+        if self.gear != 1.0 or self.rotor_inertia:
+            parts.append(f"gear {self.gear:g}, armature {self.armature:.4g}")
+        if math.isfinite(self.effort_limit):
+            parts.append(f"effort {self.effort_limit:g}")
+        if math.isfinite(self.velocity_limit):
+            parts.append(f"speed {self.velocity_limit:g}")
+        if self.curve:
+            parts.append(f"curve {self.stall_torque:g} at rest to 0 at {self.no_load_speed:g}")
+        return ", ".join(parts)
+
+
+# ---- declarations -> per-joint actuators ---------------------------------------------------------------------
+def catalog_actuators(robot: str, where: str) -> tuple[ActuatorSpec, ...]:
+    """The [[actuator]] tables of a catalog robot's published motor data (models/actuators/<robot>.toml).
+
+    Raises:
+        SceneError: the catalog has no motor data for that robot (the message lists those that have).
+    """
+    from ..catalog import shipped_models_dir
+    from .parse import parse_actuator_file
+
+    folder = shipped_models_dir() / "actuators"
+    files = {path.stem: path for path in sorted(folder.glob("*.toml"))}
+    if robot not in files:
+        raise SceneError(
+            f"{where}: actuators: the catalog has no published motor data for '{robot}' (it has: "
+            f"{', '.join(files) or 'none'}); declare [[actuator]] tables instead"
+        )
+    return parse_actuator_file(files[robot])
+
+
+def resolve_actuators(
+    model: pin.Model,
+    specs: Sequence[tuple[str, ActuatorSpec]],
+    *,
+    candidates: Sequence[str],
+    locked: Sequence[str],
+    where: str,
+) -> list[Actuator]:
+    """Merge the tables joint by joint (later tables override earlier ones key by key) and fill in the defaults.
+
+    Args:
+        model: the scene's model (locked joints removed); its URDF effort and velocity limits are the defaults.
+        specs: (table name for messages, table), in order.
+        candidates: the joints an actuator may drive (the robot's 1-dof joints, in model order); "*" means all.
+        locked: the locked joints (named explicitly: an error).
+        where: the scene's source, for messages.
+
+    Raises:
+        SceneError: a name or pattern that matches no joint, a locked joint, a gain the joint's kind does not take,
+            a position servo without kp or on a continuous joint, a velocity servo without kv > 0, or only one of
+            stall_torque and no_load_speed.
+    """
+    merged: dict[str, dict[str, Any]] = {}
+    origins: dict[str, list[str]] = {}
+    for name, spec in specs:
+        for pattern in spec.joints:
+            if pattern in locked:
+                raise SceneError(f"{where}: {name}.joints: '{pattern}' is locked: a locked joint takes no actuator")
+            matched = [j for j in candidates if fnmatch.fnmatchcase(j, pattern)]
+            if not matched:
+                raise SceneError(
+                    f"{where}: {name}.joints: '{pattern}' matches no actuated joint (valid: {', '.join(candidates)})"
+                )
+            for joint in matched:
+                values = merged.setdefault(joint, {})
+                origins.setdefault(joint, [])
+                if name not in origins[joint]:
+                    origins[joint].append(name)
+                for key in ("kind", "kp", "kv", "gear", "rotor_inertia", "effort_limit", "velocity_limit"):
+                    if getattr(spec, key) is not None:
+                        values[key] = getattr(spec, key)
+                if spec.stall_torque is not None or spec.no_load_speed is not None:
+                    values["curve"] = (spec.stall_torque, spec.no_load_speed, name)
+                if spec.kind is not None:  # a new kind drops the gains another kind took
+                    for gain in ("kp", "kv"):
+                        if gain not in ACTUATOR_GAINS[spec.kind] and getattr(spec, gain) is None:
+                            values.pop(gain, None)
+    actuators = []
+    for joint in candidates:  # model order
+        if joint not in merged:
+            continue
+        values = merged[joint]
+        name = origins[joint][-1]
+        jmodel = model.joints[model.getJointId(joint)]
+        kind = values.get("kind", "torque")
+        for gain in ("kp", "kv"):
+            if gain in values and gain not in ACTUATOR_GAINS[kind]:
+                users = [k for k, gains in ACTUATOR_GAINS.items() if gain in gains]
+                raise SceneError(
+                    f"{where}: {name}: joint '{joint}': {gain} is only for kind {' or '.join(users)}, and its "
+                    f"kind is {kind}"
+                )
+        if kind == "position":
+            if "kp" not in values:
+                raise SceneError(f"{where}: {name}: joint '{joint}': a position servo needs kp (and kv)")
+            if jmodel.nq != 1:
+                raise SceneError(
+                    f"{where}: {name}: joint '{joint}' is continuous: a position servo needs a revolute or prismatic "
+                    "joint (continuous joints take kind torque or velocity)"
+                )
+        if kind == "velocity" and not values.get("kv", 0.0) > 0.0:
+            raise SceneError(f"{where}: {name}: joint '{joint}': a velocity servo needs kv > 0")
+        stall, no_load = math.inf, math.inf
+        if "curve" in values:
+            stall_given, no_load_given, curve_table = values["curve"]
+            if (stall_given is None) != (no_load_given is None):
+                missing = "no_load_speed" if no_load_given is None else "stall_torque"
+                raise SceneError(
+                    f"{where}: {curve_table}.{missing}: missing (the torque–speed curve needs stall_torque and "
+                    "no_load_speed)"
+                )
+            stall, no_load = stall_given, no_load_given
+        actuators.append(
+            Actuator(
+                joint=joint,
+                dof=jmodel.idx_v,
+                iq=jmodel.idx_q,
+                kind=kind,
+                kp=float(values.get("kp", 0.0)),
+                kv=float(values.get("kv", 0.0)),
+                gear=float(values.get("gear", 1.0)),
+                rotor_inertia=float(values.get("rotor_inertia", 0.0)),
+                effort_limit=float(values.get("effort_limit", _urdf_limit(model.effortLimit[jmodel.idx_v]))),
+                velocity_limit=float(values.get("velocity_limit", _urdf_limit(model.velocityLimit[jmodel.idx_v]))),
+                stall_torque=float(stall),
+                no_load_speed=float(no_load),
+                sources=tuple(origins[joint]),
+            )
+        )
+    return actuators
+
+
+def _urdf_limit(value: float) -> float:
+    """A URDF limit: 0 or absent (±DBL_MAX) means none (inf)."""
+    return math.inf if value <= 0.0 or value >= _UNBOUNDED else float(value)
+
+
+# ---- the element ---------------------------------------------------------------------------------------------
+class Actuators:
+    """The actuators of one scene: their joint torques, ledger powers, implicit step terms and derivatives.
+
+    Attributes:
+        items: the actuators, in model order.
+        dofs: their velocity indices, shape (n,).
+        ledger: (name, kind) of their ledger lines: ``actuator:<joint>`` (work) for each, then
+            ``actuator_limit:<joint>`` (dissipated) for each limited one.
+        servos: whether any is a servo (then semi-implicit Euler and the time-stepper take its terms implicitly).
+    """
+
+    def __init__(self, model: pin.Model, actuators: Sequence[Actuator]):
+        """Build the element on the scene's model (the armature is the Scene's to add; this only reads)."""
+        self.items = list(actuators)
+        self._model = model
+        self.nv = model.nv
+        n = len(self.items)
+        self.dofs = np.array([a.dof for a in self.items], dtype=int)
+        self._iq = np.array([a.iq for a in self.items], dtype=int)
+        self._kind = np.array([KINDS[a.kind] for a in self.items], dtype=int)
+        self._kp = np.array([a.kp for a in self.items])
+        self._kv = np.array([a.kv for a in self.items])
+        self._effort = np.array([a.effort_limit for a in self.items])
+        self._vlim = np.array([a.velocity_limit for a in self.items])
+        self._stall = np.array([a.stall_torque for a in self.items])
+        self._no_load = np.array([a.no_load_speed for a in self.items])
+        self._torque = np.flatnonzero(self._kind == 0)
+        self._position = np.flatnonzero(self._kind == 1)
+        self._velocity = np.flatnonzero(self._kind == 2)
+        self._curved = np.flatnonzero(np.isfinite(self._stall))
+        self._speed_limited = np.flatnonzero(np.isfinite(self._vlim))
+        self._limited = np.array([a.limited for a in self.items], dtype=bool)
+        self.ledger: list[tuple[str, str]] = [(f"actuator:{a.joint}", "work") for a in self.items] + [
+            (f"actuator_limit:{a.joint}", "dissipated") for a in self.items if a.limited
+        ]
+        self._is_servo = self._kind != 0
+        self.servos = bool(self._is_servo.any())
+        # While a step takes the servos implicitly (begin_implicit .. end_implicit): the actuators' torques held
+        # for it, which servos are free, the clipped ones' torques, the step's (law, speeds, h), the armature before.
+        self._held: np.ndarray | None = None
+        self._free = np.zeros(n, dtype=bool)
+        self._clipped = np.zeros(n)
+        self._step: tuple[np.ndarray, np.ndarray, float] = (np.zeros(n), np.zeros(n), 0.0)
+        self._saved_armature = np.zeros(n)
+        self._iterations = 0
+        if not n:
+            raise SceneError("an actuator element needs at least one actuator")
+
+    # ---- the hot path ---------------------------------------------------------------------------------------
+    def evaluate(self, q: np.ndarray, v: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(τ_c, τ): each actuator's command-law torque and its torque after the limits and the curve, shape (n,)
+        each [N·m or N], at (q, v) under the command u (nv,)."""
+        dofs = self.dofs
+        w = v[dofs]
+        c = u[dofs].copy()  # torque actuators: the command itself
+        p = self._position
+        if p.size:
+            c[p] = self._kp[p] * (u[dofs[p]] - q[self._iq[p]]) - self._kv[p] * w[p]
+        s = self._velocity
+        if s.size:
+            c[s] = self._kv[s] * (u[dofs[s]] - w[s])
+        bound = self._bound(w, c)
+        return c, np.minimum(np.maximum(c, -bound), bound)
+
+    def _bound(self, w: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """The torque available to each actuator at speeds w (n,) for command-law torques c (n,)."""
+        bound = self._effort.copy()
+        if not (self._curved.size or self._speed_limited.size):
+            return bound
+        driving = c * w >= 0.0
+        k = self._curved
+        if k.size:
+            curve = self._stall[k] * np.maximum(0.0, 1.0 - np.abs(w[k]) / self._no_load[k])
+            bound[k] = np.where(driving[k], np.minimum(bound[k], curve), bound[k])
+        k = self._speed_limited
+        if k.size:
+            bound[k] = np.where(driving[k] & (np.abs(w[k]) >= self._vlim[k]), 0.0, bound[k])
+        return bound
+
+    def joint_torques(self, q: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The generalized torque the command u (nv,) applies at (q, v), shape (nv,): the actuators' torques on their
+        dofs (those held for the step while a step takes the servos implicitly: begin_implicit), u elsewhere."""
+        tau = u.copy()
+        tau[self.dofs] = self.evaluate(q, v, u)[1] if self._held is None else self._held
+        return tau
+
+    def powers(self, q: np.ndarray, v: np.ndarray, u: np.ndarray, out: np.ndarray) -> None:
+        """Power [W] of each ledger line at (q, v) under u, in ledger order, into out: τ_c v, then (τ_c − τ) v."""
+        c, tau = self.evaluate(q, v, u)
+        w = v[self.dofs]
+        n = len(self.items)
+        out[:n] = c * w
+        out[n:] = ((c - tau) * w)[self._limited]
+
+    # ---- implicit servo terms (semi-implicit Euler, the time-stepper) ---------------------------------------
+    def begin_implicit(self, q: np.ndarray, v: np.ndarray, u: np.ndarray, h: float) -> bool:
+        """Hold the actuators' torques for a step of h from (q, v) under u, the servos taken implicitly (module
+        docstring): the servos within their limits at (q, v) are free (armature raised by h kv + h² kp, torque
+        τ_c(q, v) − h kp v), the others clipped (their torque held); until end_implicit(). Returns whether the
+        scene has servos (False: nothing changed)."""
+        if not self.servos:
+            return False
+        dofs = self.dofs
+        w = v[dofs]
+        law, tau = self.evaluate(q, v, u)
+        self._step = (law, w, h)
+        self._saved_armature = self._model.armature[dofs].copy()
+        self._iterations = 0
+        self._hold(self._is_servo & (law == tau), tau)
+        return True
+
+    def _hold(self, free: np.ndarray, clipped: np.ndarray) -> None:
+        """Take the servos `free` (n,) implicitly and hold the other actuators at the torques `clipped` (n,)."""
+        law, w, h = self._step
+        hkp = h * self._kp
+        self._free, self._clipped = free, clipped
+        self._model.armature[self.dofs] = self._saved_armature + np.where(free, h * self._kv + h * hkp, 0.0)
+        self._held = np.where(free, law - hkp * w, clipped)
+
+    def revise(self, v_next: np.ndarray) -> bool:
+        """After the step's velocity update to v_next (nv,): whether its free and clipped servos were consistent with
+        their laws there (a free servo's law within its limits at v_next; a clipped one's still at or beyond the
+        limit it is held at). If not (and fewer than MAX_REVISIONS revisions were made), hold the consistent choice
+        (a free servo beyond a limit is clipped there, a clipped one whose law came back inside is freed) and
+        return True: the update is to be made again. Else False."""
+        law, w, h = self._step
+        w_next = v_next[self.dofs]
+        law_next = law - (h * self._kp) * w - (h * self._kp + self._kv) * (w_next - w)  # the law at the step's end
+        bound = self._bound(w_next, law_next)
+        clipped = self._clipped
+        held = np.where(clipped > 0.0, law_next >= bound, np.where(clipped < 0.0, law_next <= -bound, bound == 0.0))
+        free = self._is_servo & np.where(self._free, np.abs(law_next) <= bound, ~held)
+        if np.array_equal(free, self._free) or self._iterations >= MAX_REVISIONS:
+            return False
+        self._iterations += 1
+        newly = self._free & ~free  # clipped where its law left the limits
+        self._hold(free, np.where(newly, np.minimum(np.maximum(law_next, -bound), bound), clipped))
+        return True
+
+    def end_implicit(self) -> None:
+        """Undo begin_implicit(): the model's armature as it was, the torques following the state again."""
+        if self._held is not None:
+            self._model.armature[self.dofs] = self._saved_armature
+            self._held = None
+
+    # ---- commands, derivatives ------------------------------------------------------------------------------
+    def command_bounds(self, low: np.ndarray, high: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> None:
+        """Write each actuator's command range into low, high (nv,): ± its effort limit (torque), its joint's
+        position limits lower, upper (nq,) (position), ± its velocity limit (velocity); inf where there is none."""
+        for a in self.items:
+            if a.kind == "torque":
+                low[a.dof], high[a.dof] = -a.effort_limit, a.effort_limit
+            elif a.kind == "position":
+                low[a.dof], high[a.dof] = lower[a.iq], upper[a.iq]
+            else:
+                low[a.dof], high[a.dof] = -a.velocity_limit, a.velocity_limit
+
+    def jacobians(self, q: np.ndarray, v: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Partial derivatives of joint_torques(q, v, u) (no implicit shift), exact away from the limits' kinks:
+        (dτ/dq in the tangent space, dτ/dv, dτ/du), each (nv, nv)."""
+        nv, dofs = self.nv, self.dofs
+        dq, dv, du = np.zeros((nv, nv)), np.zeros((nv, nv)), np.eye(nv)
+        c, tau = self.evaluate(q, v, u)
+        w = v[dofs]
+        free = c == tau
+        # d(τ_c)/du, dq, dv of each law, kept where the torque is within its limits
+        law_u = np.where(self._kind == 0, 1.0, np.where(self._kind == 1, self._kp, self._kv))
+        law_q = np.where(self._kind == 1, -self._kp, 0.0)
+        law_v = np.where(self._kind == 0, 0.0, -self._kv)
+        du[dofs, dofs] = np.where(free, law_u, 0.0)
+        dq[dofs, dofs] = np.where(free, law_q, 0.0)
+        slope = np.zeros(len(dofs))  # where the curve is the bound: τ = ±stall (1 − |v| / no_load)
+        k = self._curved
+        if k.size:
+            curve = self._stall[k] * np.maximum(0.0, 1.0 - np.abs(w[k]) / self._no_load[k])
+            on_curve = (~free[k]) & (c[k] * w[k] >= 0.0) & (curve < self._effort[k]) & (curve > 0.0)
+            on_curve &= ~(np.abs(w[k]) >= self._vlim[k])
+            slope[k] = np.where(on_curve, -self._stall[k] / self._no_load[k], 0.0)
+        dv[dofs, dofs] = np.where(free, law_v, slope)
+        return dq, dv, du
+
+    def native_reason(self) -> str | None:
+        return "the scene has actuators, which run on the Python kernel"
+
+
+def describe_actuators(actuators: Actuators) -> list[str]:
+    """The describe() lines: one per actuator."""
+    return [f"  actuator {safe_name(a.joint)}: {a.describe()}" for a in actuators.items]
