@@ -69,6 +69,12 @@ PRINTS: dict[str, list[str]] = {
         r"^\(8, 12\) \(8,\)$",
     ],
     "scene = ms.make_scene(": [r"nq/nv 2/2", rf"^potential {FLOAT} work$"],
+    'arm = ms.make_scene(robot={"source": "ur5"}, actuator=': [
+        r"^completed True$",
+        r"^True \(101, 6\)$",  # 1 s at 10 ms
+        r"^\['actuator:elbow_joint', 'actuator:shoulder_lift_joint'\]$",
+        r"^  actuator FL_calf_joint: torque, gear 12\.134, armature 0\.01647, effort 45\.43, speed 15\.7, curve",
+    ],
     'traj = ms.simulate(arm, q0, np.zeros(arm.nv), duration=1.0, dt=1e-3, integrator="dp54"': [
         r"^\d+ steps, \d+ rejected, 101 samples$",  # 1 s every 10 ms
     ],
@@ -122,7 +128,11 @@ def test_readme_scene_example_runs(index: int, tmp_path: Path) -> None:
     scene = ms.load_scene(path)
     traj = scene.run(duration=0.05)
     assert traj.status == "completed" and traj.t[-1] == pytest.approx(0.05)
-    assert scene.nv == 7 and "force:push" in traj.ledger  # the locks and the force it declares are in force
+    if "[[actuator]]" in TOML_BLOCKS[index]:  # the catalog's 12 motors, the calves as servos
+        assert len(scene.actuators.items) == 12 and traj.ctrl is not None
+        assert [a.kind for a in scene.actuators.items].count("position") == 4
+    else:
+        assert scene.nv == 7 and "force:push" in traj.ledger  # the locks and the force it declares are in force
 
 
 def _expect_lines(output: str, patterns: list[str]) -> None:

@@ -288,6 +288,7 @@ class Actuators:
         self._held: np.ndarray | None = None
         self._free = np.zeros(n, dtype=bool)
         self._clipped = np.zeros(n)
+        self._side = np.ones(n, dtype=int)
         self._step: tuple[np.ndarray, np.ndarray, float] = (np.zeros(n), np.zeros(n), 0.0)
         self._saved_armature = np.zeros(n)
         self._iterations = 0
@@ -307,23 +308,26 @@ class Actuators:
         s = self._velocity
         if s.size:
             c[s] = self._kv[s] * (u[dofs[s]] - w[s])
-        bound = self._bound(w, c)
-        return c, np.minimum(np.maximum(c, -bound), bound)
+        low, high = self._interval(w)
+        return c, np.minimum(np.maximum(c, low), high)
 
-    def _bound(self, w: np.ndarray, c: np.ndarray) -> np.ndarray:
-        """The torque available to each actuator at speeds w (n,) for command-law torques c (n,)."""
-        bound = self._effort.copy()
-        if not (self._curved.size or self._speed_limited.size):
-            return bound
-        driving = c * w >= 0.0
-        k = self._curved
-        if k.size:
-            curve = self._stall[k] * np.maximum(0.0, 1.0 - np.abs(w[k]) / self._no_load[k])
-            bound[k] = np.where(driving[k], np.minimum(bound[k], curve), bound[k])
-        k = self._speed_limited
-        if k.size:
-            bound[k] = np.where(driving[k] & (np.abs(w[k]) >= self._vlim[k]), 0.0, bound[k])
-        return bound
+    def _interval(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The torques each actuator can deliver at speeds w (n,): (low, high), each (n,). In the direction of
+        motion up to its drive limit (the effort limit and the curve; nothing at or past the velocity limit),
+        against it up to the effort limit; at rest ± the drive limit."""
+        effort = self._effort
+        drive = effort
+        if self._curved.size or self._speed_limited.size:
+            drive = effort.copy()
+            speed = np.abs(w)
+            k = self._curved
+            if k.size:
+                curve = self._stall[k] * np.maximum(0.0, 1.0 - speed[k] / self._no_load[k])
+                drive[k] = np.minimum(drive[k], curve)
+            k = self._speed_limited
+            if k.size:
+                drive[k] = np.where(speed[k] >= self._vlim[k], 0.0, drive[k])
+        return np.where(w > 0.0, -effort, -drive), np.where(w < 0.0, effort, drive)
 
     def joint_torques(self, q: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The generalized torque the command u (nv,) applies at (q, v), shape (nv,): the actuators' torques on their
@@ -354,14 +358,15 @@ class Actuators:
         self._step = (law, w, h)
         self._saved_armature = self._model.armature[dofs].copy()
         self._iterations = 0
-        self._hold(self._is_servo & (law == tau), tau)
+        self._hold(self._is_servo & (law == tau), tau, np.where(law > tau, 1, -1))
         return True
 
-    def _hold(self, free: np.ndarray, clipped: np.ndarray) -> None:
-        """Take the servos `free` (n,) implicitly and hold the other actuators at the torques `clipped` (n,)."""
+    def _hold(self, free: np.ndarray, clipped: np.ndarray, side: np.ndarray) -> None:
+        """Take the servos `free` (n,) implicitly and hold the other actuators at the torques `clipped` (n,), each at
+        its upper (side 1) or lower (-1) limit."""
         law, w, h = self._step
         hkp = h * self._kp
-        self._free, self._clipped = free, clipped
+        self._free, self._clipped, self._side = free, clipped, side
         self._model.armature[self.dofs] = self._saved_armature + np.where(free, h * self._kv + h * hkp, 0.0)
         self._held = np.where(free, law - hkp * w, clipped)
 
@@ -374,15 +379,17 @@ class Actuators:
         law, w, h = self._step
         w_next = v_next[self.dofs]
         law_next = law - (h * self._kp) * w - (h * self._kp + self._kv) * (w_next - w)  # the law at the step's end
-        bound = self._bound(w_next, law_next)
-        clipped = self._clipped
-        held = np.where(clipped > 0.0, law_next >= bound, np.where(clipped < 0.0, law_next <= -bound, bound == 0.0))
-        free = self._is_servo & np.where(self._free, np.abs(law_next) <= bound, ~held)
+        low, high = self._interval(w_next)
+        side = self._side
+        within = (law_next >= low) & (law_next <= high)
+        beyond = np.where(side > 0, law_next >= high, law_next <= low)  # a clipped servo's law still past its limit
+        free = self._is_servo & np.where(self._free, within, ~beyond)
         if np.array_equal(free, self._free) or self._iterations >= MAX_REVISIONS:
             return False
         self._iterations += 1
         newly = self._free & ~free  # clipped where its law left the limits
-        self._hold(free, np.where(newly, np.minimum(np.maximum(law_next, -bound), bound), clipped))
+        clipped = np.where(newly, np.minimum(np.maximum(law_next, low), high), self._clipped)
+        self._hold(free, clipped, np.where(newly, np.where(law_next > high, 1, -1), side))
         return True
 
     def end_implicit(self) -> None:
@@ -417,13 +424,18 @@ class Actuators:
         law_v = np.where(self._kind == 0, 0.0, -self._kv)
         du[dofs, dofs] = np.where(free, law_u, 0.0)
         dq[dofs, dofs] = np.where(free, law_q, 0.0)
-        slope = np.zeros(len(dofs))  # where the curve is the bound: τ = ±stall (1 − |v| / no_load)
+        # Clipped at its drive limit (the side of the motion), the torque follows that limit's slope in the speed:
+        # the curve's -stall / no_load where the curve is the limit.
+        speed = np.abs(w)
+        slope = np.zeros(len(dofs))
         k = self._curved
         if k.size:
-            curve = self._stall[k] * np.maximum(0.0, 1.0 - np.abs(w[k]) / self._no_load[k])
-            on_curve = (~free[k]) & (c[k] * w[k] >= 0.0) & (curve < self._effort[k]) & (curve > 0.0)
-            on_curve &= ~(np.abs(w[k]) >= self._vlim[k])
+            curve = self._stall[k] * (1.0 - speed[k] / self._no_load[k])
+            on_curve = (curve > 0.0) & (curve < self._effort[k]) & (speed[k] < self._vlim[k])
             slope[k] = np.where(on_curve, -self._stall[k] / self._no_load[k], 0.0)
+        low, high = self._interval(w)
+        at_drive_limit = ~free & (((w > 0.0) & (tau == high)) | ((w < 0.0) & (tau == low)))
+        slope = np.where(at_drive_limit, slope, 0.0)
         dv[dofs, dofs] = np.where(free, law_v, slope)
         return dq, dv, du
 

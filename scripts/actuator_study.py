@@ -1,0 +1,242 @@
+"""Actuators' targets (issue 25), measured: go2 under random actions with and without its actuator model, a stiff
+position servo inside the step against the same gains held as a PD controller, and what actuators cost per step.
+
+Writes docs/actuator_study.md (tables; the machine is shared and noisy: the cost ratios are medians of interleaved
+rounds, each against its peer in the same run).
+
+1. go2, random actions inside its action space (torques uniform within the effort limits, new every 2 ms), 40
+   one-second episodes (seeds 0..39) per setup: free flight (the robot alone: rk4 and semi-implicit Euler) and
+   go2_standing on the ground (timestepping), at dt = 1 and 2 ms; without an actuator model (today's ideal torques,
+   clipped at the URDF's effort limits) and with the catalog's (actuators = "catalog": Unitree's gear ratios, rotor
+   inertia, limits and torque–speed curve). Counts the episodes that did not complete and the largest joint speed
+   over its velocity limit.
+2. ur5 holding a pose 0.05 rad from its start against gravity with kp = 1e4 N·m/rad, kv = 100 N·m·s/rad on every
+   joint (effort limits the URDF's, no velocity limit): position servos inside the step, against a PD with the same
+   gains held over each step (control_dt = dt), on rk4 and semi-implicit Euler. A step is stable when the 1 s run
+   completes, stays within 0.5 rad of the target and ends within 0.01 rad of it; the ladder runs from 0.1 s down
+   by 2 and reports the largest stable step whose next smaller rung is stable too.
+3. Cost per step, native kernel where it runs: ur5 (rk4, 1 ms) and go2_standing (timestepping, 1 ms) with the
+   catalog's or declared actuators against the same scene without them, under the same torques.
+
+Usage: python scripts/actuator_study.py [--quick] [--out docs/actuator_study.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+import multibody_sim as ms
+from multibody_sim.scenes import make_scene, shipped_scenes
+from multibody_sim.scenes.parse import parse_toml
+
+EPISODES = 40
+CONTROL_DT = 2e-3
+
+
+# ---- 1. go2 under random actions ---------------------------------------------------------------------------------
+def go2_scene(ground: bool, model: bool) -> ms.Scene:
+    if ground:
+        tables = parse_toml(shipped_scenes()["go2_standing"].read_text(), "go2_standing")
+        tables.pop("controller")
+        tables.pop("simulation", None)
+    else:
+        tables = {"robot": {"source": "go2"}}
+    if model:
+        tables["actuators"] = "catalog"
+    return make_scene(**tables)
+
+
+def random_actions(scene: ms.Scene, episodes: int, duration: float) -> np.ndarray:
+    """Torques uniform within the effort limits, a new draw every CONTROL_DT; episode b draws from seed b."""
+    n = round(duration / CONTROL_DT)
+    taus = np.zeros((episodes, n, scene.nv))
+    limit = scene.effort_limit[6:]
+    for b in range(episodes):
+        taus[b, :, 6:] = np.random.default_rng(b).uniform(-limit, limit, size=(n, len(limit)))
+    return taus
+
+
+def go2_episodes(ground: bool, model: bool, integrator: str, dt: float, episodes: int) -> dict:
+    scene = go2_scene(ground, model)
+    taus = random_actions(scene, episodes, 1.0)
+    Q0, V0 = np.tile(scene.q0, (episodes, 1)), np.zeros((episodes, scene.nv))
+    start = time.perf_counter()
+    batch = ms.rollout(
+        scene, Q0, V0, duration=1.0, dt=dt, integrator=integrator, taus=taus, control_dt=CONTROL_DT, progress=False
+    )
+    wall = time.perf_counter() - start
+    limits = np.array(scene.model.velocityLimit)[6:]
+    speeds = np.abs(batch.v[:, :, 6:])[batch.mask]  # (real samples, 12)
+    over = (speeds / limits).max(axis=0)
+    failed = batch.status != "completed"
+    return {
+        "failed": int(failed.sum()),
+        "statuses": sorted(set(batch.status[failed].tolist())),
+        "worst_speed_ratio": float(over.max()),
+        "worst_joint": scene.dof_names[6 + int(over.argmax())],
+        "completed_over_limit": int((np.abs(batch.v[:, :, 6:]) > limits * (1 + 1e-12)).any(axis=(1, 2))[~failed].sum()),
+        "kernel": batch.metadata.get("kernel", ""),
+        "wall": wall,
+    }
+
+
+# ---- 2. the stiff servo ------------------------------------------------------------------------------------------
+KP, KV, OFFSET = 1e4, 100.0, 0.05
+
+
+def ur5_servo_run(dt: float, integrator: str, inside: bool) -> bool:
+    """Whether the 1 s hold is stable at dt (module docstring)."""
+    if inside:
+        scene = make_scene(
+            robot={"source": "ur5"},
+            actuator=[{"joints": "*", "kind": "position", "kp": KP, "kv": KV, "velocity_limit": 1e9}],
+        )
+        target = scene.q0 + OFFSET
+        controller = lambda t, q, v: target  # noqa: E731
+    else:
+        scene = make_scene(robot={"source": "ur5"})
+        target = scene.q0 + OFFSET
+        reference = ",".join(repr(float(x)) for x in target)
+        controller = ms.make_controller("pd", scene, [f"kp={KP}", f"kd={KV}", f"q_ref={reference}"])
+    try:
+        traj = ms.simulate(
+            scene, scene.q0, np.zeros(6), duration=1.0, dt=dt, integrator=integrator, controller=controller,
+            output_dt=None, progress=False,
+        )  # fmt: skip
+    except ms.SimulationError:
+        return False
+    error = np.abs(traj.q - target)
+    return bool(np.isfinite(error).all() and error.max() <= 0.5 and error[-1].max() <= 0.01)
+
+
+def largest_stable(integrator: str, inside: bool, smallest: float) -> tuple[float | None, int]:
+    """The largest rung of 0.1 / 2^k (down to `smallest`) that is stable with its next smaller rung stable too."""
+    dt, previous, tried = 0.1, None, 0
+    while dt >= smallest:
+        tried += 1
+        stable = ur5_servo_run(dt, integrator, inside)
+        if stable and previous is not None and previous[1]:
+            return previous[0], tried
+        previous = (dt, stable)
+        dt /= 2
+    return (previous[0] if previous and previous[1] else None), tried
+
+
+# ---- 3. cost -----------------------------------------------------------------------------------------------------
+def cost_pair(name: str, plain: ms.Scene, actuated: ms.Scene, integrator: str, commands: np.ndarray,
+              steps: int, rounds: int) -> dict:  # fmt: skip
+    """CPU µs per step of each scene under the same commands (rollout of one row, every step sampled), medians of
+    interleaved rounds, and their ratio."""
+    times: dict[str, list[float]] = {"plain": [], "actuated": []}
+    kernels = {}
+    taus = np.repeat(commands[None, None], steps, axis=1)
+    for _ in range(rounds):
+        for label, scene in (("plain", plain), ("actuated", actuated)):
+            start = time.process_time()
+            batch = ms.rollout(scene, scene.q0[None], np.zeros((1, scene.nv)), duration=steps * 1e-3, dt=1e-3,
+                               integrator=integrator, taus=taus, progress=False)  # fmt: skip
+            times[label].append((time.process_time() - start) / steps * 1e6)
+            kernels[label] = batch.metadata.get("kernel", "")
+    plain_us, actuated_us = (float(np.median(times[k])) for k in ("plain", "actuated"))
+    kernel = kernels["plain"]
+    if kernels["actuated"] != kernel:
+        kernel = f"{kernel} / {kernels['actuated']}"
+    return {"name": name, "plain": plain_us, "actuated": actuated_us, "ratio": actuated_us / plain_us, "kernel": kernel}
+
+
+def costs(steps: int, rounds: int) -> list[dict]:
+    rows = []
+    ur5 = make_scene(robot={"source": "ur5"})
+    servos = [{"joints": "*", "kind": "position", "kp": 1e3, "kv": 30.0}]
+    ur5_servo = make_scene(robot={"source": "ur5"}, actuator=servos)
+    ur5_torque = make_scene(robot={"source": "ur5"}, actuator=[{"joints": "*", "rotor_inertia": 1e-4, "gear": 50.0}])
+    hold = np.zeros(6)
+    rows.append(cost_pair("ur5, rk4: torque actuators (gear, rotor)", ur5, ur5_torque, "rk4", hold, steps, rounds))
+    rows.append(cost_pair("ur5, rk4: position servos", ur5, ur5_servo, "rk4", ur5.q0, steps, rounds))
+    go2 = go2_scene(ground=True, model=False)
+    go2_model = go2_scene(ground=True, model=True)
+    rows.append(cost_pair("go2_standing, timestepping: catalog motors", go2, go2_model, "timestepping",
+                          np.zeros(go2.nv), steps, rounds))  # fmt: skip
+    return rows
+
+
+# ---- the report --------------------------------------------------------------------------------------------------
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="8 episodes, a short cost run (a smoke test)")
+    parser.add_argument("--out", type=Path, default=Path("docs/actuator_study.md"))
+    args = parser.parse_args()
+    episodes = 8 if args.quick else EPISODES
+    lines = [
+        "# Actuators: measured targets",
+        "",
+        f"Generated by `.venv/bin/python scripts/{Path(__file__).name}`; do not edit by hand. The model and the "
+        "go2 data's sources: docs/actuators.md.",
+        "",
+        f"## 1. go2 under random actions ({episodes} one-second episodes per row)",
+        "",
+        "Torques uniform within the effort limits, a new draw every 2 ms, episode b from seed b; the same draws "
+        "with and without the actuator model. *speed / limit*: the largest joint speed over its velocity limit "
+        "(URDF: 30.1 rad/s hip and thigh, 15.7 rad/s calf) in any sample of any episode that ran.",
+        "",
+        "| setup | integrator | dt | actuator model | did not complete | speed / limit (joint) | completed episodes "
+        "over a limit | kernel |",
+        "|---|---|---:|---|---:|---|---:|---|",
+    ]
+    for ground, integrator in ((False, "rk4"), (False, "semi_implicit_euler"), (True, "timestepping")):
+        for dt in (1e-3, 2e-3):
+            for model in (False, True):
+                r = go2_episodes(ground, model, integrator, dt, episodes)
+                failed = f"{r['failed']} of {episodes}" + (f" ({', '.join(r['statuses'])})" if r["failed"] else "")
+                lines.append(
+                    f"| {'go2_standing (ground)' if ground else 'free flight'} | {integrator} | {dt * 1e3:g} ms | "
+                    f"{'catalog' if model else 'none'} | {failed} | {r['worst_speed_ratio']:.3g} "
+                    f"({r['worst_joint']}) | {r['completed_over_limit']} | {r['kernel']} |"
+                )
+                print(lines[-1], flush=True)
+    lines += [
+        "",
+        "## 2. A stiff position servo inside the step, against the same gains held as a PD",
+        "",
+        f"ur5 holding its start pose + {OFFSET} rad on every joint against gravity, kp = {KP:g} N·m/rad and "
+        f'kv = {KV:g} N·m·s/rad, the URDF\'s effort limits (150 and 28 N·m), for 1 s. *Servo*: `kind = "position"` '
+        "actuators (evaluated at every stage; semi-implicit Euler takes kv and kp inside the step). *Held PD*: the "
+        "built-in `pd` controller with the same gains, called at every step and held over it. Stable: the run "
+        "completes, stays within 0.5 rad of the target and ends within 0.01 rad; the largest such step of 0.1 s / 2^k "
+        "whose next smaller rung is stable too.",
+        "",
+        "| integrator | servo: largest stable dt | held PD: largest stable dt | ratio |",
+        "|---|---:|---:|---:|",
+    ]
+    smallest = 1e-4 if args.quick else 1e-6
+    for integrator in ("rk4", "semi_implicit_euler"):
+        servo, _ = largest_stable(integrator, True, smallest)
+        held, _ = largest_stable(integrator, False, smallest)
+        ratio = f"{servo / held:.3g}" if servo and held else "—"
+        show = lambda x: f"{x:.3g} s" if x else f"< {smallest:g} s"  # noqa: E731
+        lines.append(f"| {integrator} | {show(servo)} | {show(held)} | {ratio} |")
+        print(lines[-1], flush=True)
+    steps, rounds = (200, 3) if args.quick else (2000, 7)
+    lines += [
+        "",
+        "## 3. Cost per step",
+        "",
+        f"CPU µs per step (medians of {rounds} interleaved rounds of {steps} steps at 1 ms, one row, every step "
+        "sampled), each scene against the same scene without actuators, under the same commands.",
+        "",
+        "| scene | without [µs] | with actuators [µs] | ratio | kernels |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for r in costs(steps, rounds):
+        lines.append(f"| {r['name']} | {r['plain']:.2f} | {r['actuated']:.2f} | {r['ratio']:.3f} | {r['kernel']} |")
+        print(lines[-1], flush=True)
+    args.out.write_text("\n".join(lines) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
