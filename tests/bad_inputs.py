@@ -148,11 +148,14 @@ def secret_file(tmp: Path) -> Path:
     return secret
 
 
-def urdf_trigger(tmp: Path, text: str | bytes, *, fields: dict[str, str] | None = None) -> Trigger:
-    """Write robot/robot.urdf (beside a secret/ folder) and load it through the API and `inspect`."""
+def urdf_trigger(
+    tmp: Path, text: str | bytes, *, fields: dict[str, str] | None = None, name: str = "robot.urdf"
+) -> Trigger:
+    """Write robot/robot.urdf (or another name: robot.xml for MJCF) beside a secret/ folder and load it through the
+    API and `inspect`."""
     folder = tmp / "robot"
     folder.mkdir(exist_ok=True)
-    path = folder / "robot.urdf"
+    path = folder / name
     path.write_bytes(text.encode() if isinstance(text, str) else text)
     secret = secret_file(tmp)
     values = {"urdf": str(path.resolve()), "dir": str(folder.resolve()), "secret": str(secret.resolve())}
@@ -1887,6 +1890,41 @@ def ball(i: int) -> str:
     return f'name = "ball{i}"\nshape = "sphere"\nradius = 0.05\nmass = 1.0\nposition = [1.0, 0.0, {i}]\n'
 
 
+def namespaced_mjcf_mesh(tmp: Path) -> Trigger:
+    """An MJCF robot whose <mesh> sits in a default XML namespace and names the secret file (Pinocchio's parser,
+    which knows no namespaces, reads it as a mesh; lxml's lookups of <mesh> did not see it)."""
+    secret = secret_file(tmp).resolve()
+    text = (
+        '<mujoco model="r"><asset><mesh xmlns="http://example.com/x" name="m" file="' + str(secret) + '"/></asset>'
+        '<worldbody><body name="b"><joint name="j" type="hinge"/><geom type="sphere" size="0.1" mass="1"/></body>'
+        "</worldbody></mujoco>"
+    )
+    trigger = urdf_trigger(tmp, text, name="robot.xml")
+    return Trigger(trigger.call, trigger.argv, {**trigger.fields, "uri": str(secret)})
+
+
+def scene_file_now_a_fifo(tmp: Path) -> Trigger:
+    """A scene run whose scene file was replaced by a FIFO: replaying it opened the recorded scene file to compare
+    it with the stored text, and open() waited for a writer forever."""
+    folder = tmp / "scenes"
+    folder.mkdir()
+    (folder / "robot.urdf").write_text(urdf(ONE_JOINT))
+    scene = folder / "scene.toml"
+    scene.write_text('[robot]\nsource = "robot.urdf"\n')
+    npz = ms.load_scene(scene).run(duration=0.002).save(tmp / "run.npz")
+    scene.unlink()
+    os.mkfifo(scene)
+    roots = [os.path.realpath(ms.catalog.shipped_models_dir()), str(ms.catalog.example_robot_data_share())]
+    fields = {"scene": str(scene), "value": str(folder / "robot.urdf"), "roots": ", ".join(roots)}
+
+    def call() -> object:
+        import multibody_sim.viz as viz
+
+        return viz.robot_from_trajectory(ms.Trajectory.load(npz))
+
+    return Trigger(call=call, argv=["play", str(npz), "--html", str(tmp / "view.html")], fields=fields)
+
+
 ROUND_3 = [
     BadInput(
         "vector-env-complex-actions",
@@ -1979,6 +2017,28 @@ ROUND_3 = [
         ms.SceneError,
     ),
     BadInput(
+        "mjcf-namespaced-mesh",
+        "URDF file",
+        'an MJCF robot file (robot.xml) whose `<mesh>` sits in a default XML namespace (`xmlns="..."`) and names a '
+        "file outside (the check did not see it; Pinocchio's parser, which knows no namespaces, did)",
+        OUTSIDE,
+        "Elements are judged by the name the loaders read: a namespace does not hide a `<mesh>`, `<texture>` or "
+        "`<compiler>`.",
+        namespaced_mjcf_mesh,
+    ),
+    BadInput(
+        "npz-scene-file-a-fifo",
+        "Python API",
+        "`viz.robot_from_trajectory(run)` (and `play run.npz`) of a scene's run whose scene file was replaced by a "
+        "FIFO (replaying opened it to compare it with the stored text, and waited for a writer forever)",
+        "{scene}: robot.source: '{value}' is outside the folders a scene may read from (its own folder and the "
+        "catalog's: {roots}); to allow it, pass --allow-root DIR (allowed_roots=[DIR] in load_scene)",
+        "A path a file names is looked at before it is opened: only a regular file holding the recorded text vouches "
+        "for its folder.",
+        scene_file_now_a_fifo,
+        ms.SceneError,
+    ),
+    BadInput(
         "camera-near-1e308",
         "command line",
         "`play run.npz --video v.mp4 --camera-position 1e308 0 0` (distances overflowed; the overflow warning, shown "
@@ -2038,6 +2098,7 @@ def display_fields(entry: BadInput) -> dict[str, Any]:
     fields["uri"] = {
         "mesh-package-dotdot": "package://x/../../secret/passwords.txt",
         "mesh-absolute-path": "/home/me/secret/passwords.txt",
+        "mjcf-namespaced-mesh": "/home/me/secret/passwords.txt",
         "mesh-file-uri": "file:///home/me/secret/passwords.txt",
     }.get(entry.id, "")
     fields["count"] = {"too-many-elements": "100013", "nested-100k-deep": "100013"}.get(entry.id, "")
@@ -2048,7 +2109,14 @@ def display_fields(entry: BadInput) -> dict[str, Any]:
         fields["omitted"] = "998175"
     if entry.id == "not-xml":
         fields["libxml2"] = "Start tag expected, '<' not found, line 1, column 1"
-    fields["value"] = {"scene-package-dirs-etc": "/etc", "scene-robot-outside": "/home/elsewhere/robot.urdf"}.get(
-        entry.id, ""
-    )
+    fields["value"] = {
+        "scene-package-dirs-etc": "/etc",
+        "scene-robot-outside": "/home/elsewhere/robot.urdf",
+        "npz-scene-file-a-fifo": "/home/me/scenes/robot.urdf",
+    }.get(entry.id, "")
+    if entry.id == "npz-scene-file-a-fifo":
+        fields["scene"] = "/home/me/scenes/scene.toml"
+        fields["roots"] = "<site-packages>/multibody_sim/models, <site-packages>/cmeel.prefix/share"
+    if entry.id == "mjcf-namespaced-mesh":
+        fields["urdf"] = "/home/me/robot/robot.xml"
     return fields

@@ -58,7 +58,11 @@ def read_xml_file(path: Path, kind: str) -> bytes:
     """A robot description file's bytes (kind: "URDF", "SRDF", "SDF", "MJCF"), refusing what is not a regular file
     and files over MAX_URDF_BYTES; never blocks on a FIFO or reads more than MAX_URDF_BYTES + 1 bytes."""
     try:
-        # O_NONBLOCK: opening a FIFO for reading would otherwise wait for a writer forever.
+        # Looked at before it is opened: opening a device can act (a tape rewinds, a watchdog arms) and a FIFO waits
+        # for a writer. The path may come from a stranger's file (a trajectory's urdf_path).
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise ModelError(f"{path}: not a regular file")
+        # O_NONBLOCK: if it became a FIFO since, opening it for reading would otherwise wait for a writer forever.
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
         with os.fdopen(fd, "rb") as f:
             info = os.fstat(f.fileno())
@@ -109,6 +113,13 @@ def parse_xml(xml: bytes, path: Path, kind: str, largest: str) -> Any:
         raise ModelError(f"{path}: malformed XML ({reason})") from None
     if root.getroottree().docinfo.doctype:
         raise ModelError(f"{path}: DOCTYPE declarations are not allowed in a {kind} (entities could expand)")
+    # The loaders that read the file after these checks (urdfdom's tinyxml2, Pinocchio's MJCF parser) know no
+    # namespaces: they read an element by the name it is written with. An unprefixed element in a default namespace
+    # (<mesh xmlns="..." file="..."/>) is a <mesh> to them, so it is one to the checks too; a prefixed one
+    # (<x:mesh>) is a different element to them, as to lxml.
+    for element in root.iter():
+        if isinstance(element.tag, str) and element.tag.startswith("{") and element.prefix is None:
+            element.tag = etree.QName(element).localname
     return root
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -165,7 +166,11 @@ def _recorded_scene_file(scene: dict[str, Any], text: str) -> bool:
         return False
     path = Path(base_dir) / Path(source).name
     try:
-        with open(path, "rb") as stream:
-            return stream.read(len(text.encode()) + 1) == text.encode()
+        # Both from the file: looked at before it is opened (a FIFO would block the open, a device could act on it).
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return False
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(fd, "rb") as stream:
+            return stat.S_ISREG(os.fstat(fd).st_mode) and stream.read(len(text.encode()) + 1) == text.encode()
     except OSError:
         return False
