@@ -1097,9 +1097,10 @@ CATALOGUE: list[BadInput] = [
     BadInput(
         "scene-unknown-frame",
         "scene file",
-        "a force on a frame the robot does not have",
-        "{scene}: force[0].frame: unknown frame 'tool9' (valid: {frames})",
-        "Use one of the listed frames (only frames on moving bodies take forces and payloads).",
+        "a force on a frame the robot does not have (a misspelt one)",
+        "{scene}: force[0].frame: unknown frame 'tool9' (did you mean 'tool0'?)",
+        "Use the frame offered, or one `multibody-sim inspect` lists (only frames on moving bodies take forces and "
+        "payloads; a name close to none gets the list of valid frames).",
         scene_trigger('[robot]\nsource = "ur5"\n[[force]]\nframe = "tool9"\nforce = [1.0, 0.0, 0.0]\n'),
         ms.SceneError,
     ),

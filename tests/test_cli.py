@@ -367,7 +367,8 @@ def test_models_console_script(console: ConsoleRuns) -> None:
 
 
 def test_inspect_panda_console_script(console: ConsoleRuns) -> None:
-    """Joints, limits, efforts, damping and masses as the URDF file declares them (read with ElementTree)."""
+    """Joints, position and velocity limits, efforts, damping and masses as the URDF file declares them (read with
+    ElementTree)."""
     result = console["inspect panda"]
     assert (result.returncode, result.stderr) == (0, "")
     out = result.stdout
@@ -378,12 +379,13 @@ def test_inspect_panda_console_script(console: ConsoleRuns) -> None:
     joints = urdf_joints(path)
     rows = table_rows(out, "name")
     assert [r[0] for r in rows] == list(joints)  # panda's file lists its chain in kinematic order
-    for name, kind, limits, effort, damping in rows:
+    for name, kind, limits, velocity, effort, damping in rows:
         declared = joints[name]
         limit = declared.find("limit")
         unit = "m" if declared.get("type") == "prismatic" else "rad"
         assert kind == declared.get("type")
         assert limits == f"[{float(limit.get('lower')):g}, {float(limit.get('upper')):g}] {unit}"
+        assert velocity == f"{float(limit.get('velocity')):g} {unit}/s"
         assert effort == f"{float(limit.get('effort')):g} {'N' if unit == 'm' else 'N·m'}"
         assert float(damping) == float(declared.find("dynamics").get("damping"))
     # Total mass: every link except the root, which is welded to the world.
@@ -405,16 +407,16 @@ def test_inspect_zero_limits_mean_none_and_floating_note(capsys: pytest.CaptureF
         assert (declared.find("limit").get("lower"), declared.find("limit").get("upper")) == ("0", "0")
     code, out, _ = call(capsys, "inspect", "double_pendulum")
     assert code == 0
-    assert [r[:4] for r in table_rows(out, "name")] == [
-        ["joint1", "revolute", "none", "none"],
-        ["joint2", "revolute", "none", "none"],
+    assert [r[:5] for r in table_rows(out, "name")] == [
+        ["joint1", "revolute", "none", "none", "none"],
+        ["joint2", "revolute", "none", "none", "none"],
     ]
     code, out, _ = call(capsys, "inspect", "solo12", "--no-damping")
     assert code == 0
     assert "nq: 19  nv: 18" in out and "dq/dt != v" in out and "base: floating" in out
     rows = table_rows(out, "name")
-    assert rows[0][:4] == ["root_joint", "floating", "none", "unactuated"]
-    assert all(float(d) == 0.0 for r in rows for d in r[4].split(", "))  # --no-damping reached load_robot
+    assert rows[0][:5] == ["root_joint", "floating", "none", "unactuated", "unactuated"]
+    assert all(float(d) == 0.0 for r in rows for d in r[5].split(", "))  # --no-damping reached load_robot
 
 
 def test_inspect_a_scene_says_runs_start_from_its_initial_state(capsys: pytest.CaptureFixture[str]) -> None:

@@ -264,9 +264,9 @@ COMMANDS: dict[str, Command] = {
     "multibody-sim inspect panda": Command(
         lines=(  # the panda URDF's own limits
             r"^nq: 9  nv: 9$",
-            r"^ +panda_joint1 +revolute +\[-2\.8973, 2\.8973\] rad +87 N·m ",
-            r"^ +panda_joint7 +revolute +\[-2\.8973, 2\.8973\] rad +12 N·m ",
-            r"^ +panda_finger_joint1 +prismatic +\[0, 0\.04\] m +100 N ",
+            r"^ +panda_joint1 +revolute +\[-2\.8973, 2\.8973\] rad +2\.175 rad/s +87 N·m ",
+            r"^ +panda_joint7 +revolute +\[-2\.8973, 2\.8973\] rad +2\.61 rad/s +12 N·m ",
+            r"^ +panda_finger_joint1 +prismatic +\[0, 0\.04\] m +0\.2 m/s +100 N ",
         )
     ),
     "multibody-sim integrators": Command(lines=(r"^rk4 +4 +4 ", r"^dop853 +8 +13 +adaptive ")),

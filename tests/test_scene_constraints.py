@@ -519,8 +519,12 @@ def test_bad_declarations_raise_with_the_valid_options(four_bar: pin.Model) -> N
     assert "coupler_tip" in valid and "universe" in valid
     cases = [
         (
+            ConstraintSpec("loop", "loop", ("coupler_tip", "zzz")),
+            f"constraint 'loop': unknown frame 'zzz' (valid: {valid})",
+        ),
+        (
             ConstraintSpec("loop", "loop", ("coupler_tip", "rocker_top")),
-            f"constraint 'loop': unknown frame 'rocker_top' (valid: {valid})",
+            "constraint 'loop': unknown frame 'rocker_top' (did you mean 'rocker_tip' or 'rocker' or 'rocker_joint'?)",
         ),
         (
             ConstraintSpec("loop", "hinge", LOOP.frames),

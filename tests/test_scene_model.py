@@ -600,15 +600,15 @@ SEMANTIC_CASES: dict[str, Callable[[list[str], list[str]], tuple[dict[str, Any],
     ),
     "force-unknown-frame": lambda joints, frames: (
         {"force": [{"frame": "tool9", "force": [1.0, 0.0, 0.0]}]},
-        f"force[0].frame: unknown frame 'tool9' (valid: {', '.join(frames[1])})",
+        "force[0].frame: unknown frame 'tool9' (did you mean 'tool0'?)",
     ),
     "payload-unknown-frame": lambda joints, frames: (
         {"payload": [{"frame": "tool9", "mass": 1.0}]},
-        f"payload[0].frame: unknown frame 'tool9' (valid: {', '.join(frames[1])})",
+        "payload[0].frame: unknown frame 'tool9' (did you mean 'tool0'?)",
     ),
     "constraint-unknown-frame": lambda joints, frames: (
-        {"constraint": [{"type": "point", "frames": ["tool9"]}]},
-        f"constraint[0].frames: unknown frame 'tool9' (valid: {', '.join(frames[0])})",
+        {"constraint": [{"type": "point", "frames": ["zz9"]}]},
+        f"constraint[0].frames: unknown frame 'zz9' (valid: {', '.join(frames[0])})",
     ),
     "initial-q-length-after-locking": lambda joints, frames: (
         {"lock": {"elbow_joint": 1.0}, "initial": {"q": [0.0] * len(joints)}},

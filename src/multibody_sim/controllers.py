@@ -26,7 +26,7 @@ import pinocchio as pin
 
 from .exceptions import InvalidArgumentError, UnknownNameError
 from .robot import Robot
-from .text import safe_name
+from .text import name_hint, safe_name
 from .validation import check_system, check_text
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
@@ -508,11 +508,7 @@ class PotentialField:
         else:
             if not isinstance(frame, str) or not self._model.existFrame(frame):
                 names = [f.name for f in self._model.frames]
-                close = difflib.get_close_matches(str(frame), names, n=3)
-                hint = f"did you mean {', '.join(close)}? " if close else ""
-                raise InvalidArgumentError(
-                    f"robot '{robot.name}' has no frame {frame!r} ({hint}frames: {', '.join(names)})"
-                )
+                raise InvalidArgumentError(f"robot '{robot.name}' has no frame {frame!r} ({name_hint(frame, names)})")
             self.dimension = 3
             self._frame_id = self._model.getFrameId(frame)
         d = self.dimension

@@ -39,6 +39,8 @@ class Robot:
         floating_base: whether the root is a free-flyer joint.
         damping: joint viscous damping coefficients D [N·m·s/rad or N·s/m], shape (nv,).
         effort_limit: |tau| bounds [N·m or N], shape (nv,); inf where the URDF gives none (or 0).
+        velocity_limit: |v| bounds the URDF declares [rad/s or m/s], shape (nv,); inf where it gives none (or 0).
+            Shown by `inspect`, not enforced (an actuator model's job).
         lower_limit, upper_limit: position limits, shape (nq,); ±inf where there is none.
         limit_tolerance: how far past a limit a coordinate may lie before it counts as a violation (round-off),
             shape (nq,): LIMIT_TOLERANCE_ULPS x machine epsilon x max(|lower|, |upper|, 1); inf where there is no limit.
@@ -77,6 +79,7 @@ class Robot:
             self.damping[:6] = 0.0
         self._damped = bool(np.any(self.damping))
         self.effort_limit = _effort_limits(model, floating_base)
+        self.velocity_limit = _effort_limits(model, floating_base, "velocityLimit")
         self.lower_limit, self.upper_limit = _position_limits(model)
         self._limited = np.isfinite(self.lower_limit)
         scale = np.maximum(np.maximum(np.abs(self.lower_limit), np.abs(self.upper_limit)), 1.0)
@@ -404,8 +407,9 @@ def _dof_names(model: pin.Model) -> list[str]:
     return names
 
 
-def _effort_limits(model: pin.Model, floating_base: bool) -> np.ndarray:
-    effort = np.array(model.effortLimit, dtype=float)
+def _effort_limits(model: pin.Model, floating_base: bool, limits: str = "effortLimit") -> np.ndarray:
+    """The model's effort (or velocity: limits="velocityLimit") limits per dof, inf where there is none."""
+    effort = np.array(getattr(model, limits), dtype=float)
     effort[(effort <= 0.0) | (effort >= _UNBOUNDED)] = np.inf  # 0 or absent means "no limit"
     if floating_base:
         effort[:6] = np.inf

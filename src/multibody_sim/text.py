@@ -3,6 +3,7 @@ terminal escapes and a bounded length."""
 
 from __future__ import annotations
 
+import difflib
 import re
 
 # C0 and C1 controls (line breaks, ESC and CSI start terminal escapes), DEL, zero-width and bidi overrides.
@@ -47,3 +48,12 @@ def terminal_text(text: str) -> str:
 def _escape(char: str) -> str:
     code = ord(char)
     return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}"
+
+
+def name_hint(name: object, names: list[str]) -> str:
+    """What to say of a name that is not among `names`: "did you mean 'x'?" naming the closest (difflib,
+    similarity >= 0.5, up to three), else "valid: " and all of them; names made safe to print."""
+    close = [safe_name(c) for c in difflib.get_close_matches(str(name), names, n=3, cutoff=0.5)]
+    if close:
+        return f"did you mean {' or '.join(repr(c) for c in close)}?"
+    return f"valid: {', '.join(safe_name(n) for n in names)}"

@@ -99,18 +99,15 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         else:
             limits = "none"
         if robot.floating_base and iv < 6:
-            effort = "unactuated"
-        elif joint.nv == 1 and math.isfinite(robot.effort_limit[iv]):
-            effort = f"{robot.effort_limit[iv]:.6g} {'N' if kind == 'prismatic' else 'N·m'}"
+            effort = velocity = "unactuated"
         else:
-            effort = "none"
+            velocity = _limit(robot.velocity_limit, joint, "m/s" if kind == "prismatic" else "rad/s")
+            effort = _limit(robot.effort_limit, joint, "N" if kind == "prismatic" else "N·m")
         damping = ", ".join(f"{d:.6g}" for d in robot.damping[iv : iv + joint.nv])
-        joint_rows.append([model.names[jid], kind, limits, effort, damping])
-    lines += [
-        "",
-        "joints (Pinocchio order):",
-        text_table(["name", "type", "position limits", "effort limit", "damping"], joint_rows, indent=2),
-    ]
+        joint_rows.append([model.names[jid], kind, limits, velocity, effort, damping])
+    headers = ["name", "type", "position limits", "velocity limit", "effort limit", "damping"]
+    lines += ["", "joints (Pinocchio order; velocity limits are shown, not enforced):"]
+    lines.append(text_table(headers, joint_rows, indent=2))
 
     # Pinocchio merges links joined by fixed joints into one body per joint; list the links in each.
     links: dict[int, list[str]] = {}
@@ -131,6 +128,12 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     ]
     print_text("\n".join(lines))
     return EXIT_OK
+
+
+def _limit(limits: Any, joint: Any, unit: str) -> str:
+    """A one-dof joint's velocity or effort limit with its unit, or "none"."""
+    value = limits[joint.idx_v]
+    return f"{value:.6g} {unit}" if joint.nv == 1 and math.isfinite(value) else "none"
 
 
 def cmd_integrators(args: argparse.Namespace) -> int:

@@ -27,6 +27,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..exceptions import InvalidArgumentError
+from ..text import name_hint
 
 CONSTRAINT_TYPES = ("loop", "point", "weld")
 ROWS = {"loop": 3, "point": 3, "weld": 6}
@@ -206,8 +207,8 @@ class Constraints:
     def _frame_id(self, constraint: str, frame: Any) -> int:
         if isinstance(frame, str) and self.model.existFrame(frame):
             return int(self.model.getFrameId(frame))
-        valid = ", ".join(sorted({f.name for f in self.model.frames}))
-        raise InvalidArgumentError(f"constraint '{constraint}': unknown frame {frame!r} (valid: {valid})")
+        names = sorted({f.name for f in self.model.frames})
+        raise InvalidArgumentError(f"constraint '{constraint}': unknown frame {frame!r} ({name_hint(frame, names)})")
 
     # ---- dynamics ------------------------------------------------------------------------------------
     def forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:

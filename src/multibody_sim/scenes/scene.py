@@ -23,7 +23,7 @@ from ..catalog.checks import check_body_inertias, check_mass_matrix, check_model
 from ..exceptions import InvalidArgumentError, ModelError, SceneError
 from ..integrators.timestepping import TOLERANCE
 from ..robot import Robot
-from ..text import safe_name
+from ..text import name_hint, safe_name
 from ..trajectory import Trajectory
 from .spec import CONTACT_INTEGRATOR, RobotSpec, SceneSpec
 
@@ -704,7 +704,7 @@ def _frame_id(model: pin.Model, name: str, key: str, *, moving: bool = False) ->
     if name not in names:
         if moving and model.existFrame(name):
             raise SceneError(f"{key}: '{name}' is welded to the world: nothing there moves (valid: {', '.join(names)})")
-        raise SceneError(f"{key}: unknown frame '{name}' (valid: {', '.join(names)})")
+        raise SceneError(f"{key}: unknown frame '{name}' ({name_hint(name, names)})")  # talos has 60 frames
     return model.getFrameId(name)
 
 
