@@ -40,7 +40,7 @@ class Robot:
         damping: joint viscous damping coefficients D [N·m·s/rad or N·s/m], shape (nv,).
         effort_limit: |tau| bounds [N·m or N], shape (nv,); inf where the URDF gives none (or 0).
         velocity_limit: |v| bounds the URDF declares [rad/s or m/s], shape (nv,); inf where it gives none (or 0).
-            Shown by `inspect`, not enforced (an actuator model's job).
+            Shown by `inspect`; a scene's [[actuator]]s take them as their defaults.
         lower_limit, upper_limit: position limits, shape (nq,); ±inf where there is none.
         limit_tolerance: how far past a limit a coordinate may lie before it counts as a violation (round-off),
             shape (nq,): LIMIT_TOLERANCE_ULPS x machine epsilon x max(|lower|, |upper|, 1); inf where there is no limit.

@@ -106,7 +106,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         damping = ", ".join(f"{d:.6g}" for d in robot.damping[iv : iv + joint.nv])
         joint_rows.append([model.names[jid], kind, limits, velocity, effort, damping])
     headers = ["name", "type", "position limits", "velocity limit", "effort limit", "damping"]
-    lines += ["", "joints (Pinocchio order; velocity limits are shown, not enforced):"]
+    lines += ["", "joints (Pinocchio order; velocity limits act through a scene's [[actuator]]s):"]
     lines.append(text_table(headers, joint_rows, indent=2))
 
     # Pinocchio merges links joined by fixed joints into one body per joint; list the links in each.
