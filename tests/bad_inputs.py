@@ -1584,6 +1584,17 @@ def hostile_frame_names(tmp: Path) -> Trigger:
     return Trigger(call=lambda: ms.analysis.frame_placements(robot, run, "tool"))
 
 
+def replayed(npz: Path, fields: dict[str, str]) -> Trigger:
+    """Replaying a saved run: viz.robot_from_trajectory of it (the API) and `play npz --html` (the command line)."""
+
+    def call() -> object:
+        import multibody_sim.viz as viz
+
+        return viz.robot_from_trajectory(ms.Trajectory.load(npz))
+
+    return Trigger(call=call, argv=["play", str(npz), "--html", str(npz.with_name("view.html"))], fields=fields)
+
+
 def forged_package_dirs(tmp: Path) -> Trigger:
     """A run whose metadata was edited to name /etc as its robot's package folder (its page would embed meshes
     found there)."""
@@ -1597,13 +1608,7 @@ def forged_package_dirs(tmp: Path) -> Trigger:
     roots = [os.path.realpath(ms.catalog.shipped_models_dir()), str(ms.catalog.example_robot_data_share())]
     roots.append(os.path.realpath(folder))
 
-    def call() -> object:
-        import multibody_sim.viz as viz
-
-        return viz.robot_from_trajectory(ms.Trajectory.load(npz))
-
-    fields = {"npz": str(npz), "trusted": ", ".join(roots)}
-    return Trigger(call=call, argv=["play", str(npz), "--html", str(tmp / "view.html")], fields=fields)
+    return replayed(npz, {"npz": str(npz), "trusted": ", ".join(roots)})
 
 
 RANGES_AND_NAMES = [
@@ -1817,12 +1822,7 @@ def deep_stored_scene(tmp: Path) -> Trigger:
     run.metadata["robot"]["scene"]["toml"] = "x = " + "[" * DEEP + "]" * DEEP + "\n"
     npz = run.save(tmp / "run.npz")
 
-    def call() -> object:
-        import multibody_sim.viz as viz
-
-        return viz.robot_from_trajectory(ms.Trajectory.load(npz))
-
-    return Trigger(call=call, argv=["play", str(npz), "--html", str(tmp / "view.html")], fields={"scene": str(path)})
+    return replayed(npz, {"scene": str(path)})
 
 
 def deep_table(tmp: Path) -> Trigger:
@@ -1918,12 +1918,7 @@ def scene_file_now_a_fifo(tmp: Path) -> Trigger:
     roots = [os.path.realpath(ms.catalog.shipped_models_dir()), str(ms.catalog.example_robot_data_share())]
     fields = {"scene": str(scene), "value": str(folder / "robot.urdf"), "roots": ", ".join(roots)}
 
-    def call() -> object:
-        import multibody_sim.viz as viz
-
-        return viz.robot_from_trajectory(ms.Trajectory.load(npz))
-
-    return Trigger(call=call, argv=["play", str(npz), "--html", str(tmp / "view.html")], fields=fields)
+    return replayed(npz, fields)
 
 
 ROUND_3 = [
