@@ -32,6 +32,11 @@ in memory only; the command line exits 1 (failed) or 130 / 143 (SIGINT / SIGTERM
 temporary file beside them and renamed into place; only regular files are replaced, and a symbolic link is written
 through (the link stays, its target is replaced).
 
+An installed package whose compiled kernel cannot run (its file damaged, built from other sources or against
+another Pinocchio, or not built) is not an error: the Python kernel runs, with the same results, and
+`multibody-sim --version`, run headers and `Trajectory.metadata` say why in one line. The extension's file is
+checked against the size and SHA-256 its build recorded before it is loaded.
+
 Limits, and why:
 
 """
@@ -117,6 +122,8 @@ def cell(text: str) -> str:
 def outcome(entry: bad_inputs.BadInput) -> str:
     """What the user gets: the exception (API) and/or the command line's exit code and line."""
     message = bad_inputs.render(entry.message, bad_inputs.display_fields(entry))
+    if entry.kind == "installed package":
+        return f"`multibody-sim --version` prints `{message}` (exit 0); runs take the Python kernel and say why"
     if entry.kind in ("command line", "run ending early"):
         prefix = {130: "SIGINT", 143: "SIGTERM"}.get(entry.code, "error")
         return f"exit {entry.code}: `multibody-sim: {prefix}: {message}`"

@@ -4,7 +4,9 @@
 #
 # The package is installed editable and built in place (no build isolation) with the build requirements of
 # pyproject.toml installed in .venv, so the C++ extension's build tree (build/<wheel tag>/) stays valid between
-# runs: a re-run rebuilds only what changed. Environment:
+# runs: a re-run rebuilds only what changed. The C++ compiler runs once per clone: an extension already installed
+# in .venv (by the README's `pip install .`, or an earlier run) that was built from these sources with these
+# settings is installed again as it is (CMakeLists.txt checks its build record; MULTIBODY_SIM_REUSE). Environment:
 #   MULTIBODY_SIM_NATIVE=0      skip the C++ build (and run the Python kernel); the native tests then skip.
 #   MULTIBODY_SIM_BUILD_LOCK=F  the lock file held (`flock`) while building, so that checkouts sharing a machine
 #                               compile one at a time (~1 min and ~3 GiB per C++ file); default: a file in /tmp.
@@ -40,7 +42,15 @@ print(" ".join(get_requires_for_build_editable()))')"
   if command -v flock >/dev/null 2>&1; then
     lock=(flock "${MULTIBODY_SIM_BUILD_LOCK:-${TMPDIR:-/tmp}/multibody-sim-build.lock}")
   fi
-  quiet "${lock[@]}" "${pip[@]}" --verbose --no-build-isolation -e ".[test]"  # the build's output, for the log
+  reuse=$(.venv/bin/python -c '
+import importlib.metadata, re
+try:
+    files = importlib.metadata.distribution("multibody-sim").files or []
+except importlib.metadata.PackageNotFoundError:
+    files = []
+print(next((f.locate() for f in files if re.fullmatch(r"multibody_sim/_native\.[^/]*\.so", f.as_posix())), ""))')
+  quiet "${lock[@]}" "${pip[@]}" --verbose --no-build-isolation -e ".[test]" \
+    --config-settings="cmake.define.MULTIBODY_SIM_REUSE=$reuse"  # the build's output, for the log
   # A build that fell back to Python is said in one line (its output is in the log); under CI it fails the run.
   .venv/bin/python -c '
 import os, sys

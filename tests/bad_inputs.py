@@ -11,13 +11,17 @@ from __future__ import annotations
 import contextlib
 import errno
 import functools
+import importlib.metadata
+import importlib.util
 import io
 import json
 import os
 import pickle
+import shutil
 import signal
 import socket
 import struct
+import subprocess
 import sys
 import xml.etree.ElementTree as ET
 import zipfile
@@ -28,10 +32,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from conftest import joint, link, urdf
 from lxml import etree
 
 import multibody_sim as ms
+
+ROOT = Path(__file__).resolve().parents[1]
 
 # Documented limits (docs/bad_inputs.md, catalog.py, safety.py), written out rather than imported: a change of
 # limit must show up here and in the table users read.
@@ -60,12 +67,15 @@ class Trigger:
         argv: the command line (after `multibody-sim`) that must exit 2 with the message (None for API-only).
         fields: values for the message template's {placeholders}.
         during: a context in which both run (a full disk, a signal at a chosen moment), or None.
+        process: for what only a fresh process shows (the installed package's state, read once at import): runs
+            `multibody-sim --version` there; its output must hold the message as one line.
     """
 
     call: Callable[[], object] | None = None
     argv: list[str] | None = None
     fields: dict[str, str] = field(default_factory=dict)
     during: Callable[[], contextlib.AbstractContextManager[Any]] | None = None
+    process: Callable[[], subprocess.CompletedProcess[str]] | None = None
 
 
 @dataclass(frozen=True)
@@ -74,14 +84,15 @@ class BadInput:
 
     Attributes:
         id: short name (the pytest id).
-        kind: "URDF file", "trajectory file", "command line" or "Python API".
+        kind: "URDF file", "trajectory file", "command line", "Python API", "installed package", ...
         what: what the user did, in words.
         message: the exact message, with {placeholders} (paths differ from run to run).
         advice: what to do about it.
         build: makes the input in a fresh folder and says how to trigger the error.
         error: the exception class the API raises.
         code: the command line's exit code: 2 (bad input), or for a run that ends early 1 (failed) and 130 / 143
-            (SIGINT / SIGTERM), whose line starts "multibody-sim: SIGINT: " instead of "multibody-sim: error: ".
+            (SIGINT / SIGTERM), whose line starts "multibody-sim: SIGINT: " instead of "multibody-sim: error: ";
+            0 for an installed package whose compiled kernel cannot run (the Python kernel runs instead).
     """
 
     id: str
@@ -131,6 +142,11 @@ DISPLAY = {
     "joints": UR5_JOINTS,
     "frames": UR5_MOVING_FRAMES,
     "table": "/home/me/study.json",
+    "extension": "<site-packages>/multibody_sim/_native.cpython-311-x86_64-linux-gnu.so",
+    "size": "666804",
+    "built": "1333608",
+    "sources": "/home/me/multibody-sim/src/native",
+    "pinocchio": "4.1.0",
 }
 
 
@@ -2083,6 +2099,143 @@ ROUND_3 = [
     ),
 ]
 CATALOGUE += RANGES_AND_NAMES + TYPES + ROUND_3
+
+
+# ---- the installed package (issue 26 class 7): which kernel runs, and why, in a fresh process ------------------
+def installed_copy(edit: Callable[[Path, Path], dict[str, str]], *, sources: bool = False) -> Callable[[Path], Trigger]:
+    """A copy of the installed package in a fresh folder (its Python files, and the compiled extension with its
+    build record), changed by edit(package folder, extension file) -> message fields; `multibody-sim --version` then
+    runs on it in a fresh process. With sources, a copy of the C++ sources sits beside it, as in a checkout."""
+
+    def build(tmp: Path) -> Trigger:
+        spec = importlib.util.find_spec("multibody_sim._native")
+        if (spec is None or spec.origin is None) and os.environ.get("CI") != "true":
+            pytest.skip("no C++ extension is built here to damage")
+        assert spec is not None and spec.origin is not None
+        built = Path(spec.origin)
+        package = tmp / "src" / "multibody_sim"
+        shutil.copytree(Path(ms.__file__).parent, package, ignore=shutil.ignore_patterns("__pycache__"))
+        for path in (built, built.with_name("_native_build.py")):
+            shutil.copy2(path, package / path.name)
+        if sources:
+            shutil.copytree(ROOT / "src" / "native", tmp / "src" / "native")
+        fields = edit(package, package / built.name)
+        probe = (
+            "import sys\n"
+            # An editable install of the checkout hooks imports ahead of the path: drop its hook, so the copy loads.
+            "sys.meta_path[:] = [f for f in sys.meta_path if type(f).__name__ != 'ScikitBuildRedirectingFinder']\n"
+            "import multibody_sim\n"
+            f"assert multibody_sim.__file__.startswith({str(package)!r}), multibody_sim.__file__\n"
+            "from multibody_sim.cli import main\n"
+            "sys.exit(main(['--version']))\n"
+        )
+        env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "MULTIBODY_SIM_NATIVE")}
+        run = functools.partial(
+            subprocess.run,
+            [sys.executable, "-c", probe],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            cwd=tmp,
+            env={**env, "PYTHONPATH": str(tmp / "src")},
+        )
+        return Trigger(process=run, fields=fields)
+
+    return build
+
+
+def truncate(package: Path, extension: Path) -> dict[str, str]:
+    built = extension.stat().st_size
+    with open(extension, "r+b") as file:  # cut short, as an interrupted copy leaves it
+        file.truncate(built // 2)
+    return {"extension": str(extension), "size": str(built // 2), "built": str(built)}
+
+
+def alter(package: Path, extension: Path) -> dict[str, str]:
+    data = bytearray(extension.read_bytes())
+    data[-1] ^= 0xFF  # one byte of its section headers, which the loader does not read: it would load
+    extension.write_bytes(bytes(data))
+    return {"extension": str(extension)}
+
+
+def another_pinocchio(package: Path, extension: Path) -> dict[str, str]:
+    record = package / "_native_build.py"
+    record.write_text(record.read_text().replace(f'PINOCCHIO_VERSION = "{PINOCCHIO}"', 'PINOCCHIO_VERSION = "4.0.9"'))
+    return {"pinocchio": PINOCCHIO}
+
+
+def edit_a_source(package: Path, extension: Path) -> dict[str, str]:
+    sources = package.parent / "native"
+    source = sources / "module.cpp"
+    source.write_bytes(source.read_bytes() + b"\n")
+    return {"sources": str(sources)}
+
+
+def not_built(package: Path, extension: Path) -> dict[str, str]:
+    extension.unlink()
+    (package / "_native_build.py").unlink()
+    return {}
+
+
+PINOCCHIO = importlib.metadata.version("pin")
+REINSTALL = (
+    "Reinstall (`pip install --force-reinstall .`; in a checkout `bash scripts/test.sh`). Until then runs take the "
+    "Python kernel: the same results, slower."
+)
+INSTALLED = [
+    BadInput(
+        "truncated-extension",
+        "installed package",
+        "a compiled extension (`_native*.so`) cut short by an interrupted copy or install (the dynamic loader would "
+        "die of SIGBUS)",
+        "kernel: python (the C++ extension {extension} is damaged: {size} bytes where its build wrote {built} (an "
+        "interrupted copy or install?): reinstall multibody-sim)",
+        REINSTALL,
+        installed_copy(truncate),
+        code=0,
+    ),
+    BadInput(
+        "altered-extension",
+        "installed package",
+        "a compiled extension of the right size whose bytes changed since its build",
+        "kernel: python (the C++ extension {extension} is damaged: its SHA-256 is not the one its build recorded: "
+        "reinstall multibody-sim)",
+        REINSTALL,
+        installed_copy(alter),
+        code=0,
+    ),
+    BadInput(
+        "extension-another-pinocchio",
+        "installed package",
+        "an extension built against another Pinocchio than the one installed (`pip install pin==…` after the build)",
+        "kernel: python (the C++ extension was built against Pinocchio 4.0.9 but Pinocchio {pinocchio} is installed "
+        "(no ABI promise across versions): reinstall multibody-sim)",
+        "Reinstall multibody-sim against the Pinocchio you keep (its `pin` pin is exact).",
+        installed_copy(another_pinocchio),
+        code=0,
+    ),
+    BadInput(
+        "extension-older-than-sources",
+        "installed package",
+        "a checkout whose C++ sources changed since its extension was built (edited or pulled)",
+        "kernel: python (the C++ extension is older than its sources in {sources} (edited or pulled, not rebuilt): "
+        "rebuild it (`bash scripts/test.sh --co -q` or `pip install -e .`))",
+        "Rebuild: `bash scripts/test.sh` (it recompiles only what changed).",
+        installed_copy(edit_a_source, sources=True),
+        code=0,
+    ),
+    BadInput(
+        "extension-not-built",
+        "installed package",
+        "an install without the extension (no C++ compiler at install time, or its build failed)",
+        "kernel: python (the C++ extension is not built (no C++ compiler at install time, or its build failed: "
+        "`pip install -v .` shows why))",
+        "Install a C++17 compiler and reinstall; `pip install -v .` shows why the build failed.",
+        installed_copy(not_built),
+        code=0,
+    ),
+]
+CATALOGUE += INSTALLED
 
 BY_ID = {entry.id: entry for entry in CATALOGUE}
 assert len(BY_ID) == len(CATALOGUE), "catalogue ids must be unique"

@@ -3,6 +3,7 @@ choice (MULTIBODY_SIM_NATIVE, --version) and the version pin."""
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import importlib.metadata
 import importlib.util
@@ -193,6 +194,31 @@ def test_cmake_and_python_digest_the_sources_alike_and_an_edit_makes_the_build_s
     kernel.write_bytes((REPO / "src" / "native" / "kernel.cpp").read_bytes())
     assert native._stale_sources(build.SOURCES_SHA256, copy) == copy
     assert native._stale_sources(build.SOURCES_SHA256, tmp_path) is None  # no sources there: nothing to check
+
+
+@needs_native
+def test_the_build_records_the_installed_extensions_size_and_digest_and_load_checks_them(tmp_path):
+    """CMake's record of the extension as installed (after RPATH editing and stripping) is the file Python finds;
+    a copy of it cut short or with one byte changed is refused before loading (tests/bad_inputs.py runs both in a
+    fresh process), and so is a record that gives nothing to check by."""
+    build = importlib.import_module("multibody_sim._native_build")
+    path = Path(native.module.__file__)
+    assert (path.name, path.stat().st_size) == (build.EXTENSION, build.EXTENSION_SIZE)
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == build.EXTENSION_SHA256
+    assert native._damaged(build, path) is None
+    copy = tmp_path / path.name
+    copy.write_bytes(path.read_bytes()[:-1] + bytes([path.read_bytes()[-1] ^ 1]))
+    assert native._damaged(build, copy) == (
+        f"the C++ extension {copy} is damaged: its SHA-256 is not the one its build recorded: reinstall multibody-sim"
+    )
+    copy.write_bytes(path.read_bytes()[:4096])
+    assert native._damaged(build, copy) == (
+        f"the C++ extension {copy} is damaged: 4096 bytes where its build wrote {build.EXTENSION_SIZE} (an "
+        "interrupted copy or install?): reinstall multibody-sim"
+    )
+    assert native._damaged(types.SimpleNamespace(PINOCCHIO_VERSION=build.PINOCCHIO_VERSION), path) == (
+        "the C++ extension's build record gives no size and SHA-256 to check it by: reinstall multibody-sim"
+    )
 
 
 @pytest.mark.skipif(not BUILT, reason="the C++ extension is not built here")

@@ -85,6 +85,11 @@ def test_a_bad_input_gets_its_one_exact_error(entry: BadInput, tmp_path: Path, c
         prefix = {130: "multibody-sim: SIGINT: ", 143: "multibody-sim: SIGTERM: "}.get(entry.code, PREFIX)
         assert (code, err) == (entry.code, f"{prefix}{message}\n")
         seen += [out, err]
+    if trigger.process is not None:  # in a fresh process: `multibody-sim --version`, whose second line is the message
+        done = trigger.process()
+        assert (done.returncode, done.stderr) == (entry.code, ""), done.stderr[-3000:]
+        assert done.stdout.splitlines()[1:] == [message]
+        seen += [done.stdout]
     assert not any(MARKER in text for text in seen)
 
 

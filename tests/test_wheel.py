@@ -1,7 +1,11 @@
-"""The built wheel ships models/ as package data: every catalog entry loads from an installed wheel."""
+"""The built wheel ships models/ as package data and the compiled extension: every catalog entry loads from an
+installed wheel. Nothing here compiles C++: the wheel is built around the extension this suite runs on (see
+`wheel`), and the no-compiler fallback fails at CMake's compiler check."""
 
 from __future__ import annotations
 
+import ast
+import importlib
 import importlib.metadata
 import importlib.util
 import json
@@ -10,7 +14,6 @@ import re
 import shutil
 import subprocess
 import sys
-import tempfile
 import textwrap
 import zipfile
 from pathlib import Path
@@ -46,34 +49,69 @@ def copy_sources(dest: Path) -> Path:
 
 
 def build_wheel(
-    source: Path, out: Path, *, isolated: bool = True, env: dict[str, str] | None = None, compiles: bool = True
+    source: Path,
+    out: Path,
+    *,
+    isolated: bool = True,
+    env: dict[str, str] | None = None,
+    settings: dict[str, str] | None = None,
 ) -> subprocess.CompletedProcess[str]:
     """Build a wheel of source into out, as pip would (isolated: build requirements fetched into a fresh
-    environment) or with this environment's build requirements (scripts/test.sh installs them). A build that
-    compiles C++ waits for the machine's build lock."""
+    environment) or with this environment's build requirements (scripts/test.sh installs them); settings are
+    scikit-build-core's config settings (`-C key=value`)."""
+    config = [f"--config-setting={key}={value}" for key, value in (settings or {}).items()]
     if importlib.util.find_spec("build") is not None:  # the [test] extra brings it
-        command = [sys.executable, "-m", "build", "--wheel", "--outdir", str(out), str(source)]
+        command = [sys.executable, "-m", "build", "--wheel", *config, "--outdir", str(out), str(source)]
         if not isolated:
             command.insert(4, "--no-isolation")
     else:
-        command = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--wheel-dir", str(out), str(source)]
+        config = [c.replace("--config-setting=", "--config-settings=") for c in config]
+        command = [sys.executable, "-m", "pip", "wheel", "--no-deps", *config, "--wheel-dir", str(out), str(source)]
         if not isolated:
             command.insert(4, "--no-build-isolation")
-    if compiles and shutil.which("flock"):  # one C++ build at a time on this machine (as in scripts/test.sh)
-        lock = os.environ.get("MULTIBODY_SIM_BUILD_LOCK") or str(
-            Path(tempfile.gettempdir(), "multibody-sim-build.lock")
-        )
-        command = ["flock", lock, *command]
     return subprocess.run(command, capture_output=True, text=True, timeout=600, env=env)
+
+
+def installed_extension() -> Path | None:
+    """The compiled extension this suite runs on (the editable install's file), or None where none is built."""
+    spec = importlib.util.find_spec("multibody_sim._native")
+    return Path(spec.origin) if spec is not None and spec.origin is not None else None
+
+
+def build_record(text: str) -> dict[str, object]:
+    """The constants of a _native_build.py (the build record CMakeLists.txt writes), read without running it."""
+    return {
+        node.targets[0].id: ast.literal_eval(node.value)
+        for node in ast.parse(text).body
+        if isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name)
+    }
 
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The wheel pip builds from a copy of the checkout (isolated, the C++ extension compiled: ~1-2 min)."""
+    """The wheel pip builds from a copy of the checkout (isolated), around the extension this suite runs on.
+
+    The extension is not compiled a second time: CMakeLists.txt installs the given file (MULTIBODY_SIM_REUSE) when
+    its build record says it was built from these sources with these settings, and MULTIBODY_SIM_REUSE_ONLY makes
+    anything else an error instead of a compile. What an isolated build proves besides compiling (its build
+    requirements install, CMake finds Pinocchio and nanobind in them, the install layout) it still proves; the
+    compile itself is scripts/test.sh's editable build, with the same requirements and CMakeLists.txt. Where no
+    extension is built, the wheel is the pure-Python one (`wheel.cmake=false`).
+    """
     source = copy_sources(tmp_path_factory.mktemp("source"))
     out = tmp_path_factory.mktemp("dist")
-    result = build_wheel(source, out)
+    extension = installed_extension()
+    if extension is None:
+        settings = {"wheel.cmake": "false"}
+    else:
+        settings = {
+            "cmake.define.MULTIBODY_SIM_REUSE": str(extension),
+            "cmake.define.MULTIBODY_SIM_REUSE_ONLY": "ON",
+        }
+    result = build_wheel(source, out, settings=settings)
     assert result.returncode == 0, f"building the wheel failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    if extension is not None:
+        assert f"multibody-sim: reusing {extension}" in result.stdout, result.stdout[-3000:]
     wheels = list(out.glob("multibody_sim-*.whl"))
     assert len(wheels) == 1, wheels
     return wheels[0]
@@ -98,12 +136,21 @@ def extension_in(wheel: Path) -> list[str]:
     return [n for n in zipfile.ZipFile(wheel).namelist() if re.fullmatch(r"multibody_sim/_native\.[^/]*\.so", n)]
 
 
-def test_the_wheel_holds_the_compiled_extension(wheel):
-    compiler = any(shutil.which(cxx) for cxx in (os.environ.get("CXX", "c++"), "c++", "g++", "clang++"))
-    if not extension_in(wheel) and not compiler and os.environ.get("CI") != "true":
-        pytest.skip("no C++ compiler here: the wheel is pure Python (the fallback)")
-    assert len(extension_in(wheel)) == 1, zipfile.ZipFile(wheel).namelist()
-    assert "multibody_sim/_native_build.py" in zipfile.ZipFile(wheel).namelist()
+def test_the_wheel_holds_the_compiled_extension_and_its_build_record(wheel):
+    """The wheel ships the very extension this suite ran on, byte for byte (nothing was compiled for it), with the
+    build record native.py checks it by before loading it."""
+    extension = installed_extension()
+    if extension is None and os.environ.get("CI") != "true":  # CI builds the extension: its absence fails there
+        pytest.skip("no C++ extension is built here: the wheel is pure Python (the fallback)")
+    assert extension is not None
+    (name,) = extension_in(wheel)
+    archive = zipfile.ZipFile(wheel)
+    assert name == f"multibody_sim/{extension.name}"
+    assert archive.read(name) == extension.read_bytes()
+    record = build_record(archive.read("multibody_sim/_native_build.py").decode())
+    built = importlib.import_module("multibody_sim._native_build")
+    assert record["BUILD_SHA256"] == built.BUILD_SHA256 and record["SOURCES_SHA256"] == built.SOURCES_SHA256
+    assert record["EXTENSION_SIZE"] == extension.stat().st_size
     assert not wheel.name.endswith("-py3-none-any.whl"), wheel.name  # tagged for this interpreter and platform
 
 
@@ -189,7 +236,7 @@ def test_without_a_compiler_the_install_falls_back_to_python_except_under_ci(ci,
     source = copy_sources(tmp_path / "source")
     out = tmp_path / "dist"
     env = {**_clean_env(), "CXX": "/bin/false", "CI": ci}  # a "compiler" that fails CMake's check
-    result = build_wheel(source, out, isolated=not build_requirements_here(), env=env, compiles=False)
+    result = build_wheel(source, out, isolated=not build_requirements_here(), env=env)
     if ci == "true":  # under CI a failed native build fails the install
         assert result.returncode != 0 and not list(out.glob("*.whl"))
         assert "/bin/false" in result.stdout + result.stderr  # CMake says which compiler failed

@@ -1,14 +1,16 @@
 """The compiled extension (multibody_sim._native): whether it runs here, why not, and the model hand-over.
 
-`available` is True when the extension was built (`pip install .` with a C++ compiler), was built against the
-Pinocchio installed now, loads, and `MULTIBODY_SIM_NATIVE=0` is not set; otherwise `why_unavailable` says why in
-one line and runs take the Python kernel. `kernel()` is the one phrase the CLI and run headers print.
+`available` is True when the extension was built (`pip install .` with a C++ compiler) from the sources beside
+it (in a checkout), against the Pinocchio installed now, is the file its build wrote (size and SHA-256, checked
+before loading it), loads, and `MULTIBODY_SIM_NATIVE=0` is not set; otherwise `why_unavailable` says why in one
+line and runs take the Python kernel. `kernel()` is the one phrase the CLI and run headers print.
 """
 
 from __future__ import annotations
 
 import hashlib
 import importlib
+import importlib.util
 import os
 from pathlib import Path
 from types import ModuleType
@@ -48,6 +50,10 @@ def _load() -> tuple[ModuleType | None, str | None]:
             f"the C++ extension was built against Pinocchio {built} but Pinocchio {running} is installed "
             "(no ABI promise across versions): reinstall multibody-sim"
         )
+    spec = importlib.util.find_spec(f"{__package__}._native")  # where it is, without loading it
+    damaged = _damaged(build, Path(spec.origin)) if spec is not None and spec.origin is not None else None
+    if damaged is not None:
+        return None, damaged
     try:
         extension = importlib.import_module(f"{__package__}._native")
     except ImportError as exc:
@@ -68,6 +74,43 @@ def sources_digest(folder: Path) -> str:
         if path.suffix in (".cpp", ".hpp")
     )
     return hashlib.sha256(lines.encode()).hexdigest()
+
+
+def file_digest(path: Path) -> str:
+    """The file's SHA-256 in hex, as CMake's file(SHA256) writes it."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        while chunk := file.read(1 << 20):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _damaged(build: Any, path: Path) -> str | None:
+    """Why the extension file at path is not the one its build wrote (truncated by an interrupted copy or install,
+    or altered since), or None. Checked before loading it: the dynamic loader dies of SIGBUS on a truncated file.
+
+    Args:
+        build: the build record (the module _native_build, or anything with its attributes).
+        path: the extension file.
+    """
+    size, digest = getattr(build, "EXTENSION_SIZE", None), getattr(build, "EXTENSION_SHA256", None)
+    if size is None or digest is None:
+        return "the C++ extension's build record gives no size and SHA-256 to check it by: reinstall multibody-sim"
+    try:
+        actual = path.stat().st_size
+        if actual != size:
+            return (
+                f"the C++ extension {path} is damaged: {actual} bytes where its build wrote {size} (an interrupted "
+                "copy or install?): reinstall multibody-sim"
+            )
+        if file_digest(path) != digest:
+            return (
+                f"the C++ extension {path} is damaged: its SHA-256 is not the one its build recorded: reinstall "
+                "multibody-sim"
+            )
+    except OSError as exc:
+        return f"the C++ extension {path} cannot be read ({exc.strerror}): reinstall multibody-sim"
+    return None
 
 
 #: Where the C++ sources sit in a checkout (src/native beside src/multibody_sim); a wheel ships none.
