@@ -89,6 +89,12 @@ PRINTS: dict[str, list[str]] = {
         r"^steps: 400 ",  # 0.4 s at 1 ms
         r"^energy \[J\]: T 2 -> ",  # 1 kg at 2 m/s: 2 J
     ],
+    'scene = ms.load_scene("box_sensors.toml")': [
+        r"^\(601, 6\) \(601, 3\)$",  # 0.6 s at 1 ms: 601 samples; 6 and 3 components
+        # in free fall the IMU reads its bias and noise (0.1 ± 0.02), at rest g + 0.1; the touch sensor m g
+        r"^falling: az 0\.\d\d, resting: az 9\.9\d m/s², touch 9\.810 N$",
+        r"^\(3001, 1\) 2\.600$",  # 3 s at 1 ms, one joint, held at its target 2.6 rad
+    ],
     "df = traj.to_dataframe()": [r"^\s+t\s+q\.root_joint\.z\s+v\.root_joint\.vz\s+q\.FL_KFE\s+total_energy$"],
 }
 

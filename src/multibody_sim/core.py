@@ -133,6 +133,7 @@ class Core:
         self.solver_stats: dict[int, dict[str, int]] = {}  # stopped rows' solver counts (contact methods)
         self.stops: list[RowStop] = []
         self.recorded = -math.inf
+        self.ticks: Any = None  # sensors.Ticks when the system's sensors tick (the entry point sets it)
 
     def _set_rows(self, rows: np.ndarray) -> None:
         self.rows = rows
@@ -219,6 +220,8 @@ class Core:
                 self.stop(bad, counted=True, with_last=added)
                 if not kernel.n:
                     return EMPTY
+            if self.ticks is not None:
+                self.ticks.after_step(self, h, t_next)
 
     def _dense_samples(self, t: float, t_next: float, h: float, tolerance: float) -> None:
         """Samples at the output instants strictly inside the accepted step (t, t_next), by dense output."""

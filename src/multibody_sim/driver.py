@@ -22,10 +22,11 @@ from .kernels.native import NativeCore, NativeKernel, why_not_native
 from .kernels.row import RowKernel
 from .metadata import run_metadata
 from .monitor import Monitor
-from .recording import COUNTERS, SampleStore, check_memory, file_bytes, samples_needed
+from .recording import COUNTERS, SampleStore, check_memory, file_bytes, samples_needed, sensor_width
 from .safety import check_file_size
+from .sensors import Sensing, run_sensing
 from .step_control import SLIVER, ConstantStep, PIController
-from .torques import Saturation, Torques
+from .torques import Saturation, Torques, check_sensor_controller
 from .trajectory import (
     PARTS_SUFFIX,
     LimitViolations,
@@ -217,6 +218,15 @@ class RunSettings:
         return -(-self.n_steps // self.control_every)
 
 
+def _sensing(system: Any, method: Integrator, settings: RunSettings, core: Core, rows: np.ndarray) -> Sensing | None:
+    """The run's sensors, ticking in the core and read at its start; None for a system without sensors."""
+    dt = settings.dt
+    sensing = run_sensing(system, method, dt, settings.control_every, rows)
+    if sensing is not None:
+        sensing.attach(core, dt)
+    return sensing
+
+
 def check_resources(system: Any, settings: RunSettings, sink: Sink, B: int = 1) -> None:
     """Refuse, before the run, what this process could not hold or write: the samples in memory (or a chunk's
     buffer) against usable_memory(), and the files against its file-size limit (check_file_sizes)."""
@@ -267,6 +277,7 @@ class Run:
         num_threads: int = 1,
         progress: Any = None,
         options: dict[str, Any] | None = None,
+        row_ids: np.ndarray | None = None,
     ):
         self.system, self.method, self.settings, self.torques = system, method, settings, torques
         self.options = dict(options or {})
@@ -280,7 +291,9 @@ class Run:
         check_resources(system, settings, self.sink, B)
         capacity = chunk if chunk is not None else min(settings.capacity, 1 << 20)
         record_width = sum(width for _, _, width in system.record_fields)
-        self.store = SampleStore(B, system.nq, system.nv, len(system.ledger_elements), record_width, capacity)
+        self.store = SampleStore(
+            B, system.nq, system.nv, len(system.ledger_elements), record_width, capacity, sensor_width(system)
+        )
         self.store.make_room(chunk if chunk is not None else min(capacity, BLOCK_SAMPLES))
         if settings.adaptive:
             control: ConstantStep | PIController = PIController(
@@ -307,6 +320,8 @@ class Run:
         self.core = core_class(kernel)(
             system=system, method=method, kernel=kernel, control=control, sampler=sampler, store=self.store, B=B
         )
+        check_sensor_controller(system, torques.reads_sensors)
+        self.sensing = _sensing(system, method, settings, self.core, np.arange(B) if row_ids is None else row_ids)
         self.monitor = Monitor(system, B)
         self.saturation = Saturation(system, B)
         self.controller_calls = np.zeros(B, dtype=np.int64)
@@ -380,7 +395,8 @@ class Run:
     def _control(self, t: float, instant: int) -> None:
         core = self.core
         rows = core.rows
-        TAU, failures = self.torques.compute(self.system, t, instant, rows, core.kernel.states)
+        readings = self.sensing.stream if self.sensing is not None else None
+        TAU, failures = self.torques.compute(self.system, t, instant, rows, core.kernel.states, readings)
         self.controller_calls[rows] += 1
         if failures:
             js = [j for j, _, _ in failures]
@@ -407,6 +423,8 @@ class Run:
         """Check the samples taken since the last call (the energy monitor), show them (on_sample, progress) and
         stop the rows the core or the monitor stopped."""
         store, core, monitor = self.store, self.core, self.monitor
+        if self.sensing is not None:
+            self.sensing.update(store)
         stops = {stop.row: stop for stop in core.take_stops()}
         rows = core.rows
         if stops:
@@ -618,6 +636,8 @@ class Run:
 
     def trajectory(self, b: int, *, status: str | None = None, copy: bool = True) -> Trajectory:
         """Row b's samples in memory as a Trajectory (copy=False: views of the store, see SampleStore.trajectory)."""
+        if self.sensing is not None:
+            self.sensing.update(self.store)
         return self.store.trajectory(
             b,
             system=self.system,

@@ -2,7 +2,9 @@
 on the batched stepping core (BatchStepper). Needs gymnasium (`pip install 'multibody-sim[gym]'`).
 
 An environment step is one control interval (``control_dt``) with the action held as the joint torque; the
-observation is the state (q, v). Episodes start from a seeded distribution around the robot's default pose (a
+observation is the state (q, v), or with ``observation="sensors"`` (or a list of sensor names) the readings of a
+scene's sensors (multibody_sim.sensors: noise, bias, rate and latency as declared), concatenated in the order
+declared (named). Episodes start from a seeded distribution around the robot's default pose (a
 scene's own initial state, q0 and v0, in its place):
 
     q0 = default_pose() ⊕ δq,  δq ~ U(-reset_noise_q, reset_noise_q)^nv  (in the tangent space: robot.integrate)
@@ -70,6 +72,7 @@ class _Task:
     reset_noise_q: float
     reset_noise_v: float
     failure_reward: float
+    sensors: tuple[str, ...] | None  # the observed sensors, or None: the state (q, v)
 
     @classmethod
     def check(
@@ -87,6 +90,7 @@ class _Task:
         reset_noise_q: Any,
         reset_noise_v: Any,
         failure_reward: Any,
+        observation: Any = "state",
     ) -> _Task:
         if not isinstance(system, Robot):
             raise InvalidArgumentError(
@@ -127,13 +131,24 @@ class _Task:
             noise_q,
             noise_v,
             failure,
+            _observed_sensors(system, observation),
         )
 
     # ---- spaces ----------------------------------------------------------------------------------------------------
     def observation_space(self) -> spaces.Box:
-        """(q, v), float64, shape (nq + nv,), unbounded."""
-        n = self.system.nq + self.system.nv
+        """(q, v), float64, shape (nq + nv,), or the observed sensors' readings (their components); unbounded."""
+        if self.sensors is None:
+            n = self.system.nq + self.system.nv
+        else:
+            sensors = self.system.sensors  # type: ignore[attr-defined]
+            n = sum(sensors.placed[sensors.names.index(name)].width for name in self.sensors)
         return spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float64)
+
+    def observe(self, q: np.ndarray, v: np.ndarray, readings: dict[str, np.ndarray]) -> np.ndarray:
+        """The observation of a state (q, v) and its readings (one row: arrays (components,); many: (n, ...))."""
+        if self.sensors is None:
+            return np.concatenate((q, v), axis=-1)
+        return np.concatenate([readings[name] for name in self.sensors], axis=-1)
 
     def action_space(self) -> spaces.Box:
         """Joint torques, float64, shape (nv,), within ± the effort limits (±inf where the URDF gives none), of width
@@ -216,17 +231,42 @@ def _described(value: Any) -> str:
     return type(value).__name__
 
 
-def _observation(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return np.concatenate((q, v))
+def _observed_sensors(system: Robot, observation: Any) -> tuple[str, ...] | None:
+    """The sensors an observation names ("sensors": all, in the order declared; a list: those), or None for
+    "state"; else InvalidArgumentError."""
+    if isinstance(observation, str) and observation == "state":
+        return None
+    sensors = getattr(system, "sensors", None)
+    names = sensors.names if sensors is not None else []
+    if isinstance(observation, str) and observation == "sensors":
+        if not names:
+            raise InvalidArgumentError(
+                'observation="sensors" needs a scene with sensors ([[sensor]] tables); this system declares none'
+            )
+        return tuple(names)
+    if isinstance(observation, (list, tuple)) and observation and all(isinstance(n, str) for n in observation):
+        unknown = [n for n in observation if n not in names]
+        if unknown or len(set(observation)) != len(observation):
+            problem = f"unknown sensor '{unknown[0]}'" if unknown else "a sensor named twice"
+            raise InvalidArgumentError(
+                f"observation: {problem} (the system's sensors: {', '.join(names) if names else 'none'})"
+            )
+        return tuple(observation)
+    raise InvalidArgumentError(
+        f'observation must be "state", "sensors" or a list of sensor names, got {_described(observation)}'
+    )
 
 
 class MultibodyEnv(gymnasium.Env):
     """A Gymnasium environment over a robot or scene: one step holds the action as joint torque over one control
     interval of a Stepper (simulate()'s stepping core).
 
-    Observation: ``np.concatenate((q, v))``, a float64 Box of shape (nq + nv,). Action: the joint torques, a float64
-    Box of shape (nv,) bounded by the URDF's effort limits (±inf where it gives none), of zero width on the unactuated
-    entries (a floating base's 6); torques beyond the limits are saturated. Reward: ``reward(q, v, tau)`` at the
+    Observation: ``np.concatenate((q, v))``, a float64 Box of shape (nq + nv,); with ``observation="sensors"``
+    (or a list of sensor names) the sensors' readings concatenated, a Box of their components (the env's seeded
+    reset also seeds the sensors' noise: each sensor's generator seeded with (its seed, the reset's seed)).
+    Action: the joint torques, a float64 Box of shape (nv,) bounded by the URDF's effort limits (±inf where it
+    gives none), of zero width on the unactuated entries (a floating base's 6); torques beyond the limits are
+    saturated. Reward: ``reward(q, v, tau)`` at the
     state the step reached, with the torque applied. An episode terminates when ``terminated(q, v)`` says so, or
     when the step fails (the state diverged, Newton failed, ...): then ``info["failure"]`` names the status and
     ``info["message"]`` says why, the state stays where it was before the step and the reward is
@@ -253,6 +293,7 @@ class MultibodyEnv(gymnasium.Env):
         reset_noise_q: half-width of the uniform perturbation of q in the tangent space [rad, m].
         reset_noise_v: half-width of the uniform perturbation of v [rad/s, m/s].
         failure_reward: the reward of a step that failed.
+        observation: "state" (q, v), "sensors" (every sensor of the scene) or a list of sensor names.
         render_mode: None only.
         **options: the integrator's options (rtol, atol, max_step for adaptive ones).
     """
@@ -274,13 +315,14 @@ class MultibodyEnv(gymnasium.Env):
         reset_noise_q: float = 0.01,
         reset_noise_v: float = 0.01,
         failure_reward: float = 0.0,
+        observation: str | list[str] = "state",
         render_mode: str | None = None,
         **options: Any,
     ):
         _check_render_mode(render_mode)
         self.task = task = _Task.check(
             system, reward, terminated, max_episode_steps, control_dt, dt, method, options,
-            initial_q, initial_v, reset_noise_q, reset_noise_v, failure_reward,
+            initial_q, initial_v, reset_noise_q, reset_noise_v, failure_reward, observation,
         )  # fmt: skip
         self.render_mode = None
         self.observation_space = task.observation_space()
@@ -297,14 +339,15 @@ class MultibodyEnv(gymnasium.Env):
         """Start an episode: from options' "q" (and "v") if given, else drawn around the default pose.
 
         Returns:
-            The observation (q, v), shape (nq + nv,), and info {"t": 0.0}.
+            The observation ((q, v), shape (nq + nv,), or the sensors' readings), and info {"t": 0.0}.
         """
         options = _check_options(options)
-        super().reset(seed=_check_seed(seed))
+        seed = _check_seed(seed)
+        super().reset(seed=seed)
         q, v = self.task.initial_state(self.np_random, options)
-        state = self.stepper.reset(q, v, 0.0)
+        state = self.stepper.reset(q, v, 0.0, sensor_seed=seed)
         self._elapsed = 0
-        return _observation(state.q, state.v), {"t": state.t}
+        return self.task.observe(state.q, state.v, self.stepper.readings), {"t": state.t}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Hold the action as joint torque over one control interval.
@@ -324,7 +367,8 @@ class MultibodyEnv(gymnasium.Env):
             reward, terminated = task.outcome(state.q, state.v, self.stepper.tau)
         self._elapsed += 1
         truncated = task.max_episode_steps is not None and self._elapsed >= task.max_episode_steps
-        return _observation(state.q, state.v), reward, terminated, truncated, {"t": state.t, **info}
+        observation = task.observe(state.q, state.v, self.stepper.readings)
+        return observation, reward, terminated, truncated, {"t": state.t, **info}
 
 
 class MultibodyVectorEnv(VectorEnv):
@@ -346,7 +390,7 @@ class MultibodyVectorEnv(VectorEnv):
         autoreset_mode: an ``AutoresetMode`` or its value ("NextStep", "SameStep", "Disabled").
         num_threads: threads of Pinocchio's abaInParallel in the batch kernel.
         **kwargs: MultibodyEnv's (reward, terminated, max_episode_steps, control_dt, dt, method, initial_q,
-            initial_v, reset_noise_q, reset_noise_v, failure_reward, the integrator's options).
+            initial_v, reset_noise_q, reset_noise_v, failure_reward, observation, the integrator's options).
     """
 
     def __init__(
@@ -365,6 +409,7 @@ class MultibodyVectorEnv(VectorEnv):
         reset_noise_q: float = 0.01,
         reset_noise_v: float = 0.01,
         failure_reward: float = 0.0,
+        observation: str | list[str] = "state",
         autoreset_mode: str | AutoresetMode = AutoresetMode.NEXT_STEP,
         num_threads: int = 1,
         render_mode: str | None = None,
@@ -380,7 +425,7 @@ class MultibodyVectorEnv(VectorEnv):
             raise InvalidArgumentError(f"autoreset_mode must be one of {valid}, got {autoreset_mode!r}") from None
         self.task = task = _Task.check(
             system, reward, terminated, max_episode_steps, control_dt, dt, method, options,
-            initial_q, initial_v, reset_noise_q, reset_noise_v, failure_reward,
+            initial_q, initial_v, reset_noise_q, reset_noise_v, failure_reward, observation,
         )  # fmt: skip
         self.num_envs = n = int(num_envs)
         check_allocation(
@@ -464,7 +509,12 @@ class MultibodyVectorEnv(VectorEnv):
             infos = self._add_info(infos, {"t": 0.0}, i)
         for i, rng in rngs.items():  # every row checked: the rows' generators change only now
             self._rngs[i] = rng
-        self.stepper.reset(rows, np.array([q for q, _ in states]), np.array([v for _, v in states]))
+        self.stepper.reset(
+            rows,
+            np.array([q for q, _ in states]),
+            np.array([v for _, v in states]),
+            sensor_seed=None if seed is None else [seeds[i] for i in rows.tolist()],
+        )
         self._elapsed[rows] = 0
         self._autoreset[rows] = False
         return self._observations(), infos
@@ -542,7 +592,8 @@ class MultibodyVectorEnv(VectorEnv):
             row_infos[i] = {"t": 0.0}
 
     def _observations(self) -> np.ndarray:
-        return np.concatenate((self.stepper.q, self.stepper.v), axis=1)
+        stepper = self.stepper
+        return self.task.observe(stepper.q, stepper.v, stepper.readings if self.task.sensors is not None else {})
 
 
 def _check_render_mode(render_mode: Any) -> None:

@@ -20,6 +20,20 @@ def run_metadata(system: Any) -> dict[str, Any]:
             "dof_names": system.dof_names,
             **system.source,  # load_robot (the full arguments), urdf_path, urdf_sha256; a scene's TOML
         },
+        **sensor_metadata(system),
+    }
+
+
+def sensor_metadata(system: Any) -> dict[str, Any]:
+    """{"sensors": [{name, kind, components}, ...]} for a system with sensors (Trajectory.sensors' columns), else
+    {}."""
+    sensors = getattr(system, "sensors", None)
+    if sensors is None:
+        return {}
+    return {
+        "sensors": [
+            {"name": p.spec.name, "kind": p.spec.kind, "components": list(p.components)} for p in sensors.placed
+        ]
     }
 
 

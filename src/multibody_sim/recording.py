@@ -40,8 +40,12 @@ class SampleStore:
         batch_arrays: those batch-major arrays, in STORE_ARRAYS' order.
     """
 
-    def __init__(self, B: int, nq: int, nv: int, n_elements: int, extra_width: int, capacity: int):
+    def __init__(
+        self, B: int, nq: int, nv: int, n_elements: int, extra_width: int, capacity: int, sensor_width: int = 0
+    ):
         self.B, self._shapes = B, (nq, nv, n_elements, extra_width)
+        self.sensor_width = sensor_width
+        self.sensed = np.zeros(B, dtype=np.int64)  # per row, samples whose SENSORS are written (sensors.Sensing)
         self.count = 0
         self._stopped_samples = np.zeros(B, dtype=int)  # samples of the rows that stopped
         self.running = np.ones(B, dtype=bool)
@@ -68,9 +72,11 @@ class SampleStore:
             np.swapaxes(self._batch[name], 0, 1) for name in STORE_ARRAYS
         )
         self.batch_arrays = tuple(self._batch[name] for name in STORE_ARRAYS)  # (B, capacity, ...) each
+        self._batch["SENSORS"] = np.zeros((B, capacity, self.sensor_width))
+        self.SENSORS = np.swapaxes(self._batch["SENSORS"], 0, 1)  # (capacity, B, sensor_width): sensor readings
 
     def batch_major(self, name: str) -> np.ndarray:
-        """The memory behind array `name` (one of STORE_ARRAYS): shape (B, capacity, ...), C-ordered."""
+        """The memory behind array `name` (one of STORE_ARRAYS, or SENSORS): shape (B, capacity, ...), C-ordered."""
         return self._batch[name]
 
     @property
@@ -81,7 +87,7 @@ class SampleStore:
     def sample_bytes(self) -> int:
         """Bytes a sample of every row takes in the store."""
         nq, nv, m, e = self._shapes
-        return 8 * self.B * (1 + nq + 2 * nv + 2 + m + e + len(COUNTERS))
+        return 8 * self.B * (1 + nq + 2 * nv + 2 + m + e + len(COUNTERS) + self.sensor_width)
 
     @property
     def n_samples(self) -> np.ndarray:
@@ -105,7 +111,7 @@ class SampleStore:
                     f"{capacity} samples would need {needed / 2**30:.3g} GiB, more than the {room.bytes / 2**30:.3g} "
                     f"GiB available ({room.limit})"
                 )
-            old = {name: getattr(self, name) for name in STORE_ARRAYS}
+            old = {name: getattr(self, name) for name in (*STORE_ARRAYS, "SENSORS")}
             self._allocate(capacity)
             n = min(i + 1, len(old["T"]))  # stopped rows may hold a last sample at index i
             for name, array in old.items():
@@ -128,6 +134,7 @@ class SampleStore:
         """Forget every sample (after they were written to a chunk file)."""
         self.count = 0
         self._stopped_samples[:] = 0
+        self.sensed[:] = 0
         self.full = False
         self.contacts = {}
 
@@ -139,6 +146,7 @@ class SampleStore:
     def truncate(self, b: int, n: int) -> None:
         """Row b (stopped) keeps its first n samples."""
         self._stopped_samples[b] = min(int(self._stopped_samples[b]), n)
+        self.sensed[b] = min(int(self.sensed[b]), n)
         held = self.contacts.get(b)
         if held:
             self.contacts[b] = {i: rows for i, rows in held.items() if i < n}
@@ -206,6 +214,7 @@ class SampleStore:
             status=status,
             metadata=metadata,
             contacts=self.contacts_record(b, n, system),
+            sensors=sensor_arrays(system, self.SENSORS[:n, b]),
         )
 
     def contacts_record(self, b: int, n: int, system: Any) -> Contacts | None:
@@ -255,6 +264,21 @@ def delivered_torques(record_fields: tuple[tuple[str, str, int], ...], extra: np
             return extra[..., column : column + width].copy()
         column += width
     return None
+
+
+def sensor_width(system: Any) -> int:
+    """Components of a system's sensors in all (0 without sensors)."""
+    sensors = getattr(system, "sensors", None)
+    return 0 if sensors is None else sensors.width
+
+
+def sensor_arrays(system: Any, readings: np.ndarray) -> dict[str, np.ndarray]:
+    """A system's sensor readings (the last axis of `readings`, shape (..., width)) by sensor name (copies), or {}
+    for a system without sensors."""
+    sensors = getattr(system, "sensors", None)
+    if sensors is None:
+        return {}
+    return {name: readings[..., sensors.columns(k)].copy() for k, name in enumerate(sensors.names)}
 
 
 def find_limit_violations(system: Any, t: np.ndarray, Q: np.ndarray) -> LimitViolations:
@@ -322,7 +346,7 @@ def _coordinate_joints(system: Any) -> list[str]:
 
 def sample_bytes(system: Any, rows: int = 1) -> int:
     """Memory a sample of `rows` rows takes in the store and in the result [bytes]."""
-    widths = 12 + system.nq + 3 * system.nv + 2 * len(system.ledger_elements)
+    widths = 12 + system.nq + 3 * system.nv + 2 * len(system.ledger_elements) + 2 * sensor_width(system)
     widths += sum(width for _, _, width in system.record_fields)
     return 8 * widths * rows
 
@@ -344,7 +368,7 @@ def check_memory(n_samples: int, system: Any, rows: int = 1, advice: str | None 
 
 def file_bytes(system: Any) -> int:
     """Bytes a sample takes in a trajectory file (t, q, v, tau, five energies, the ledger and the records)."""
-    widths = 6 + system.nq + 2 * system.nv + len(system.ledger_elements)
+    widths = 6 + system.nq + 2 * system.nv + len(system.ledger_elements) + sensor_width(system)
     return 8 * (widths + sum(width for _, _, width in system.record_fields))
 
 

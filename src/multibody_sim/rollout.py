@@ -23,7 +23,7 @@ from .exceptions import InvalidArgumentError, SimulationInterrupted
 from .integrators import Integrator, get_integrator
 from .integrators.timestepping import SOLVER_COUNTS  # a contact scene's, in stats only when kept
 from .progress import ProgressBar
-from .recording import delivered_torques, limit_reports, split_records
+from .recording import delivered_torques, limit_reports, sensor_arrays, split_records
 from .robot import Robot, real_array
 from .torques import Torques, controller_name
 from .trajectory import ARRAYS, ConstraintRecord, Contacts, LedgerEntry, LimitViolations, Trajectory
@@ -63,6 +63,8 @@ class BatchTrajectory:
             within its real samples), length B; None for an element of a run without contact.
         ctrl: a scene with actuators: the commands, shape (B, N, nv), as Trajectory.ctrl (tau then holds the joint
             torques the actuators delivered); None otherwise.
+        sensors: a scene's sensor readings, as Trajectory.sensors, shape (B, N, components) each (element b's
+            noise drawn from each sensor's seed + b).
         stats: per-element counts as arrays of shape (B,): steps, rejected_steps, evaluations,
             controller_calls, saturated_controls; saturated_dofs, shape (B, nv); and wall_time [s] of the
             whole batch (a float).
@@ -89,6 +91,7 @@ class BatchTrajectory:
     constraints: dict[str, ConstraintRecord] = field(default_factory=dict)
     contacts: list[Contacts | None] = field(default_factory=list)
     ctrl: np.ndarray | None = None
+    sensors: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.n_samples)
@@ -136,6 +139,7 @@ class BatchTrajectory:
             metadata={**self.metadata, "element": b % len(self)},
             contacts=self.contacts[b] if self.contacts else None,
             ctrl=self.ctrl[b, :n].copy() if self.ctrl is not None else None,
+            sensors={name: readings[b, :n].copy() for name, readings in self.sensors.items()},
         )
 
     def summary(self) -> str:
@@ -243,7 +247,9 @@ def rollout(
         raise InvalidArgumentError(f"progress must be True, False or None, got {progress!r}")
     method.check_system(system)
     settings = RunSettings.check(method, duration, dt, options)
-    job = _Job(system, method, Q0, V0, settings, _torques(system, method, settings, controller, taus, B), options)
+    job = _Job(
+        system, method, Q0, V0, settings, _torques(system, method, settings, controller, taus, B), options, np.arange(B)
+    )
     if backend == "ray":
         return _ray_rollout(job, progress=progress, chunk_size=chunk_size)
     if settings.adaptive:
@@ -268,6 +274,7 @@ class _Job:
     settings: RunSettings
     torques: Torques
     options: dict[str, Any]
+    rows: np.ndarray  # each element's index in the whole batch (its sensors' seeds)
 
     def subset(self, rows: np.ndarray) -> _Job:
         """The same job for the elements `rows` only."""
@@ -279,6 +286,7 @@ class _Job:
             self.settings,
             self.torques.subset(rows),
             self.options,
+            self.rows[rows],
         )
 
     def run(self, **kwargs: Any) -> Run:
@@ -291,6 +299,7 @@ class _Job:
             settings=self.settings,
             torques=self.torques,
             options=self.options,
+            row_ids=self.rows,
             **kwargs,
         )
 
@@ -356,7 +365,10 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
     records = {f"{name}.{part}": getattr(r, part) for name, r in constraints.items() for part in _RECORD_PARTS}
     if ctrl is not None:
         records["ctrl"] = ctrl
-    _pad({**arrays, **records}, ledger, n, run.Q0, run.V0)
+    if run.sensing is not None:
+        run.sensing.update(store)
+    sensors = sensor_arrays(system, store.batch_major("SENSORS")[:, :N])  # (copies)
+    _pad({**arrays, **records, **{f"sensor {name}": r for name, r in sensors.items()}}, ledger, n, run.Q0, run.V0)
     stats: dict[str, Any] = run.count_arrays()
     if run.core.solver_stats:  # a contact method's counts, per element
         solved = run.core.solver_stats
@@ -377,6 +389,7 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
         if getattr(system, "contact", None) is not None
         else [None] * run.B,  # (what contacts_record gives without contact)
         ctrl=ctrl,
+        sensors=sensors,
     )
 
 
@@ -601,6 +614,12 @@ def _stack(
         for b, tr in enumerate(trajectories):
             ctrl[b, : n[b]] = tr.ctrl
         records["ctrl"] = ctrl
+    sensors = {}
+    for name, readings in first.sensors.items():
+        arr = np.zeros((B, N, readings.shape[1]))
+        for b, tr in enumerate(trajectories):
+            arr[b, : n[b]] = tr.sensors[name]
+        sensors[name] = records[f"sensor {name}"] = arr
     _pad({**arrays, **records}, ledger, n, Q0, V0)  # (records keyed apart from the field names)
     nv = first.v.shape[1]
     dof_index = {name: i for i, name in enumerate(first.metadata.get("robot", {}).get("dof_names", []))}
@@ -625,6 +644,7 @@ def _stack(
         stats=stats,
         contacts=[tr.contacts for tr in trajectories],
         ctrl=ctrl,
+        sensors=sensors,
     )
 
 
@@ -666,6 +686,7 @@ def _concatenate(batches: list[BatchTrajectory], wall_time: float | None = None)
         metadata=dict(batches[0].metadata),
         contacts=[c for bt in batches for c in (bt.contacts or [None] * len(bt))],
         ctrl=np.concatenate([widen(bt.ctrl) for bt in batches]) if batches[0].ctrl is not None else None,  # type: ignore[arg-type]
+        sensors={name: np.concatenate([widen(bt.sensors[name]) for bt in batches]) for name in batches[0].sensors},
     )
 
 

@@ -35,6 +35,15 @@ class Controller(Protocol):
     def __call__(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray: ...
 
 
+class SensorController(Protocol):
+    """A torque policy that reads a scene's sensors: it has an attribute ``sensors = True`` and is called as
+    ``controller(t, q, v, readings) -> tau``, readings a dict of sensor name -> reading, shape (components,)."""
+
+    sensors: bool
+
+    def __call__(self, t: float, q: np.ndarray, v: np.ndarray, readings: dict[str, np.ndarray]) -> np.ndarray: ...
+
+
 def simulate(
     system: Robot,
     q0: Any,
@@ -43,7 +52,7 @@ def simulate(
     duration: float,
     dt: float,
     integrator: str | Integrator = "rk4",
-    controller: Controller | None = None,
+    controller: Controller | SensorController | None = None,
     out: str | os.PathLike[str] | None = None,
     chunk: int | None = None,
     on_sample: Callable[[float, np.ndarray, np.ndarray], None] | None = None,
@@ -61,7 +70,8 @@ def simulate(
             adaptive methods take it as their first trial step.
         integrator: a registry name (`multibody-sim integrators` lists them) or an Integrator.
         controller: ``controller(t, q, v) -> tau`` (shape (nv,)), zero-order held; None applies no torque. An
-            object with a ``reset()`` method is reset before the run starts.
+            object with a ``reset()`` method is reset before the run starts. One with an attribute ``sensors =
+            True`` is called ``controller(t, q, v, readings)`` with the scene's sensors' readings (SensorController).
         out: write the trajectory to this .npz when the run ends, however it ends (completed, failed or
             interrupted), atomically.
         chunk: with `out`, stream the samples to disk every `chunk` samples (numbered files in out.npz.parts/,

@@ -4,7 +4,7 @@ one control interval per call."""
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
@@ -16,9 +16,10 @@ from .monitor import Monitor
 from .recording import SampleStore
 from .robot import Robot, real_array
 from .rollout import check_batch
-from .simulation import Controller
+from .sensors import run_sensing
+from .simulation import Controller, SensorController
 from .step_control import SLIVER, ConstantStep, PIController
-from .torques import Saturation, check_torque
+from .torques import Saturation, check_sensor_controller, check_torque, reads_sensors
 from .trajectory import LedgerEntry, Trajectory
 from .validation import (
     check_callable,
@@ -31,6 +32,7 @@ from .validation import (
     positive_number,
     relative_tolerance,
     steps_per,
+    whole_number,
 )
 
 _ADAPTIVE_OPTIONS = ("atol", "max_step", "rtol")
@@ -134,16 +136,22 @@ class Stepper:
         self._element_names = [name for name, _ in elements]
         self._kinds = [kind for _, kind in elements]
         self._is_work = np.array([kind == "work" for kind in self._kinds])
+        self._sensing = run_sensing(system, method, self.dt, self._interval_steps, np.zeros(1, dtype=int))
         self.reset()
 
     # ---- state ---------------------------------------------------------------------------------------
-    def reset(self, q: Any = None, v: Any = None, t: float | None = None) -> StepperState:
-        """Return to a state with a fresh ledger, zero torque and fresh stats.
+    def reset(
+        self, q: Any = None, v: Any = None, t: float | None = None, *, sensor_seed: int | None = None
+    ) -> StepperState:
+        """Return to a state with a fresh ledger, zero torque and fresh stats; a scene's sensors read the new state
+        (their latency starts afresh; their noise goes on from where it was).
 
         Args:
             q: configuration, shape (nq,); default the stepper's q0.
             v: velocity, shape (nv,); default the stepper's v0.
             t: time [s]; default the stepper's t0 (0 unless given at construction).
+            sensor_seed: a whole number >= 0: each sensor's noise starts anew from a generator seeded with its seed
+                and this (the same sensor_seed, the same noise); None: it goes on.
 
         Returns:
             The new state.
@@ -179,8 +187,18 @@ class Stepper:
         self._saturation = Saturation(system, 1)
         self._controller_calls = 0
         self._tau = _frozen(np.zeros(system.nv))
+        if self._sensing is not None:
+            entropy = None if sensor_seed is None else whole_number(sensor_seed, "sensor_seed", 0, 2**63 - 1)
+            self._sensing.stream.restart(np.zeros(1, dtype=int), entropy)
+            self._sensing.attach(self._core, self.dt)
         self._freeze()
         return self.state
+
+    @property
+    def readings(self) -> dict[str, np.ndarray]:
+        """The scene's sensors' readings now, by sensor name, shape (components,) each (copies; see
+        multibody_sim.sensors); {} for a system without sensors."""
+        return {} if self._sensing is None else self._sensing.stream.readings(0)
 
     @property
     def state(self) -> StepperState:
@@ -320,7 +338,7 @@ class Stepper:
         self._advance(self._instant(1), snapshot)
         return self.state
 
-    def advance_to(self, t: float, controller: Controller | None = None) -> StepperState:
+    def advance_to(self, t: float, controller: Controller | SensorController | None = None) -> StepperState:
         """Step to time t, the last control interval shortened to land on it exactly (as simulate() ends on its
         duration).
 
@@ -342,6 +360,7 @@ class Stepper:
         if t_end < now:
             raise InvalidArgumentError(f"t must not be before the current time {now!r} s, got {t_end!r} s")
         check_callable(controller, "controller", "controller(t, q, v)")
+        check_sensor_controller(self.system, reads_sensors(controller))
         if t_end > now:  # the control instants up to t_end are counted: their number must stay exact
             check_ratio(t_end - now, self.control_dt, "(t - current time)", "control_dt")
         while self.t < t_end:
@@ -349,7 +368,10 @@ class Stepper:
             if controller is not None:
                 t_now = self.t
                 try:
-                    out = controller(t_now, self.q, self.v)
+                    if reads_sensors(controller):
+                        out = cast(SensorController, controller)(t_now, self.q, self.v, self.readings)
+                    else:
+                        out = cast(Controller, controller)(t_now, self.q, self.v)
                 except Exception as exc:  # user code: the stepper stays where it is
                     message = f"failed at t = {t_now:.6g} s: the controller raised {type(exc).__name__}: {exc}"
                     raise SimulationError(message, status="failed", trajectory=self._one_sample("failed")) from exc
@@ -385,6 +407,8 @@ class Stepper:
             self._restore(snapshot)
             stop = stops[0]
             raise SimulationError(stop.message, status=stop.status, trajectory=self._one_sample(stop.status))
+        if self._sensing is not None:
+            self._sensing.update()
         if self.check_energy:
             store = self._store
             store.clear()  # it holds the state of the latest call only
@@ -414,11 +438,15 @@ class Stepper:
             self._controller_calls,
             self._tau,
             self._grid,
+            self._sensing.stream.snapshot() if self._sensing is not None else None,
         )
 
     def _restore(self, snapshot: tuple[Any, ...]) -> None:
         core = self._core
-        kernel, control, counts, saturation, calls, tau, grid = snapshot
+        kernel, control, counts, saturation, calls, tau, grid, sensing = snapshot
+        if self._sensing is not None:
+            self._sensing.ticks.clear()
+            self._sensing.stream.restore(sensing)
         self._kernel.restore(kernel)
         core.control.restore(control)
         core._set_rows(np.arange(1))
@@ -540,6 +568,15 @@ class BatchStepper:
                 )  # fmt: skip
                 for q, v in zip(Q, V, strict=True)
             ]
+            for b, stepper in enumerate(self._alone):  # row b's sensors draw from their seeds + b
+                if stepper._sensing is not None:
+                    stepper._sensing = run_sensing(system, method, stepper.dt, stepper._interval_steps, np.array([b]))
+                    stepper.reset()
+        self._sensing = (
+            run_sensing(system, method, self.dt, self._interval_steps, np.arange(self.B))
+            if self._alone is None
+            else None
+        )
         self._Q0, self._V0 = Q, V
         self._Q, self._V = Q.copy(), V.copy()
         self._steps = np.zeros(self.B, dtype=np.int64)  # control intervals since each row's reset
@@ -576,14 +613,24 @@ class BatchStepper:
         """Velocities, shape (B, nv) (a copy)."""
         return self._V.copy()
 
-    def reset(self, rows: Any = None, q: Any = None, v: Any = None) -> None:
-        """Put rows at new states, time 0, zero torque and a fresh energy reference.
+    def reset(self, rows: Any = None, q: Any = None, v: Any = None, *, sensor_seed: Any = None) -> None:
+        """Put rows at new states, time 0, zero torque and a fresh energy reference; a scene's sensors read the new
+        states (as Stepper.reset).
 
         Args:
             rows: the rows to reset (indices or a boolean mask of shape (B,)); None: all.
             q: their configurations, shape (len(rows), nq); None: the states given at construction.
             v: their velocities, shape (len(rows), nv); None: the states given at construction, or zero with q.
+            sensor_seed: as Stepper.reset's: one whole number for every reset row, or one per reset row.
         """
+        entropy: Any = None
+        if sensor_seed is not None:
+            given = sensor_seed if isinstance(sensor_seed, (list, tuple, np.ndarray)) else None
+            entropy = (
+                [whole_number(s, f"sensor_seed[{i}]", 0, 2**63 - 1) for i, s in enumerate(given)]
+                if given is not None
+                else whole_number(sensor_seed, "sensor_seed", 0, 2**63 - 1)
+            )
         index = np.arange(self.B) if rows is None else np.arange(self.B)[np.asarray(rows)]
         if q is None:
             Q, V = self._Q0[index], self._V0[index]
@@ -593,6 +640,10 @@ class BatchStepper:
             Q, V = self._check_states(q, v, "q", "v")
             if len(Q) != len(index):
                 raise InvalidArgumentError(f"q must hold one state per reset row ({len(index)}), got {len(Q)}")
+        if isinstance(entropy, list) and len(entropy) != len(index):
+            raise InvalidArgumentError(
+                f"sensor_seed must hold one seed per reset row ({len(index)}), got {len(entropy)}"
+            )
         self._Q[index], self._V[index] = Q, V
         self._steps[index] = 0
         self._TAU[index] = 0.0
@@ -600,9 +651,22 @@ class BatchStepper:
         unchecked_energies = self.system.unchecked_energies
         self._monitor.start(index, np.array([unchecked_energies(q, v) for q, v in zip(Q, V, strict=True)]))
         if self._alone is not None:
-            for b, q_b, v_b in zip(index.tolist(), Q, V, strict=True):
-                self._alone[b].reset(q_b, v_b, 0.0)
+            for k, (b, q_b, v_b) in enumerate(zip(index.tolist(), Q, V, strict=True)):
+                self._alone[b].reset(q_b, v_b, 0.0, sensor_seed=entropy[k] if isinstance(entropy, list) else entropy)
         self._core = None  # rebuilt from the rows' states at the next step
+        if self._sensing is not None:  # now: the rows read their new states
+            self._sensing.stream.restart(index, entropy)
+            self._build(fresh=index)
+
+    @property
+    def readings(self) -> dict[str, np.ndarray]:
+        """The rows' sensors' readings now, by sensor name, shape (B, components) each (copies; see
+        multibody_sim.sensors; a row whose step failed keeps the readings it took before the failure); {} for a
+        system without sensors."""
+        if self._alone is not None:
+            rows = [stepper.readings for stepper in self._alone]
+            return {name: np.array([r[name] for r in rows]) for name in rows[0]}
+        return {} if self._sensing is None else self._sensing.stream.batch_readings(np.arange(self.B))
 
     # ---- stepping ------------------------------------------------------------------------------------
     def step(self, tau: Any) -> BatchStep:
@@ -641,6 +705,8 @@ class BatchStepper:
             core.advance(self._core_t0 + (self._interval * self._interval_steps) * self.dt)
         for stop in core.take_stops():  # the row stays at its state before the call
             failures[int(stop.row)] = (stop.status, self._on_row_clock(stop))
+        if self._sensing is not None:
+            self._sensing.update()
         store = self._store
         store.clear()
         core.recorded = math.nan
@@ -679,8 +745,9 @@ class BatchStepper:
         t = steps_before * self.dt + stop.time
         return stop_message(stop.status, t, steps_before + stop.step, stop.detail)
 
-    def _build(self) -> None:
-        """A stepping core over every row from the rows' states (its ledger flows count from the rows' ledger)."""
+    def _build(self, fresh: np.ndarray | None = None) -> None:
+        """A stepping core over every row from the rows' states (its ledger flows count from the rows' ledger);
+        the rows `fresh` (default none) start afresh: their sensors read their state now."""
         system, B = self.system, self.B
         self._base = self._ledger.copy()
         self._built_at = self._steps.copy()
@@ -697,6 +764,11 @@ class BatchStepper:
             B=B,
         )
         self._core_t0, self._interval = 0.0, 0
+        if self._sensing is not None:
+            done = self._steps * self._interval_steps
+            self._sensing.attach(
+                self._core, self.dt, fresh=np.zeros(0, dtype=int) if fresh is None else fresh, done=done
+            )
 
     def _check_torques(self, tau: Any) -> np.ndarray:
         system = self.system

@@ -9,8 +9,9 @@ contact scene's run, per contact body (Contacts.bodies: "ground", objects, decla
 `contact.<body>.normal`, the sum over its contact points of the normal forces (each along its contact's normal,
 positive when it presses), `.tangential`, the size of the sum of the tangential forces on it (its net friction
 force), both [N] and the mean forces over the step that ended at the sample, and `.count`, its contact points;
-then `contact.count`, all the sample's contact points. A trajectory without the robot's names in its
-metadata gets `q[k]`, `v[k]`, `tau[k]`. `contacts_dataframe()` gives every contact point in long form.
+then `contact.count`, all the sample's contact points; `<sensor>.<component>` per sensor reading
+(multibody_sim.sensors: `imu.ax`, `enc.<joint>`, ...). A trajectory without the robot's names in its metadata gets
+`q[k]`, `v[k]`, `tau[k]` (and `<sensor>[k]`). `contacts_dataframe()` gives every contact point in long form.
 """
 
 from __future__ import annotations
@@ -78,6 +79,18 @@ def column_names(trajectory: Trajectory, robot: Robot | None = None) -> list[str
     if trajectory.contacts is not None:
         columns += [f"contact.{body}.{part}" for body in trajectory.contacts.bodies for part in CONTACT_PARTS]
         columns.append("contact.count")
+    components = {
+        entry.get("name"): entry.get("components")
+        for entry in trajectory.metadata.get("sensors", [])
+        if isinstance(entry, dict)
+    }
+    for name, readings in trajectory.sensors.items():
+        width = np.shape(readings)[1]
+        known = components.get(name)
+        if isinstance(known, list) and len(known) == width:
+            columns += [f"{name}.{component}" for component in known]
+        else:
+            columns += [f"{name}[{k}]" for k in range(width)]
     return columns
 
 
@@ -185,6 +198,9 @@ def _block(trajectory: Trajectory, rows: slice) -> np.ndarray:
         parts += [np.asarray(record.velocity_drift[rows], dtype=float)[:, None]]
     if trajectory.contacts is not None:
         parts.append(_contact_block(trajectory, rows, len(parts[0])))
+    parts += [
+        np.asarray(readings[rows], dtype=float).reshape(len(parts[0]), -1) for readings in trajectory.sensors.values()
+    ]
     return np.hstack(parts)
 
 

@@ -111,11 +111,25 @@ class Torques:
             label=self.label,
         )
 
+    @property
+    def reads_sensors(self) -> bool:
+        """Whether a controller asks for the sensors' readings (see reads_sensors())."""
+        if self.kind == "batched":
+            return reads_sensors(self.batched)
+        return self.kind == "callables" and any(reads_sensors(c) for c in self.callables or ())
+
     def compute(
-        self, system: Any, t: float, instant: int, rows: np.ndarray, states: Callable[[], tuple[list, list]]
+        self,
+        system: Any,
+        t: float,
+        instant: int,
+        rows: np.ndarray,
+        states: Callable[[], tuple[list, list]],
+        readings: Any = None,
     ) -> tuple[np.ndarray, list[tuple[int, BaseException, bool]]]:
         """The torques of the running rows at time t (control instant number `instant`), shape (n, nv), and the
-        rows whose controller failed: (position, exception, is_bad_output)."""
+        rows whose controller failed: (position, exception, is_bad_output). `readings`: the sensors' readings
+        (sensors.SensorStream), for controllers that read them."""
         n, nv = len(rows), system.nv
         failures: list[tuple[int, BaseException, bool]] = []
         if self.kind == "taus":
@@ -127,7 +141,10 @@ class Torques:
             Q.setflags(write=False)  # the controller sees the state; it must not edit it
             V.setflags(write=False)
             try:
-                out = self.batched(t, Q, V)
+                if readings is not None and reads_sensors(self.batched):
+                    out = self.batched(t, Q, V, readings.batch_readings(rows))
+                else:
+                    out = self.batched(t, Q, V)
             except Exception as exc:  # user code: every row fails with it
                 return np.zeros((n, nv)), [(j, exc, False) for j in range(n)]
             shape = np.shape(out)
@@ -159,7 +176,11 @@ class Torques:
             q.setflags(write=False)  # the controller sees the state; it must not edit it
             v.setflags(write=False)
             try:
-                out = self.callables[b](t, q, v)
+                controller = self.callables[b]
+                if readings is not None and reads_sensors(controller):
+                    out = controller(t, q, v, readings.readings(b))
+                else:
+                    out = controller(t, q, v)
             except Exception as exc:  # user code: this row fails with it
                 failures.append((j, exc, False))
                 TAU[j] = 0.0
@@ -170,6 +191,22 @@ class Torques:
                 failures.append((j, exc, True))
                 TAU[j] = 0.0
         return TAU, failures
+
+
+def reads_sensors(controller: Any) -> bool:
+    """Whether a controller reads the sensors: it says so with an attribute ``sensors = True`` and is then called
+    as ``controller(t, q, v, readings)``, readings a dict of sensor name -> array (components,) (a batched one:
+    ``(t, Q, V, readings)``, arrays (n, components))."""
+    return getattr(controller, "sensors", False) is True
+
+
+def check_sensor_controller(system: Any, reads: bool) -> None:
+    """InvalidArgumentError when a controller reads sensors (`reads`) and the system declares none."""
+    if reads and getattr(system, "sensors", None) is None:
+        raise InvalidArgumentError(
+            "the controller reads sensors (sensors = True) but the system declares none: declare [[sensor]] tables "
+            "in its scene, or drop the attribute"
+        )
 
 
 def controller_name(controller: Any) -> str:

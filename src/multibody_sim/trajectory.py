@@ -36,6 +36,7 @@ ARRAYS = (
 )
 _LEDGER_PREFIX = "ledger/"
 _CONSTRAINT_PREFIX = "constraint/"
+_SENSOR_PREFIX = "sensors/"
 LEDGER_KINDS = ("work", "dissipated", "potential")
 
 
@@ -170,6 +171,8 @@ class Trajectory:
         ctrl: a scene with actuators: the command held from each sample to the next (torques, position or
             velocity targets, per actuator kind), shape (n, nv), tau being the joint torques the actuators delivered
             at each sample; None otherwise (tau is then the command).
+        sensors: a scene's sensor readings at each sample, by sensor name, shape (n, components) each (the reading
+            each sensor holds at the sample; components named in metadata["sensors"]); empty without sensors.
     """
 
     t: np.ndarray
@@ -190,6 +193,7 @@ class Trajectory:
     metadata: dict[str, Any] = field(default_factory=dict)
     contacts: Contacts | None = None
     ctrl: np.ndarray | None = None
+    sensors: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -393,6 +397,8 @@ class Trajectory:
         if self.contacts is not None:
             for part in CONTACT_PARTS:
                 arrays[_CONTACT_PREFIX + part] = np.asarray(getattr(self.contacts, part))
+        for name, readings in self.sensors.items():
+            arrays[_SENSOR_PREFIX + name] = np.asarray(readings)
         header = {
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
@@ -405,6 +411,8 @@ class Trajectory:
         }
         if self.contacts is not None:
             header["contact_bodies"] = list(self.contacts.bodies)
+        if self.sensors:
+            header["sensors"] = list(self.sensors)
         arrays["header"] = np.array(json.dumps(header, default=_json_default))
         write_atomically(path, lambda f: np.savez(f, **arrays), mode="finish")  # type: ignore[arg-type]
         return path
@@ -512,6 +520,7 @@ class Trajectory:
             metadata=dict(header["metadata"]),
             contacts=_read_contacts(contents, header, n, path),
             ctrl=ctrl,
+            sensors=_read_sensors(contents, header, n, path),
         )
 
     @classmethod
@@ -550,6 +559,7 @@ class Trajectory:
             metadata={k: v for k, v in last.metadata.items() if k != "chunk"},
             contacts=_joined_contacts(pieces),
             ctrl=np.concatenate([p.ctrl for p in pieces]) if all(p.ctrl is not None for p in pieces) else None,
+            sensors={name: np.concatenate([p.sensors[name] for p in pieces]) for name in last.sensors},
         )
 
 
@@ -574,6 +584,20 @@ def _read_contacts(contents: dict[str, np.ndarray], header: dict[str, Any], n: i
     if m and (pair.min() < 0 or pair.max() >= len(bodies)):
         raise TrajectoryFileError(f"{path}: the contacts record names bodies outside its {len(bodies)}")
     return Contacts(list(bodies), *(parts[part] for part in CONTACT_PARTS))  # type: ignore[arg-type]
+
+
+def _read_sensors(contents: dict[str, np.ndarray], header: dict[str, Any], n: int, path: Path) -> dict[str, np.ndarray]:
+    """The sensor readings of a file (checked: one float row per sample each), by name."""
+    names = header.get("sensors", [])
+    if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
+        raise TrajectoryFileError(f"{path}: the sensors record is malformed")
+    sensors = {}
+    for name in names:
+        readings = contents.get(_SENSOR_PREFIX + name)
+        if readings is None or readings.dtype.kind != "f" or readings.ndim != 2 or readings.shape[0] != n:
+            raise TrajectoryFileError(f"{path}: sensor '{printable(name)}' is missing or has the wrong shape")
+        sensors[name] = readings
+    return sensors
 
 
 def _joined_contacts(pieces: list[Trajectory]) -> Contacts | None:

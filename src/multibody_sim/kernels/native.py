@@ -83,6 +83,8 @@ def _scene_reason(scene: Scene) -> str | None:
                 f"the scene's collision geometry has {', '.join(shapes)} shapes (the native kernel renders "
                 f"{', '.join(NATIVE_SHAPES)})"
             )
+    if scene.sensors is not None:
+        return "the scene declares sensors, which the native kernel does not measure yet"
     if scene.constraints is not None:
         return f"the scene has constraints ({', '.join(scene.constraints.names)}), which run on the Python kernel"
     if scene.mimic:

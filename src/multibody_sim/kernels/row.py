@@ -57,6 +57,7 @@ class RowKernel:
         self.tau = [np.zeros(system.nv) for _ in q]
         self.now = RowState(q, v, flows, solver, 0.0)
         self.pending: list[Attempt] = []
+        self.v_before: list[np.ndarray] = []  # the rows' velocities before the latest accepted step (sensors)
         self.record_width = sum(width for _, _, width in system.record_fields)
         # The time-stepper of a contact scene records the contacts of each step (Trajectory.contacts).
         has_contact = getattr(system, "contact", None) is not None
@@ -127,6 +128,7 @@ class RowKernel:
     def accept(self, t_next: float) -> None:
         flows = self.now.flows
         pending = self.pending
+        self.v_before = self.now.v
         if len(pending) == 1:
             a = pending[0]
             self.now = RowState([a.q], [a.v], [flows[0] + a.flows], [a.state], t_next)
@@ -149,6 +151,7 @@ class RowKernel:
         js = np.flatnonzero(keep).tolist()
         self.tau = [self.tau[j] for j in js]
         self.pending = [self.pending[j] for j in js] if len(self.pending) == len(q) else []
+        self.v_before = [self.v_before[j] for j in js] if len(self.v_before) == len(q) else []
         self.now = RowState([q[j] for j in js], [v[j] for j in js], [flows[j] for j in js], [solver[j] for j in js], t)
 
     def flows_of(self, j: int) -> np.ndarray:
@@ -181,6 +184,41 @@ class RowKernel:
         for j, b in zip(positions, rows.tolist(), strict=True):
             self._write(store, i, b, q[j], v[j], flows[j], self.tau[j], t)
             self._write_contacts(store, i, b, solver[j])
+
+    def measure(self, js: np.ndarray, h: float) -> np.ndarray:
+        """The sensors' measurements of the rows at positions js after the step of h they just took, shape
+        (len(js), width): their state now, the step's (v⁺ − v) / h, its contacts and the torque held over it."""
+        sensors = self.system.sensors
+        q, v, _, solver, t = self.now
+        out = np.empty((len(js), sensors.width))
+        for k, j in enumerate(js.tolist()):
+            a = (v[j] - self.v_before[j]) / h
+            sensors.measure(q[j], v[j], a, self.tau[j], t, self._records(solver[j]), h, out[k])
+        return out
+
+    def measure_start(self, js: np.ndarray, h: float) -> np.ndarray:
+        """The sensors' first measurements of the rows at positions js, at their state now (no step has ended):
+        with the acceleration and contacts of a step of h under a zero command, taken and discarded (a step that fails
+        or raises gives zero acceleration and no contact)."""
+        sensors, method, system = self.system.sensors, self.method, self.system
+        q, v, _, solver, t = self.now
+        zero = np.zeros(system.nv)
+        out = np.empty((len(js), sensors.width))
+        for k, j in enumerate(js.tolist()):
+            a, records = zero, None
+            try:
+                trial = method.attempt(system, q[j], v[j], zero, h, t, solver[j], rtol=self.rtol, atol=self.atol)
+            except Exception:  # user code in the system: the run's first step says so
+                trial = None
+            if trial is not None and trial.status == OK:
+                a, records = (trial.v - v[j]) / h, self._records(trial.state)
+            sensors.measure(q[j], v[j], a, zero, t, records, h, out[k])
+        return out
+
+    def _records(self, state: Any) -> np.ndarray | None:
+        """A contact method's contacts of the step that produced `state`, or None."""
+        records = self._contact_records
+        return records(self.system, state) if records is not None else None
 
     def _write_contacts(self, store: SampleStore, i: int, b: int, state: Any) -> None:
         """A contact method's active contacts (those of the step that ended at this sample) into the store."""

@@ -54,6 +54,9 @@ from .spec import (
     REFERENCES,
     ROBOT_GEOMETRY,
     ROBOT_KEYS,
+    SENSOR_KEYS,
+    SENSOR_KINDS,
+    SENSOR_PLACES,
     SHAPE_DIMENSIONS,
     SHAPE_KEYS,
     SHAPES,
@@ -72,6 +75,7 @@ from .spec import (
     PayloadSpec,
     RobotSpec,
     SceneSpec,
+    SensorSpec,
     ShapeSpec,
     SimulationSpec,
 )
@@ -401,6 +405,15 @@ class _Parser:
             self.actuator(value, f"actuator[{i}]")
             for i, value in enumerate(self.array_of_tables(data.get("actuator", []), "actuator"))
         )
+        sensors = tuple(
+            self.sensor(value, f"sensor[{i}]", i)
+            for i, value in enumerate(self.array_of_tables(data.get("sensor", []), "sensor"))
+        )
+        self.unique([s.name for s in sensors], "sensor")
+        if robot is None:
+            for i, sensor in enumerate(sensors):
+                if sensor.kind.startswith("joint_"):
+                    self.fail(f"sensor[{i}].kind", f"{sensor.kind} needs a robot: this scene has objects only")
         simulation = self.simulation(data["simulation"]) if "simulation" in data else None
         declared = simulation.integrator if simulation is not None else None
         if has_contact and declared is not None and declared != CONTACT_INTEGRATOR:
@@ -432,6 +445,7 @@ class _Parser:
             actuator_defaults=(
                 self.choice(data["actuators"], "actuators", ACTUATOR_SOURCES) if "actuators" in data else None
             ),
+            sensors=sensors,
             source=self.source,
             text=None,
             base_dir=self.base_dir,
@@ -715,6 +729,82 @@ class _Parser:
             rpy=self.vec3(table.get("rpy", (0.0, 0.0, 0.0)), f"{path}.rpy"),
             velocity=(x, y, z, wx, wy, wz),
         )
+
+    def sensor(self, value: Any, path: str, index: int) -> SensorSpec:
+        table = self.table(value, path, SENSOR_KEYS)
+        kind = self.choice(self.required(table, "kind", path, ", ".join(SENSOR_KINDS)), f"{path}.kind", SENSOR_KINDS)
+        name = self.name(table.get("name", f"{kind}{index}"), f"{path}.name")
+        if "." in name:  # the dataframe's columns are <name>.<component>
+            self.fail(f"{path}.name", f"must not contain '.' (columns are <name>.<component>), got {_describe(name)}")
+        places = SENSOR_PLACES[kind]
+        for key in ("frame", "joint", "body", "joints"):
+            if key in table and key not in places:
+                users = [k for k, keys in SENSOR_PLACES.items() if key in keys]
+                self.fail(f"{path}.{key}", f"only for kind {', '.join(users)}, not {kind}")
+        given = [key for key in places if key in table]
+        if len(given) > 1:
+            self.fail(f"{path}.{given[1]}", f"give one of {' or '.join(places)}, not both")
+        if not given and places != ("joints",):
+            self.fail(f"{path}.{places[0]}", f"missing (a {kind} sensor needs {' or '.join(places)})")
+        joints = None
+        if "joints" in table:
+            value = table["joints"]
+            if isinstance(value, str):
+                value = [value]
+            if not isinstance(value, (list, tuple)) or not value:
+                self.fail(
+                    f"{path}.joints", f"must be a joint name or a non-empty array of them, got {_describe(value)}"
+                )
+            joints = tuple(self.string(j, f"{path}.joints[{i}]") for i, j in enumerate(value))
+            if len(set(joints)) != len(joints):
+                self.fail(f"{path}.joints", "names a joint twice")
+        rate = None
+        if "rate" in table:
+            rate = self.positive(table["rate"], f"{path}.rate")
+        latency = self.whole(table.get("latency", 0), f"{path}.latency", 10**6, "readings ")
+        seed = self.whole(table.get("seed", 0), f"{path}.seed", 2**63 - 1)
+        return SensorSpec(
+            name=name,
+            kind=kind,
+            frame=self.string(table["frame"], f"{path}.frame") if "frame" in table else None,
+            joint=self.string(table["joint"], f"{path}.joint") if "joint" in table else None,
+            body=self.string(table["body"], f"{path}.body") if "body" in table else None,
+            joints=joints,
+            noise=self.spoiler(table.get("noise", 0.0), f"{path}.noise", allow_negative=False),
+            bias=self.spoiler(table.get("bias", 0.0), f"{path}.bias", allow_negative=True),
+            rate=rate,
+            latency=latency,
+            seed=seed,
+        )
+
+    def whole(self, value: Any, path: str, high: int, unit: str = "") -> int:
+        """A whole number within 0..high (not a boolean, not a float)."""
+        if (
+            isinstance(value, (bool, np.bool_))
+            or not isinstance(value, numbers.Integral)
+            or not 0 <= int(value) <= high
+        ):
+            self.fail(path, f"must be a whole number of {unit}within 0..{high}, got {_describe(value)}")
+        return int(value)
+
+    def spoiler(self, value: Any, path: str, *, allow_negative: bool) -> float | tuple[float, ...]:
+        """A sensor's noise or bias: one number, or one per component (their count is checked with the model)."""
+        if isinstance(value, (list, tuple, np.ndarray)):
+            values = self.vector(value, path)
+            if not values:
+                self.fail(path, "must not be empty")
+        else:
+            values = (self.number(value, path),)
+        if not allow_negative:
+            for i, x in enumerate(values):
+                if x < 0:
+                    self.fail(
+                        path
+                        if len(values) == 1 and not isinstance(value, (list, tuple, np.ndarray))
+                        else f"{path}[{i}]",
+                        f"must be >= 0, got {x!r}",
+                    )
+        return values if isinstance(value, (list, tuple, np.ndarray)) else values[0]
 
     def state(self, value: Any, path: str) -> tuple[float, ...] | dict[str, float]:
         if isinstance(value, Mapping):

@@ -211,6 +211,7 @@ class Scene(Robot):
             # second (talos_standing's grippers, held at their stops: 7.5e-15 rad after 1 s), which is no violation.
             for jid in {*self.contact.limited_joints, *(jid for jid, _ in exact_friction)}:
                 self.limit_drift[model.joints[jid].idx_q] = HELD_DRIFT_RATE
+        self.sensors = _sensors(self, spec)
         self._flow_elements = list(super().ledger_elements)
         self._n_robot_flows = len(self._flow_elements)
         if self.actuators is not None:
@@ -319,6 +320,8 @@ class Scene(Robot):
             lines.append("  not modelled: collision geometry, contact (visual meshes are loaded only to view)")
         else:
             lines += self.contact.describe()
+        if self.sensors is not None:
+            lines.append("  sensors:\n" + self.sensors.describe())
         return "\n".join(lines)
 
     def default_pose(self) -> np.ndarray:
@@ -646,10 +649,16 @@ def _apply_base_pose(model: pin.Model, spec: SceneSpec) -> None:
 def _add_payload(model: pin.Model, payload: Any, key: str) -> None:
     fid = _frame_id(model, payload.frame, f"{key}.frame", moving=True)
     frame = model.frames[fid]
+    model.inertias[frame.parentJoint] = model.inertias[frame.parentJoint] + frame.placement.act(
+        _payload_inertia(payload)
+    )
+
+
+def _payload_inertia(payload: Any) -> pin.Inertia:
+    """A payload's spatial inertia in its frame."""
     ixx, iyy, izz, ixy, ixz, iyz = payload.inertia
     inertia = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]], dtype=float)
-    body = pin.Inertia(float(payload.mass), np.array(payload.com, dtype=float), inertia)
-    model.inertias[frame.parentJoint] = model.inertias[frame.parentJoint] + frame.placement.act(body)
+    return pin.Inertia(float(payload.mass), np.array(payload.com, dtype=float), inertia)
 
 
 def _lock_joints(model: pin.Model, spec: SceneSpec, floating: bool) -> tuple[pin.Model, np.ndarray]:
@@ -706,6 +715,20 @@ def _frame_id(model: pin.Model, name: str, key: str, *, moving: bool = False) ->
             raise SceneError(f"{key}: '{name}' is welded to the world: nothing there moves (valid: {', '.join(names)})")
         raise SceneError(f"{key}: unknown frame '{name}' ({name_hint(name, names)})")  # talos has 60 frames
     return model.getFrameId(name)
+
+
+def _sensors(scene: Scene, spec: SceneSpec) -> Any:
+    """The scene's sensors placed on its model (sensors.build_sensors, with this module's name checks), or None."""
+    if not spec.sensors:
+        return None
+    from ..sensors import build_sensors
+
+    where = spec.source
+    payloads = [
+        (_frame_id(scene.model, p.frame, f"{where}: payload[{i}].frame", moving=True), _payload_inertia(p))
+        for i, p in enumerate(spec.payloads)
+    ]
+    return build_sensors(scene, spec, frame_id=_frame_id, joint_id=_joint_id, payloads=payloads)
 
 
 def _wrench(model: pin.Model, force: Any, key: str) -> Any:

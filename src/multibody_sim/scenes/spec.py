@@ -35,6 +35,7 @@ TOP_LEVEL_KEYS = (
     "object",
     "actuator",
     "actuators",
+    "sensor",
 )
 ROBOT_KEYS = ("source", "base", "position", "rpy", "damping", "mimic", "package_dirs")
 JOINT_KEYS = ("damping", "friction", "stiffness", "rest", "armature")
@@ -96,6 +97,18 @@ ACTUATOR_KINDS = ("torque", "position", "velocity")
 ACTUATOR_GAINS = {"torque": (), "position": ("kp", "kv"), "velocity": ("kv",)}
 ACTUATOR_SOURCES = ("catalog",)  # the top-level `actuators` key: where default actuators come from
 CONTACT_INTEGRATOR = "timestepping"  # the one integrator that steps contact scenes
+SENSOR_KEYS = ("name", "kind", "frame", "joint", "body", "joints", "noise", "bias", "rate", "latency", "seed")
+# Each kind of sensor and where it is: the keys that place it (one of them required when several are listed).
+SENSOR_PLACES = {
+    "imu": ("frame",),
+    "force_torque": ("frame", "joint"),
+    "contact_force": ("body",),
+    "joint_position": ("joints",),
+    "joint_velocity": ("joints",),
+    "joint_torque": ("joints",),
+    "frame_pose": ("frame",),
+}
+SENSOR_KINDS = tuple(SENSOR_PLACES)
 
 
 # ---- the parsed scene ----------------------------------------------------------------------------------
@@ -377,6 +390,37 @@ class ActuatorSpec:
 
 
 @dataclass(frozen=True)
+class SensorSpec:
+    """A sensor: what it measures, where, and how its readings are spoiled (see multibody_sim.sensors).
+
+    Attributes:
+        name: unique among the scene's sensors; the key of Trajectory.sensors and the dataframe's column prefix.
+        kind: one of SENSOR_KINDS.
+        frame: imu, frame_pose and force_torque: the frame it sits at.
+        joint: force_torque: the joint it sits at (instead of a frame).
+        body: contact_force: a body with collision geometry (a [[contact.geometry]] frame or an [[object]]).
+        joints: joint_position, joint_velocity, joint_torque: 1-dof joints (None: every actuated one).
+        noise: standard deviation of the additive Gaussian noise, one number or one per component (>= 0).
+        bias: constant offset, one number or one per component.
+        rate: readings per second [Hz] (None: one per control instant, every step without control_dt).
+        latency: how many of its own readings late each reading comes (>= 0).
+        seed: its random generator's seed (numpy PCG64; a rollout's row b draws from seed + b).
+    """
+
+    name: str
+    kind: str
+    frame: str | None = None
+    joint: str | None = None
+    body: str | None = None
+    joints: tuple[str, ...] | None = None
+    noise: float | tuple[float, ...] = 0.0
+    bias: float | tuple[float, ...] = 0.0
+    rate: float | None = None
+    latency: int = 0
+    seed: int = 0
+
+
+@dataclass(frozen=True)
 class SimulationSpec:
     """How to run the scene; None leaves a setting to the caller (the command line or simulate's defaults).
 
@@ -444,6 +488,7 @@ class SceneSpec:
         actuator_defaults: where default actuators come from before those tables: "catalog" (the robot's published
             motor data, models/actuators/<robot>.toml) or None (none: the commands of joints without an actuator
             are ideal torques).
+        sensors: the sensors, in the order declared.
         source: the name used in messages (the file path as given, or "<scene>").
         text: the scene file's text (for trajectory metadata); None for a dict.
         base_dir: the folder relative paths were resolved against (the scene file's); None for a dict.
@@ -469,6 +514,7 @@ class SceneSpec:
     objects: tuple[ObjectSpec, ...] = ()
     actuators: tuple[ActuatorSpec, ...] = ()
     actuator_defaults: str | None = None
+    sensors: tuple[SensorSpec, ...] = ()
     source: str = "<scene>"
     text: str | None = None
     base_dir: Path | None = None

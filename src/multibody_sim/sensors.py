@@ -1,0 +1,760 @@
+"""Sensors: what a scene's [[sensor]] tables measure at a tick, and the readings made of those measurements.
+
+A tick is the end of a step (every so many steps: the sensor's rate). What it measures is the state at that instant
+with the step that just ended: the acceleration a sensor feels is that step's velocity change over its length,
+``(v⁺ − v) / h`` (the time-stepper's impulses included), and the contact forces are its impulses over h. So a
+reading at a control instant depends on the torque held up to that instant, never on the torque a controller is
+about to choose from it. The first tick, at the run's start, takes the acceleration and impulses of a first step
+of dt under the command held at the start (zero), computed and discarded (no step has ended yet).
+
+Kinds (components; axes):
+
+- ``imu`` at a frame: specific force ``Rᵀ(a − g)`` [m/s²] (a: the frame origin's acceleration, g: gravity; at rest
+  it reads g upward, in free fall zero) and angular velocity [rad/s], both in the frame's axes: ax ay az wx wy wz.
+- ``force_torque`` at a joint or a frame: the wrench the proximal side exerts on everything distal to the cut,
+  at the frame's origin in its axes [N, N·m]: fx fy fz tx ty tz. The cut at a joint (or at its frame) carries the
+  joint's whole subtree; at a frame inside a body (a URDF fixed joint, a link's frame) it carries the links after
+  that frame in the URDF, what hangs below them, and the payloads, wrenches and contacts on them; a body's own
+  part before the frame is not measured (at rest: the distal weight, plus any external force on the distal side).
+- ``contact_force`` on a body with collision geometry: the sum of the contact forces on it, world axes [N]:
+  fx fy fz.
+- ``joint_position``, ``joint_velocity``, ``joint_torque`` of 1-dof joints [rad or m, rad/s or m/s, N·m or N]: one
+  component per joint (a continuous joint's angle is atan2(sin, cos)); the torque is the one delivered to the
+  joint under the command held over the step that ended: that command (after saturation) for an ideal torque
+  source, an actuator's output at the tick's state (scenes/actuators.py; for semi-implicit Euler and the
+  time-stepper, exactly the servo torque their implicit step applied), not its command.
+- ``frame_pose``: the frame's position and orientation in the world: x y z qx qy qz qw (Pinocchio's quaternion).
+
+Readings (SensorStream): a sensor reads at its own rate (every `stride` ticks of the run's clock); reading m is
+measurement m − latency (the first measurement before that) plus the bias plus Gaussian noise of the declared
+std, drawn from the sensor's own generator (numpy PCG64 seeded with ``seed + row``), one draw per component per
+reading, in order. Between its readings a sensor holds its latest one. The kernels measure; the readings are
+made here, in Python, for every kernel alike.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from .exceptions import InvalidArgumentError
+from .ordered import ordered_matvec
+from .scenes.spec import SensorSpec
+
+COMPONENTS = {
+    "imu": ("ax", "ay", "az", "wx", "wy", "wz"),
+    "force_torque": ("fx", "fy", "fz", "tx", "ty", "tz"),
+    "contact_force": ("fx", "fy", "fz"),
+    "frame_pose": ("x", "y", "z", "qx", "qy", "qz", "qw"),
+}
+_LOCAL = pin.ReferenceFrame.LOCAL
+
+
+@dataclass(frozen=True)
+class Cut:
+    """Where a force–torque sensor cuts the tree, on the scene's model.
+
+    Attributes:
+        joint: the joint whose body is cut (its id).
+        whole: the cut is at the joint: the sensor carries the joint's whole subtree.
+        placement: the sensor frame in the joint's frame.
+        inertia: whole=False: the distal part's inertia in the joint's frame (links after the frame, payloads).
+        children: whole=False: the child joints hanging from the distal part.
+        frames: whole=False: the frames on the distal part (external forces on them count).
+    """
+
+    joint: int
+    whole: bool
+    placement: pin.SE3
+    inertia: pin.Inertia | None = None
+    children: tuple[int, ...] = ()
+    frames: frozenset[int] = frozenset()
+
+
+@dataclass(frozen=True)
+class Wrench:
+    """A scene's external wrench as the sensors see it: frame, force and torque [N, N·m], reference, scale(t)."""
+
+    frame: int
+    force: np.ndarray
+    torque: np.ndarray
+    local: bool
+    scale: Any
+
+
+@dataclass(frozen=True)
+class Placed:
+    """One sensor on the model.
+
+    Attributes:
+        spec: as declared.
+        components: its components' names, shape (width,).
+        frame: imu, frame_pose: the frame id.
+        cut: force_torque: where it cuts.
+        body: contact_force: the body's index among the contact model's bodies.
+        coordinates: joint_*: (idx_q, idx_v, nq) of each joint.
+        noise, bias: per component, shape (width,).
+        stride: readings every this many ticks of the run's clock (set per run by SensorStream).
+    """
+
+    spec: SensorSpec
+    components: tuple[str, ...]
+    frame: int = -1
+    cut: Cut | None = None
+    body: int = -1
+    coordinates: tuple[tuple[int, int, int], ...] = ()
+    noise: np.ndarray | None = None
+    bias: np.ndarray | None = None
+
+    @property
+    def width(self) -> int:
+        return len(self.components)
+
+
+class Sensors:
+    """A scene's sensors on its model: the noiseless measurement at a tick (measure), the layout of the readings.
+
+    Attributes:
+        placed: the sensors, in declaration order.
+        names: their names.
+        offsets: where each one's components start in a tick's row, shape (n + 1,).
+        width: components in all.
+    """
+
+    def __init__(
+        self,
+        model: pin.Model,
+        placed: list[Placed],
+        *,
+        wrenches: list[Wrench],
+        contact_joints: list[int] | None = None,
+        contact_frames: list[int] | None = None,
+        actuators: Any = None,
+    ):
+        """Args:
+        model: the scene's model.
+        placed: the sensors, placed on it.
+        wrenches: the scene's external wrenches (force–torque sensors see them).
+        contact_joints, contact_frames: per contact body (Trajectory.contacts' body indices), the joint it moves
+            with and its frame on that joint (-1: none), for contact scenes.
+        actuators: the scene's actuators (scenes/actuators.py), which turn the held command into the torque
+            delivered to the joints; None: the command is the torque.
+        """
+        self.model = model
+        self.data = model.createData()
+        self.placed = placed
+        self.names = [p.spec.name for p in placed]
+        self.offsets = np.cumsum([0] + [p.width for p in placed])
+        self.width = int(self.offsets[-1])
+        self.wrenches = wrenches
+        self.contact_joints = contact_joints or []
+        self.contact_frames = contact_frames or []
+        self.actuators = actuators
+        kinds = {p.spec.kind for p in placed}
+        self._kinematics = bool(kinds & {"imu", "frame_pose", "force_torque"})
+        self._dynamics = "force_torque" in kinds
+        self._gravity = np.array(model.gravity.linear, dtype=float)
+
+    def __len__(self) -> int:
+        return len(self.placed)
+
+    def columns(self, k: int) -> slice:
+        """Sensor k's components in a row of readings."""
+        return slice(int(self.offsets[k]), int(self.offsets[k + 1]))
+
+    def describe(self) -> str:
+        """One line per sensor, for Scene.describe()."""
+        lines = []
+        for p in self.placed:
+            spec = p.spec
+            where = next(
+                (f" at {getattr(spec, key)}" for key in ("frame", "joint", "body") if getattr(spec, key) is not None),
+                "",
+            )
+            if spec.kind.startswith("joint_"):
+                where = f" of {len(p.coordinates)} joint{'s' if len(p.coordinates) != 1 else ''}"
+            rate = f"{spec.rate:g} Hz" if spec.rate is not None else "every control instant"
+            spoil = []
+            if spec.noise != 0.0:
+                spoil.append(f"noise {_numbers(spec.noise)}")
+            if spec.bias != 0.0:
+                spoil.append(f"bias {_numbers(spec.bias)}")
+            if spec.latency:
+                spoil.append(f"latency {spec.latency}")
+            extra = f", {', '.join(spoil)}" if spoil else ""
+            lines.append(f"    {spec.name}: {spec.kind}{where}, {rate}{extra} ({' '.join(p.components)})")
+        return "\n".join(lines)
+
+    # ---- the measurement ----------------------------------------------------------------------------------------
+    def measure(
+        self,
+        q: np.ndarray,
+        v: np.ndarray,
+        a: np.ndarray,
+        tau: np.ndarray,
+        t: float,
+        contacts: np.ndarray | None,
+        h: float,
+        out: np.ndarray,
+    ) -> None:
+        """Every sensor's noiseless measurement at one tick, into `out` (width,).
+
+        Args:
+            q, v: the state at the tick.
+            a: the acceleration the sensors feel: the ended step's (v⁺ − v) / h, shape (nv,).
+            tau: the command held over that step, shape (nv,): the joint torque, or with actuators their
+                command, whose delivered torque at (q, v) the joint_torque sensors read.
+            t: the tick's time [s].
+            contacts: that step's contacts as Trajectory.contacts rows (k, 11): pair, point, normal, impulse on
+                body 2 [N·s], or None.
+            h: that step's length [s].
+        """
+        model, data = self.model, self.data
+        if self._kinematics:
+            pin.forwardKinematics(model, data, q, v, a)
+        fext = None
+        delivered = None
+        for k, p in enumerate(self.placed):
+            kind = p.spec.kind
+            row = out[self.offsets[k] : self.offsets[k + 1]]
+            if kind == "imu":
+                placement = pin.updateFramePlacement(model, data, p.frame)
+                acceleration = pin.getFrameClassicalAcceleration(model, data, p.frame, _LOCAL).linear
+                row[:3] = acceleration - ordered_matvec(placement.rotation.T, self._gravity)
+                row[3:] = pin.getFrameVelocity(model, data, p.frame, _LOCAL).angular
+            elif kind == "frame_pose":
+                placement = pin.updateFramePlacement(model, data, p.frame)
+                row[:3] = placement.translation
+                row[3:] = pin.Quaternion(placement.rotation).coeffs()
+            elif kind == "contact_force":
+                row[:] = self._contact_force(p.body, contacts, h)
+            elif kind == "force_torque":
+                if fext is None:
+                    fext = self._external(contacts, h, t)
+                    pin.rnea(model, data, q, v, a, [f for f, _ in fext])
+                assert p.cut is not None
+                wrench = self._cut_wrench(p.cut, fext)
+                row[:3] = wrench.linear
+                row[3:] = wrench.angular
+            else:  # joint_*
+                if kind == "joint_torque" and delivered is None:
+                    delivered = tau if self.actuators is None else self.actuators.joint_torques(q, v, tau)
+                for i, (iq, iv, nq) in enumerate(p.coordinates):
+                    if kind == "joint_position":
+                        row[i] = q[iq] if nq == 1 else math.atan2(q[iq + 1], q[iq])
+                    elif kind == "joint_velocity":
+                        row[i] = v[iv]
+                    else:
+                        assert delivered is not None
+                        row[i] = delivered[iv]
+
+    def _contact_force(self, body: int, contacts: np.ndarray | None, h: float) -> np.ndarray:
+        """The sum of the contact impulses on `body` over h [N], world axes."""
+        total = np.zeros(3)
+        if contacts is not None:
+            for row in contacts:
+                if int(row[1]) == body:
+                    total = total + row[8:11]
+                if int(row[0]) == body:
+                    total = total - row[8:11]
+        return total / h
+
+    def _external(self, contacts: np.ndarray | None, h: float, t: float) -> list[tuple[pin.Force, list]]:
+        """Per joint: the external forces on its body in its frame (for RNEA), and each one by frame: (frame id or
+        -1, force in the joint's frame), in a fixed order: contacts (row order), then the wrenches."""
+        model, data = self.model, self.data
+        forces: list[tuple[pin.Force, list]] = [(pin.Force.Zero(), []) for _ in range(model.njoints)]
+
+        def add(joint: int, frame: int, force: pin.Force) -> None:
+            total, parts = forces[joint]
+            forces[joint] = (total + force, parts)
+            parts.append((frame, force))
+
+        if contacts is not None:
+            joints, frames = self.contact_joints, self.contact_frames
+            for row in contacts:
+                force = row[8:11] / h
+                at = pin.SE3(np.eye(3), np.array(row[2:5]))
+                for side, sign in ((1, 1.0), (0, -1.0)):
+                    body = int(row[side])
+                    joint = joints[body]
+                    if joint:
+                        world = at.act(pin.Force(sign * force, np.zeros(3)))
+                        add(joint, frames[body], data.oMi[joint].actInv(world))
+        for w in self.wrenches:
+            scale = w.scale(t)
+            frame = model.frames[w.frame]
+            if w.local:
+                local = pin.Force(scale * w.force, scale * w.torque)
+            else:  # world axes at the frame's origin
+                rotation = pin.updateFramePlacement(model, data, w.frame).rotation.T
+                local = pin.Force(ordered_matvec(rotation, scale * w.force), ordered_matvec(rotation, scale * w.torque))
+            add(frame.parentJoint, w.frame, frame.placement.act(local))
+        return forces
+
+    def _cut_wrench(self, cut: Cut, fext: list[tuple[pin.Force, list]]) -> pin.Force:
+        """The wrench across the cut, at the sensor frame in its axes."""
+        data = self.data
+        if cut.whole:
+            return cut.placement.actInv(data.f[cut.joint])
+        assert cut.inertia is not None
+        j = cut.joint
+        velocity = data.v[j]
+        wrench = cut.inertia * data.a_gf[j] + velocity.cross(cut.inertia * velocity)
+        for child in cut.children:
+            wrench = wrench + data.liMi[child].act(data.f[child])
+        for frame, force in fext[j][1]:
+            if frame in cut.frames:
+                wrench = wrench - force
+        return cut.placement.actInv(wrench)
+
+
+def build_sensors(
+    scene: Any,
+    spec: Any,
+    *,
+    frame_id: Callable[..., int],
+    joint_id: Callable[[pin.Model, str, str, bool], int],
+    payloads: list[tuple[int, pin.Inertia]],
+) -> Sensors:
+    """A scene's sensors (spec.sensors, a SceneSpec's) on its model.
+
+    Args:
+        scene: the Scene being built (its model, floating base, actuated dofs, constraints, contact, actuators).
+        frame_id: ``frame_id(model, name, key, moving=False)``: a frame's id, or SceneError naming the valid ones.
+        joint_id: ``joint_id(model, name, key, floating)``: a 1-dof joint's id, or SceneError.
+        payloads: the scene's payloads: (frame id, inertia in that frame).
+
+    Raises:
+        SceneError: a sensor that names what the scene lacks, or cannot measure there (one line each).
+    """
+    from .exceptions import SceneError
+    from .text import name_hint
+
+    model, where = scene.model, spec.source
+    one_dof = [model.names[j] for j in range(1, model.njoints) if model.joints[j].nv == 1]
+    actuated = [
+        n for n in one_dof if scene.actuated.start <= model.joints[model.getJointId(n)].idx_v < scene.actuated.stop
+    ]
+    placed = []
+    for i, sensor in enumerate(spec.sensors):
+        key = f"{where}: sensor[{i}]"
+        frame = joint = body = -1
+        joints: list[int] = []
+        if sensor.kind == "force_torque":
+            if scene.constraints is not None or scene.mimic:
+                what = "[[constraint]]" if scene.constraints is not None else "mimic joints"
+                raise SceneError(
+                    f"{key}.kind: force_torque sensors and {what} cannot be combined yet (the constraint forces are "
+                    "not in the sensor's balance)"
+                )
+            if sensor.joint is not None:
+                joint = joint_id(model, sensor.joint, f"{key}.joint", scene.floating_base)
+            else:
+                frame = frame_id(model, sensor.frame or "", f"{key}.frame", moving=True)
+        elif sensor.frame is not None:
+            frame = frame_id(model, sensor.frame, f"{key}.frame")
+        elif sensor.kind == "contact_force":
+            if scene.contact is None:
+                raise SceneError(
+                    f"{key}.body: a contact_force sensor needs contact ([ground], [contact] or [[object]])"
+                )
+            names = scene.contact.body_names
+            if sensor.body not in names:
+                raise SceneError(
+                    f"{key}.body: '{sensor.body}' has no collision geometry ({name_hint(sensor.body, names)})"
+                )
+            body = names.index(sensor.body)
+        else:  # joint_*: named (globs allowed), else every actuated 1-dof joint
+            chosen: list[str] = []
+            for pattern in sensor.joints if sensor.joints is not None else actuated:
+                found = fnmatch.filter(actuated, pattern) if any(c in pattern for c in "*?[") else [pattern]
+                if not found:
+                    raise SceneError(
+                        f"{key}.joints: '{pattern}' matches no actuated joint (valid: {', '.join(actuated)})"
+                    )
+                chosen += [name for name in found if name not in chosen]
+            joints = [joint_id(model, name, f"{key}.joints", scene.floating_base) for name in chosen]
+        placed.append(place(model, sensor, key, frame, joint, body, joints, payloads=payloads))
+    wrenches = [
+        Wrench(
+            frame=frame_id(model, force.frame, f"{where}: force[{i}].frame", moving=True),
+            force=np.array(force.force, dtype=float),
+            torque=np.array(force.torque, dtype=float),
+            local=force.reference == "local",
+            scale=force.scale,
+        )
+        for i, force in enumerate(spec.forces)
+    ]
+    contact_joints: list[int] = []
+    contact_frames: list[int] = []
+    if scene.contact is not None:
+        for name in scene.contact.body_names:
+            jid = next(g.joint for g in scene.contact.geometries if g.body == name)
+            fid = model.getFrameId(name) if model.existFrame(name) else -1
+            contact_joints.append(int(jid))
+            contact_frames.append(fid if fid >= 0 and model.frames[fid].parentJoint == jid else -1)
+    return Sensors(
+        model,
+        placed,
+        wrenches=wrenches,
+        contact_joints=contact_joints,
+        contact_frames=contact_frames,
+        actuators=scene.actuators,
+    )
+
+
+def place(
+    model: pin.Model,
+    spec: SensorSpec,
+    key: str,
+    frame: int,
+    joint: int,
+    body: int,
+    joints: list[int],
+    *,
+    payloads: list[tuple[int, pin.Inertia]],
+) -> Placed:
+    """A sensor on the model, its names resolved to ids (frame, joint, body, joints; -1 or [] where none).
+
+    Args:
+        key: the sensor's place in the scene, for messages ("scene.toml: sensor[0]").
+        payloads: the scene's payloads: (frame id, inertia in that frame).
+
+    Raises:
+        SceneError: noise or bias with a count of components other than one or the sensor's.
+    """
+    from .exceptions import SceneError
+
+    coordinates: tuple[tuple[int, int, int], ...] = ()
+    cut = None
+    if spec.kind.startswith("joint_"):
+        coordinates = tuple((model.joints[j].idx_q, model.joints[j].idx_v, model.joints[j].nq) for j in joints)
+        components = tuple(model.names[j] for j in joints)
+    else:
+        components = COMPONENTS[spec.kind]
+    if spec.kind == "force_torque":
+        cut = _cut(model, frame, joint, payloads)
+    width = len(components)
+    spoilers = {}
+    for name in ("noise", "bias"):
+        value = getattr(spec, name)
+        if isinstance(value, tuple) and len(value) != width:
+            raise SceneError(
+                f"{key}.{name}: must be one number or {width} (one per component: {' '.join(components)}), got "
+                f"{len(value)}"
+            )
+        spoilers[name] = np.broadcast_to(np.array(value, dtype=float), (width,)).copy()
+    return Placed(spec, components, frame=frame, cut=cut, body=body, coordinates=coordinates, **spoilers)
+
+
+def _cut(model: pin.Model, frame: int, joint: int, payloads: list[tuple[int, pin.Inertia]]) -> Cut:
+    """Where a force–torque sensor at a joint (id, frame -1) or a frame (id) cuts the tree (see Cut)."""
+    if frame < 0:
+        return Cut(joint, True, pin.SE3.Identity())
+    sensor = model.frames[frame]
+    j = sensor.parentJoint
+    at = frame
+    if sensor.type == pin.FrameType.BODY:  # a link's frame: the cut is where the link starts
+        at = sensor.parentFrame
+    if model.frames[at].type == pin.FrameType.JOINT and model.frames[at].parentJoint == j:
+        return Cut(j, True, sensor.placement)
+
+    def distal(f: int) -> bool:
+        """Whether frame f (on joint j) lies beyond the cut in the frame tree."""
+        while f != at:
+            parent = model.frames[f].parentFrame
+            if model.frames[f].parentJoint != j or parent == f or f == 0:
+                return False
+            f = parent
+        return True
+
+    frames = frozenset(f for f in range(model.nframes) if model.frames[f].parentJoint == j and distal(f))
+    inertia = pin.Inertia.Zero()
+    for f in sorted(frames):
+        inertia = inertia + model.frames[f].placement.act(model.frames[f].inertia)
+    for f, payload in payloads:
+        if f in frames:
+            inertia = inertia + model.frames[f].placement.act(payload)
+    children = tuple(
+        k
+        for k in range(1, model.njoints)
+        if model.parents[k] == j
+        and model.frames[model.getFrameId(model.names[k], pin.FrameType.JOINT)].parentFrame in frames
+    )
+    return Cut(j, False, sensor.placement, inertia, children, frames)
+
+
+def _numbers(value: float | tuple[float, ...]) -> str:
+    return f"{value:g}" if isinstance(value, float) else "[" + ", ".join(f"{x:g}" for x in value) + "]"
+
+
+# ---- the clock and the readings --------------------------------------------------------------------------------
+class Ticks:
+    """When the rows' sensors tick during a run (the end of every `every`-th step of a row, counted from the row's
+    start), and the measurements the kernel took there, until the driver takes them (take()).
+
+    Attributes:
+        every: steps between ticks.
+        done: per row (its index in the run), steps it took before the core started, shape (B,).
+    """
+
+    def __init__(self, every: int, B: int):
+        self.every = every
+        self.done = np.zeros(B, dtype=np.int64)
+        self._times: list[float] = []
+        self._rows: list[np.ndarray] = []
+        self._values: list[np.ndarray] = []
+
+    def after_step(self, core: Any, h: float, t: float) -> None:
+        """The core accepted a step of h landing at t: measure the running rows whose tick it is."""
+        rows = core.rows
+        if self.every == 1:
+            js = np.arange(len(rows))
+        else:
+            due = (self.done[rows] + core.steps) % self.every == 0
+            if not due.any():
+                return
+            js = np.flatnonzero(due)
+        self._keep(t, rows[js], core.kernel.measure(js, h))
+
+    def start(self, core: Any, js: np.ndarray, h: float) -> None:
+        """The first tick of the running rows at positions js, at their current state (a trial step of h)."""
+        if len(js):
+            self._keep(core.t, core.rows[js], core.kernel.measure_start(js, h))
+
+    def _keep(self, t: float, rows: np.ndarray, values: np.ndarray) -> None:
+        self._times.append(t)
+        self._rows.append(np.array(rows))
+        self._values.append(values)
+
+    def take(self) -> tuple[list[float], list[np.ndarray], list[np.ndarray]]:
+        """The ticks since the last call: times, rows, measurements (len(rows), width) each."""
+        taken = self._times, self._rows, self._values
+        self._times, self._rows, self._values = [], [], []
+        return taken
+
+    def clear(self) -> None:
+        self.take()
+
+
+class SensorStream:
+    """Readings from measurements, row by row: rate, latency, bias and noise (see the module docstring).
+
+    Attributes:
+        latest: each row's current readings, shape (B, width).
+    """
+
+    def __init__(self, sensors: Sensors, strides: list[int], rows: np.ndarray):
+        """Args:
+        sensors: what is measured.
+        strides: per sensor, readings every this many ticks.
+        rows: each row's index for the seeds (a rollout's row b draws from seed + b).
+        """
+        self.sensors = sensors
+        self.strides = strides
+        self.seeds = [int(r) for r in rows]
+        B = len(rows)
+        self.latest = np.zeros((B, sensors.width))
+        self.generators = [self._generators(b) for b in range(B)]
+        self.count = np.zeros(B, dtype=np.int64)  # ticks each row took
+        self.history: list[list[np.ndarray | None]] = [[None] * len(sensors) for _ in range(B)]
+        self._spoiled = [bool(np.any(p.noise)) for p in sensors.placed]
+
+    def _generators(self, b: int, entropy: int | None = None) -> list[np.random.Generator]:
+        """Row b's generators: seeded with each sensor's seed + b, or with (its seed, entropy)."""
+        if entropy is None:
+            return [np.random.default_rng(p.spec.seed + self.seeds[b]) for p in self.sensors.placed]
+        return [np.random.default_rng([p.spec.seed, entropy]) for p in self.sensors.placed]
+
+    def restart(self, rows: np.ndarray, entropy: Any = None) -> None:
+        """Rows start afresh (a reset): no history, no readings yet. `entropy`: None (their generators go on), or
+        a whole number per row (or one for all): new generators seeded with (each sensor's seed, that number)."""
+        rows = np.asarray(rows, dtype=int)
+        entropies = [entropy] * len(rows) if entropy is None or np.ndim(entropy) == 0 else list(entropy)
+        for b, e in zip(rows.tolist(), entropies, strict=True):
+            self.count[b] = 0
+            self.history[b] = [None] * len(self.sensors)
+            self.latest[b] = 0.0
+            if e is not None:
+                self.generators[b] = self._generators(b, int(e))
+
+    def push(
+        self, times: list[float], rows: list[np.ndarray], values: list[np.ndarray]
+    ) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
+        """Turn ticks (as Ticks.take gives them) into readings; returns, per row that read, per sensor: the times of
+        its new readings and the readings (for the samples in between)."""
+        per_row: dict[int, tuple[list[float], list[np.ndarray]]] = {}
+        for t, tick_rows, tick_values in zip(times, rows, values, strict=True):
+            for b, z in zip(tick_rows.tolist(), tick_values, strict=True):
+                entry = per_row.setdefault(b, ([], []))
+                entry[0].append(t)
+                entry[1].append(z)
+        out: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+        for b, (row_times, row_values) in per_row.items():
+            out[b] = self._read(b, np.array(row_times), np.array(row_values))
+        return out
+
+    def _read(self, b: int, times: np.ndarray, Z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Row b's new readings from its ticks at `times` with measurements Z (m, width)."""
+        sensors = self.sensors
+        ticks = self.count[b] + np.arange(len(times))
+        self.count[b] += len(times)
+        result = []
+        for k, p in enumerate(sensors.placed):
+            due = ticks % self.strides[k] == 0
+            columns = sensors.columns(k)
+            if not due.any():
+                result.append((np.zeros(0), np.zeros((0, p.width))))
+                continue
+            z = Z[due, columns]
+            latency = p.spec.latency
+            if latency:
+                held = self.history[b][k]
+                if held is None:
+                    held = np.repeat(z[:1], latency, axis=0)
+                sequence = np.concatenate([held, z])
+                self.history[b][k] = sequence[-latency:]
+                z = sequence[: len(z)]
+            assert p.bias is not None and p.noise is not None
+            readings = z + p.bias
+            if self._spoiled[k]:
+                readings = readings + p.noise * self.generators[b][k].standard_normal(z.shape)
+            self.latest[b, columns] = readings[-1]
+            result.append((times[due], readings))
+        return result
+
+    def readings(self, b: int) -> dict[str, np.ndarray]:
+        """Row b's current readings by sensor name (copies)."""
+        sensors = self.sensors
+        return {name: self.latest[b, sensors.columns(k)].copy() for k, name in enumerate(sensors.names)}
+
+    def batch_readings(self, rows: np.ndarray) -> dict[str, np.ndarray]:
+        """The rows' current readings by sensor name, shape (len(rows), width) each (copies)."""
+        sensors = self.sensors
+        return {name: self.latest[rows, sensors.columns(k)] for k, name in enumerate(sensors.names)}
+
+    def snapshot(self) -> Any:
+        return (
+            self.latest.copy(),
+            self.count.copy(),
+            [list(h) for h in self.history],
+            [[g.bit_generator.state for g in row] for row in self.generators],
+        )
+
+    def restore(self, snapshot: Any) -> None:
+        latest, count, history, states = snapshot
+        self.latest, self.count, self.history = latest.copy(), count.copy(), [list(h) for h in history]
+        for row, row_states in zip(self.generators, states, strict=True):
+            for g, state in zip(row, row_states, strict=True):
+                g.bit_generator.state = state
+
+
+def strides(sensors: Sensors, dt: float, control_every: int) -> tuple[int, list[int]]:
+    """The run's tick period in steps (the greatest common divisor of the sensors') and each sensor's stride in
+    those ticks, for steps of dt [s] and control every `control_every` steps (a sensor without a rate reads at
+    every control instant).
+
+    Raises:
+        InvalidArgumentError: a sensor's period (1 / rate) is not a whole multiple of dt.
+    """
+    steps = []
+    for p in sensors.placed:
+        rate = p.spec.rate
+        if rate is None:
+            steps.append(control_every)
+            continue
+        k = round(1.0 / (rate * dt))
+        if k < 1 or abs(k * dt * rate - 1.0) > 1e-9:
+            slower = f"{1.0 / (max(k, 1) * dt):g}" if k >= 1 else f"{1.0 / dt:g}"
+            raise InvalidArgumentError(
+                f"sensor '{p.spec.name}': rate {rate:g} Hz must read every whole number of steps of dt = {dt:g} s "
+                f"(its period 1 / rate = {1.0 / rate:g} s); e.g. rate = {slower} Hz"
+            )
+        steps.append(k)
+    every = math.gcd(*steps)
+    return every, [s // every for s in steps]
+
+
+class Sensing:
+    """A run's sensors: the clock its core ticks, the readings, and the readings written into its samples.
+
+    Attributes:
+        ticks: what the core measures when (Core.ticks).
+        stream: the readings, row by row.
+    """
+
+    def __init__(self, sensors: Sensors, *, dt: float, control_every: int, rows: np.ndarray):
+        """Args:
+        sensors: the system's sensors.
+        dt: the step [s]; control_every: steps per control instant (a sensor without a rate reads there).
+        rows: each row's index for the seeds.
+        """
+        every, per = strides(sensors, dt, control_every)
+        self.sensors = sensors
+        self.ticks = Ticks(every, len(rows))
+        self.stream = SensorStream(sensors, per, rows)
+
+    def attach(self, core: Any, h: float, *, fresh: np.ndarray | None = None, done: np.ndarray | None = None) -> None:
+        """Tick in this core (stepping.Core) from now on.
+
+        Args:
+            h: the step of the first ticks' trial steps [s].
+            fresh: positions of the running rows that start now (default all): they read their state now.
+            done: per row, the steps it took before this core started (default none).
+        """
+        self.ticks.clear()
+        self.ticks.done = np.zeros(len(self.ticks.done), dtype=np.int64) if done is None else done.copy()
+        core.ticks = self.ticks
+        self.ticks.start(core, np.arange(len(core.rows)) if fresh is None else fresh, h)
+        self.update()
+
+    def update(self, store: Any = None) -> None:
+        """Turn the ticks the core took into readings; with a store (recording.SampleStore), also write each new
+        sample's readings: those its sensors hold at its time."""
+        if store is None:
+            self.stream.push(*self.ticks.take())
+            return
+        before = self.stream.latest.copy()
+        fresh = self.stream.push(*self.ticks.take())
+        sensors = self.sensors
+        for b in range(store.B):
+            lo, hi = int(store.sensed[b]), store.samples_of(b)
+            if hi <= lo:
+                continue
+            out = store.SENSORS[lo:hi, b]
+            out[:] = before[b]
+            new = fresh.get(b)
+            if new is not None:
+                T = store.T[lo:hi, b]
+                for k, (times, values) in enumerate(new):
+                    if len(times):
+                        index = np.searchsorted(times, T, side="right") - 1
+                        hit = index >= 0
+                        out[hit, sensors.columns(k)] = values[index[hit]]
+            store.sensed[b] = hi
+
+
+def run_sensing(system: Any, method: Any, dt: float, control_every: int, rows: np.ndarray) -> Sensing | None:
+    """The sensors of a run of `method` with steps of dt [s] and control every `control_every` steps, for rows
+    `rows` (their indices for the seeds); None for a system without sensors.
+
+    Raises:
+        InvalidArgumentError: the method is adaptive (sensors tick every so many fixed steps), or a sensor's rate
+            does not divide into steps of dt.
+    """
+    sensors = getattr(system, "sensors", None)
+    if sensors is None:
+        return None
+    if method.adaptive:
+        raise InvalidArgumentError(
+            f"sensors tick every so many fixed steps: integrator '{method.name}' is adaptive; choose a fixed-step "
+            "integrator (rk4, semi_implicit_euler, ...)"
+        )
+    return Sensing(sensors, dt=dt, control_every=control_every, rows=rows)

@@ -1,0 +1,545 @@
+"""Sensors (multibody_sim.sensors): each kind against an independent reference (closed forms, the URDF's masses,
+finite differences of the recorded poses), and the readings' noise, bias, rate and latency against their
+declarations; the tables, files, controllers, steppers and gym environments that carry them."""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+import multibody_sim as ms
+from multibody_sim.exceptions import InvalidArgumentError, SceneError
+from multibody_sim.sensors import SensorStream
+
+G = 9.81
+
+
+def _box(**extra: object) -> ms.Scene:
+    """A 1 kg box (20 cm cube) released 0.5 m above the ground, with an IMU at its centre and a touch sensor."""
+    return ms.make_scene(
+        object=[{"name": "box", "shape": "box", "size": [0.2, 0.2, 0.2], "mass": 1.0, "position": [0, 0, 0.5]}],
+        ground={},
+        sensor=[
+            {"name": "imu", "kind": "imu", "frame": "box"},
+            {"name": "touch", "kind": "contact_force", "body": "box"},
+        ],
+        **extra,
+    )
+
+
+def _urdf_masses(path: str) -> dict[str, float]:
+    """Each link's mass as the URDF file writes it (read here with ElementTree, not through Pinocchio)."""
+    root = ET.parse(path).getroot()
+    masses = {}
+    for link in root.iter("link"):
+        mass = link.find("inertial/mass")
+        masses[link.get("name", "")] = float(mass.get("value", "0")) if mass is not None else 0.0
+    return masses
+
+
+# ---- the IMU ------------------------------------------------------------------------------------------------------
+def test_imu_in_free_fall_reads_zero_specific_force_and_on_the_ground_reads_g_upward() -> None:
+    """The box falls for ~0.27 s, lands and rests: in the air the IMU reads no specific force (to round-off), at rest
+    it reads g upward in the box's axes and the touch sensor the box's weight, m g."""
+    scene = _box()
+    traj = ms.simulate(scene, scene.q0, scene.v0, duration=0.6, dt=1e-3, integrator="timestepping")
+    imu, touch = traj.sensors["imu"], traj.sensors["touch"]
+    falling = traj.t < 0.25  # it reaches the ground at sqrt(2 · 0.4 / g) = 0.286 s
+    assert np.abs(imu[falling, :3]).max() < 1e-12
+    assert np.abs(touch[falling]).max() == 0.0
+    resting = traj.t > 0.5
+    np.testing.assert_allclose(imu[resting, :3], np.tile([0.0, 0.0, G], (resting.sum(), 1)), atol=1e-6)
+    np.testing.assert_allclose(touch[resting], np.tile([0.0, 0.0, 1.0 * G], (resting.sum(), 1)), atol=1e-6)
+    assert np.abs(imu[:, 3:]).max() < 1e-9  # it never turns
+
+
+def test_imu_on_a_tilted_resting_body_reads_g_in_its_own_axes() -> None:
+    """A box resting on its side (turned 90° about x, then 0.7 rad about z) reads Rᵀ (0, 0, g), R its orientation
+    (here from the frame_pose sensor's quaternion, compared with the declared rpy)."""
+    rpy = [math.pi / 2, 0.0, 0.7]
+    scene = ms.make_scene(
+        object=[
+            {"name": "box", "shape": "box", "size": [0.2, 0.2, 0.2], "mass": 2.0, "position": [0, 0, 0.1], "rpy": rpy}
+        ],
+        ground={},
+        sensor=[{"name": "imu", "kind": "imu", "frame": "box"}, {"name": "pose", "kind": "frame_pose", "frame": "box"}],
+    )
+    traj = ms.simulate(scene, scene.q0, scene.v0, duration=0.2, dt=1e-3, integrator="timestepping")
+    x, y, z, w = traj.sensors["pose"][-1, 3:]
+    rotation = pin.Quaternion(w, x, y, z).matrix()
+    np.testing.assert_allclose(rotation, pin.rpy.rpyToMatrix(*rpy), atol=1e-6)
+    np.testing.assert_allclose(traj.sensors["imu"][-1, :3], rotation.T @ [0.0, 0.0, G], atol=1e-6)
+
+
+def test_imu_of_a_spinning_falling_body_converges_to_zero_at_first_order() -> None:
+    """A box spinning about a principal axis while it falls feels no specific force at its centre; the IMU reads
+    the step's mean acceleration (v⁺ − v) / h at the end state, so its error falls linearly with dt. Its angular
+    velocity reading is the spin exactly (a torque-free spin about a principal axis stays constant)."""
+    errors = []
+    for dt in (4e-3, 2e-3, 1e-3):
+        scene = ms.make_scene(
+            object=[
+                {
+                    "name": "box",
+                    "shape": "box",
+                    "size": [0.2, 0.3, 0.4],
+                    "mass": 1.0,
+                    "velocity": [1.0, 0.0, 0.0, 0.0, 0.0, 3.0],
+                }
+            ],
+            sensor=[{"name": "imu", "kind": "imu", "frame": "box"}],
+        )
+        traj = ms.simulate(scene, scene.q0, scene.v0, duration=0.4, dt=dt, integrator="timestepping")
+        imu = traj.sensors["imu"][1:]
+        np.testing.assert_allclose(imu[:, 3:], np.tile([0.0, 0.0, 3.0], (len(imu), 1)), atol=1e-12)
+        errors.append(np.abs(imu[:, :3]).max())
+    slopes = np.diff(np.log(errors)) / np.log(0.5)
+    assert errors[-1] < 1e-2
+    np.testing.assert_allclose(slopes, 1.0, atol=0.05)
+
+
+def test_imu_on_a_moving_arm_matches_finite_differences_of_its_recorded_pose() -> None:
+    """ur5 swinging under gravity: the IMU at tool0, turned into world axes and with g added back, is the second
+    derivative of the frame's recorded position (central differences of the frame_pose sensor), and its angular
+    velocity the rotation's derivative; both agree to O(dt)."""
+    scene = ms.make_scene(
+        robot={"source": "ur5", "damping": False},
+        sensor=[
+            {"name": "imu", "kind": "imu", "frame": "tool0"},
+            {"name": "pose", "kind": "frame_pose", "frame": "tool0"},
+        ],
+    )
+    dt = 2e-4
+    traj = ms.simulate(scene, scene.q0, np.full(scene.nv, 0.5), duration=0.2, dt=dt)
+    pose, imu = traj.sensors["pose"], traj.sensors["imu"]
+    rotations = np.array([pin.Quaternion(p[6], *p[3:6]).matrix() for p in pose])
+    position = pose[:, :3]
+    acceleration = (position[2:] - 2 * position[1:-1] + position[:-2]) / dt**2
+    measured = np.einsum("nij,nj->ni", rotations[1:-1], imu[1:-1, :3]) + [0.0, 0.0, -G]
+    scale = np.abs(acceleration).max()
+    assert np.abs(measured - acceleration).max() < 1e-3 * scale  # 4.7e-4 measured: first order in dt
+    spin = np.array([pin.log3(a.T @ b) for a, b in zip(rotations[:-2], rotations[2:], strict=True)]) / (2 * dt)
+    assert np.abs(spin - imu[1:-1, 3:]).max() < 1e-6 * np.abs(spin).max()  # 4.7e-8 measured
+
+
+# ---- force–torque ---------------------------------------------------------------------------------------------------
+def _hold(scene: ms.Scene, q: np.ndarray) -> ms.Trajectory:
+    """The scene held at rest at q by its exact gravity torque."""
+    gravity = pin.computeGeneralizedGravity(scene.model, scene.data, q).copy()
+    return ms.simulate(scene, q, np.zeros(scene.nv), duration=0.05, dt=1e-3, controller=lambda t, q, v: gravity)
+
+
+@pytest.mark.parametrize("mass", [0.0, 1.5])
+def test_wrist_force_torque_sensor_reads_the_distal_weight_at_rest(mass: float) -> None:
+    """panda held at rest, a payload of mass m at the hand's TCP (8 cm off the sensor's axis): a sensor at the
+    hand's mounting (the URDF's fixed joint panda_hand_joint) carries the hand, both fingers and the payload, so it
+    reads (m_hand + 2 m_finger + m) g upward (masses from the URDF file), and the payload's moment about it; a sensor
+    at panda_joint7 adds link 7 and link 8."""
+    payload = [{"frame": "panda_hand_tcp", "mass": mass, "com": [0.08, 0.0, 0.0]}] if mass else []
+    scene = ms.make_scene(
+        robot={"source": "panda"},
+        payload=payload,
+        sensor=[
+            {"name": "wrist", "kind": "force_torque", "frame": "panda_hand_joint"},
+            {"name": "joint7", "kind": "force_torque", "joint": "panda_joint7"},
+            {"name": "mount", "kind": "frame_pose", "frame": "panda_hand_joint"},
+        ],
+    )
+    masses = _urdf_masses(scene.full_robot.source["urdf_path"])
+    distal = masses["panda_hand"] + masses["panda_leftfinger"] + masses["panda_rightfinger"]
+    traj = _hold(scene, scene.q0)
+    x, y, z, w = traj.sensors["mount"][-1, 3:]
+    rotation = pin.Quaternion(w, x, y, z).matrix()
+    wrist = traj.sensors["wrist"][-1]
+    np.testing.assert_allclose(rotation @ wrist[:3], [0.0, 0.0, (distal + mass) * G], atol=1e-9)
+    if mass:  # the payload's moment: its weight at its offset from the sensor (the tcp is 0.1034 m down the hand)
+        bare = ms.make_scene(
+            robot={"source": "panda"}, sensor=[{"name": "wrist", "kind": "force_torque", "frame": "panda_hand_joint"}]
+        )
+        without = _hold(bare, scene.q0).sensors["wrist"][-1]
+        tcp = scene.model.frames[scene.model.getFrameId("panda_hand_tcp")].placement
+        sensor = scene.model.frames[scene.model.getFrameId("panda_hand_joint")].placement
+        offset = (sensor.inverse() * tcp).act(np.array([0.08, 0.0, 0.0]))  # the payload's centre, sensor axes
+        weight = rotation.T @ [0.0, 0.0, -mass * G]  # its weight, in the sensor's axes
+        np.testing.assert_allclose(wrist[:3] - without[:3], -weight, atol=1e-9)
+        np.testing.assert_allclose(wrist[3:] - without[3:], -np.cross(offset, weight), atol=1e-9)
+    joint7 = traj.sensors["joint7"][-1]
+    link7 = masses["panda_link7"] + masses["panda_link8"]
+    assert np.linalg.norm(joint7[:3]) == pytest.approx((distal + mass + link7) * G, rel=1e-12)
+
+
+def test_force_torque_at_a_joint_carries_contact_forces_on_its_subtree() -> None:
+    """go2 standing: at rest the wrench across each hip joint balances its leg's weight against the foot's ground
+    force: Rᵀ(ground force) - leg weight, as the world sees it (sum of the four hips plus the trunk = 0)."""
+    scene = ms.load_scene(_scene_file("go2_standing.toml"))
+    feet = ["FL", "FR", "RL", "RR"]
+    sensors = [{"name": f"{leg}_touch", "kind": "contact_force", "body": f"{leg}_foot"} for leg in feet]
+    sensors += [{"name": f"{leg}_hip", "kind": "force_torque", "joint": f"{leg}_hip_joint"} for leg in feet]
+    sensors += [{"name": f"{leg}_hip_pose", "kind": "frame_pose", "frame": f"{leg}_hip_joint"} for leg in feet]
+    scene = _with_sensors(scene, sensors)
+    traj = scene.run(duration=1.0)
+    masses = _urdf_masses(scene.full_robot.source["urdf_path"])
+    for leg in feet:
+        leg_mass = sum(m for name, m in masses.items() if name.startswith(f"{leg}_"))
+        x, y, z, w = traj.sensors[f"{leg}_hip_pose"][-1, 3:]
+        rotation = pin.Quaternion(w, x, y, z).matrix()
+        across = rotation @ traj.sensors[f"{leg}_hip"][-1, :3]  # the wrench on the leg, world axes
+        ground = traj.sensors[f"{leg}_touch"][-1]
+        np.testing.assert_allclose(across + ground, [0.0, 0.0, leg_mass * G], atol=0.05 * leg_mass * G)
+
+
+def test_joint_torque_reads_what_the_actuators_deliver_not_their_command() -> None:
+    """ur5 with stiff position servos holding a target: the joint_torque sensor reads the servos' output, which at
+    rest balances gravity (Pinocchio's g(q), computed apart), while the commands are the targets; between control
+    instants it is the trajectory's tau (the delivered torque at each sample under the same held command)."""
+    scene = ms.make_scene(
+        robot={"source": "ur5", "damping": False},
+        actuator=[{"joints": "*", "kind": "position", "kp": 1e4, "kv": 100.0}],
+        sensor=[{"name": "tq", "kind": "joint_torque", "rate": 500.0}],  # every step
+    )
+    target = scene.q0 + 0.05
+    traj = scene.run(
+        duration=3.0, dt=2e-3, integrator="semi_implicit_euler", control_dt=2e-2, controller=lambda t, q, v: target
+    )
+    tq = traj.sensors["tq"]
+    gravity = pin.computeGeneralizedGravity(scene.model, scene.model.createData(), traj.q[-1])
+    np.testing.assert_allclose(tq[-1], gravity, atol=1e-9 * np.abs(gravity).max())
+    assert np.abs(tq[-1] - traj.ctrl[-1]).max() > 1.0  # not the command (a target in rad)
+    between = np.arange(len(traj)) % 10 != 0
+    np.testing.assert_array_equal(tq[between], traj.tau[between])
+
+
+# ---- contact forces -----------------------------------------------------------------------------------------------
+def _scene_file(name: str) -> Path:
+    return Path(__file__).parents[1] / "models" / "scenes" / name
+
+
+def _with_sensors(scene: ms.Scene, sensors: list[dict[str, object]]) -> ms.Scene:
+    import dataclasses
+
+    from multibody_sim.scenes.parse import parse_scene
+
+    parsed = parse_scene({"robot": {"source": "go2"}, "sensor": sensors}, "<test>", base_dir=None)
+    return ms.Scene(dataclasses.replace(scene.spec, sensors=parsed.sensors))
+
+
+def test_contact_forces_on_a_standing_robot_sum_to_its_weight() -> None:
+    """go2 dropped 0.6 mm onto its four feet and held at its stance: once settled, the four contact_force sensors
+    sum to (0, 0, M g), M the sum of the URDF's link masses. At every step, with the robot still moving, they are
+    the rate of change of its linear momentum less gravity (Newton–Euler on the whole robot: Pinocchio's centroidal
+    momentum rate at the step's start with the step's acceleration), to round-off."""
+    scene = ms.load_scene(_scene_file("go2_standing.toml"))
+    feet = ["FL", "FR", "RL", "RR"]
+    scene = _with_sensors(scene, [{"name": leg, "kind": "contact_force", "body": f"{leg}_foot"} for leg in feet])
+    traj = scene.run(duration=1.5)
+    total = sum(traj.sensors[leg] for leg in feet)
+    mass = sum(_urdf_masses(scene.full_robot.source["urdf_path"]).values())
+    settled = traj.t > 1.0
+    np.testing.assert_allclose(total[settled].mean(axis=0), [0.0, 0.0, mass * G], atol=5e-4 * mass * G)
+    for leg in feet:  # every foot carries its share
+        assert (traj.sensors[leg][settled, 2] > 0.15 * mass * G).all()
+    model, data = scene.model, scene.model.createData()
+    h = 1e-3
+    for k in range(1, len(traj), 7):
+        a = (traj.v[k] - traj.v[k - 1]) / h
+        rate = pin.computeCentroidalMomentumTimeVariation(model, data, traj.q[k - 1], traj.v[k - 1], a).linear
+        np.testing.assert_allclose(rate, mass * np.array([0.0, 0.0, -G]) + total[k], atol=1e-8 * mass * G)
+
+
+# ---- readings: noise, bias, rate, latency ---------------------------------------------------------------------------
+def _stream(
+    noise: float, bias: float, latency: int = 0, stride: int = 1, seed: int = 7
+) -> tuple[SensorStream, ms.Scene]:
+    scene = ms.make_scene(
+        robot={"source": "double_pendulum"},
+        sensor=[
+            {
+                "name": "enc",
+                "kind": "joint_position",
+                "joints": ["joint1"],
+                "noise": noise,
+                "bias": bias,
+                "latency": latency,
+                "seed": seed,
+            }
+        ],
+    )
+    return SensorStream(scene.sensors, [stride], np.array([0])), scene
+
+
+def test_noise_mean_and_std_match_the_declaration_over_1e5_readings() -> None:
+    """1e5 readings of a constant measurement: their mean is measurement + bias within 3 σ/√n, their standard
+    deviation the declared noise within 3 σ/√(2n)."""
+    n, std, bias = 100_000, 0.05, 0.3
+    stream, _ = _stream(std, bias)
+    readings = stream.push([0.0], [np.array([0])], [np.full((1, 1), 1.25)])  # the first, then many more
+    times = list(np.arange(1, n) * 1e-3)
+    more = stream.push(times, [np.array([0])] * (n - 1), [np.full((1, 1), 1.25)] * (n - 1))
+    values = np.concatenate([readings[0][0][1][:, 0], more[0][0][1][:, 0]])
+    assert len(values) == n
+    assert abs(values.mean() - (1.25 + bias)) < 3 * std / math.sqrt(n)
+    assert abs(values.std(ddof=1) - std) < 3 * std / math.sqrt(2 * n)
+
+
+def test_readings_in_one_call_or_many_are_the_same() -> None:
+    """The noise is drawn reading after reading from the sensor's generator: a run cut into pieces (a Stepper,
+    chunks) reads the same numbers as one call."""
+    z = np.linspace(0.0, 1.0, 50)[:, None]
+    one, _ = _stream(0.1, 0.0, latency=3, stride=2)
+    whole = one.push(list(np.arange(50.0)), [np.array([0])] * 50, list(z[:, None]))
+    many, _ = _stream(0.1, 0.0, latency=3, stride=2)
+    parts = [
+        many.push(list(np.arange(a, b, dtype=float)), [np.array([0])] * (b - a), list(z[a:b, None]))
+        for a, b in ((0, 7), (7, 8), (8, 50))
+    ]
+    times = np.concatenate([p[0][0][0] for p in parts])
+    values = np.concatenate([p[0][0][1] for p in parts])
+    np.testing.assert_array_equal(times, whole[0][0][0])
+    np.testing.assert_array_equal(values, whole[0][0][1])
+
+
+def test_latency_is_exact_in_readings_and_rate_holds_them_between() -> None:
+    """The double pendulum swinging: a sensor 3 readings late at 250 Hz (every 4 steps of 1 ms) reads exactly what
+    its on-time twin read 3 readings (12 ms) before (its first reading before that), and holds each reading for 4
+    samples."""
+    scene = ms.make_scene(
+        robot={"source": "double_pendulum"},
+        sensor=[
+            {"name": "now", "kind": "joint_velocity", "rate": 250.0},
+            {"name": "late", "kind": "joint_velocity", "rate": 250.0, "latency": 3},
+            {"name": "every", "kind": "joint_velocity"},
+        ],
+    )
+    traj = ms.simulate(scene, [2.5, 0.3], [0.0, 0.0], duration=0.2, dt=1e-3)
+    now, late, every = traj.sensors["now"], traj.sensors["late"], traj.sensors["every"]
+    np.testing.assert_array_equal(every, traj.v)  # every step: the velocity itself
+    ticks = np.arange(0, len(traj), 4)
+    np.testing.assert_array_equal(now[ticks], traj.v[ticks])
+    for i in range(len(traj)):  # held between its readings
+        np.testing.assert_array_equal(now[i], traj.v[(i // 4) * 4])
+    np.testing.assert_array_equal(late[12:], now[:-12])
+    np.testing.assert_array_equal(late[:12], np.tile(traj.v[0], (12, 1)))
+
+
+def test_noise_is_seeded_per_sensor_and_per_rollout_row() -> None:
+    """The same seed, the same noise; a rollout's row b draws from seed + b (its element equals a simulate() of the
+    scene declared with seed + b)."""
+
+    def scene(seed: int) -> ms.Scene:
+        return ms.make_scene(
+            robot={"source": "double_pendulum"},
+            sensor=[{"name": "enc", "kind": "joint_position", "noise": 0.1, "bias": [0.0, 1.0], "seed": seed}],
+        )
+
+    q0, v0 = np.array([0.4, 0.1]), np.zeros(2)
+    a = ms.simulate(scene(5), q0, v0, duration=0.02, dt=1e-3)
+    b = ms.simulate(scene(5), q0, v0, duration=0.02, dt=1e-3)
+    np.testing.assert_array_equal(a.sensors["enc"], b.sensors["enc"])
+    batch = ms.rollout(scene(5), np.array([q0, q0]), np.array([v0, v0]), duration=0.02, dt=1e-3)
+    assert batch.sensors["enc"].shape == (2, len(a), 2)
+    np.testing.assert_array_equal(batch.sensors["enc"][0], a.sensors["enc"])
+    other = ms.simulate(scene(6), q0, v0, duration=0.02, dt=1e-3)
+    np.testing.assert_array_equal(batch.sensors["enc"][1], other.sensors["enc"])
+    np.testing.assert_array_equal(batch.element(1).sensors["enc"], other.sensors["enc"])
+    assert np.abs(a.sensors["enc"] - a.q - [0.0, 1.0]).max() < 0.5  # noise about the biased truth
+    assert not np.array_equal(a.sensors["enc"], other.sensors["enc"])
+
+
+# ---- where readings go ----------------------------------------------------------------------------------------------
+def test_readings_go_to_files_tables_and_chunks(tmp_path: Path) -> None:
+    """.npz round trip (chunked too), dataframe columns <name>.<component>, CSV and Parquet."""
+    scene = _box()
+    traj = ms.simulate(scene, scene.q0, scene.v0, duration=0.05, dt=1e-3, integrator="timestepping")
+    loaded = ms.Trajectory.load(traj.save(tmp_path / "box.npz"))
+    for name in ("imu", "touch"):
+        np.testing.assert_array_equal(loaded.sensors[name], traj.sensors[name])
+    chunked = ms.simulate(
+        scene,
+        scene.q0,
+        scene.v0,
+        duration=0.05,
+        dt=1e-3,
+        integrator="timestepping",
+        out=tmp_path / "chunked.npz",
+        chunk=7,
+    )
+    np.testing.assert_array_equal(chunked.sensors["imu"], traj.sensors["imu"])
+    pytest.importorskip("pandas")
+    frame = traj.to_dataframe()
+    assert [c for c in frame.columns if c.startswith(("imu.", "touch."))] == [
+        "imu.ax",
+        "imu.ay",
+        "imu.az",
+        "imu.wx",
+        "imu.wy",
+        "imu.wz",
+        "touch.fx",
+        "touch.fy",
+        "touch.fz",
+    ]
+    np.testing.assert_array_equal(frame["touch.fz"].to_numpy(), traj.sensors["touch"][:, 2])
+    import pandas
+
+    from multibody_sim.tables import write_table
+
+    write_table(traj, tmp_path / "box.csv")
+    table = pandas.read_csv(tmp_path / "box.csv")
+    np.testing.assert_array_equal(table["imu.az"].to_numpy(), traj.sensors["imu"][:, 2])
+    pytest.importorskip("pyarrow")
+    write_table(traj, tmp_path / "box.parquet")
+    np.testing.assert_array_equal(pandas.read_parquet(tmp_path / "box.parquet")["imu.az"], traj.sensors["imu"][:, 2])
+
+
+def test_a_controller_that_asks_reads_what_the_trajectory_records() -> None:
+    """A controller with `sensors = True` is called with the readings (by name); they are the trajectory's
+    readings at the control instants, and the run's samples equal a Stepper driven by the same controller."""
+    scene = ms.make_scene(
+        robot={"source": "double_pendulum"},
+        sensor=[
+            {"name": "enc", "kind": "joint_position", "noise": 0.01, "latency": 1},
+            {"name": "gyro", "kind": "joint_velocity", "noise": 0.01},
+        ],
+    )
+    seen: list[tuple[float, np.ndarray]] = []
+
+    def pd(t: float, q: np.ndarray, v: np.ndarray, readings: dict[str, np.ndarray]) -> np.ndarray:
+        seen.append((t, readings["enc"].copy()))
+        return -5.0 * (readings["enc"] - [math.pi, 0.0]) - 0.5 * readings["gyro"]
+
+    pd.sensors = True  # type: ignore[attr-defined]
+    q0, v0 = np.array([2.8, 0.2]), np.zeros(2)
+    traj = ms.simulate(scene, q0, v0, duration=0.05, dt=1e-3, control_dt=5e-3, controller=pd)
+    assert len(seen) == 10
+    for t, enc in seen:
+        i = int(round(t / 1e-3))
+        np.testing.assert_array_equal(enc, traj.sensors["enc"][i])
+    stepper = ms.Stepper(scene, dt=1e-3, control_dt=5e-3, q0=q0, v0=v0)
+    stepper.advance_to(0.05, pd)
+    np.testing.assert_array_equal(stepper.q, traj.q[-1])
+    np.testing.assert_array_equal(stepper.readings["enc"], traj.sensors["enc"][-1])
+
+
+def test_steppers_read_what_simulate_records() -> None:
+    """Stepper.readings and BatchStepper.readings after each interval are simulate()'s readings at that sample."""
+    scene = _box()
+    traj = ms.simulate(scene, scene.q0, scene.v0, duration=0.4, dt=1e-3, integrator="timestepping")
+    stepper = ms.Stepper(scene, dt=1e-3, control_dt=1e-2, integrator="timestepping", q0=scene.q0, v0=scene.v0)
+    batch = ms.BatchStepper(
+        scene, np.array([scene.q0] * 2), np.array([scene.v0] * 2), dt=1e-3, control_dt=1e-2, integrator="timestepping"
+    )
+    np.testing.assert_array_equal(stepper.readings["imu"], traj.sensors["imu"][0])
+    for k in range(1, 41):
+        stepper.step()
+        batch.step(np.zeros((2, scene.nv)))
+        np.testing.assert_array_equal(stepper.readings["touch"], traj.sensors["touch"][10 * k])
+        np.testing.assert_array_equal(batch.readings["imu"][0], traj.sensors["imu"][10 * k])
+
+
+def test_gym_observations_are_the_sensors_readings() -> None:
+    """observation="sensors": the Box has the sensors' components, and each observation is the readings; a seeded
+    reset reproduces the noise; the vector env's row i equals the single env seeded with seed + i."""
+    pytest.importorskip("gymnasium")
+    from multibody_sim.gym import MultibodyEnv, MultibodyVectorEnv
+
+    scene = ms.make_scene(
+        robot={"source": "double_pendulum"},
+        sensor=[
+            {"name": "enc", "kind": "joint_position", "noise": 0.01},
+            {"name": "tip", "kind": "frame_pose", "frame": "link2"},
+        ],
+    )
+    env = MultibodyEnv(scene, reward=lambda q, v, tau: 0.0, observation="sensors", control_dt=2e-3)
+    assert env.observation_space.shape == (9,)
+    obs, _ = env.reset(seed=3)
+    readings = env.stepper.readings
+    np.testing.assert_array_equal(obs, np.concatenate([readings["enc"], readings["tip"]]))
+    first = [env.step(np.zeros(2))[0] for _ in range(5)]
+    again, _ = env.reset(seed=3)
+    np.testing.assert_array_equal(again, obs)
+    np.testing.assert_array_equal([env.step(np.zeros(2))[0] for _ in range(5)], first)
+    only = MultibodyEnv(scene, reward=lambda q, v, tau: 0.0, observation=["tip"])
+    assert only.observation_space.shape == (7,)
+    vector = MultibodyVectorEnv(scene, 2, reward=lambda q, v, tau: 0.0, observation="sensors", control_dt=2e-3)
+    observations, _ = vector.reset(seed=2)
+    np.testing.assert_array_equal(observations[1], obs)  # row 1: seed 2 + 1
+    for expected in first:
+        observations = vector.step(np.zeros((2, 2)))[0]
+        np.testing.assert_array_equal(observations[1], expected)
+
+
+def test_describe_lists_the_sensors() -> None:
+    scene = ms.make_scene(
+        robot={"source": "ur5"},
+        sensor=[
+            {"name": "imu", "kind": "imu", "frame": "tool0", "noise": 0.01, "rate": 500.0, "latency": 2},
+            {"name": "enc", "kind": "joint_position", "joints": "*_joint"},
+        ],
+    )
+    text = scene.describe()
+    assert "  sensors:\n    imu: imu at tool0, 500 Hz, noise 0.01, latency 2 (ax ay az wx wy wz)" in text
+    assert "    enc: joint_position of 6 joints, every control instant (shoulder_pan_joint" in text
+
+
+# ---- mistakes -------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("sensor", "message"),
+    [
+        ({"kind": "imu"}, "<scene>: sensor[0].frame: missing (a imu sensor needs frame)"),
+        (
+            {"kind": "lidar"},
+            "<scene>: sensor[0].kind: must be one of contact_force, force_torque, frame_pose, imu, "
+            "joint_position, joint_torque, joint_velocity, got 'lidar'",
+        ),
+        (
+            {"kind": "imu", "frame": "tool0", "body": "x"},
+            "<scene>: sensor[0].body: only for kind contact_force, not imu",
+        ),
+        ({"kind": "imu", "frame": "tool0", "noise": -1.0}, "<scene>: sensor[0].noise: must be >= 0, got -1.0"),
+        (
+            {"kind": "imu", "frame": "tool0", "noise": [0.1, 0.2]},
+            "<scene>: sensor[0].noise: must be one number or 6 (one per component: ax ay az wx wy wz), got 2",
+        ),
+        ({"kind": "imu", "frame": "tool9"}, "<scene>: sensor[0].frame: unknown frame 'tool9' (did you mean 'tool0'?)"),
+        (
+            {"kind": "contact_force", "body": "wrist_3_link"},
+            "<scene>: sensor[0].body: a contact_force sensor needs contact ([ground], [contact] or [[object]])",
+        ),
+        ({"kind": "joint_position", "joints": ["nope_*"]}, "<scene>: sensor[0].joints: 'nope_*' matches no actuated"),
+        ({"kind": "imu", "frame": "tool0", "name": "a.b"}, "<scene>: sensor[0].name: must not contain '.'"),
+        ({"kind": "imu", "frame": "tool0", "latency": 1.5}, "<scene>: sensor[0].latency: must be a whole number"),
+    ],
+)
+def test_sensor_mistakes_are_one_line(sensor: dict[str, object], message: str) -> None:
+    with pytest.raises(SceneError) as info:
+        ms.make_scene(robot={"source": "ur5"}, sensor=[sensor])
+    assert str(info.value).startswith(message), str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_run_mistakes_are_one_line() -> None:
+    scene = ms.make_scene(robot={"source": "double_pendulum"}, sensor=[{"kind": "joint_position", "rate": 300.0}])
+    with pytest.raises(InvalidArgumentError, match=r"^sensor 'joint_position0': rate 300 Hz must read every whole "):
+        ms.simulate(scene, [0.1, 0.0], [0.0, 0.0], duration=0.01, dt=1e-3)
+    with pytest.raises(InvalidArgumentError, match=r"^sensors tick every so many fixed steps: integrator 'dp54'"):
+        ms.simulate(scene, [0.1, 0.0], [0.0, 0.0], duration=0.01, dt=1e-3, integrator="dp54", rtol=1e-6, atol=1e-8)
+    reads = lambda t, q, v, readings: np.zeros(2)  # noqa: E731
+    reads.sensors = True  # type: ignore[attr-defined]
+    with pytest.raises(InvalidArgumentError, match=r"^the controller reads sensors \(sensors = True\) but the system"):
+        ms.simulate(
+            ms.make_scene(robot={"source": "double_pendulum"}),
+            [0.1, 0.0],
+            [0.0, 0.0],
+            duration=0.01,
+            dt=1e-3,
+            controller=reads,
+        )
+    pytest.importorskip("gymnasium")
+    from multibody_sim.gym import MultibodyEnv
+
+    with pytest.raises(InvalidArgumentError, match=r"^observation: unknown sensor 'imu' \(the system's sensors: "):
+        MultibodyEnv(scene, reward=lambda q, v, tau: 0.0, observation=["imu"])
