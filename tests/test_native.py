@@ -187,11 +187,11 @@ def test_cmake_and_python_digest_the_sources_alike_and_an_edit_makes_the_build_s
     for path in sorted((REPO / "src" / "native").iterdir()):
         (copy / path.name).write_bytes(path.read_bytes())
     assert native._stale_sources(build.SOURCES_SHA256, copy) is None
-    kernel = copy / "kernel.cpp"
+    kernel = copy / "engine.cpp"
     kernel.write_bytes(kernel.read_bytes() + b"\n")
     assert native._stale_sources(build.SOURCES_SHA256, copy) == copy
     (copy / "new.hpp").write_text("")  # a new file counts too
-    kernel.write_bytes((REPO / "src" / "native" / "kernel.cpp").read_bytes())
+    kernel.write_bytes((REPO / "src" / "native" / "engine.cpp").read_bytes())
     assert native._stale_sources(build.SOURCES_SHA256, copy) == copy
     assert native._stale_sources(build.SOURCES_SHA256, tmp_path) is None  # no sources there: nothing to check
 

@@ -1,4 +1,4 @@
-"""The native kernel (src/native/kernel.cpp, kernels/native.py) against the Python kernel, its specification: the same
+"""The native kernel (src/native/, kernels/native.py) against the Python kernel, its specification: the same
 samples, counts, statuses and messages for simulate(), Stepper and rollout(), every explicit method, every robot of
 the benchmark set; a perturbed stage coefficient breaks the agreement; Ctrl-C mid-run keeps every sample."""
 

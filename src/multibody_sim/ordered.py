@@ -4,7 +4,7 @@
 and the library. Adaptive steps amplify any difference: an error estimate is a small difference of large stage
 derivatives, so one unit in the last place of a stage moves the next step size by ~1e-6 relative. The steps'
 sums are formed here instead: each product rounded, then added one after the other in index order (numpy's
-``add.accumulate`` is sequential by definition); the native kernel (src/native/kernel.cpp) sums the same way, so
+``add.accumulate`` is sequential by definition); the native kernel (src/native/methods.hpp) sums the same way, so
 both agree bit for bit.
 """
 

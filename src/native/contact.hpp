@@ -1,4 +1,4 @@
-// The contact part of the `timestepping` step, rendered for the native kernel (kernel.cpp calls it).
+// The contact part of the `timestepping` step, rendered for the native kernel (methods.hpp calls it).
 //
 // The Python code is the specification: scenes/contact.py (ContactModel.detect and .problem: coal collision with
 // the speculative margin, contact patches capped at MAX_PATCH_POINTS, one point-contact constraint per patch

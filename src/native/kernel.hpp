@@ -1,9 +1,12 @@
 // The native stepping kernel: the Python core's loop (core.Core.advance) over rows of one robot, in C++.
 //
-// The Python kernel is the specification (src/multibody_sim/core.py, integrators/explicit_rk.py,
-// integrators/partitioned.py, state.py, step_control.py); this file renders the same arithmetic in the same order
-// where it can (see docs/architecture.md). Everything a method is (its tableau, its error weights, its dense output)
-// arrives as data from Python: no coefficient is written here.
+// The Python kernel is the specification (src/multibody_sim/core.py, kernels/row.py, integrators/explicit_rk.py,
+// integrators/partitioned.py, state.py, step_control.py); the C++ renders the same arithmetic in the same order.
+// This header holds the kernel's data (what a method is, the chart map, the step-size controller, the loop's state,
+// the sample store, a row's stop: each arrives from or goes back to Python as a named struct, module.cpp) and the
+// engine's interface. The rest, one concept per file: methods.hpp (the arithmetic of a step), loop.hpp (the loop
+// over one thread's rows), engine.cpp (the engine: rows over threads), module.cpp (the bindings). Everything a
+// method is (its tableau, its error weights, its dense output) arrives as data: no coefficient is written here.
 #pragma once
 
 #include <array>
@@ -186,7 +189,8 @@ namespace multibody_sim
     std::vector<ContactRecord> records;  // the contacts of the samples written (contact scenes)
   };
 
-  struct Thread;  // one thread's rows and workspace
+  struct Rows;    // one thread's rows, their states and workspace (methods.hpp)
+  struct Thread;  // ... and the loop over them (loop.hpp)
 
   // pinocchio::integrate(model, q, v, out) without its per-joint visitor where the joint's Lie group is a vector
   // space (revolute, prismatic, ...: out = q + v, the same additions): runs of such joints are one loop each, and
@@ -272,7 +276,8 @@ namespace multibody_sim
     double last_control = std::numeric_limits<double>::quiet_NaN();
 
   private:
-    friend struct Thread;
+    friend struct Rows;  // methods.hpp
+    friend struct Thread;  // loop.hpp
     // The thread that runs run row `row` and the row's place in it; throws invalid_argument if none runs it.
     std::pair<Thread *, size_t> locate(int64_t row) const;
     pinocchio::Model model_;
@@ -307,6 +312,6 @@ namespace nanobind
 namespace multibody_sim
 {
   // The kernel's Python bindings (class _native.Kernel over a _native.Model, and the named structs it takes),
-  // added by module.cpp.
+  // defined in module.cpp.
   void bind_kernel(nanobind::module_ & m);
 } // namespace multibody_sim

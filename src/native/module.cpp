@@ -1,8 +1,10 @@
-// multibody_sim._native: the compiled side of multibody-sim (see multibody_sim/native.py, which loads it).
+// multibody_sim._native: the compiled side of multibody-sim (see multibody_sim/native.py, which loads it): the
+// module's bindings.
 //
-// Here: the model hand-over (Pinocchio's binary serialization, bytes -> NativeModel), the build's version, and the
-// floor measurement (an RK4 loop of Pinocchio calls, scripts/bench_native_floor.py). The stepping kernel binds
-// itself through bind_kernel (src/native/kernel.cpp, when present).
+// Here: the model hand-over (Pinocchio's binary serialization, bytes -> NativeModel), the build's version, the floor
+// measurement (an RK4 loop of Pinocchio calls, scripts/bench_native_floor.py), and the stepping kernel's class
+// (_native.Kernel over the engine, engine.cpp) with the named structs it takes (structs.hpp); a scene's and a contact
+// model's classes bind themselves (bind_scene in scene.cpp, bind_contact in contact.cpp).
 #include <cstdint>
 #include <sstream>
 #include <stdexcept>
@@ -14,7 +16,12 @@
 
 #include <nanobind/eigen/dense.h>
 #include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/shared_ptr.h>
 #include <nanobind/stl/string.h>
+#include <nanobind/stl/tuple.h>
+#include <nanobind/stl/variant.h>
+#include <nanobind/stl/vector.h>
 
 #include <pinocchio/algorithm/aba.hpp>
 #include <pinocchio/algorithm/joint-configuration.hpp>
@@ -22,13 +29,16 @@
 #include <pinocchio/serialization.hpp>
 
 #include "model.hpp"
+#ifdef MULTIBODY_SIM_WITH_KERNEL
+#include "kernel.hpp"
+#include "structs.hpp"
+#endif
 
 namespace nb = nanobind;
 
 namespace multibody_sim
 {
 #ifdef MULTIBODY_SIM_WITH_KERNEL
-  void bind_kernel(nb::module_ & m); // src/native/kernel.cpp
   void bind_scene(nb::module_ & m);  // src/native/scene.cpp
   void bind_contact(nb::module_ & m);  // src/native/contact.cpp
 #endif
@@ -122,6 +132,384 @@ namespace multibody_sim
     }
   } // namespace
 } // namespace multibody_sim
+
+#ifdef MULTIBODY_SIM_WITH_KERNEL
+// ---- the stepping kernel's class and the named structs it takes (kernels/native.py is their only user) ----------
+namespace
+{
+  using Doubles = nb::ndarray<double, nb::c_contig, nb::device::cpu>;
+  using Ints = nb::ndarray<int64_t, nb::c_contig, nb::device::cpu>;
+
+  // recording.SampleStore's batch-major arrays (STORE_ARRAYS), shape (B, capacity, ...) each: _native.Store. The
+  // struct holds references to them while the engine writes into them.
+  struct StoreArrays
+  {
+    Doubles T, Q, V, TAU, ENERGY, FLOWS;
+    Ints COUNTS;
+    Doubles EXTRA;
+  };
+
+  void check_store(const StoreArrays & a)
+  {
+    const auto cells = [&](const Doubles & X) {
+      return X.ndim() == 3 && X.shape(0) == a.T.shape(0) && X.shape(1) == a.T.shape(1);
+    };
+    const size_t n = a.T.ndim() == 2 ? a.T.shape(0) * a.T.shape(1) : 0;
+    if (a.T.ndim() != 2 || a.COUNTS.size() != 3 * n || a.ENERGY.size() != 2 * n || !cells(a.Q) || !cells(a.V)
+        || !cells(a.TAU) || !cells(a.ENERGY) || !cells(a.FLOWS) || !cells(a.EXTRA))
+      throw std::invalid_argument("Store: the sample store's arrays disagree in shape");
+  }
+
+  multibody_sim::Store store_of(const StoreArrays & a)
+  {
+    multibody_sim::Store s;
+    s.T = a.T.data();
+    s.Q = a.Q.data();
+    s.V = a.V.data();
+    s.TAU = a.TAU.data();
+    s.ENERGY = a.ENERGY.data();
+    s.FLOWS = a.FLOWS.data();
+    s.COUNTS = a.COUNTS.data();
+    s.EXTRA = a.EXTRA.data();
+    s.extra_width = static_cast<int64_t>(a.EXTRA.shape(2));
+    s.B = static_cast<int64_t>(a.T.shape(0));  // batch-major: (B, capacity, ...)
+    s.capacity = static_cast<int64_t>(a.T.shape(1));
+    return s;
+  }
+
+  // recording.SampleStore.write_contacts for the samples the engine wrote, on the store's `contacts` dict itself
+  // (row b -> {sample index: rows (k, 11)}): dict operations run no Python code, so a signal handler (Ctrl-C)
+  // never sees the samples counted without their contacts.
+  void write_contacts(nb::dict contacts, std::vector<multibody_sim::ContactRecord> & records)
+  {
+    for (multibody_sim::ContactRecord & r : records)
+    {
+      nb::int_ b(r.b), i(r.i);
+      if (!contacts.contains(b))
+        contacts[b] = nb::dict();
+      nb::dict held = nb::borrow<nb::dict>(contacts[b]);
+      if (r.rows.empty())
+      {
+        if (held.contains(i))
+          nb::del(held[i]);
+        continue;
+      }
+      const size_t k = r.rows.size();
+      double * buffer = new double[k * 11];
+      for (size_t c = 0; c < k; ++c)
+        std::copy(r.rows[c].begin(), r.rows[c].end(), buffer + 11 * c);
+      nb::capsule owner(buffer, [](void * p) noexcept { delete[] static_cast<double *>(p); });
+      held[i] = nb::cast(nb::ndarray<nb::numpy, double, nb::ndim<2>>(buffer, {k, 11}, owner));
+    }
+    records.clear();
+  }
+
+  // A contact run's evaluations beyond the core's count, per running position of the Python core (`rows`, the rows
+  // stopped in this call included: NativeCore._take_pending compacts both) into `extra`.
+  void write_extra_evaluations(const multibody_sim::Engine & engine, const Ints & rows, Ints & extra)
+  {
+    if (!engine.has_contact())
+      return;
+    std::vector<int64_t> wanted(rows.data(), rows.data() + rows.size());
+    const std::vector<int64_t> counts = engine.extra_evaluations(wanted);
+    for (size_t p = 0; p < counts.size() && p < extra.size(); ++p)
+      extra.data()[p] = counts[p];
+  }
+
+  // What advance() did: why it returned (core.py's REACHED, STEPPED, FULL, EMPTY, or "need_room"), the steps it
+  // took, and the samples the store must have room for beyond its count (need_room): _native.Advance.
+  struct Advance
+  {
+    std::string status;
+    int64_t taken = 0, need = 0;
+  };
+
+  const char * status_name(int status)
+  {
+    switch (status)
+    {
+    case multibody_sim::REACHED:
+      return "reached";
+    case multibody_sim::STEPPED:
+      return "stepped";
+    case multibody_sim::FULL:
+      return "full";
+    case multibody_sim::EMPTY:
+      return "empty";
+    default:
+      return "need_room";
+    }
+  }
+
+  const char * stop_name(int code)
+  {
+    if (code == multibody_sim::STOP_DIVERGED)
+      return "diverged";
+    return code == multibody_sim::STOP_COLLAPSED ? "collapsed" : "control";
+  }
+
+  // Method's shapes, by field.
+  void check_method(multibody_sim::Method & me)
+  {
+    const auto need = [](bool ok, const std::string & what) {
+      if (!ok)
+        throw std::invalid_argument("Method." + what);
+    };
+    const size_t s = static_cast<size_t>(me.stages);
+    need(me.stages >= 1, "stages must be >= 1");
+    need(me.a.size() == s * s, "a must hold stages x stages entries");
+    need(me.b.size() == s && me.c.size() == s, "b and c must hold `stages` entries each");
+    need(me.chart_terms >= 0, "chart_terms must be >= 0");
+    if (me.kind == multibody_sim::Kind::embedded)
+      need(me.e.size() == s && (me.dense.empty() || me.dense.size() == s), "e (and dense) must hold `stages` entries");
+    if (me.kind == multibody_sim::Kind::dop853)
+    {
+      const size_t x = static_cast<size_t>(me.extended_stages);
+      need(me.e5.size() == s && me.e3.size() == s, "e5 and e3 must hold `stages` entries each");
+      need(x >= s && me.a_extended.size() == x * x && me.c_extended.size() == x && me.dense_weights.size() == 4 * x,
+           "a_extended, c_extended, dense_weights must be extended_stages x extended_stages, extended_stages, 4 x "
+           "extended_stages");
+    }
+  }
+} // namespace
+
+void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
+{
+  using namespace multibody_sim;
+  Struct<Method>(m, "Method", "A stepping method as the engine renders it (Integrator.native_data()).")
+    .choice("kind", &Method::kind,
+            {{"explicit_rk", Kind::explicit_rk}, {"embedded", Kind::embedded}, {"dop853", Kind::dop853},
+             {"semi_implicit_euler", Kind::semi_implicit_euler}, {"timestepping", Kind::timestepping}})
+    .field("stages", &Method::stages, "int")
+    .field("a", &Method::a, "list[float]")
+    .field("b", &Method::b, "list[float]")
+    .field("c", &Method::c, "list[float]")
+    .field("chart_terms", &Method::chart_terms, "int")
+    .optional("fsal", &Method::fsal, "bool")
+    .optional("e", &Method::e, "list[float]")
+    .optional("dense", &Method::dense, "list[float]")
+    .optional("e5", &Method::e5, "list[float]")
+    .optional("e3", &Method::e3, "list[float]")
+    .optional("extended_stages", &Method::extended_stages, "int")
+    .optional("a_extended", &Method::a_extended, "list[float]")
+    .optional("c_extended", &Method::c_extended, "list[float]")
+    .optional("dense_weights", &Method::dense_weights, "list[float]")
+    .finish(check_method);
+  Struct<ChartBlock>(m, "ChartBlock", "One curved block of the chart map (ConfigurationSpace.native_data()).")
+    .field("start", &ChartBlock::start, "int")
+    .field("size", &ChartBlock::d, "int")
+    .field("index", &ChartBlock::index, "list[int]")
+    .field("half_sign", &ChartBlock::half_sign, "list[float]")
+    .finish([](ChartBlock & b) {
+      const size_t n = static_cast<size_t>(b.d) * static_cast<size_t>(b.d);
+      if (b.d < 1 || b.d > 6 || b.index.size() != n || b.half_sign.size() != n)
+        throw std::invalid_argument("ChartBlock: index and half_sign must be size x size with 1 <= size <= 6");
+    });
+  Struct<Chart>(m, "Chart", "The configuration space's chart map (ConfigurationSpace.native_data()).")
+    .field("blocks", &Chart::blocks, "list[ChartBlock]")
+    .field("half_series", &Chart::half_series, "list[float]")
+    .finish();
+  Struct<ConstantStepData>(m, "ConstantStep", "Constant steps' constants (step_control.ConstantStep.native_data()).")
+    .field("dt", &ConstantStepData::dt, "float")
+    .field("sliver", &ConstantStepData::sliver, "float")
+    .field("landing", &ConstantStepData::landing, "float")
+    .finish();
+  Struct<PIControllerData>(m, "PIController", "The PI controller's constants (PIController.native_data()).")
+    .field("alpha", &PIControllerData::alpha, "float")
+    .field("beta", &PIControllerData::beta, "float")
+    .field("safety", &PIControllerData::safety, "float")
+    .field("factor_min", &PIControllerData::factor_min, "float")
+    .field("factor_max", &PIControllerData::factor_max, "float")
+    .field("max_step", &PIControllerData::max_step, "float")
+    .field("first_step", &PIControllerData::first_step, "float")
+    .field("landing", &PIControllerData::landing, "float")
+    .finish();
+  Struct<Sampler>(m, "Sampler", "When the loop records samples (core.Sampler.native_data(); 0: none).")
+    .field("every", &Sampler::every, "int")
+    .field("period", &Sampler::period, "float")
+    .finish([](Sampler & s) { s.present = true; });
+  Struct<LoopState>(
+    m, "LoopState",
+    "What the Python side owns and the engine advances, in and out of advance(): the core's counts, the store's "
+    "count, the sampler's next output, the step-size controller's state.")
+    .field("steps", &LoopState::steps, "int")
+    .field("rejected", &LoopState::rejected, "int")
+    .field("evaluations", &LoopState::evaluations, "int")
+    .field("recorded", &LoopState::recorded, "float")
+    .field("count", &LoopState::count, "int")
+    .field("full", &LoopState::full, "bool")
+    .field("soft_capacity", &LoopState::soft_capacity, "float")
+    .field("next_output", &LoopState::next_output, "int")
+    .field("step_t0", &LoopState::step_t0, "float")
+    .field("step_k", &LoopState::step_k, "int")
+    .field("step_time", &LoopState::step_time, "float")
+    .field("step_h", &LoopState::step_h, "float")
+    .field("previous_error", &LoopState::previous_error, "float")
+    .field("rejected_last", &LoopState::rejected_last, "bool")
+    .finish();
+  Struct<StoreArrays>(m, "Store", "The sample store's batch-major arrays (recording.STORE_ARRAYS).")
+    .field("T", &StoreArrays::T, "a C-contiguous float64 array")
+    .field("Q", &StoreArrays::Q, "a C-contiguous float64 array")
+    .field("V", &StoreArrays::V, "a C-contiguous float64 array")
+    .field("TAU", &StoreArrays::TAU, "a C-contiguous float64 array")
+    .field("ENERGY", &StoreArrays::ENERGY, "a C-contiguous float64 array")
+    .field("FLOWS", &StoreArrays::FLOWS, "a C-contiguous float64 array")
+    .field("COUNTS", &StoreArrays::COUNTS, "a C-contiguous int64 array")
+    .field("EXTRA", &StoreArrays::EXTRA, "a C-contiguous float64 array")
+    .finish(check_store);
+
+  nb::class_<StopEvent>(m, "StopEvent", "A row the engine stopped (core.RowStop's evidence).")
+    .def_prop_ro("kind", [](const StopEvent & e) { return std::string(stop_name(e.code)); },
+                 "\"diverged\", \"collapsed\" (an adaptive step) or \"control\" (a native controller's output)")
+    .def_ro("row", &StopEvent::row)
+    .def_ro("time", &StopEvent::time)
+    .def_ro("step", &StopEvent::step, "the step that failed: the core's steps + 1 then")
+    .def_ro("dof", &StopEvent::dof, "diverged: the first non-finite velocity coordinate")
+    .def_ro("count", &StopEvent::count, "store.count when it stopped")
+    .def_ro("added", &StopEvent::added, "whether a last sample was written for it at index count")
+    .def_prop_ro("steps", [](const StopEvent & e) { return e.counts[0]; }, "its frozen step count")
+    .def_prop_ro("rejected", [](const StopEvent & e) { return e.counts[1]; })
+    .def_prop_ro("evaluations", [](const StopEvent & e) { return e.counts[2]; })
+    .def_ro("h", &StopEvent::h, "collapsed: the step [s]")
+    .def_ro("minimum", &StopEvent::minimum, "collapsed: the smallest step allowed [s]")
+    .def_ro("error", &StopEvent::error, "collapsed: the error norm (NaN: not judged)");
+  nb::class_<Advance>(m, "Advance", "What Kernel.advance() did.")
+    .def_ro("status", &Advance::status)
+    .def_ro("taken", &Advance::taken)
+    .def_ro("need", &Advance::need);
+
+  nb::class_<Engine>(m, "Kernel", "The native stepping kernel of one run (multibody_sim.kernels.native drives it).")
+    .def(
+      "__init__",
+      [](Engine * self, const NativeModel & model, const Method & method, const Chart & chart,
+         const std::variant<ConstantStepData, PIControllerData> & control, const Eigen::VectorXd & damping,
+         int n_ledger, double rtol, double atol, const RowMatrix & Q0, const RowMatrix & V0, int num_threads) {
+        Control c;
+        if (const auto * fixed = std::get_if<ConstantStepData>(&control))
+        {
+          c.dt = fixed->dt;
+          c.sliver = fixed->sliver;
+          c.landing = fixed->landing;
+        }
+        else
+        {
+          const PIControllerData & pi = std::get<PIControllerData>(control);
+          c.adaptive = true;
+          c.alpha = pi.alpha;
+          c.beta = pi.beta;
+          c.safety = pi.safety;
+          c.factor_min = pi.factor_min;
+          c.factor_max = pi.factor_max;
+          c.max_step = pi.max_step;
+          c.first_step = pi.first_step;
+          c.landing = pi.landing;
+          c.rtol = rtol;
+          c.atol = atol;
+        }
+        const pinocchio::Model & robot = model.model;
+        if (Q0.cols() != robot.nq || V0.cols() != robot.nv || Q0.rows() != V0.rows() || damping.size() != robot.nv)
+          throw std::invalid_argument("initial states or damping disagree with the model's sizes");
+        new (self)
+          Engine(robot, method, chart.blocks, chart.half_series, damping, n_ledger, c, Q0, V0, num_threads);
+      },
+      nb::arg("model"), nb::kw_only(), nb::arg("method"), nb::arg("chart"), nb::arg("control"), nb::arg("damping"),
+      nb::arg("n_ledger"), nb::arg("rtol"), nb::arg("atol"), nb::arg("Q0"), nb::arg("V0"), nb::arg("num_threads"),
+      "The engine of one run: the robot, its method, chart map and step-size controller (named structs), the "
+      "damping (nv,), the ledger's size, the tolerances (adaptive methods), the rows' initial states (B, nq), "
+      "(B, nv) and the threads the rows are split over.")
+    .def(
+      "advance",
+      [](Engine & self, double t_stop, int64_t limit, double tolerance, LoopState & state, const StoreArrays & store,
+         const Sampler * sampler, nb::list stops, nb::dict contacts, Ints rows, Ints extra_evaluations) {
+        CoreState s;
+        static_cast<LoopState &>(s) = state;
+        s.t = self.t;
+        s.instant = self.instant;
+        s.last_control = self.last_control;
+        const Sampler sampling = sampler ? *sampler : Sampler();
+        const Store arrays = store_of(store);
+        AdvanceResult result;
+        {
+          nb::gil_scoped_release release;
+          result = self.advance(t_stop, limit, tolerance, sampling, arrays, s);
+        }
+        // The state comes back in `state` and the stops in `stops` before this call returns: no Python code runs
+        // in between, so a signal handler (Ctrl-C) that runs when it returns never sees the work half recorded.
+        self.t = s.t;
+        self.instant = s.instant;
+        self.last_control = s.last_control;
+        state = s;
+        for (const StopEvent & ev : result.stops)
+          stops.append(nb::cast(ev));
+        write_contacts(contacts, result.records);
+        write_extra_evaluations(self, rows, extra_evaluations);
+        return Advance{status_name(result.status), result.taken, result.need};
+      },
+      nb::arg("t_stop"), nb::arg("limit"), nb::arg("tolerance"), nb::kw_only(), nb::arg("state"), nb::arg("store"),
+      nb::arg("sampler").none(), nb::arg("stops"), nb::arg("contacts"), nb::arg("rows"),
+      nb::arg("extra_evaluations"),
+      "Core.advance towards t_stop, at most `limit` accepted steps, with the landing `tolerance`: advances `state` "
+      "(a LoopState) in place, appends the rows that stop to `stops` (StopEvent), their contacts to `contacts` "
+      "(the store's dict) and the evaluations beyond the core's count of the running `rows` to "
+      "`extra_evaluations`.")
+    .def(
+      "write_rows",
+      [](Engine & self, int64_t i, std::vector<int64_t> rows, const StoreArrays & store, nb::dict contacts) {
+        const Store arrays = store_of(store);
+        if (i < 0 || i >= arrays.capacity)
+          throw std::invalid_argument("sample index out of the store");
+        for (int64_t b : rows)
+          if (b < 0 || b >= arrays.B)
+            throw std::invalid_argument("row out of the store");
+        std::vector<ContactRecord> records = self.write_rows(i, rows, arrays);
+        write_contacts(contacts, records);
+      },
+      nb::arg("i"), nb::arg("rows"), nb::kw_only(), nb::arg("store"), nb::arg("contacts"),
+      "Write run rows `rows` as sample i of the store, their contacts into `contacts` (the store's dict).")
+    .def(
+      "set_contact",
+      [](Engine & self, std::shared_ptr<ContactScene> contact, std::vector<bool> flow_work) {
+        self.set_contact(contact, flow_work);
+      },
+      nb::arg("contact"), nb::arg("flow_work"),
+      "A contact scene's geometry and constraints (_native.ContactScene) for the timestepping kind; flow_work: "
+      "per ledger entry before the contact's four, whether it is work (else dissipated).")
+    .def_prop_ro("has_contact", &Engine::has_contact)
+    .def("contact_row", &Engine::contact_row)
+    .def(
+      "set_scene", [](Engine & self, std::shared_ptr<SceneForces> scene) { self.set_scene(scene); },
+      nb::arg("scene"), "A scene's force elements (_native.SceneForces) join the dynamics (scene.cpp).")
+    .def(
+      "set_policies",
+      [](Engine & self, std::shared_ptr<Policies> policies, Ints calls, Ints saturated, Ints saturated_dofs) {
+        const size_t B = static_cast<size_t>(self.running());
+        if (calls.size() != B || saturated.size() != B || saturated_dofs.size() != B * self.model().nv)
+          throw std::invalid_argument("set_policies: the count arrays must have shapes (B,), (B,), (B, nv)");
+        self.set_policies(policies, calls.data(), saturated.data(), saturated_dofs.data());
+      },
+      nb::arg("policies"), nb::arg("calls"), nb::arg("saturated"), nb::arg("saturated_dofs"),
+      "Torques from native controllers at the control instants (scene.cpp); the count arrays stay alive for the "
+      "run (kernels/native.py keeps them).")
+    .def("set_torques", &Engine::set_torques)
+    .def("keep", &Engine::keep)
+    .def("running_rows", &Engine::running_rows)
+    .def("running_q", &Engine::running_q)
+    .def("running_v", &Engine::running_v)
+    .def("flows_of", &Engine::flows_of)
+    .def("set_state", &Engine::set_state)
+    .def(
+      "row_state",
+      [](const Engine & self, int64_t row) {
+        const auto [q, v, flows, tau, first, has_first] = self.snapshot_row(row);
+        return std::make_tuple(q, v);
+      },
+      nb::arg("row"), "Run row `row`'s current (q, v).")
+    .def("save", &Engine::save, "Keep every row's whole state (one copy, overwritten by the next save()).")
+    .def("restore_saved", &Engine::restore_saved, "Return every row to the state of the last save().")
+    .def_prop_ro("running", &Engine::running)
+    .def_rw("t", &Engine::t);
+}
+#endif
 
 NB_MODULE(_native, m)
 {

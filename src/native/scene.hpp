@@ -1,4 +1,4 @@
-// A scene's physics and the built-in controllers, rendered for the native kernel (kernel.cpp calls them).
+// A scene's physics and the built-in controllers, rendered for the native kernel (methods.hpp and loop.hpp call them).
 //
 // The Python code is the specification: scenes/elements.py (ForceElements: springs plain and continuous, damping,
 // regularized Coulomb friction, wrenches with their declared shapes; their ledger powers and the springs'

@@ -1,0 +1,455 @@
+// The engine (kernel.hpp): one run's rows split over threads, each running loop.hpp's Core.advance on its own rows
+// with methods.hpp's arithmetic, joined once per advance(); the rows' states by row for Core's own code (records,
+// stops, torques, Stepper's undo point); Pinocchio's integrate without its per-joint visitor on vector-space joints.
+#include "loop.hpp"
+
+#include <algorithm>
+#include <condition_variable>
+#include <exception>
+#include <functional>
+#include <limits>
+#include <mutex>
+#include <thread>
+#include <type_traits>
+
+namespace multibody_sim
+{
+  // ---- a pool of threads that each run their own rows' loop, joined once per advance() --------------------------
+  struct Engine::Pool
+  {
+    std::vector<std::thread> workers;
+    std::mutex mutex;
+    std::condition_variable start, done;
+    std::function<void(size_t)> job;
+    uint64_t generation = 0;
+    size_t pending = 0;
+    bool quit = false;
+    std::exception_ptr error;  // the first exception a worker raised in this run
+
+    explicit Pool(size_t n)
+    {
+      for (size_t i = 1; i < n; ++i)
+        workers.emplace_back([this, i] { loop(i); });
+    }
+
+    ~Pool()
+    {
+      {
+        std::lock_guard<std::mutex> lock(mutex);
+        quit = true;
+      }
+      start.notify_all();
+      for (std::thread & t : workers)
+        t.join();
+    }
+
+    void loop(size_t i)
+    {
+      uint64_t seen = 0;
+      while (true)
+      {
+        std::function<void(size_t)> task;
+        {
+          std::unique_lock<std::mutex> lock(mutex);
+          start.wait(lock, [&] { return quit || generation != seen; });
+          if (quit)
+            return;
+          seen = generation;
+          task = job;
+        }
+        std::exception_ptr failure;
+        try
+        {
+          task(i);
+        }
+        catch (...)  // an exception must not end a worker thread (std::terminate): the caller rethrows it
+        {
+          failure = std::current_exception();
+        }
+        {
+          std::lock_guard<std::mutex> lock(mutex);
+          if (failure && !error)
+            error = failure;
+          if (--pending == 0)
+            done.notify_one();
+        }
+      }
+    }
+
+    void run(const std::function<void(size_t)> & f)
+    {
+      {
+        std::lock_guard<std::mutex> lock(mutex);
+        job = f;
+        pending = workers.size();
+        ++generation;
+      }
+      start.notify_all();
+      std::exception_ptr failure;
+      try
+      {
+        f(0);
+      }
+      catch (...)
+      {
+        failure = std::current_exception();
+      }
+      std::unique_lock<std::mutex> lock(mutex);
+      done.wait(lock, [&] { return pending == 0; });
+      if (!failure)
+        failure = error;
+      error = nullptr;
+      if (failure)
+        std::rethrow_exception(failure);
+    }
+  };
+
+  // ---- Engine -----------------------------------------------------------------------------------------------------
+  namespace
+  {
+    // Whether a joint's Lie group (pinocchio::LieGroupMap) is the vector space R^nq, where integrate is q + v.
+    struct IsVectorSpace : boost::static_visitor<bool>
+    {
+      template<typename JointModel>
+      bool operator()(const JointModel &) const
+      {
+        using Group = typename pinocchio::LieGroupMap::template operation<JointModel>::type;
+        using Flat = pinocchio::VectorSpaceOperationTpl<JointModel::NQ, double, 0>;
+        return std::is_same<Group, Flat>::value && JointModel::NQ == JointModel::NV;
+      }
+    };
+  } // namespace
+
+  Integrate::Integrate(const pinocchio::Model & model)
+  {
+    for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
+    {
+      const auto & joint = model.joints[i];
+      if (!boost::apply_visitor(IsVectorSpace(), joint.toVariant()))
+      {
+        others.push_back(i);
+        continue;
+      }
+      const int q = joint.idx_q(), v = joint.idx_v(), n = joint.nq();
+      if (!spans.empty() && spans.back().q + spans.back().n == q && spans.back().v + spans.back().n == v)
+        spans.back().n += n;
+      else
+        spans.push_back(Span{q, v, n});
+    }
+  }
+
+  void Integrate::operator()(const pinocchio::Model & model, const Vec & q, const Vec & v, Vec & out) const
+  {
+    for (const Span & s : spans)
+      for (int i = 0; i < s.n; ++i)
+        out[s.q + i] = q[s.q + i] + v[s.v + i];
+    if (others.empty())
+      return;
+    using Step = pinocchio::IntegrateStep<pinocchio::LieGroupMap, Vec, Vec, Vec>;
+    Step::ArgsType args(q, v, out);
+    for (pinocchio::JointIndex i : others)
+      Step::run(model.joints[i], args);
+  }
+
+  Engine::Engine(
+    const pinocchio::Model & model,
+    const Method & method,
+    const std::vector<ChartBlock> & blocks,
+    const std::vector<double> & half_series,
+    const Vec & damping,
+    int n_ledger,
+    const Control & control,
+    const RowMatrix & Q0,
+    const RowMatrix & V0,
+    int num_threads)
+  : model_(model)
+  , integrate_(model_)
+  , method_(method)
+  , blocks_(blocks)
+  , half_series_(half_series)
+  , damping_(damping)
+  , damped_(damping.size() && (damping.array() != 0.0).any())
+  , n_ledger_(n_ledger)
+  , control_(control)
+  , n_robot_flows_(damped_ ? 2 : 1)
+  {
+    neutral_ = pinocchio::neutral(model_);
+    const int64_t B = Q0.rows();
+    const int64_t n = std::max<int64_t>(1, std::min<int64_t>(num_threads, B));
+    for (int64_t i = 0; i < n; ++i)  // rows split across threads once per run
+    {
+      std::vector<int64_t> owned;
+      for (int64_t b = i * B / n; b < (i + 1) * B / n; ++b)
+        owned.push_back(b);
+      threads_.emplace_back(new Thread(*this, owned, Q0, V0));
+    }
+    if (n > 1)
+      pool_.reset(new Pool(static_cast<size_t>(n)));
+  }
+
+  Engine::~Engine() = default;
+
+  void Engine::set_scene(std::shared_ptr<const SceneForces> scene)
+  {
+    const int contact_flows = method_.kind == Kind::timestepping ? 4 : 0;  // the time-stepper's, last
+    if (scene && (scene->nv != model_.nv || n_robot_flows_ + scene->n_flows() + contact_flows != n_ledger_))
+      throw std::invalid_argument("the scene's elements disagree with the model's sizes or the ledger");
+    scene_ = scene;
+    for (auto & th : threads_)
+      th->sw = scene ? scene->workspace(model_) : nullptr;
+  }
+
+  void Engine::set_policies(
+    std::shared_ptr<const Policies> policies, int64_t * calls, int64_t * saturated, int64_t * saturated_dofs)
+  {
+    if (policies && policies->nv != model_.nv)
+      throw std::invalid_argument("the controllers disagree with the model's sizes");
+    policies_ = policies;
+    calls_ = calls;
+    saturated_ = saturated;
+    saturated_dofs_ = saturated_dofs;
+    for (auto & th : threads_)
+      th->pw = policies ? policies->workspace(model_) : nullptr;
+  }
+
+  AdvanceResult Engine::advance(
+    double t_stop, int64_t limit, double tolerance, const Sampler & sampler, const Store & store, CoreState & state)
+  {
+    for (auto & th : threads_)
+      th->st = state;
+    if (pool_)
+      pool_->run([&](size_t i) { threads_[i]->run(t_stop, limit, tolerance, sampler, store); });
+    else
+      threads_[0]->run(t_stop, limit, tolerance, sampler, store);
+    // Every thread with rows left took the same decisions; else the one that went furthest stands for the run.
+    Thread * lead = nullptr;
+    for (auto & th : threads_)
+      if (th->n_alive && (!lead || !lead->n_alive || th->st.steps > lead->st.steps))
+        lead = th.get();
+    if (!lead)
+      for (auto & th : threads_)
+        if (!lead || th->st.steps > lead->st.steps || th->st.count > lead->st.count)
+          lead = th.get();
+    AdvanceResult out;
+    out.status = lead->n_alive ? lead->res.status : EMPTY;
+    out.taken = lead->res.taken;
+    out.need = lead->res.need;
+    state = lead->st;
+    for (auto & th : threads_)
+    {
+      out.stops.insert(out.stops.end(), th->res.stops.begin(), th->res.stops.end());
+      for (ContactRecord & r : th->res.records)
+        out.records.push_back(std::move(r));
+      th->res.records.clear();
+    }
+    std::stable_sort(out.stops.begin(), out.stops.end(), [](const StopEvent & a, const StopEvent & b) {
+      return a.step != b.step ? a.step < b.step : a.row < b.row;
+    });
+    for (auto & th : threads_)  // every thread continues from the run's time (rows that all stopped included)
+      th->st = state;
+    return out;
+  }
+
+  std::vector<ContactRecord> Engine::write_rows(int64_t i, const std::vector<int64_t> & rows, const Store & store)
+  {
+    std::vector<ContactRecord> records;
+    for (int64_t b : rows)
+      for (auto & th : threads_)
+        for (size_t j = 0; j < th->rows.size(); ++j)
+          if (th->rows[j] == b)
+          {
+            th->write(store, i, b, th->q[j], th->v[j], th->tau[j], th->flows[j].data());
+            if (contact_)
+              records.push_back(ContactRecord{i, b, th->crow[j].active});
+          }
+    return records;
+  }
+
+  void Engine::set_contact(std::shared_ptr<const ContactScene> contact, const std::vector<bool> & flow_work)
+  {
+    if (contact && (contact->nv != model_.nv || n_ledger_ < 4 || static_cast<int>(flow_work.size()) != n_ledger_ - 4))
+      throw std::invalid_argument("the contact scene disagrees with the model's sizes or the ledger");
+    if (contact && method_.kind != Kind::timestepping)
+      throw std::invalid_argument("a contact scene steps with the timestepping kind only");
+    contact_ = contact;
+    flow_work_ = flow_work;
+    for (auto & th : threads_)
+    {
+      if (contact)
+        th->cw = contact->workspace(model_);
+      else
+        th->cw.reset();
+    }
+  }
+
+  std::pair<Thread *, size_t> Engine::locate(int64_t row) const
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+          return {th.get(), j};
+    throw std::invalid_argument("no such row");
+  }
+
+  ContactRow Engine::contact_row(int64_t row) const
+  {
+    const auto [th, j] = locate(row);
+    return th->crow[j];
+  }
+
+  std::vector<int64_t> Engine::extra_evaluations(const std::vector<int64_t> & rows) const
+  {
+    std::vector<int64_t> out;
+    for (int64_t b : rows)
+    {
+      int64_t x = 0;
+      for (auto & th : threads_)
+        for (size_t j = 0; j < th->rows.size(); ++j)
+          if (th->rows[j] == b)
+            x = th->extra[j];
+      out.push_back(x);
+    }
+    return out;
+  }
+
+  void Engine::set_torques(const RowMatrix & TAU, bool jump)
+  {
+    if (TAU.rows() != running() || TAU.cols() != model_.nv)
+      throw std::invalid_argument("torques must have shape (running rows, nv)");
+    int64_t r = 0;
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->alive[j])
+        {
+          th->tau[j] = TAU.row(r++).transpose();
+          if (jump)
+            th->has_first[j] = 0;
+        }
+  }
+
+  void Engine::keep(const std::vector<bool> & keep)
+  {
+    if (static_cast<int64_t>(keep.size()) != running())
+      throw std::invalid_argument("keep needs one flag per running row");
+    size_t r = 0;
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->alive[j])
+          if (!keep[r++])
+            th->kill(j);
+  }
+
+  std::vector<int64_t> Engine::running_rows() const
+  {
+    std::vector<int64_t> out;
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->alive[j])
+          out.push_back(th->rows[j]);
+    return out;
+  }
+
+  RowMatrix Engine::running_q() const
+  {
+    RowMatrix out(running(), model_.nq);
+    int64_t r = 0;
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->alive[j])
+          out.row(r++) = th->q[j].transpose();
+    return out;
+  }
+
+  RowMatrix Engine::running_v() const
+  {
+    RowMatrix out(running(), model_.nv);
+    int64_t r = 0;
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->alive[j])
+          out.row(r++) = th->v[j].transpose();
+    return out;
+  }
+
+  Vec Engine::flows_of(int64_t row) const
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+          return th->flows[j];
+    return Vec();
+  }
+
+  void Engine::set_state(int64_t row, const Vec & q, const Vec & v, const Vec & flows)
+  {
+    if (q.size() != model_.nq || v.size() != model_.nv || flows.size() != n_ledger_)
+      throw std::invalid_argument("a row's state has the wrong sizes");
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+        {
+          th->q[j] = q;
+          th->v[j] = v;
+          th->flows[j] = flows;
+          th->has_first[j] = 0;
+          th->crow[j] = ContactRow();  // RowKernel.set_row: the solver state restarts (TimeStepping.init)
+        }
+  }
+
+  std::tuple<Vec, Vec, Vec, Vec, Vec, bool> Engine::snapshot_row(int64_t row) const
+  {
+    for (auto & th : threads_)
+      for (size_t j = 0; j < th->rows.size(); ++j)
+        if (th->rows[j] == row)
+          return {th->q[j], th->v[j], th->flows[j], th->tau[j], th->first[j], th->has_first[j] != 0};
+    throw std::invalid_argument("no such row");
+  }
+
+  void Engine::save()
+  {
+    for (auto & th : threads_)
+    {
+      Thread::Saved & s = th->saved;
+      s.q = th->q;  // (same-sized vectors: copied into the storage of the last save)
+      s.v = th->v;
+      s.flows = th->flows;
+      s.tau = th->tau;
+      s.first = th->first;
+      s.has_first = th->has_first;
+      s.alive = th->alive;
+      s.n_alive = th->n_alive;
+      s.crow = th->crow;
+      s.extra = th->extra;
+    }
+    saved_ = true;
+  }
+
+  void Engine::restore_saved()
+  {
+    if (!saved_)
+      throw std::logic_error("restore_saved() before save()");
+    for (auto & th : threads_)
+    {
+      const Thread::Saved & s = th->saved;
+      th->q = s.q;
+      th->v = s.v;
+      th->flows = s.flows;
+      th->tau = s.tau;
+      th->first = s.first;
+      th->has_first = s.has_first;
+      th->alive = s.alive;
+      th->n_alive = s.n_alive;
+      th->crow = s.crow;
+      th->extra = s.extra;
+    }
+  }
+
+  int64_t Engine::running() const
+  {
+    int64_t n = 0;
+    for (auto & th : threads_)
+      n += th->n_alive;
+    return n;
+  }
+
+} // namespace multibody_sim
