@@ -3,7 +3,7 @@
 For each scene in models/scenes/: nq/nv of the full and the scene's model, elements and constraints, max
 |energy_error| of the run as the scene declares it (and at half its step, to show it is the integrator's error:
 it falls by about 2^order), constraint drift, and the per-step cost against the full robot model
-(Scene.measure_savings: RK4, CPU-time medians). Writes docs/scenes.md.
+(bench.measure_savings: RK4, CPU-time medians). Writes docs/scenes.md.
 
     python scripts/scene_report.py [--out docs/scenes.md]
 """
@@ -30,7 +30,7 @@ def main() -> None:
         traj = scene.run(progress=False)
         half = scene.run(progress=False, dt=settings["dt"] / 2)
         drift = max((float(abs(r.drift).max()) for r in traj.constraints.values()), default=None)
-        savings = scene.measure_savings()
+        savings = ms.bench.measure_savings(scene)
         ratios[name] = savings["ratio"]
         rows.append(
             [
@@ -68,7 +68,8 @@ def main() -> None:
         "at half its step: the energy ledger's error is the integrator's (it falls by about 2^order) for every smooth "
         "scene; for contact scenes (integrator timestepping) every ledger term has its own formula and the ledger "
         "closes to round-off at any step. "
-        "Cost: `Scene.measure_savings()` (what `--report-savings` and `inspect` print): RK4 at 1 ms (contact scenes: "
+        "Cost: `bench.measure_savings(scene)` (what `--report-savings` and `inspect` print): RK4 at 1 ms "
+        "(contact scenes: "
         "timestepping, against the bare robot stepped the same way), 200 steps, "
         "CPU-time medians of 5 repeats, against the full robot model (nothing locked, no elements, no constraints), "
         f"measured in the same run on a shared 2-core machine (load average {os.getloadavg()[0]:.1f} at the end).",

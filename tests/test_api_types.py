@@ -333,6 +333,12 @@ ROWS = [
         {"result": (42, None), "path": PATH, "title": (42,)},
     ),
     Row("bench.observed_orders", bench.observed_orders, lambda tmp: {"result": study()}, {"result": (42, None)}),
+    Row(
+        "bench.measure_savings",
+        bench.measure_savings,
+        lambda tmp: {"scene": ms.make_scene(robot={"source": "pendulum"}), "steps": 2, "repeats": 1},
+        {"scene": (*SYSTEM, robot()), "steps": WHOLE, "repeats": WHOLE},
+    ),
     # ---- trajectories --------------------------------------------------------------------------------------
     Row(
         "Trajectory.load",
@@ -583,6 +589,13 @@ def test_the_valid_calls_of_the_table_work(row: Row, tmp_path: Path) -> None:
     result = row.call(**row.valid(tmp_path))
     if isinstance(result, _viz_server_types()):
         result.close()
+
+
+def test_a_batch_is_not_a_trajectory() -> None:
+    """A BatchTrajectory where one trajectory goes is refused in one line (its arrays have a leading batch axis:
+    trajectory_error raised a raw TypeError on one, the plots a ValueError)."""
+    with pytest.raises(ms.InvalidArgumentError, match="^trajectory must be a Trajectory, got BatchTrajectory$"):
+        ms.trajectory_error(robot(), batch(), run())
 
 
 def _viz_server_types() -> tuple[type, ...]:

@@ -395,3 +395,26 @@ def test_a_signal_from_outside_while_the_file_is_written(tmp_path: Path, sig: si
     saved = ms.Trajectory.load(out)
     assert saved.status == "completed" and len(saved) == 51
     assert sorted(os.listdir(tmp_path)) == ["go", "ready", "run.npz"]
+
+
+def _deliver_sigterm() -> None:
+    """Send this process SIGTERM (its Python handler runs before the next bytecode of this thread)."""
+    os.kill(os.getpid(), signal.SIGTERM)
+
+
+def test_sigterm_as_interrupt_leaves_another_handler_to_the_library_and_takes_it_over_for_the_command_line() -> None:
+    """Where something else handles SIGTERM (Ray installs sys.exit), a library run leaves it alone; the command
+    line, which owns its process, takes SIGTERM over as Ctrl-C (exit 143, samples kept) and gives the handler back."""
+    seen: list[int] = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: seen.append(signum))
+    try:
+        handler = signal.getsignal(signal.SIGTERM)
+        with files.SigtermAsInterrupt() as library:
+            _deliver_sigterm()
+        assert seen == [signal.SIGTERM] and not library.received
+        with pytest.raises(KeyboardInterrupt), files.SigtermAsInterrupt(owner=True) as command_line:
+            _deliver_sigterm()
+        assert command_line.received and seen == [signal.SIGTERM]  # taken over, and not delivered again on exit
+        assert signal.getsignal(signal.SIGTERM) is handler
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -822,7 +822,7 @@ def require_viewer() -> Any:
 @pytest.mark.parametrize("name", ["four_bar", "talos_upper_body"])
 def test_robot_from_a_saved_scene_trajectory_is_the_scene(name: str, tmp_path: Path) -> None:
     require_viewer()
-    from multibody_sim.viz.frames import robot_from_trajectory
+    from multibody_sim.recorded import robot_from_trajectory
 
     scene = ms.load_scene(SCENES[name])
     traj = scene.run(progress=False, duration=0.02)

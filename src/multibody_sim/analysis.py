@@ -10,8 +10,7 @@ import numpy as np
 import pinocchio as pin
 
 from .exceptions import InvalidArgumentError, UnknownNameError
-from .robot import Robot
-from .validation import check_system
+from .robot import Robot, check_system
 
 _LOCAL_WORLD_ALIGNED = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _LISTED = 12  # frame names an unknown-frame error lists when none is close

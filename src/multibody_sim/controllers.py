@@ -25,9 +25,9 @@ import numpy as np
 import pinocchio as pin
 
 from .exceptions import InvalidArgumentError, UnknownNameError
-from .robot import Robot
+from .robot import Robot, check_system
 from .text import name_hint, safe_name
-from .validation import check_system, check_text
+from .validation import check_text
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 

@@ -8,8 +8,8 @@ import numpy as np
 
 from .exceptions import InvalidArgumentError, SimulationError
 from .integrators import Integrator, StepFailure, get_integrator
-from .robot import Robot
-from .validation import check_system, finite_number, positive_number
+from .robot import Robot, check_system
+from .validation import finite_number, positive_number
 
 _SUPPORTED = (
     "the explicit Runge–Kutta methods (euler, midpoint, rk4, bs32, dp54, dop853), semi_implicit_euler, "

@@ -141,13 +141,18 @@ class SigtermAsInterrupt:
     on Ctrl-C and keeps its samples; on exit, once they are written, SIGTERM is delivered again with its default
     action: the process still terminates, and loses nothing.
 
+    With ``owner=True`` the caller owns the process (the command line): SIGTERM is taken over from whatever handles
+    it, that handler is back on exit, and SIGTERM is not delivered again (the command line exits with 143 itself).
+
     Attributes:
         received: whether SIGTERM arrived.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, *, owner: bool = False) -> None:
         self.received = False
+        self.owner = owner
         self._active = False
+        self._previous: Any = None
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         first = not self.received
@@ -156,18 +161,18 @@ class SigtermAsInterrupt:
             raise KeyboardInterrupt
 
     def __enter__(self) -> SigtermAsInterrupt:
-        if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) in (
-            signal.SIG_DFL,
-            None,
+        # Python lets only the main thread install handlers; elsewhere SIGTERM keeps its action.
+        if threading.current_thread() is threading.main_thread() and (
+            self.owner or signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None)
         ):
-            signal.signal(signal.SIGTERM, self._handle)
+            self._previous = signal.signal(signal.SIGTERM, self._handle)
             self._active = True
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self._active:
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
-            if self.received:
+        if self._active:  # None: the previous handler was not installed from Python; the default then
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if self._previous is None else self._previous)
+            if self.received and not self.owner:
                 signal.raise_signal(signal.SIGTERM)
 
 

@@ -362,6 +362,14 @@ class Robot:
         return bool(head.any() or tail.any())
 
 
+def check_system(value: Any, name: str = "system") -> Robot:
+    """value if it is a Robot (a Scene is one), else InvalidArgumentError (a robot's name is not the robot)."""
+    if not isinstance(value, Robot):
+        hint = f" (load it first: load_robot({value!r}) or load_scene({value!r}))" if isinstance(value, str) else ""
+        raise InvalidArgumentError(f"{name} must be a Robot or a Scene, got {type(value).__name__}{hint}")
+    return value
+
+
 def real_array(value: Any, name: str, expected: str) -> np.ndarray:
     """value as a float array if it holds real numbers (strings, objects, complex and ragged nesting are refused
     rather than coerced), else InvalidArgumentError: "{name} must be {expected}, got ..."."""

@@ -24,10 +24,10 @@ from .integrators import Integrator, get_integrator
 from .integrators.timestepping import SOLVER_COUNTS  # a contact scene's, in stats only when kept
 from .progress import ProgressBar
 from .recording import delivered_torques, limit_reports, sensor_arrays, split_records
-from .robot import Robot, real_array
+from .robot import Robot, check_system, real_array
 from .torques import Torques, controller_name
 from .trajectory import ARRAYS, ConstraintRecord, Contacts, LedgerEntry, LimitViolations, Trajectory
-from .validation import check_options, check_system, positive_count, positive_number
+from .validation import check_options, positive_count, positive_number
 
 _RECORD_PARTS = ("force", "drift", "velocity_drift")  # a ConstraintRecord's arrays
 _COUNTS = ("steps", "rejected_steps", "evaluations", "controller_calls", "saturated_controls")

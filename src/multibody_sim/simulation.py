@@ -15,18 +15,10 @@ from .exceptions import InvalidArgumentError, SimulationError, SimulationInterru
 from .files import RunLock, SigtermAsInterrupt, check_output, check_unlocked
 from .integrators import Integrator, get_integrator
 from .progress import ProgressBar
-from .robot import Robot
+from .robot import Robot, check_system
 from .torques import Torques
 from .trajectory import PARTS_SUFFIX, Trajectory
-from .validation import (
-    check_callable,
-    check_flag,
-    check_options,
-    check_path,
-    check_system,
-    positive_count,
-    positive_number,
-)
+from .validation import check_callable, check_flag, check_options, check_path, positive_count, positive_number
 
 
 class Controller(Protocol):

@@ -12,10 +12,10 @@ import pinocchio as pin
 
 from .exceptions import InvalidArgumentError, SimulationError
 from .integrators import Integrator, get_integrator
-from .robot import Robot
+from .robot import Robot, check_system
 from .simulation import simulate
 from .trajectory import Trajectory
-from .validation import check_system, positive_number
+from .validation import positive_number
 
 # A mode decays when Re λ < -DECAY_TOLERANCE · max|λ|. The undamped modes of an equilibrium come out of LAPACK
 # with real parts of round-off size: at most 5e-14 of max|λ| on catalog robots and on arms whose mass matrix has a

@@ -14,7 +14,7 @@ from .exceptions import InvalidArgumentError, SimulationError
 from .integrators import Integrator, get_integrator
 from .monitor import Monitor
 from .recording import SampleStore
-from .robot import Robot, real_array
+from .robot import Robot, check_system, real_array
 from .rollout import check_batch
 from .sensors import run_sensing
 from .simulation import Controller, SensorController
@@ -26,7 +26,6 @@ from .validation import (
     check_flag,
     check_options,
     check_ratio,
-    check_system,
     finite_number,
     positive_count,
     positive_number,

@@ -304,7 +304,7 @@ def _coordinate_names(trajectory: Trajectory, robot: Robot | None) -> tuple[list
     dof_names = [str(d) for d in dofs]
     names = _names_from_dofs([str(j) for j in joints], dof_names, nq)
     if names is None:  # continuous joints among other one-dof joints: only the model can say which
-        from .viz.frames import robot_from_trajectory
+        from .recorded import robot_from_trajectory
 
         names = configuration_names(robot_from_trajectory(trajectory))
     return _dotted(names), _dotted(dof_names)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import difflib
 import re
+from collections.abc import Callable, Sequence
+from typing import Any
 
 # C0 and C1 controls (line breaks, ESC and CSI start terminal escapes), DEL, zero-width and bidi overrides.
 _UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u061c\u200b-\u200f\u2028-\u202e\u2060-\u2069\ufeff]")
@@ -57,3 +59,14 @@ def name_hint(name: object, names: list[str]) -> str:
     if close:
         return f"did you mean {' or '.join(repr(c) for c in close)}?"
     return f"valid: {', '.join(safe_name(n) for n in names)}"
+
+
+def text_table(
+    headers: Sequence[str], rows: Sequence[Sequence[Any]], indent: int = 0, *, cell: Callable[[Any], str] = str
+) -> str:
+    """Left-aligned columns separated by two spaces, each line indented by `indent` spaces and without trailing
+    blanks; `cell` turns each cell into its text (the command line passes safe_name: names from files)."""
+    cells = [[cell(c) for c in row] for row in [headers, *rows]]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
+    pad = " " * indent
+    return "\n".join(pad + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in cells)

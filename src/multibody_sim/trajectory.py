@@ -563,6 +563,15 @@ class Trajectory:
         )
 
 
+def check_trajectory(value: Any, name: str = "trajectory") -> Trajectory:
+    """value if it is a Trajectory, else InvalidArgumentError (a file name is not one, nor is a BatchTrajectory:
+    batch.element(b) is)."""
+    if not isinstance(value, Trajectory):
+        hint = f" (load it first: Trajectory.load({value!r}))" if isinstance(value, str) else ""
+        raise InvalidArgumentError(f"{name} must be a Trajectory, got {type(value).__name__}{hint}")
+    return value
+
+
 def _read_contacts(contents: dict[str, np.ndarray], header: dict[str, Any], n: int, path: Path) -> Contacts | None:
     """The contacts record of a file (checked: shapes, dtypes, sample indices within the n samples), or None."""
     bodies = header.get("contact_bodies")

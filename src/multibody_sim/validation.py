@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -197,15 +196,6 @@ def port_number(value: Any, name: str = "port") -> int | None:
     return whole_number(value, name, *PORT_RANGE, "(0: any free port)")
 
 
-def finite_vector(value: Any, name: str, size: int, unit: str = "") -> np.ndarray:
-    """value as a float array of shape (size,) with finite entries (not strings or bools), else
-    InvalidArgumentError."""
-    items = list(value) if isinstance(value, (list, tuple, np.ndarray)) else None
-    if items is None or len(items) != size or not all(is_number(x) and math.isfinite(x) for x in items):
-        raise InvalidArgumentError(f"{name} must be {size} finite numbers{f' [{unit}]' if unit else ''}, got {value!r}")
-    return np.asarray(items, dtype=float)
-
-
 def sample_times(t: np.ndarray, name: str = "t") -> None:
     """Sample times must be finite and strictly increasing (one row per distinct time)."""
     bad = np.flatnonzero(~np.isfinite(t))
@@ -220,35 +210,7 @@ def sample_times(t: np.ndarray, name: str = "t") -> None:
         )
 
 
-def choose_from(value: Any, name: str, options: Sequence[str]) -> str:
-    """value if it is one of the names in options, else InvalidArgumentError listing them."""
-    if not isinstance(value, str) or value not in options:
-        raise InvalidArgumentError(f"{name} must be one of {', '.join(options)}, got {value!r}")
-    return value
-
-
 # ---- types at the public boundary: one wrong-typed argument is one InvalidArgumentError naming it ------------
-def check_system(value: Any, name: str = "system") -> Any:
-    """value if it is a Robot (a Scene is one), else InvalidArgumentError (a robot's name is not the robot)."""
-    from .robot import Robot
-
-    if not isinstance(value, Robot):
-        hint = f" (load it first: load_robot({value!r}) or load_scene({value!r}))" if isinstance(value, str) else ""
-        raise InvalidArgumentError(f"{name} must be a Robot or a Scene, got {type(value).__name__}{hint}")
-    return value
-
-
-def check_trajectory(value: Any, name: str = "trajectory") -> Any:
-    """value if it is a Trajectory (or a BatchTrajectory), else InvalidArgumentError (a file name is not one)."""
-    from .rollout import BatchTrajectory
-    from .trajectory import Trajectory
-
-    if not isinstance(value, (Trajectory, BatchTrajectory)):
-        hint = f" (load it first: Trajectory.load({value!r}))" if isinstance(value, str) else ""
-        raise InvalidArgumentError(f"{name} must be a Trajectory, got {type(value).__name__}{hint}")
-    return value
-
-
 def check_path(value: Any, name: str, what: str = "a file") -> Any:
     """value if it is a path (str or os.PathLike), else InvalidArgumentError."""
     import os

@@ -17,7 +17,8 @@ From the measurements it fits each integrator's observed order and recommends, f
 cheapest measured configuration whose error, plus the reference's own estimated error, stays within it.
 
 The package: results.py (the study's data, tables, files, diagram, order fits and recommendation), study.py
-(work_precision, the measuring), pilot.py (choose_integrator, the pilot study of `run --tolerance`).
+(work_precision, the measuring), pilot.py (choose_integrator, the pilot study of `run --tolerance`) and savings.py
+(measure_savings: a scene's cost per step against its full robot's).
 """
 
 from .pilot import (
@@ -49,6 +50,7 @@ from .results import (
     plot_work_precision,
     recommend,
 )
+from .savings import measure_savings
 from .study import (
     ADAPTIVE_FIRST_STEP,
     CONTACT_REFERENCE_DT,
@@ -75,6 +77,7 @@ __all__ = [
     "WorkPrecision",
     "choose_integrator",
     "default_cache_dir",
+    "measure_savings",
     "observed_orders",
     "plot_work_precision",
     "recommend",

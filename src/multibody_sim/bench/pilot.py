@@ -18,16 +18,10 @@ from ..exceptions import InvalidArgumentError
 from ..integrators import INTEGRATORS, Integrator, get_integrator
 from ..kernels.native import why_not_native
 from ..metadata import versions
-from ..robot import Robot
+from ..robot import Robot, check_system
 from ..simulation import Controller
 from ..text import safe_name
-from ..validation import (
-    check_callable,
-    check_flag,
-    check_path,
-    check_system,
-    positive_number,
-)
+from ..validation import check_callable, check_flag, check_path, positive_number
 from .results import FORMAT, FORMAT_VERSION, STATUS_REFUSED, Measurement, WorkPrecision, recommend
 from .study import (
     CONTACT_REFERENCE_DT,

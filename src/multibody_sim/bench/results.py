@@ -5,6 +5,7 @@ accuracy (recommend)."""
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import math
 import os
@@ -19,7 +20,8 @@ from ..exceptions import InvalidArgumentError
 from ..files import write_atomically
 from ..integrators import INTEGRATORS
 from ..safety import MAX_JSON_DEPTH, json_depth
-from ..text import safe_name
+from ..text import safe_name, text_table
+from ..trajectory import plain_data
 from ..validation import (
     check_path,
     check_text,
@@ -267,7 +269,7 @@ class WorkPrecision:
         reference = None
         if self.reference is not None:
             reference = {k: v for k, v in dataclasses.asdict(self.reference).items() if k not in ("t", "q", "v")}
-        return _json_ready(
+        return plain_data(
             {
                 "format": FORMAT,
                 "format_version": FORMAT_VERSION,
@@ -343,12 +345,12 @@ class WorkPrecision:
         import csv  # here: `import multibody_sim` need not pay for what a study's files need
 
         rows = self.rows()
-        buffer = _StringBuffer()
+        buffer = io.StringIO()
         writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, lineterminator="\n")
         writer.writeheader()
         for row in rows:
             writer.writerow({k: _csv_cell(v) for k, v in row.items()})
-        return _write_text_atomically(Path(path), buffer.text)
+        return _write_text_atomically(Path(path), buffer.getvalue())
 
     def orders_table(self) -> str:
         """Observed against theoretical order per integrator, as aligned text (mismatches flagged)."""
@@ -368,7 +370,7 @@ class WorkPrecision:
             notes = "; ".join(filter(None, [fit.note, _stopped_note(points)]))
             rows.append([name, str(fit.theoretical), observed, effective, flag, _fmt(best, ".1e"), notes])
         headers = ["integrator", "order", "observed (vs dt)", "effective (vs evaluations)", "flag", "best error"]
-        return _text_table([*headers, "notes"], rows)
+        return text_table([*headers, "notes"], rows)
 
     def kernels_line(self) -> str:
         """Which stepping kernel measured which integrators, in one line ("" when no run says)."""
@@ -448,7 +450,7 @@ class WorkPrecision:
         lines.append(
             "recommended (least CPU time among the runs whose error + the reference's is within the accuracy):"
         )
-        lines.append(_text_table(["accuracy", "integrator", "settings", "error", "CPU [s]", "evaluations"], rows, 2))
+        lines.append(text_table(["accuracy", "integrator", "settings", "error", "CPU [s]", "evaluations"], rows, 2))
         return "\n".join(lines)
 
     def write(self, out_dir: str | os.PathLike[str], stem: str = "work_precision") -> dict[str, Path | str]:
@@ -667,31 +669,6 @@ def _fmt(value: float, spec: str) -> str:
     return format(value, spec) if isinstance(value, (int, float)) and math.isfinite(value) else "—"
 
 
-def _text_table(headers: list[str], rows: list[list[str]], indent: int = 0) -> str:
-    cells = [headers, *rows]
-    widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
-    pad = " " * indent
-    return "\n".join(pad + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in cells)
-
-
-def _json_ready(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _json_ready(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_ready(v) for v in value]
-    if isinstance(value, (np.floating, float)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, (np.bool_,)):
-        return bool(value)
-    if isinstance(value, np.ndarray):
-        return _json_ready(value.tolist())
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
 def _nan_back(data: dict[str, Any]) -> dict[str, Any]:
     """JSON null back to nan in the float fields that are never None (rtol/atol of fixed steps stay None)."""
     out = dict(data)
@@ -710,21 +687,6 @@ def _csv_cell(value: Any) -> Any:
     if isinstance(value, float):
         return repr(value)
     return value
-
-
-class _StringBuffer:
-    """A minimal text sink for csv.writer."""
-
-    def __init__(self) -> None:
-        self.parts: list[str] = []
-
-    def write(self, text: str) -> int:
-        self.parts.append(text)
-        return len(text)
-
-    @property
-    def text(self) -> str:
-        return "".join(self.parts)
 
 
 def _write_text_atomically(path: Path, text: str) -> Path:

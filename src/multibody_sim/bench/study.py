@@ -13,17 +13,11 @@ import numpy as np
 from ..exceptions import InvalidArgumentError, SimulationError, SimulationInterrupted
 from ..integrators import INTEGRATORS, Integrator, get_integrator
 from ..metadata import versions
-from ..robot import Robot
+from ..robot import Robot, check_system
 from ..simulation import Controller, simulate
 from ..torques import controller_name
-from ..trajectory import Trajectory
-from ..validation import (
-    MAX_STEPS,
-    check_callable,
-    check_system,
-    check_trajectory,
-    positive_number,
-)
+from ..trajectory import Trajectory, check_trajectory
+from ..validation import MAX_STEPS, check_callable, positive_number
 from .results import (
     REFERENCE_MARGIN,
     STATUS_COMPLETED,

@@ -12,7 +12,7 @@ import pinocchio as pin
 
 from ..exceptions import ModelError
 from ..robot import Robot
-from .reading import resolve_in_roots
+from .reading import MAX_DOFS, resolve_in_roots
 
 SUPPORTED_JOINT_TYPES = ("continuous", "fixed", "floating", "planar", "prismatic", "revolute")
 
@@ -211,6 +211,17 @@ def check_body_inertias(model: pin.Model, path: Path) -> None:
                 f"{path}: the body moved by joint '{model.names[i]}' has principal inertias "
                 f"{a:.3g}, {b:.3g}, {c:.3g} that violate the triangle inequality"
             )
+
+
+def check_model(model: pin.Model, path: Path) -> None:
+    """What every model Pinocchio built (from a URDF, SDF or MJCF) must satisfy before Robot() creates its Data,
+    whose size grows as nv^3: at most MAX_DOFS degrees of freedom, finite numbers, physical body inertias."""
+    if model.nv > MAX_DOFS:
+        raise ModelError(
+            f"{path}: the robot has {model.nv} degrees of freedom, more than the {MAX_DOFS} this simulator accepts"
+        )
+    check_model_numbers(model, path)
+    check_body_inertias(model, path)
 
 
 def check_model_numbers(model: pin.Model, path: Path) -> None:

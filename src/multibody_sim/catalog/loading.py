@@ -16,10 +16,10 @@ import pinocchio as pin
 from ..exceptions import InvalidArgumentError, ModelError, RobotNotFoundError
 from ..robot import Robot
 from ..text import printable
-from .checks import check_body_inertias, check_mass_matrix, check_model_numbers, check_urdf
+from .checks import check_mass_matrix, check_model, check_urdf
 from .entries import CATALOG, ROBOT_PREFIX, CatalogEntry, catalog_srdf, catalog_urdf, default_pose_name
 from .mjcf import MJCF_SUFFIXES, load_mjcf
-from .reading import MAX_DOFS, captured_stderr, folder_list, parse_urdf, parse_xml, read_xml_file
+from .reading import captured_stderr, folder_list, parse_urdf, parse_xml, read_xml_file
 from .srdf import read_poses
 
 
@@ -131,12 +131,7 @@ def _load(
     model = _build_model(urdf, path, floating)
     if entry is not None and entry.base_rpy is not None:
         _rotate_base(model, entry.base_rpy)
-    if model.nv > MAX_DOFS:  # before Robot() creates Pinocchio's Data, whose size grows as nv^3
-        raise ModelError(
-            f"{path}: the robot has {model.nv} degrees of freedom, more than the {MAX_DOFS} this simulator accepts"
-        )
-    check_model_numbers(model, path)
-    check_body_inertias(model, path)
+    check_model(model, path)
     poses: dict[str, np.ndarray] = {}
     if srdf_path is not None:
         poses = read_poses(srdf_path, model)

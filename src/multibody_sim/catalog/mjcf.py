@@ -13,9 +13,9 @@ import pinocchio as pin
 
 from ..exceptions import ModelError
 from ..robot import Robot
-from .checks import check_body_inertias, check_mass_matrix, check_model_numbers
+from .checks import check_mass_matrix, check_model
 from .entries import default_pose_name
-from .reading import MAX_DOFS, MAX_JOINTS, MAX_LINKS, captured_stderr, resolve_in_roots
+from .reading import MAX_JOINTS, MAX_LINKS, captured_stderr, resolve_in_roots
 from .srdf import read_poses
 
 MJCF_SUFFIXES = (".xml", ".mjcf")  # files with these suffixes whose root element is <mujoco> are MJCF
@@ -69,12 +69,7 @@ def load_mjcf(
     gravity = root.find("option")
     if gravity is not None and gravity.get("gravity") is not None:  # Pinocchio's parser keeps -9.81 m/s² z
         model.gravity.linear = _mjcf_numbers(gravity.get("gravity"), 3, path, "<option gravity>")
-    if model.nv > MAX_DOFS:
-        raise ModelError(
-            f"{path}: the robot has {model.nv} degrees of freedom, more than the {MAX_DOFS} this simulator accepts"
-        )
-    check_model_numbers(model, path)
-    check_body_inertias(model, path)
+    check_model(model, path)
     poses: dict[str, np.ndarray] = {}
     if srdf_path is not None:
         poses = read_poses(srdf_path, model)

@@ -1,5 +1,5 @@
-"""What the commands share: exit codes, one-line errors, printing names from files safely, the robot or scene a
-command names, and SIGTERM taken as Ctrl-C while a run steps."""
+"""What the commands share: exit codes, one-line errors, printing names from files safely, and the robot or scene a
+command names."""
 
 from __future__ import annotations
 
@@ -9,9 +9,7 @@ import math
 import os
 import signal
 import sys
-import threading
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import multibody_sim as ms
@@ -114,7 +112,7 @@ def controller_from_args(args: argparse.Namespace, robot: Any) -> Any:
 
 
 def savings_line(scene: Any) -> str:
-    measured = scene.measure_savings()
+    measured = ms.bench.measure_savings(scene)
     if math.isnan(measured["full_us"]):  # objects only: no robot to compare with
         return (
             f"cost ({measured['integrator']}, CPU-time medians of 5 x 200 steps): scene {measured['scene_us']:.1f} "
@@ -165,43 +163,6 @@ def kept_clause(failure: BaseException, out: Path | None) -> str:
     if saved_to.is_dir():  # a chunked run whose parts could not be merged
         return f"{span} kept in {saved_to} (`multibody-sim plot`, `export` and Trajectory.load read the folder)"
     return f"{span} written to {out}"
-
-
-class SigtermAsInterrupt:
-    """While active, SIGTERM raises KeyboardInterrupt, so a `kill` takes Ctrl-C's path and keeps the samples.
-
-    Attributes:
-        received: "SIGTERM" once the handler ran, else None.
-    """
-
-    def __init__(self) -> None:
-        self.received: str | None = None
-        self._previous: Any = None
-        # Python only lets the main thread install handlers; elsewhere SIGTERM keeps its default.
-        self._active = threading.current_thread() is threading.main_thread()
-
-    def _handle(self, signum: int, frame: FrameType | None) -> None:
-        self.received = "SIGTERM"
-        raise KeyboardInterrupt
-
-    def __enter__(self) -> SigtermAsInterrupt:
-        if self._active:
-            self._previous = signal.signal(signal.SIGTERM, self._handle)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self._active:  # None: the previous handler was not installed from Python; restore the default
-            signal.signal(signal.SIGTERM, signal.SIG_DFL if self._previous is None else self._previous)
-
-
-def text_table(headers: list[str], rows: list[list[Any]], indent: int = 0) -> str:
-    """Left-aligned columns separated by two spaces."""
-    from ..text import safe_name
-
-    cells = [[safe_name(c) for c in row] for row in [headers, *rows]]  # names from files: one line each
-    widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
-    pad = " " * indent
-    return "\n".join(pad + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in cells)
 
 
 def print_text(text: str = "", file: Any = None) -> None:

@@ -9,7 +9,8 @@ from typing import Any
 
 import multibody_sim as ms
 
-from .common import EXIT_OK, PROG, load_system, print_note, print_text, savings_line, text_table
+from ..text import safe_name, text_table
+from .common import EXIT_OK, PROG, load_system, print_note, print_text, savings_line
 
 _FLOATING_NOTE = (
     "floating base: q = [x y z qx qy qz qw, joints...] (unit quaternion, scalar last) and "
@@ -20,7 +21,7 @@ _FLOATING_NOTE = (
 def cmd_models(args: argparse.Namespace) -> int:
     rows = ms.catalog_table()
     print_text(
-        text_table(
+        table(
             ["name", "nq", "nv", "base", "poses", "description"],
             [[r["name"], r["nq"], r["nv"], r["base"], _poses_cell(r), r["description"]] for r in rows],
         )
@@ -36,7 +37,7 @@ def cmd_models(args: argparse.Namespace) -> int:
     if scenes:
         print_text(f"\nscenes (run one with `{PROG} run NAME`; the files are in {next(iter(scenes.values())).parent}):")
         scene_rows = [[name, read_scene_file(path).description] for name, path in scenes.items()]
-        print_text(text_table(["name", "description"], scene_rows, indent=2))
+        print_text(table(["name", "description"], scene_rows, indent=2))
     both = sorted(set(scenes) & set(ms.CATALOG))
     if both:
         print_text(
@@ -107,7 +108,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         joint_rows.append([model.names[jid], kind, limits, velocity, effort, damping])
     headers = ["name", "type", "position limits", "velocity limit", "effort limit", "damping"]
     lines += ["", "joints (Pinocchio order; velocity limits act through a scene's [[actuator]]s):"]
-    lines.append(text_table(headers, joint_rows, indent=2))
+    lines.append(table(headers, joint_rows, indent=2))
 
     # Pinocchio merges links joined by fixed joints into one body per joint; list the links in each.
     links: dict[int, list[str]] = {}
@@ -124,7 +125,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     lines += [
         "",
         "bodies (links joined by fixed joints are merged):",
-        text_table(["moved by joint", "mass [kg]", "links"], body_rows, indent=2),
+        table(["moved by joint", "mass [kg]", "links"], body_rows, indent=2),
     ]
     print_text("\n".join(lines))
     return EXIT_OK
@@ -146,7 +147,7 @@ def cmd_integrators(args: argparse.Namespace) -> int:
         rows.append([name, method.order, evaluations, ", ".join(flags) or "-", method.description])
         if method.notes:
             notes.append(f"  {name}: {method.notes}")
-    print_text(text_table(["name", "order", "evaluations/step", "flags", "description"], rows))
+    print_text(table(["name", "order", "evaluations/step", "flags", "description"], rows))
     if notes:
         print_text("\nnotes:\n" + "\n".join(notes))
     return EXIT_OK
@@ -162,3 +163,8 @@ def _joint_kind(shortname: str) -> str:
     if short in ("PX", "PY", "PZ") or short.startswith("Prismatic"):
         return "prismatic"
     return {"FreeFlyer": "floating", "Planar": "planar", "Spherical": "spherical"}.get(short, short)
+
+
+def table(headers: list[str], rows: list[list[Any]], indent: int = 0) -> str:
+    """A listing's columns, names from files escaped (safe_name: one line each)."""
+    return text_table(headers, rows, indent, cell=safe_name)

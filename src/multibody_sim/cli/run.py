@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import multibody_sim as ms
-from multibody_sim.files import check_output
+from multibody_sim.files import SigtermAsInterrupt, check_output
 
 from .common import (
     EXIT_OK,
@@ -20,7 +20,6 @@ from .common import (
     EXIT_SIGTERM,
     EXIT_SIMULATION_FAILED,
     PROG,
-    SigtermAsInterrupt,
     UsageError,
     check_out,
     configuration_from,
@@ -145,7 +144,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     check_resources(robot, RunSettings.check(method, args.duration, args.dt, checked), Sink(out, args.chunk))
     base = "floating" if robot.floating_base else "fixed"
     viewer = open_viewer(robot, args.view_host, args.view_port, args.view_speed, q0) if args.view else None
-    with SigtermAsInterrupt() as signals:
+    with SigtermAsInterrupt(owner=True) as signals:
         try:
             # Printed (and flushed) with the handlers in place, just before stepping: a watcher may signal
             # as soon as it reads this line.
@@ -210,7 +209,7 @@ def _run(args: argparse.Namespace, document: dict[str, Any] | None) -> int:
     if isinstance(failure, ms.SimulationError):
         return report_error(f"{failure}; {kept}", EXIT_SIMULATION_FAILED)
     # The stepping loop cannot tell which signal raised the KeyboardInterrupt; our handler can.
-    name = signals.received or "SIGINT"
+    name = "SIGTERM" if signals.received else "SIGINT"
     where = str(failure) or "interrupted before the first step"
     print_text(f"{PROG}: {name}: {printable(where)}; {kept}", sys.stderr)
     return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
@@ -261,7 +260,7 @@ def _choose_for_tolerance(
             horizon = min(args.duration, ms.bench.PILOT_HORIZON)
             say(f"pilot study: every integrator over the first {horizon:g} s (cached for the next run) ...")
 
-    with SigtermAsInterrupt() as signals:
+    with SigtermAsInterrupt(owner=True) as signals:
         try:
             choice = ms.choose_integrator(
                 robot,
@@ -274,7 +273,7 @@ def _choose_for_tolerance(
                 control_dt=control_dt,
             )
         except KeyboardInterrupt:
-            name = signals.received or "SIGINT"
+            name = "SIGTERM" if signals.received else "SIGINT"
             print(f"{PROG}: {name}: interrupted during the pilot study; nothing was simulated", file=sys.stderr)
             return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
     if choice.note:
@@ -324,7 +323,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             say(line)
 
     failure: ms.BenchInterrupted | None = None
-    with SigtermAsInterrupt() as signals:
+    with SigtermAsInterrupt(owner=True) as signals:
         try:
             result = ms.work_precision(
                 robot,
@@ -347,7 +346,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     say("\n" + result.summary() + f"\nwrote {', '.join(files)}" + ("" if isinstance(png, Path) else f" ({png})"))
     if failure is None:
         return EXIT_OK
-    name = signals.received or "SIGINT"
+    name = "SIGTERM" if signals.received else "SIGINT"
     print_text(f"{PROG}: {name}: {printable(str(failure))}; partial results written to {out}", sys.stderr)
     return EXIT_SIGTERM if name == "SIGTERM" else EXIT_SIGINT
 

@@ -229,9 +229,7 @@ class Integrator(ABC):
                 "([ground], [contact] or [[object]]), which only integrator 'timestepping' steps"
             )
         if self.implicit and not getattr(system, "has_derivatives", True):
-            from . import INTEGRATORS  # the registry imports this module
-
-            able = sorted(name for name, method in INTEGRATORS.items() if not method.implicit)
+            able = sorted(name for name, method in REGISTRY.items() if not method.implicit)
             why = getattr(system, "no_derivatives_reason", "")
             raise InvalidArgumentError(
                 f"integrator '{self.name}' needs the dynamics' analytic derivatives, which scene "
@@ -252,6 +250,10 @@ class Integrator(ABC):
     def __repr__(self) -> str:
         return f"<integrator {self.name}: order {self.order}>"
 
+
+# Every registered method by name: the registry (integrators/__init__.py, above every method's module) fills it, so
+# that a refusal here can name the methods that would run instead.
+REGISTRY: dict[str, Integrator] = {}
 
 _CONTRACT = (
     "integrator {name} implements neither attempt(system, q, v, tau, h, t, state) -> Attempt (the contract) nor "

@@ -50,6 +50,7 @@ import pinocchio as pin
 from ..exceptions import SceneError
 from ..ordered import ordered_dot, ordered_matvec
 from ..text import safe_name
+from .frames import frame_id
 
 # Gaps below this are contact candidates [m]: a pair closing faster than SPECULATIVE_MARGIN / dt (10 m/s at 1 ms)
 # may end a step inside each other, which the penetration correction then undoes.
@@ -566,8 +567,6 @@ def build_contact(scene: Any, spec: Any, exact_friction: Sequence[tuple[int, flo
     Raises:
         SceneError: an unknown frame or body name (the message lists the valid ones).
     """
-    from .scene import _dimensions, _frame_id
-
     model, where = scene.model, spec.source
     settings = spec.contact
     geometries: list[Geometry] = []
@@ -575,16 +574,16 @@ def build_contact(scene: Any, spec: Any, exact_friction: Sequence[tuple[int, flo
         height = spec.ground.height
         geometries.append(Geometry("ground", 0, pin.SE3.Identity(), coal.Halfspace(_Z, height), "halfspace", (height,)))
     for item in spec.objects:
-        dims = _dimensions(item.shape)
+        dims = item.shape.dimensions
         jid = model.getJointId(item.name)
         geometries.append(
             Geometry(item.name, jid, pin.SE3.Identity(), make_shape(item.shape.shape, dims), item.shape.shape, dims)
         )
     for i, declared in enumerate(settings.geometry if settings is not None else ()):
-        fid = _frame_id(model, declared.frame, f"{where}: contact.geometry[{i}].frame", moving=True)
+        fid = frame_id(model, declared.frame, f"{where}: contact.geometry[{i}].frame", moving=True)
         frame = model.frames[fid]
         offset = pin.SE3(pin.rpy.rpyToMatrix(*declared.rpy), np.array(declared.position, dtype=float))
-        dims = _dimensions(declared.shape)
+        dims = declared.shape.dimensions
         geometries.append(
             Geometry(
                 declared.frame,

@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import time
 from pathlib import Path
 from typing import Any
 
@@ -23,8 +22,9 @@ from ..catalog.checks import check_body_inertias, check_mass_matrix, check_model
 from ..exceptions import InvalidArgumentError, ModelError, SceneError
 from ..integrators.timestepping import TOLERANCE
 from ..robot import Robot
-from ..text import name_hint, safe_name
+from ..text import safe_name
 from ..trajectory import Trajectory
+from .frames import frame_id
 from .spec import CONTACT_INTEGRATOR, RobotSpec, SceneSpec
 
 # How fast a coordinate held by the contact solve may drift [rad/s or m/s]: its velocity is solved to within the
@@ -186,7 +186,7 @@ class Scene(Robot):
                 raise SceneError(f"{where}: constraint: constraints and mimic joints cannot be combined yet")
             for i, constraint in enumerate(spec.constraints):
                 for frame in constraint.frames:
-                    _frame_id(model, frame, f"{where}: constraint[{i}].frames")
+                    frame_id(model, frame, f"{where}: constraint[{i}].frames")
             from .constraints import Constraints
 
             self.constraints = Constraints(model, list(spec.constraints), self.q0)
@@ -513,42 +513,6 @@ class Scene(Robot):
         except InvalidArgumentError as exc:
             raise SceneError(f"{self.spec.source}: controller: {exc}") from None
 
-    # ---- savings -------------------------------------------------------------------------------------
-    def measure_savings(self, steps: int = 200, repeats: int = 5) -> dict[str, Any]:
-        """Time per step of this scene against its full robot (nothing locked, no elements): a short side
-        benchmark, run only when asked (`--report-savings`, `inspect`). RK4 at 1 ms; a contact scene with its
-        integrator, timestepping, against the bare robot with the same integrator (semi-implicit Euler there).
-
-        Returns:
-            {"scene_us": median µs per step, "full_us": median µs per step of the full model (nan for a scene of
-            objects only: there is no robot), "ratio": scene/full, "integrator": the integrator's name}.
-        """
-        from ..simulation import simulate
-
-        integrator = CONTACT_INTEGRATOR if self.contact is not None else "rk4"
-
-        def per_step(system: Robot, q0: np.ndarray) -> float:
-            times = []
-            for _ in range(repeats):
-                start = time.process_time()
-                simulate(
-                    system,
-                    q0,
-                    self.v0 if system is self else np.zeros(system.nv),
-                    duration=steps * 1e-3,
-                    dt=1e-3,
-                    integrator=integrator,
-                    progress=False,
-                    output_dt=0.01,
-                )
-                times.append((time.process_time() - start) / steps * 1e6)
-            return float(np.median(times))
-
-        full = self.full_robot
-        scene_us = per_step(self, self.q0)
-        full_us = per_step(full, self.full_configuration(self.q0)) if full.nv else math.nan
-        return {"scene_us": scene_us, "full_us": full_us, "ratio": scene_us / full_us, "integrator": integrator}
-
     def full_configuration(self, q: np.ndarray) -> np.ndarray:
         """The full robot's configuration for a scene configuration q: locked joints at their lock positions,
         mimic followers at scaling · leader + offset."""
@@ -647,7 +611,7 @@ def _apply_base_pose(model: pin.Model, spec: SceneSpec) -> None:
 
 
 def _add_payload(model: pin.Model, payload: Any, key: str) -> None:
-    fid = _frame_id(model, payload.frame, f"{key}.frame", moving=True)
+    fid = frame_id(model, payload.frame, f"{key}.frame", moving=True)
     frame = model.frames[fid]
     model.inertias[frame.parentJoint] = model.inertias[frame.parentJoint] + frame.placement.act(
         _payload_inertia(payload)
@@ -707,16 +671,6 @@ def _joint_id(model: pin.Model, name: str, key: str, floating: bool) -> int:
     return model.getJointId(name)
 
 
-def _frame_id(model: pin.Model, name: str, key: str, *, moving: bool = False) -> int:
-    """The id of a frame by name, or SceneError naming the valid ones (only those on moving bodies if `moving`)."""
-    names = [f.name for f in model.frames if f.name != "universe" and (f.parentJoint != 0 or not moving)]
-    if name not in names:
-        if moving and model.existFrame(name):
-            raise SceneError(f"{key}: '{name}' is welded to the world: nothing there moves (valid: {', '.join(names)})")
-        raise SceneError(f"{key}: unknown frame '{name}' ({name_hint(name, names)})")  # talos has 60 frames
-    return model.getFrameId(name)
-
-
 def _sensors(scene: Scene, spec: SceneSpec) -> Any:
     """The scene's sensors placed on its model (sensors.build_sensors, with this module's name checks), or None."""
     if not spec.sensors:
@@ -725,16 +679,16 @@ def _sensors(scene: Scene, spec: SceneSpec) -> Any:
 
     where = spec.source
     payloads = [
-        (_frame_id(scene.model, p.frame, f"{where}: payload[{i}].frame", moving=True), _payload_inertia(p))
+        (frame_id(scene.model, p.frame, f"{where}: payload[{i}].frame", moving=True), _payload_inertia(p))
         for i, p in enumerate(spec.payloads)
     ]
-    return build_sensors(scene, spec, frame_id=_frame_id, joint_id=_joint_id, payloads=payloads)
+    return build_sensors(scene, spec, frame_id=frame_id, joint_id=_joint_id, payloads=payloads)
 
 
 def _wrench(model: pin.Model, force: Any, key: str) -> Any:
     from .elements import Wrench
 
-    fid = _frame_id(model, force.frame, f"{key}.frame", moving=True)
+    fid = frame_id(model, force.frame, f"{key}.frame", moving=True)
     return Wrench(
         name=force.name,
         frame_id=fid,
@@ -813,13 +767,13 @@ def _add_objects(model: pin.Model, spec: SceneSpec) -> dict[str, int]:
                 "choose another name"
             )
         with np.errstate(over="ignore", under="ignore"):
-            inertia = shape_inertia(item.shape.shape, _dimensions(item.shape), item.mass)
+            inertia = shape_inertia(item.shape.shape, item.shape.dimensions, item.mass)
         moments = np.diag(inertia.inertia)
         if not (np.all(np.isfinite(moments)) and np.all(moments > 0)):
             what = "overflow" if not np.all(np.isfinite(moments)) else "underflow to 0"
             raise SceneError(
                 f"{spec.source}: object[{i}] ('{safe_name(item.name)}'): a {item.shape.shape} of "
-                f"{' x '.join(f'{d:g}' for d in _dimensions(item.shape))} m and {item.mass:g} kg has principal "
+                f"{' x '.join(f'{d:g}' for d in item.shape.dimensions)} m and {item.mass:g} kg has principal "
                 f"inertias {', '.join(f'{m:.3g}' for m in moments)} kg·m²: they {what} (sizes in m, masses in kg)"
             )
         jid = model.addJoint(0, pin.JointModelFreeFlyer(), pin.SE3.Identity(), item.name)
@@ -827,15 +781,6 @@ def _add_objects(model: pin.Model, spec: SceneSpec) -> dict[str, int]:
         model.addBodyFrame(item.name, jid, pin.SE3.Identity(), 0)
         joints[item.name] = jid
     return joints
-
-
-def _dimensions(shape: Any) -> tuple[float, ...]:
-    """A ShapeSpec's dimensions: box (x, y, z), sphere (radius,), cylinder (radius, length)."""
-    if shape.shape == "box":
-        return tuple(shape.size)
-    if shape.shape == "sphere":
-        return (shape.radius,)
-    return (shape.radius, shape.length)
 
 
 def _place_objects(model: pin.Model, spec: SceneSpec, q: np.ndarray, v: np.ndarray | None = None) -> None:

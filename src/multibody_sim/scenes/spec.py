@@ -281,6 +281,15 @@ class ShapeSpec:
     radius: float | None = None
     length: float | None = None
 
+    @property
+    def dimensions(self) -> tuple[float, ...]:
+        """The shape's numbers: box (x, y, z), sphere (radius,), cylinder (radius, length) [m]."""
+        if self.shape == "box":
+            return tuple(self.size or ())
+        if self.shape == "sphere":
+            return (self.radius,)  # type: ignore[return-value]
+        return (self.radius, self.length)  # type: ignore[return-value]
+
 
 @dataclass(frozen=True)
 class GeometrySpec:

@@ -4,9 +4,10 @@ Imported on demand (`import multibody_sim.viz`), never by `multibody_sim` itself
 meshcat, trimesh or matplotlib, which come with the `viz` extra (`pip install 'multibody-sim[viz]'`).
 """
 
+from ..recorded import robot_from_trajectory
 from ._deps import MissingDependencyError, ViewerWarning
 from .export import export_html
-from .frames import frame_times, resample, robot_from_trajectory
+from .frames import frame_times, resample
 from .notebook import InlineView, inline_view
 from .plot import plot_command, plot_png, plot_trajectory
 from .scene import MissingVisualsWarning, RobotScene

@@ -10,19 +10,12 @@ from typing import Any
 import numpy as np
 
 from ..files import check_output, write_atomically
-from ..robot import Robot
-from ..trajectory import Trajectory
-from ..validation import (
-    check_flag,
-    check_path,
-    check_system,
-    check_text,
-    check_trajectory,
-    frame_rate,
-    playback_speed,
-)
+from ..recorded import robot_from_trajectory
+from ..robot import Robot, check_system
+from ..trajectory import Trajectory, check_trajectory
+from ..validation import check_flag, check_path, check_text, frame_rate, playback_speed
 from ._deps import check_viewer_dependencies, meshcat_viewer_js
-from .frames import DEFAULT_FPS, resample, robot_from_trajectory
+from .frames import DEFAULT_FPS, resample
 from .page import standalone_page
 from .scene import RobotScene, pack
 

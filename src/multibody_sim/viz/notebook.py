@@ -7,12 +7,13 @@ import math
 from typing import Any
 
 from ..exceptions import InvalidArgumentError, MissingDependencyError
-from ..robot import Robot
-from ..trajectory import Trajectory
-from ..validation import check_flag, check_system, check_trajectory, frame_rate, playback_speed
+from ..recorded import robot_from_trajectory
+from ..robot import Robot, check_system
+from ..trajectory import Trajectory, check_trajectory
+from ..validation import check_flag, frame_rate, playback_speed
 from ._deps import check_viewer_dependencies
 from .export import page_title, recording_page
-from .frames import DEFAULT_FPS, resample, robot_from_trajectory
+from .frames import DEFAULT_FPS, resample
 
 DEFAULT_HEIGHT = 480  # [px]
 

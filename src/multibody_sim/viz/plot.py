@@ -15,11 +15,11 @@ import numpy as np
 
 from ..exceptions import InvalidArgumentError, ModelError, TrajectoryFileError, UnknownNameError
 from ..files import check_output, write_atomically
-from ..robot import Robot
+from ..robot import Robot, check_system
 from ..safety import check_allocation
 from ..text import safe_name
-from ..trajectory import Trajectory
-from ..validation import check_path, check_system, check_text, check_trajectory, positive_count
+from ..trajectory import Trajectory, check_trajectory
+from ..validation import check_path, check_text, positive_count
 from ._deps import require
 
 PANEL_HEIGHT = 2.4  # [in]
@@ -266,7 +266,7 @@ def _joint_series(trajectory: Trajectory, robot: Robot | None) -> tuple[list[_Se
         if named is not None:
             return named
         try:  # the metadata does not say which joints have two coordinates: ask the robot itself
-            from .frames import robot_from_trajectory
+            from ..recorded import robot_from_trajectory
 
             robot = robot_from_trajectory(trajectory)
         except (ModelError, TrajectoryFileError):

@@ -18,9 +18,9 @@ import pinocchio as pin
 
 from ..catalog import build_geometry, mesh_roots
 from ..exceptions import InvalidArgumentError, UnknownNameError
-from ..robot import Robot
+from ..robot import Robot, check_system
 from ..text import printable, safe_name
-from ..validation import check_system, check_text
+from ..validation import check_text
 from ._deps import ViewerWarning, require
 from .meshes import MeshPart, geometry_parts, skeleton_parts
 
@@ -358,16 +358,6 @@ def transform_command(path: str, matrix: np.ndarray) -> dict[str, Any]:
 def frame_marker(index: int, time: float | None) -> dict[str, Any]:
     """Our marker sent after each displayed frame: the page records it (tests wait for it)."""
     return {"type": "multibody_sim_frame", "path": "", "index": int(index), "time": time}
-
-
-def check_configurations(robot: Robot, Q: np.ndarray, name: str) -> np.ndarray:
-    """Q as a float array of shape (n, nq), or InvalidArgumentError naming `name`."""
-    Q = np.asarray(Q, dtype=float)
-    if Q.ndim != 2 or Q.shape[1] != robot.nq:
-        raise InvalidArgumentError(f"{name} must have shape (n, {robot.nq}) for {robot.name}, got {Q.shape}")
-    if not np.all(np.isfinite(Q)):
-        raise InvalidArgumentError(f"{name} must be finite")
-    return Q
 
 
 def check_camera(

@@ -23,14 +23,15 @@ import numpy as np
 
 from ..exceptions import InvalidArgumentError, MissingDependencyError
 from ..files import atomic_path, check_output
+from ..recorded import robot_from_trajectory
 from ..robot import Robot
 from ..safety import check_allocation
-from ..trajectory import Trajectory
-from ..validation import check_flag, check_path, check_trajectory, playback_speed
+from ..trajectory import Trajectory, check_trajectory
+from ..validation import check_flag, check_path, playback_speed
 from ._deps import check_viewer_dependencies, require
 from .export import page_title, recording_page
 from .forces import force_arrows
-from .frames import resample, robot_from_trajectory
+from .frames import resample
 from .scene import CAMERA_VIEWS, RobotScene, check_camera
 
 __all__ = [

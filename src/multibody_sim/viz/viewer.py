@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from ..robot import Robot
+from ..robot import Robot, check_system
 from ..trajectory import Trajectory
-from ..validation import check_flag, check_system, frame_rate, playback_speed
+from ..validation import check_flag, frame_rate, playback_speed
 from ._deps import check_viewer_dependencies
 from .forces import FORCES, ArrowTracks, LiveArrows, arrow_tracks
 from .frames import DEFAULT_FPS, resample
