@@ -9,10 +9,12 @@ the ledger's closure (energy_error) converging with dt or exact by construction 
 from __future__ import annotations
 
 import math
+import os
 import re
 
 import numpy as np
 import pytest
+from conftest import assert_same_run, assert_same_stepper, both
 
 import multibody_sim as ms
 from multibody_sim.exceptions import SceneError
@@ -373,3 +375,126 @@ def test_linearize_refuses_semi_implicit_servos_in_one_line() -> None:
     with pytest.raises(ms.InvalidArgumentError, match="takes the scene's servo terms implicitly"):
         ms.linearize(scene, [0.0], [0.0], [0.1], dt=1e-3, integrator="semi_implicit_euler")
     assert INTEGRATORS["rk4"].jacobians(scene, np.zeros(1), np.zeros(1), np.array([0.1]), 1e-3, 0.0) is not None
+
+
+# ---- the native kernel: its rendering (src/native/scene.cpp, the engine's steps) bit for bit ------------------------
+needs_native = pytest.mark.skipif(
+    not ms.native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
+    reason=f"the native kernel is not available here: {ms.native.why_unavailable}",
+)
+
+
+def go2_on_ground(**actuator: object) -> ms.Scene:
+    tables = parse_toml(shipped_scenes()["go2_standing"].read_text(), "go2_standing")
+    tables.pop("controller")
+    tables.pop("simulation", None)
+    return make_scene(**tables, actuators="catalog", actuator=[{"joints": "*", **actuator}] if actuator else [])
+
+
+def native_cases() -> dict[str, tuple[ms.Scene, str, float]]:
+    """(scene, integrator, dt): servos on a fixed arm (explicit and with implicit terms), the catalog's motors on a
+    falling and a standing go2 (curves, limits, contact), servos on the ground, actuators with springs and friction."""
+    ur5_servos = [
+        {"joints": "*", "kind": "position", "kp": 1e4, "kv": 100.0},
+        {"joints": "wrist_*", "kind": "velocity", "kv": 5.0},
+    ]
+    return {
+        "ur5 servos, rk4": (make_scene(robot={"source": "ur5"}, actuator=ur5_servos), "rk4", 1e-4),
+        "ur5 servos, semi-implicit, revised": (
+            make_scene(robot={"source": "ur5"}, actuator=ur5_servos),
+            "semi_implicit_euler",
+            0.02,
+        ),
+        "go2 motors, free flight": (make_scene(robot={"source": "go2"}, actuators="catalog"), "rk4", 1e-3),
+        "go2 motors on the ground": (go2_on_ground(), "timestepping", 1e-3),
+        "go2 servos on the ground": (go2_on_ground(kind="position", kp=60.0, kv=2.0), "timestepping", 2e-3),
+        "ur5 motors with springs and friction": (
+            make_scene(
+                robot={"source": "ur5"},
+                joints={"elbow_joint": {"stiffness": 3.0, "friction": 0.1}},
+                actuator=[
+                    {"joints": "*", "gear": 50.0, "rotor_inertia": 2e-5, "stall_torque": 40.0, "no_load_speed": 3.0}
+                ],
+            ),
+            "rk4",
+            1e-3,
+        ),
+    }
+
+
+@needs_native
+@pytest.mark.parametrize("case", list(native_cases()))
+def test_native_kernel_renders_actuators_bit_for_bit(case: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """rollout with random commands around their bounds (new every 2 ms or step), natively and on the Python kernel:
+    every sample, ledger line, the delivered torques and the commands, the counts (revisions included)."""
+    scene, integrator, dt = native_cases()[case]
+    low, high = command_bounds(scene)
+    low, high = np.maximum(low, -50.0), np.minimum(high, 50.0)
+    B, duration, control_dt = 3, 0.1, max(dt, 2e-3)
+    n = round(duration / control_dt)
+    rng = np.random.default_rng(7)
+    taus = rng.uniform(low, high, size=(B, n, scene.nv)) * 1.2  # some beyond the bounds: clipped, counted
+    taus[:, :, : scene.actuated.start] = 0.0
+    Q0, V0 = np.tile(scene.q0, (B, 1)), np.zeros((B, scene.nv))
+
+    def run():  # noqa: ANN202
+        return ms.rollout(scene, Q0, V0, duration=duration, dt=dt, integrator=integrator, taus=taus,
+                          control_dt=control_dt, progress=False)  # fmt: skip
+
+    fast, slow = both(run, monkeypatch)
+    assert fast.metadata["kernel"] == "native" and slow.metadata["kernel"] != "native"
+    for b in range(B):
+        assert_same_run(fast.element(b), slow.element(b))
+        np.testing.assert_array_equal(fast.element(b).ctrl, slow.element(b).ctrl)
+    assert fast.stats["saturated_controls"].sum() > 0
+
+
+@needs_native
+def test_native_stepper_and_controllers_with_actuators(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A built-in PD on torque actuators (commands computed inside the engine, clipped at the actuators' bounds) and a
+    Stepper with servos, on both kernels."""
+    scene = make_scene(robot={"source": "ur5"}, actuator=[{"joints": "*", "stall_torque": 100.0, "no_load_speed": 2.0}])
+    pd = ms.make_controller("pd", scene, ["kp=400", "kd=20", "q_ref=0.3,-1,1,0,0.2,0"])
+
+    def run():  # noqa: ANN202
+        return ms.simulate(scene, scene.q0, np.zeros(6), duration=0.3, dt=1e-3, controller=pd, control_dt=2e-3)
+
+    fast, slow = both(run, monkeypatch)
+    assert fast.metadata["kernel"] == "native"
+    assert_same_run(fast, slow)
+    servos = rotor(kind="position", kp=1e4, kv=100.0, effort_limit=30.0)
+
+    def step():  # noqa: ANN202
+        stepper = ms.Stepper(servos, dt=0.01, integrator="semi_implicit_euler", q0=[0.0], v0=[0.0])
+        for k in range(30):
+            stepper.step(np.array([0.3 if k < 15 else -0.2]))
+        return stepper
+
+    assert_same_stepper(*both(step, monkeypatch))
+
+
+@needs_native
+def test_native_arithmetic_of_the_actuators() -> None:
+    """_native.SceneActuators.evaluate against Actuators.joint_torques and powers at random states and commands."""
+    from multibody_sim.kernels.native import _scene_actuators
+
+    scene = make_scene(
+        robot={"source": "go2"},
+        actuators="catalog",
+        actuator=[
+            {"joints": "*_calf_joint", "kind": "position", "kp": 40.0, "kv": 1.0},
+            {"joints": "FL_hip_joint", "kind": "velocity", "kv": 2.0},
+        ],
+    )
+    rendered = _scene_actuators(scene.actuators, ms.native.load_model(scene.model))
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        q = scene.random_configuration(rng)
+        v = rng.normal(0.0, 20.0, scene.nv)
+        u = rng.normal(0.0, 30.0, scene.nv)
+        u[:6] = 0.0
+        torques, flows = rendered.evaluate(q, v, u)
+        expected = np.empty(len(scene.actuators.ledger))
+        scene.actuators.powers(q, v, u, expected)
+        np.testing.assert_array_equal(torques, scene.actuators.joint_torques(q, v, u))
+        np.testing.assert_array_equal(flows, expected)

@@ -189,10 +189,33 @@ namespace multibody_sim
 
   Engine::~Engine() = default;
 
+  void Engine::set_actuators(std::shared_ptr<const SceneActuators> actuators)
+  {
+    const int contact_flows = method_.kind == Kind::timestepping ? 4 : 0;
+    if (actuators && (actuators->nv != model_.nv || n_robot_flows_ + actuators->n_flows() + contact_flows > n_ledger_))
+      throw std::invalid_argument("the scene's actuators disagree with the model's sizes or the ledger");
+    actuators_ = actuators;
+    n_actuator_flows_ = actuators ? actuators->n_flows() : 0;
+    actuated_dof_.assign(static_cast<size_t>(model_.nv), 0);
+    if (actuators)
+      for (const ActuatorTerm & a : actuators->terms)
+        actuated_dof_[static_cast<size_t>(a.dof)] = 1;
+    for (auto & th : threads_)
+    {
+      th->tact = Vec::Zero(model_.nv);
+      if (actuators && actuators->servos)
+      {
+        th->servo_model = model_;
+        th->servo = actuators->workspace();
+      }
+    }
+  }
+
   void Engine::set_scene(std::shared_ptr<const SceneForces> scene)
   {
     const int contact_flows = method_.kind == Kind::timestepping ? 4 : 0;  // the time-stepper's, last
-    if (scene && (scene->nv != model_.nv || n_robot_flows_ + scene->n_flows() + contact_flows != n_ledger_))
+    const int before = n_robot_flows_ + n_actuator_flows_;  // the robot's and the actuators' entries come first
+    if (scene && (scene->nv != model_.nv || before + scene->n_flows() + contact_flows != n_ledger_))
       throw std::invalid_argument("the scene's elements disagree with the model's sizes or the ledger");
     scene_ = scene;
     for (auto & th : threads_)

@@ -248,6 +248,8 @@ namespace multibody_sim
     void restore_saved();
     int64_t running() const;
 
+    // A scene's actuators join the dynamics, ledger and records (before set_scene and the first advance()).
+    void set_actuators(std::shared_ptr<const SceneActuators> actuators);
     // A scene's force elements join the dynamics, ledger and energies (before the first advance()).
     void set_scene(std::shared_ptr<const SceneForces> scene);
     // Torques come from `policies` at its control instants, inside advance() (no return to Python per instant);
@@ -263,6 +265,11 @@ namespace multibody_sim
       return static_cast<bool>(contact_);
     }
     ContactRow contact_row(int64_t row) const;  // a row's solver state (its counts)
+    // Whether a row's step may cost more than the run's evaluations (a contact problem, a servo's revisions).
+    bool uneven_evaluations() const
+    {
+      return contact_ || (actuators_ && actuators_->servos);
+    }
     // Evaluations each run row made beyond the run's count (contact steps cost two), for rows `rows`.
     std::vector<int64_t> extra_evaluations(const std::vector<int64_t> & rows) const;
 
@@ -291,6 +298,9 @@ namespace multibody_sim
     Control control_;
     Vec neutral_;
     std::shared_ptr<const SceneForces> scene_;
+    std::shared_ptr<const SceneActuators> actuators_;
+    std::vector<char> actuated_dof_;  // per dof: whether an actuator drives it
+    int n_actuator_flows_ = 0;        // the actuators' ledger entries, after the robot's
     std::shared_ptr<const Policies> policies_;
     std::shared_ptr<const ContactScene> contact_;
     std::vector<bool> flow_work_;

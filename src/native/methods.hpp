@@ -67,6 +67,9 @@ namespace multibody_sim
     } saved;
     Vec vfree;
     Vec fx, pbuf, tau_control;
+    Vec tact;                      // the actuators' joint torques (actuated())
+    pinocchio::Model servo_model;  // a scene with servos: the model whose armature a step raises (set_actuators)
+    ServoStep servo;               // ... and that step's state
     bool dense_ready = false;
     bool no_armature;  // every armature exactly 0: kinetic_energy() needs no per-joint armature term
     int extra_evaluations = 0;
@@ -113,9 +116,11 @@ namespace multibody_sim
       pbuf = Vec::Zero(std::max(m, 1));
     }
 
-    // ---- the generalized forces ABA is given: Robot (tau - D v) or Scene._applied (tau + f(q, v, t) - D v) ------
-    void applied_at(const Vec & qx, const Vec & vx, const Vec & tx, double ts)
+    // ---- the generalized forces ABA is given: Robot (tau - D v) or Scene._applied (tau + f(q, v, t) - D v, tau the
+    // actuators' torques under the command where the scene has actuators) -----------------------------------------
+    void applied_at(const Vec & qx, const Vec & vx, const Vec & command, double ts)
     {
+      const Vec & tx = e.actuators_ ? actuated(qx, vx, command) : command;
       if (e.scene_)
       {
         e.scene_->forces(*sw, e.model_, qx, vx, ts, fx);
@@ -134,6 +139,13 @@ namespace multibody_sim
         applied = tx;
     }
 
+    // Actuators.joint_torques at (qx, vx) under the command (the step's held torques while it takes servos inside)
+    const Vec & actuated(const Vec & qx, const Vec & vx, const Vec & command)
+    {
+      e.actuators_->joint_torques(qx, vx, command, &servo, tact.data());
+      return tact;
+    }
+
     // ---- the dynamics of a stage: Robot.unchecked_forward_dynamics and Robot.ledger_power ----------------------
     void evaluate(const Vec & qx, const Vec & vx, const Vec & tx, int stage, double ts)
     {
@@ -144,14 +156,16 @@ namespace multibody_sim
       double * row = K.row(stage).data();
       for (int i = 0; i < nv; ++i)
         row[nv + i] = a[i];
-      power(vx, tx, row + 2 * nv);
+      power(qx, vx, tx, row + 2 * nv);
     }
 
-    void power(const Vec & vx, const Vec & tx, double * out) const  // ordered.ordered_dot
+    // Scene.ledger_power: the robot's (the ideal torque sources' power, joint damping), the actuators', the elements'
+    void power(const Vec & qx, const Vec & vx, const Vec & tx, double * out) const  // ordered.ordered_dot
     {
-      double s = tx[0] * vx[0];
+      const bool actuated = static_cast<bool>(e.actuators_);  // then its dofs' commands are no torques: 0 here
+      double s = (actuated && e.actuated_dof_[0] ? 0.0 : tx[0]) * vx[0];
       for (int i = 1; i < nv; ++i)
-        s += tx[i] * vx[i];
+        s += (actuated && e.actuated_dof_[i] ? 0.0 : tx[i]) * vx[i];
       out[0] = s;
       if (e.damped_)
       {
@@ -160,8 +174,10 @@ namespace multibody_sim
           d += vx[i] * (e.damping_[i] * vx[i]);
         out[1] = d;
       }
-      if (e.scene_)  // Scene.ledger_power: the elements' powers after the robot's
-        e.scene_->powers(*sw, vx, out + e.n_robot_flows_);
+      if (actuated)
+        e.actuators_->powers(qx, vx, tx, out + e.n_robot_flows_);
+      if (e.scene_)  // the elements' powers after the robot's and the actuators'
+        e.scene_->powers(*sw, vx, out + e.n_robot_flows_ + e.n_actuator_flows_);
     }
 
     // ---- ConfigurationSpace.chart_velocity: Σ c_n Hⁿ v by Horner's rule on each curved block -------------------
@@ -256,10 +272,8 @@ namespace multibody_sim
         return attempt_contact(j, h, t);
       if (me.kind == Kind::semi_implicit_euler)
       {
-        evaluate_acceleration(qj, vj, tj, t);
-        settle(j);
-        for (int i = 0; i < nv; ++i)
-          vn[j][i] = vj[i] + h * acc[i];
+        extra[j] += velocity_update(j, h, t, vn[j]);
+        end_servos();
         move_along_new_velocity(j, h, t);
         for (int i = 0; i < m; ++i)
           fn[j][i] = h * pbuf[i];
@@ -292,20 +306,50 @@ namespace multibody_sim
       e.integrate_(e.model_, q[j], dv, qn[j]);
       if (e.scene_ && !e.scene_->wrenches.empty())  // Scene.ledger_power at a new point: the wrenches' parts there
         e.scene_->forces(*sw, e.model_, qn[j], vn[j], t + h, fx);
-      power(vn[j], tau[j], pbuf.data());
+      power(qn[j], vn[j], tau[j], pbuf.data());
+    }
+
+    // SemiImplicitEuler's and TimeStepping's velocity update v + h a(q, v, tau) of row j into out, a scene's servos
+    // taken inside the step (integrators.base.velocity_update: Actuators.begin_implicit and revise on the servo
+    // model's armature; end_servos() ends it, after the contact problem); returns the revisions (each an evaluation)
+    int velocity_update(size_t j, double h, double t, Vec & out)
+    {
+      const Vec &qj = q[j], &vj = v[j], &tj = tau[j];
+      const bool servos = e.actuators_ && e.actuators_->servos;
+      if (servos)
+        e.actuators_->begin(servo, qj, vj, tj, h, servo_model.armature);
+      const pinocchio::Model & model = servos ? servo_model : e.model_;
+      evaluate_acceleration(model, qj, vj, tj, t);
+      settle(j);
+      for (int i = 0; i < nv; ++i)
+        out[i] = vj[i] + h * acc[i];
+      int revisions = 0;
+      while (servos && e.actuators_->revise(servo, out, servo_model.armature))
+      {
+        evaluate_acceleration(model, qj, vj, tj, t);
+        for (int i = 0; i < nv; ++i)
+          out[i] = vj[i] + h * acc[i];
+        revisions += 1;
+      }
+      return revisions;
+    }
+
+    void end_servos()
+    {
+      if (servo.active)
+        e.actuators_->end(servo, servo_model.armature);
     }
 
     // ---- TimeStepping.attempt on row j (a contact scene): the pending state in qn, vn, fn -----------------------
     int attempt_contact(size_t j, double h, double t)
     {
-      const Vec &qj = q[j], &vj = v[j], &tj = tau[j];
-      evaluate_acceleration(qj, vj, tj, t);
-      settle(j);
-      for (int i = 0; i < nv; ++i)
-        vfree[i] = vj[i] + h * acc[i];
+      const Vec &qj = q[j], &vj = v[j];
+      extra[j] += velocity_update(j, h, t, vfree);
+      const bool servos = servo.active;  // the contact problem's M then has the servos' armature too
       double work = 0.0, correction = 0.0, bounce = 0.0;
-      const bool problem =
-        e.contact_->step(*cw, e.model_, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce);
+      const bool problem = e.contact_->step(
+        *cw, servos ? servo_model : e.model_, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce);
+      end_servos();
       move_along_new_velocity(j, h, t);
       const int smooth_n = m - 4;  // the contact's elements come last: contact, penetration_correction,
       double smooth = 0.0;         // restitution, timestep_error
@@ -326,6 +370,8 @@ namespace multibody_sim
       fn[j][m - 3] = correction;
       fn[j][m - 2] = bounce;
       fn[j][m - 1] = (kinetic_free - kinetic) + (kinetic_end - kinetic_next) + (potential_end - potential) - smooth;
+      if (servos && problem)  // the contact's work is T's change under the raised armature: the rest is the step's
+        fn[j][m - 1] += (kinetic_next - kinetic_free) - work;
       if (problem)
         extra[j] += 1;
       return 1;
@@ -338,11 +384,10 @@ namespace multibody_sim
       energies_from_data(qx, vx, nullptr, kinetic, potential);
     }
 
-    void evaluate_acceleration(const Vec & qx, const Vec & vx, const Vec & tx, double t)
+    void evaluate_acceleration(const pinocchio::Model & model, const Vec & qx, const Vec & vx, const Vec & tx, double t)
     {
       applied_at(qx, vx, tx, t);
-      acc = pinocchio::aba(
-        e.model_, data, ConstRef(qx), ConstRef(vx), ConstRef(applied), pinocchio::Convention::WORLD);
+      acc = pinocchio::aba(model, data, ConstRef(qx), ConstRef(vx), ConstRef(applied), pinocchio::Convention::WORLD);
     }
 
     // ---- AdaptiveRungeKutta.attempt on row 0: the error norm; the pending state in qn, vn, fn -------------------
@@ -520,6 +565,9 @@ namespace multibody_sim
       std::copy(vx.data(), vx.data() + nv, store.V + at * nv);
       std::copy(tx.data(), tx.data() + nv, store.TAU + at * nv);
       std::copy(fl, fl + m, store.FLOWS + at * m);
+      if (e.actuators_)  // Scene.unchecked_record: the torques delivered, after the springs' energies
+        e.actuators_->joint_torques(
+          qx, vx, tx, nullptr, store.EXTRA + at * store.extra_width + (e.scene_ ? e.scene_->n_records() : 0));
     }
 
     // pinocchio::computeKineticEnergy(model, data) at velocity vx: without armature, the same sum in the same order

@@ -208,7 +208,7 @@ namespace
   // stopped in this call included: NativeCore._take_pending compacts both) into `extra`.
   void write_extra_evaluations(const multibody_sim::Engine & engine, const Ints & rows, Ints & extra)
   {
-    if (!engine.has_contact())
+    if (!engine.uneven_evaluations())
       return;
     std::vector<int64_t> wanted(rows.data(), rows.data() + rows.size());
     const std::vector<int64_t> counts = engine.extra_evaluations(wanted);
@@ -476,6 +476,9 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
       "per ledger entry before the contact's four, whether it is work (else dissipated).")
     .def_prop_ro("has_contact", &Engine::has_contact)
     .def("contact_row", &Engine::contact_row)
+    .def(
+      "set_actuators", [](Engine & self, std::shared_ptr<SceneActuators> actuators) { self.set_actuators(actuators); },
+      nb::arg("actuators"), "A scene's actuators (_native.SceneActuators) join the dynamics (scene.cpp).")
     .def(
       "set_scene", [](Engine & self, std::shared_ptr<SceneForces> scene) { self.set_scene(scene); },
       nb::arg("scene"), "A scene's force elements (_native.SceneForces) join the dynamics (scene.cpp).")

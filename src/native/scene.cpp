@@ -256,20 +256,192 @@ namespace multibody_sim
     return tau.allFinite();
   }
 
-  void Policies::clip(Vec & tau, int64_t * dofs, bool & clipped) const  // driver.Saturation.apply
+  namespace
+  {
+    // np.maximum and np.minimum of two numbers: NaN if either is; of equal numbers (0 and -0) the second
+    inline double np_maximum(double a, double b)
+    {
+      return (a > b || a != a) ? a : b;
+    }
+    inline double np_minimum(double a, double b)
+    {
+      return (a < b || a != a) ? a : b;
+    }
+  } // namespace
+
+  void Policies::clip(Vec & tau, int64_t * dofs, bool & clipped) const  // torques.Saturation.apply
   {
     clipped = false;
     if (!saturate)
       return;
     for (int i = 0; i < nv; ++i)
-      if (std::abs(tau[i]) > effort[i])
+      if (low[i] > tau[i] || high[i] < tau[i])
       {
         clipped = true;
         dofs[i] += 1;
       }
     if (clipped)
-      for (int i = 0; i < nv; ++i)  // np.clip(tau, -effort, effort)
-        tau[i] = std::min(std::max(tau[i], -effort[i]), effort[i]);
+      for (int i = 0; i < nv; ++i)  // np.minimum(np.maximum(tau, low), high)
+        tau[i] = np_minimum(np_maximum(tau[i], low[i]), high[i]);
+  }
+
+  // ---- actuators: scenes/actuators.py's Actuators, one actuator at a time in its arithmetic ----------------------
+  void SceneActuators::evaluate(const ActuatorTerm & a, const Vec & q, const Vec & v, const Vec & u, double & law,
+                                double & tau) const
+  {
+    const double w = v[a.dof];
+    switch (a.kind)
+    {
+      case ActuatorKind::torque:
+        law = u[a.dof];
+        break;
+      case ActuatorKind::position:
+        law = a.kp * (u[a.dof] - q[a.iq]) - a.kv * w;
+        break;
+      case ActuatorKind::velocity:
+        law = a.kv * (u[a.dof] - w);
+        break;
+    }
+    double low, high;
+    interval(a, w, low, high);
+    tau = np_minimum(np_maximum(law, low), high);
+  }
+
+  void SceneActuators::interval(const ActuatorTerm & a, double w, double & low, double & high) const
+  {
+    double drive = a.effort;
+    const double speed = std::abs(w);
+    if (std::isfinite(a.stall))
+      drive = np_minimum(drive, a.stall * np_maximum(0.0, 1.0 - speed / a.no_load));
+    if (std::isfinite(a.velocity_limit) && speed >= a.velocity_limit)
+      drive = 0.0;
+    low = w > 0.0 ? -a.effort : -drive;
+    high = w < 0.0 ? a.effort : drive;
+  }
+
+  void SceneActuators::joint_torques(const Vec & q, const Vec & v, const Vec & u, const ServoStep * step,
+                                     double * out) const
+  {
+    for (int i = 0; i < nv; ++i)
+      out[i] = u[i];
+    double law, tau;
+    for (size_t k = 0; k < terms.size(); ++k)
+    {
+      if (step && step->active)
+        tau = step->held[k];
+      else
+        evaluate(terms[k], q, v, u, law, tau);
+      out[terms[k].dof] = tau;
+    }
+  }
+
+  void SceneActuators::powers(const Vec & q, const Vec & v, const Vec & u, double * out) const
+  {
+    const size_t n = terms.size();
+    size_t m = n;
+    double law, tau;
+    for (size_t k = 0; k < n; ++k)
+    {
+      const ActuatorTerm & a = terms[k];
+      evaluate(a, q, v, u, law, tau);
+      const double w = v[a.dof];
+      out[k] = law * w;
+      if (a.limited)
+        out[m++] = (law - tau) * w;
+    }
+  }
+
+  ServoStep SceneActuators::workspace() const
+  {
+    const size_t n = terms.size();
+    ServoStep step;
+    step.law.assign(n, 0.0);
+    step.w.assign(n, 0.0);
+    step.held.assign(n, 0.0);
+    step.clipped.assign(n, 0.0);
+    step.saved.assign(n, 0.0);
+    step.side.assign(n, 1);
+    step.free.assign(n, 0);
+    return step;
+  }
+
+  void SceneActuators::begin(ServoStep & step, const Vec & q, const Vec & v, const Vec & u, double h,
+                             Vec & armature) const
+  {
+    step.h = h;
+    step.iterations = 0;
+    double tau;
+    for (size_t k = 0; k < terms.size(); ++k)
+    {
+      const ActuatorTerm & a = terms[k];
+      evaluate(a, q, v, u, step.law[k], tau);
+      step.w[k] = v[a.dof];
+      step.saved[k] = armature[a.dof];
+      step.free[k] = a.kind != ActuatorKind::torque && step.law[k] == tau;
+      step.clipped[k] = tau;
+      step.side[k] = step.law[k] > tau ? 1 : -1;
+    }
+    step.active = true;
+    hold(step, armature);
+  }
+
+  void SceneActuators::hold(ServoStep & step, Vec & armature) const
+  {
+    const double h = step.h;
+    for (size_t k = 0; k < terms.size(); ++k)
+    {
+      const ActuatorTerm & a = terms[k];
+      const double hkp = h * a.kp;
+      armature[a.dof] = step.saved[k] + (step.free[k] ? h * a.kv + h * hkp : 0.0);
+      step.held[k] = step.free[k] ? step.law[k] - hkp * step.w[k] : step.clipped[k];
+    }
+  }
+
+  bool SceneActuators::revise(ServoStep & step, const Vec & v_next, Vec & armature) const
+  {
+    const size_t n = terms.size();
+    const double h = step.h;
+    bool changed = false;
+    thread_local std::vector<double> law_next, low, high;
+    thread_local std::vector<char> free;
+    law_next.resize(n);
+    low.resize(n);
+    high.resize(n);
+    free.resize(n);
+    for (size_t k = 0; k < n; ++k)
+    {
+      const ActuatorTerm & a = terms[k];
+      const double w = step.w[k], wn = v_next[a.dof];
+      law_next[k] = step.law[k] - (h * a.kp) * w - (h * a.kp + a.kv) * (wn - w);  // the law at the step's end
+      interval(a, wn, low[k], high[k]);
+      const bool within = law_next[k] >= low[k] && law_next[k] <= high[k];
+      const bool beyond = step.side[k] > 0 ? law_next[k] >= high[k] : law_next[k] <= low[k];
+      free[k] = a.kind != ActuatorKind::torque && (step.free[k] ? within : !beyond);
+      changed = changed || free[k] != step.free[k];
+    }
+    if (!changed || step.iterations >= max_revisions)
+      return false;
+    step.iterations += 1;
+    for (size_t k = 0; k < n; ++k)
+    {
+      if (step.free[k] && !free[k])  // clipped where its law left the limits
+      {
+        step.clipped[k] = np_minimum(np_maximum(law_next[k], low[k]), high[k]);
+        step.side[k] = law_next[k] > high[k] ? 1 : -1;
+      }
+      step.free[k] = free[k];
+    }
+    hold(step, armature);
+    return true;
+  }
+
+  void SceneActuators::end(ServoStep & step, Vec & armature) const
+  {
+    if (!step.active)
+      return;
+    for (size_t k = 0; k < terms.size(); ++k)
+      armature[terms[k].dof] = step.saved[k];
+    step.active = false;
   }
 } // namespace multibody_sim
 
@@ -474,7 +646,8 @@ void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
                 self.taus_width = static_cast<int64_t>(taus.shape(2));
               }
             })
-    .member("effort", &Policies::effort, "an array of nv floats")
+    .member("low", &Policies::low, "an array of nv floats")
+    .member("high", &Policies::high, "an array of nv floats")
     .member("saturate", &Policies::saturate, "bool")
     .member("adaptive", &Policies::adaptive, "bool")
     .member("every_step", &Policies::every_step, "bool")
@@ -489,8 +662,8 @@ void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
       [policies](Policies * self, nb::kwargs kwargs) {
         Policies p = policies->parse(kwargs);
         const int nv = p.nv, n = p.a_stop - p.a_start;
-        if (!(0 <= p.a_start && p.a_start <= p.a_stop && p.a_stop <= nv) || p.effort.size() != nv)
-          throw std::invalid_argument("Policies: actuated range or effort out of range");
+        if (!(0 <= p.a_start && p.a_start <= p.a_stop && p.a_stop <= nv) || p.low.size() != nv || p.high.size() != nv)
+          throw std::invalid_argument("Policies: actuated range or command bounds out of range");
         if (p.taus && p.taus_width != nv)
           throw std::invalid_argument("Policies.taus must have shape (B, n_control, nv)");
         for (const Policy & row : p.rows)
@@ -501,4 +674,54 @@ void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
       nb::arg("kwargs"),
       "taus (B, n_control, nv) must stay alive as long as the kernel runs (kernels/native.py keeps it).")
     .attr("fields") = policies->names();
+
+  // ---- a scene's actuators: Actuators.native_data()
+  Struct<ActuatorTerm>(m, "ActuatorTerm", "One joint's actuator (scenes/actuators.Actuator); inf: no such limit.")
+    .field("dof", &ActuatorTerm::dof, "int")
+    .field("iq", &ActuatorTerm::iq, "int")
+    .choice("kind", &ActuatorTerm::kind,
+            {{"torque", ActuatorKind::torque}, {"position", ActuatorKind::position}, {"velocity", ActuatorKind::velocity}})
+    .field("kp", &ActuatorTerm::kp, "float")
+    .field("kv", &ActuatorTerm::kv, "float")
+    .field("effort", &ActuatorTerm::effort, "float")
+    .field("velocity_limit", &ActuatorTerm::velocity_limit, "float")
+    .field("stall", &ActuatorTerm::stall, "float")
+    .field("no_load", &ActuatorTerm::no_load, "float")
+    .field("limited", &ActuatorTerm::limited, "bool")
+    .finish();
+  auto actuators = std::make_shared<Fields<SceneActuators>>("SceneActuators");
+  actuators->member("terms", &SceneActuators::terms, "list[ActuatorTerm]")
+    .member("max_revisions", &SceneActuators::max_revisions, "int");
+  nb::class_<SceneActuators>(m, "SceneActuators", "A scene's actuators (scenes/actuators.py), for the native kernel.")
+    .def(
+      "__init__",
+      [actuators](SceneActuators * self, const NativeModel & model, nb::kwargs kwargs) {
+        SceneActuators s = actuators->parse(kwargs);
+        const pinocchio::Model & robot = model.model;
+        s.nv = robot.nv;
+        for (const ActuatorTerm & a : s.terms)
+        {
+          if (!(0 <= a.dof && a.dof < robot.nv && 0 <= a.iq && a.iq < robot.nq))
+            throw std::invalid_argument("SceneActuators: an actuator's dof or coordinate out of range");
+          s.servos = s.servos || a.kind != ActuatorKind::torque;
+          s.n_limited += a.limited ? 1 : 0;
+        }
+        new (self) SceneActuators(std::move(s));
+      },
+      nb::arg("model"), nb::arg("kwargs"), "From the scene's model and the actuators' named data.")
+    .def_prop_ro("n_flows", &SceneActuators::n_flows)
+    .def(
+      "evaluate",
+      [](const SceneActuators & self, const Vec & q, const Vec & v, const Vec & u) {
+        if (v.size() != self.nv || u.size() != self.nv)
+          throw std::invalid_argument("evaluate: v and u must have nv entries");
+        Vec torques = Vec::Zero(self.nv);
+        self.joint_torques(q, v, u, nullptr, torques.data());
+        Vec flows = Vec::Zero(self.n_flows());
+        self.powers(q, v, u, flows.data());
+        return nb::make_tuple(torques, flows);
+      },
+      nb::arg("q"), nb::arg("v"), nb::arg("u"),
+      "(joint torques (nv,), ledger powers) at (q, v) under u: the kernel's arithmetic, for tests.")
+    .attr("fields") = actuators->names();
 }

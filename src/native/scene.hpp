@@ -155,7 +155,7 @@ namespace multibody_sim
   };
 
   /// Where the torques come from at the control instants of a run, natively: one built-in controller per row, or
-  /// open-loop sequences (rollout's taus); saturated at the effort limits as driver.Saturation does.
+  /// open-loop sequences (rollout's taus); saturated at the commands' bounds as torques.Saturation does.
   class Policies
   {
   public:
@@ -164,7 +164,7 @@ namespace multibody_sim
     const double * taus = nullptr;        // (B, n_taus, nv), row-major (owned by Python for the run)
     int64_t n_taus = 0, taus_width = 0;
     bool saturate = false;
-    Vec effort;
+    Vec low, high;  // torques.command_bounds: the commands' bounds (± the effort limits without actuators)
     // control instants: fixed steps: k·dt for k = j·every < n_steps, else the duration; adaptive: min(duration, j·period)
     bool adaptive = false, every_step = false;  // every_step: adaptive without control_dt (at every step's start)
     double dt = 0.0, duration = 0.0, period = 0.0;
@@ -176,8 +176,71 @@ namespace multibody_sim
     // then takes that instant: its checks say why).
     bool torque(PolicyWork & work, const pinocchio::Model & model, int64_t row, int64_t j, const Vec & q,
                 const Vec & v, Vec & tau) const;
-    // Saturation.apply on one row: clip tau in place; counts the clipped dofs into dofs (nv) and returns whether any
+    // Saturation.apply on one row: clip tau in place; counts the clipped dofs into dofs (nv), and whether any
     void clip(Vec & tau, int64_t * dofs, bool & clipped) const;
+  };
+
+  // ---- actuators (scenes/actuators.py) --------------------------------------------------------------------------
+  enum class ActuatorKind : int
+  {
+    torque = 0,
+    position = 1,
+    velocity = 2,
+  };
+
+  struct ActuatorTerm  // one joint's actuator (Actuators.native_data(); inf: no such limit or curve)
+  {
+    int dof = 0, iq = 0;
+    ActuatorKind kind = ActuatorKind::torque;
+    double kp = 0.0, kv = 0.0, effort = 0.0, velocity_limit = 0.0, stall = 0.0, no_load = 0.0;
+    bool limited = false;  // it has an actuator_limit ledger line
+  };
+
+  // One row's velocity update while it takes the servos implicitly (Actuators.begin_implicit .. end_implicit), per
+  // actuator: the law at the step's start, the speed there, the torque held, the clipped torque and its side, which
+  // servos are free, the armature before.
+  struct ServoStep
+  {
+    std::vector<double> law, w, held, clipped, saved;
+    std::vector<int> side;
+    std::vector<char> free;
+    double h = 0.0;
+    int iterations = 0;
+    bool active = false;
+  };
+
+  /// Actuators of one scene: the joint torques a command delivers at (q, v), their ledger powers, and the servos'
+  /// implicit terms of semi-implicit Euler and the time-stepper (on a model copy's armature).
+  class SceneActuators
+  {
+  public:
+    int nv = 0;
+    std::vector<ActuatorTerm> terms;
+    int max_revisions = 0;  // actuators.MAX_REVISIONS
+    bool servos = false;
+    int n_limited = 0;
+
+    int n_flows() const
+    {
+      return static_cast<int>(terms.size()) + n_limited;
+    }
+    // Actuators.evaluate for one actuator: its law's torque c and the torque after the limits
+    void evaluate(const ActuatorTerm & a, const Vec & q, const Vec & v, const Vec & u, double & law,
+                  double & tau) const;
+    // Actuators._interval for one actuator at speed w
+    void interval(const ActuatorTerm & a, double w, double & low, double & high) const;
+    // Actuators.joint_torques into out (nv): u with the actuators' dofs replaced (the step's held torques if active)
+    void joint_torques(const Vec & q, const Vec & v, const Vec & u, const ServoStep * step, double * out) const;
+    // Actuators.powers into out (n_flows())
+    void powers(const Vec & q, const Vec & v, const Vec & u, double * out) const;
+    ServoStep workspace() const;
+    // Actuators.begin_implicit / revise / end_implicit on `armature`, the model copy's that the step's ABA uses
+    void begin(ServoStep & step, const Vec & q, const Vec & v, const Vec & u, double h, Vec & armature) const;
+    bool revise(ServoStep & step, const Vec & v_next, Vec & armature) const;
+    void end(ServoStep & step, Vec & armature) const;
+
+  private:
+    void hold(ServoStep & step, Vec & armature) const;  // Actuators._hold of the step's free, clipped, side
   };
 } // namespace multibody_sim
 
@@ -188,6 +251,7 @@ namespace nanobind
 
 namespace multibody_sim
 {
-  // The Python classes _native.SceneForces and _native.Policies (scene.cpp), added by module.cpp.
+  // The Python classes _native.SceneForces, _native.Policies and _native.SceneActuators (scene.cpp), added by
+  // module.cpp.
   void bind_scene(nanobind::module_ & m);
 } // namespace multibody_sim

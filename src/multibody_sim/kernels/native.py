@@ -34,6 +34,7 @@ from ..recording import STORE_ARRAYS, SampleStore
 from ..robot import Robot
 from ..scenes.scene import Scene
 from ..step_control import LANDING_FRACTION, ConstantStep, ConstantStepState, PIController, PIState
+from ..torques import command_bounds
 
 # The registry's explicit methods (and the contact time-stepper), which the engine renders from their native_data().
 NATIVE_METHODS = (ExplicitRungeKutta, EmbeddedRungeKutta, DormandPrince853, SemiImplicitEuler, TimeStepping)
@@ -89,8 +90,6 @@ def _scene_reason(scene: Scene) -> str | None:
         return f"the scene has constraints ({', '.join(scene.constraints.names)}), which run on the Python kernel"
     if scene.mimic:
         return "the scene honours mimic joints (forward dynamics by CRBA), which run on the Python kernel"
-    if scene.actuators is not None:
-        return "the scene has actuators, which run on the Python kernel"
     elements = scene.elements
     if elements is not None:
         reason = elements.native_reason()
@@ -149,6 +148,14 @@ def _scene_forces(elements: Any, model: Any) -> Any:
     return module.SceneForces(model, **data)  # type: ignore[union-attr]
 
 
+def _scene_actuators(actuators: Any, model: Any) -> Any:
+    """A scene's actuators (Actuators.native_data()) as _native.SceneActuators."""
+    module = native.module
+    data = actuators.native_data()
+    data["terms"] = [module.ActuatorTerm(**term) for term in data["terms"]]  # type: ignore[union-attr]
+    return module.SceneActuators(model, **data)  # type: ignore[union-attr]
+
+
 def _contact_scene(data: dict[str, Any], model: Any) -> Any:
     """contact_data()'s dict as _native.ContactScene."""
     module = native.module
@@ -205,6 +212,9 @@ class NativeKernel:
             num_threads=self.num_threads,
         )
         self.engine.t = self._start
+        actuators = getattr(system, "actuators", None)
+        if actuators is not None:  # a Scene's actuators, before its elements (their ledger entries come first)
+            self.engine.set_actuators(_scene_actuators(actuators, model))
         elements = getattr(system, "elements", None)
         if elements is not None:  # a Scene's force elements (why_not_native said they render)
             self.engine.set_scene(_scene_forces(elements, model))
@@ -329,14 +339,16 @@ def native_policies(system: Any, torques: Any, settings: Any) -> tuple[Any, np.n
     else:
         return None
     adaptive = bool(settings.adaptive)
+    low, high = command_bounds(system)
     policies = module.Policies(
         nv=system.nv,
         a_start=system.actuated.start,
         a_stop=system.actuated.stop,
         rows=rows,
         taus=taus,
-        effort=np.array(system.effort_limit, dtype=float),
-        saturate=bool(np.isfinite(system.effort_limit).any()),
+        low=low,
+        high=high,
+        saturate=bool((np.isfinite(low) | np.isfinite(high)).any()),
         adaptive=adaptive,
         every_step=adaptive and settings.control_dt is None,
         dt=float(settings.dt),

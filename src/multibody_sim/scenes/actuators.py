@@ -439,8 +439,25 @@ class Actuators:
         dv[dofs, dofs] = np.where(free, law_v, slope)
         return dq, dv, du
 
-    def native_reason(self) -> str | None:
-        return "the scene has actuators, which run on the Python kernel"
+    def native_data(self) -> dict[str, object]:
+        """The actuators as _native.SceneActuators takes them: each ActuatorTerm's fields (inf: no such limit or
+        curve) and MAX_REVISIONS."""
+        terms = [
+            {
+                "dof": a.dof,
+                "iq": a.iq,
+                "kind": a.kind,
+                "kp": a.kp,
+                "kv": a.kv,
+                "effort": a.effort_limit,
+                "velocity_limit": a.velocity_limit,
+                "stall": a.stall_torque,
+                "no_load": a.no_load_speed,
+                "limited": a.limited,
+            }
+            for a in self.items
+        ]
+        return {"terms": terms, "max_revisions": MAX_REVISIONS}
 
 
 def describe_actuators(actuators: Actuators) -> list[str]:
