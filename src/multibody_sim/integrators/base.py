@@ -91,15 +91,30 @@ class Attempt:
     detail: Any = None
 
 
-def begin_implicit_servos(system: Any, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float) -> Any:
-    """For the steps that take servo terms implicitly (semi-implicit Euler, the contact time-stepper): the system's
-    actuators with those terms begun over a step of h from (q, v) under the command tau (scenes/actuators.py:
-    armature raised, torques shifted), to end with their end_implicit() before any energy; None when there are none
-    (a robot, a scene without servos, or servos all saturated at this state)."""
+def velocity_update(
+    system: Any, q: np.ndarray, v: np.ndarray, tau: np.ndarray, h: float, t: float
+) -> tuple[Any, int, Any]:
+    """Semi-implicit Euler's and the contact time-stepper's velocity update v + h a(q, v, tau), a scene's servos taken
+    inside the step (scenes/actuators.py: armature raised, torques held, revised where a servo's limit is reached or
+    left within the step).
+
+    Returns:
+        (v⁺, the dynamics evaluations it took, the actuators still holding the step or None): the caller ends them
+        with end_implicit() before any energy (the time-stepper after its contact problem).
+    """
     actuators = getattr(system, "actuators", None)
-    if actuators is not None and actuators.begin_implicit(q, v, tau, h):
-        return actuators
-    return None
+    servos = actuators if actuators is not None and actuators.begin_implicit(q, v, tau, h) else None
+    evaluations = 1
+    try:
+        v_next = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
+        while servos is not None and servos.revise(v_next):
+            v_next = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
+            evaluations += 1
+    except BaseException:
+        if servos is not None:
+            servos.end_implicit()
+        raise
+    return v_next, evaluations, servos
 
 
 def failed(status: str, message: str, evaluations: int, state: Any = None) -> Attempt:

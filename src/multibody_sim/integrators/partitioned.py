@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from ..exceptions import InvalidArgumentError
-from .base import Attempt, Integrator, System, begin_implicit_servos, split_jacobian, tangent_selectors
+from .base import Attempt, Integrator, System, split_jacobian, tangent_selectors, velocity_update
 
 
 class SemiImplicitEuler(Integrator):
@@ -41,16 +41,9 @@ class SemiImplicitEuler(Integrator):
         rtol: float | None = None,
         atol: float | None = None,
     ) -> Attempt:
-        servos = begin_implicit_servos(system, q, v, tau, h)
-        evaluations = 1
-        try:
-            v_next = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
-            while servos is not None and servos.revise(v_next):  # a servo's limit reached or left within the step
-                v_next = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
-                evaluations += 1
-        finally:
-            if servos is not None:
-                servos.end_implicit()
+        v_next, evaluations, servos = velocity_update(system, q, v, tau, h, t)
+        if servos is not None:
+            servos.end_implicit()
         q_next = system.space.integrate(q, h * v_next)
         # The configuration moved along v_next, so that is the velocity the torques and dampers work against (and
         # the servo terms taken implicitly are the servos' torques at the step's end).

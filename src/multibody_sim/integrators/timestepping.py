@@ -38,7 +38,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..ordered import ordered_dot, ordered_matvec
-from .base import Attempt, Integrator, System, begin_implicit_servos
+from .base import Attempt, Integrator, System, velocity_update
 from .partitioned import SemiImplicitEuler
 
 MAX_ITERATIONS = 1000
@@ -182,13 +182,8 @@ class TimeStepping(Integrator):
         contact = getattr(scene, "contact", None)
         # Servo terms taken implicitly raise the armature for the whole velocity update, the contact problem's
         # M included (scenes/actuators.py), and come off before the energies below.
-        servos = begin_implicit_servos(system, q, v, tau, h)
-        evaluations = 1
+        v_free, evaluations, servos = velocity_update(system, q, v, tau, h, t)
         try:
-            v_free = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
-            while servos is not None and servos.revise(v_free):  # a servo's limit reached or left within the step
-                v_free = v + h * system.unchecked_forward_dynamics(q, v, tau, t)
-                evaluations += 1
             if contact is None:  # nothing to touch: semi-implicit Euler, with the end-point rule for the ledger
                 if servos is not None:
                     servos.end_implicit()
