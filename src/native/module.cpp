@@ -224,6 +224,28 @@ namespace
     int64_t taken = 0, need = 0;
   };
 
+  // The run's settings and its rows' initial states (NativeKernel.native_data()): _native.RunSettings, the last
+  // argument of the Kernel's constructor.
+  struct RunSettings
+  {
+    Eigen::VectorXd damping;  // (nv,)
+    int n_ledger = 0;  // the ledger's entries
+    double rtol = 0.0, atol = 0.0;  // adaptive methods' tolerances (NaN: none)
+    multibody_sim::RowMatrix Q0, V0;  // (B, nq), (B, nv)
+    int num_threads = 1;  // the threads the rows are split over
+  };
+
+  // What advance() reads and writes beside the loop state and the store (NativeCore builds it at each call):
+  // _native.AdvanceIO.
+  struct AdvanceIO
+  {
+    multibody_sim::Sampler sampler;  // None: no samples
+    nb::list stops;  // appends a StopEvent per row it stops
+    nb::dict contacts;  // the store's contacts dict (write_contacts)
+    Ints rows;  // the Python core's running rows (the rows stopped in this call included)
+    Ints extra_evaluations;  // out: per running position, the evaluations beyond the core's count
+  };
+
   const char * status_name(int status)
   {
     switch (status)
@@ -357,6 +379,22 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
     .field("COUNTS", &StoreArrays::COUNTS, "a C-contiguous int64 array")
     .field("EXTRA", &StoreArrays::EXTRA, "a C-contiguous float64 array")
     .finish(check_store);
+  Struct<RunSettings>(m, "RunSettings", "The run's settings and initial states (NativeKernel.native_data()).")
+    .field("damping", &RunSettings::damping, "a float64 array (nv,)")
+    .field("n_ledger", &RunSettings::n_ledger, "int")
+    .field("rtol", &RunSettings::rtol, "float")
+    .field("atol", &RunSettings::atol, "float")
+    .field("Q0", &RunSettings::Q0, "a float64 array (B, nq)")
+    .field("V0", &RunSettings::V0, "a float64 array (B, nv)")
+    .field("num_threads", &RunSettings::num_threads, "int")
+    .finish();
+  Struct<AdvanceIO>(m, "AdvanceIO", "What Kernel.advance() reads and writes beside the loop state and the store.")
+    .nullable("sampler", &AdvanceIO::sampler, "Sampler or None")
+    .field("stops", &AdvanceIO::stops, "list")
+    .field("contacts", &AdvanceIO::contacts, "dict")
+    .field("rows", &AdvanceIO::rows, "a C-contiguous int64 array")
+    .field("extra_evaluations", &AdvanceIO::extra_evaluations, "a C-contiguous int64 array")
+    .finish();
 
   nb::class_<StopEvent>(m, "StopEvent", "A row the engine stopped (core.RowStop's evidence).")
     .def_prop_ro("kind", [](const StopEvent & e) { return std::string(stop_name(e.code)); },
@@ -382,8 +420,7 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
     .def(
       "__init__",
       [](Engine * self, const NativeModel & model, const Method & method, const Chart & chart,
-         const std::variant<ConstantStepData, PIControllerData> & control, const Eigen::VectorXd & damping,
-         int n_ledger, double rtol, double atol, const RowMatrix & Q0, const RowMatrix & V0, int num_threads) {
+         const std::variant<ConstantStepData, PIControllerData> & control, const RunSettings & run) {
         Control c;
         if (const auto * fixed = std::get_if<ConstantStepData>(&control))
         {
@@ -403,55 +440,53 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
           c.max_step = pi.max_step;
           c.first_step = pi.first_step;
           c.landing = pi.landing;
-          c.rtol = rtol;
-          c.atol = atol;
+          c.rtol = run.rtol;
+          c.atol = run.atol;
         }
         const pinocchio::Model & robot = model.model;
-        if (Q0.cols() != robot.nq || V0.cols() != robot.nv || Q0.rows() != V0.rows() || damping.size() != robot.nv)
-          throw std::invalid_argument("initial states or damping disagree with the model's sizes");
-        new (self)
-          Engine(robot, method, chart.blocks, chart.half_series, damping, n_ledger, c, Q0, V0, num_threads);
+        if (run.Q0.cols() != robot.nq || run.V0.cols() != robot.nv || run.Q0.rows() != run.V0.rows()
+            || run.damping.size() != robot.nv)
+          throw std::invalid_argument("RunSettings: Q0, V0 or damping disagree with the model's sizes");
+        new (self) Engine(
+          robot, method, chart.blocks, chart.half_series, run.damping, run.n_ledger, c, run.Q0, run.V0,
+          run.num_threads);
       },
-      nb::arg("model"), nb::kw_only(), nb::arg("method"), nb::arg("chart"), nb::arg("control"), nb::arg("damping"),
-      nb::arg("n_ledger"), nb::arg("rtol"), nb::arg("atol"), nb::arg("Q0"), nb::arg("V0"), nb::arg("num_threads"),
-      "The engine of one run: the robot, its method, chart map and step-size controller (named structs), the "
-      "damping (nv,), the ledger's size, the tolerances (adaptive methods), the rows' initial states (B, nq), "
-      "(B, nv) and the threads the rows are split over.")
+      nb::arg("model"), nb::kw_only(), nb::arg("method"), nb::arg("chart"), nb::arg("control"), nb::arg("run"),
+      "The engine of one run: the robot, its method, chart map and step-size controller, and the run's settings and "
+      "initial states (named structs).")
     .def(
       "advance",
       [](Engine & self, double t_stop, int64_t limit, double tolerance, LoopState & state, const StoreArrays & store,
-         const Sampler * sampler, nb::list stops, nb::dict contacts, Ints rows, Ints extra_evaluations) {
+         AdvanceIO & io) {
         CoreState s;
         static_cast<LoopState &>(s) = state;
         s.t = self.t;
         s.instant = self.instant;
         s.last_control = self.last_control;
-        const Sampler sampling = sampler ? *sampler : Sampler();
         const Store arrays = store_of(store);
         AdvanceResult result;
         {
           nb::gil_scoped_release release;
-          result = self.advance(t_stop, limit, tolerance, sampling, arrays, s);
+          result = self.advance(t_stop, limit, tolerance, io.sampler, arrays, s);
         }
-        // The state comes back in `state` and the stops in `stops` before this call returns: no Python code runs
+        // The state comes back in `state` and the stops in `io.stops` before this call returns: no Python code runs
         // in between, so a signal handler (Ctrl-C) that runs when it returns never sees the work half recorded.
         self.t = s.t;
         self.instant = s.instant;
         self.last_control = s.last_control;
         state = s;
         for (const StopEvent & ev : result.stops)
-          stops.append(nb::cast(ev));
-        write_contacts(contacts, result.records);
-        write_extra_evaluations(self, rows, extra_evaluations);
+          io.stops.append(nb::cast(ev));
+        write_contacts(io.contacts, result.records);
+        write_extra_evaluations(self, io.rows, io.extra_evaluations);
         return Advance{status_name(result.status), result.taken, result.need};
       },
       nb::arg("t_stop"), nb::arg("limit"), nb::arg("tolerance"), nb::kw_only(), nb::arg("state"), nb::arg("store"),
-      nb::arg("sampler").none(), nb::arg("stops"), nb::arg("contacts"), nb::arg("rows"),
-      nb::arg("extra_evaluations"),
+      nb::arg("io"),
       "Core.advance towards t_stop, at most `limit` accepted steps, with the landing `tolerance`: advances `state` "
-      "(a LoopState) in place, appends the rows that stop to `stops` (StopEvent), their contacts to `contacts` "
-      "(the store's dict) and the evaluations beyond the core's count of the running `rows` to "
-      "`extra_evaluations`.")
+      "(a LoopState) in place, appends the rows that stop to `io.stops` (StopEvent), their contacts to "
+      "`io.contacts` (the store's dict) and the evaluations beyond the core's count of the running `io.rows` to "
+      "`io.extra_evaluations` (an AdvanceIO).")
     .def(
       "write_rows",
       [](Engine & self, int64_t i, std::vector<int64_t> rows, const StoreArrays & store, nb::dict contacts) {

@@ -163,6 +163,19 @@ namespace multibody_sim
       return field(name, member, expected, false);
     }
 
+    // A field that may be None, which leaves the member as T{} has it.
+    template<typename M>
+    Struct & nullable(const char * name, M T::*member, const char * expected)
+    {
+      cls_.def_rw(name, member);
+      const std::string where = std::string(fields_->type()) + "." + name;
+      fields_->custom(name, [member, where, expected](T & self, nb::handle value) {
+        if (!value.is_none())
+          Fields<T>::cast_into(self.*member, value, where, expected);
+      });
+      return *this;
+    }
+
     template<typename E>
     Struct & choice(const char * name, E T::*member, std::vector<std::pair<std::string, E>> names)
     {

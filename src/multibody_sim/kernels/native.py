@@ -7,7 +7,9 @@ model, the built-in controllers), which this module hands over as the bound stru
 (``_native.Method``, ``Chart``, ``ConstantStep`` / ``PIController``, ``SceneForces``, ``ContactScene``, ``Policies``);
 a field missing or misnamed on either side fails there, naming it. The state the loop advances (the core's counts,
 the store's count, the sampler's next output, the controller's state) crosses as a ``_native.LoopState`` the engine
-advances in place.
+advances in place; the run's settings and initial states as a ``_native.RunSettings`` (NativeKernel.native_data()),
+and what each engine call reads and reports beside (the sampler, the stops, the contacts, the rows' evaluations) as
+a ``_native.AdvanceIO``.
 
 NativeCore is a Core whose advance() hands the whole loop to the engine between the driver's events and returns at
 least every ~30 ms of work (so Ctrl-C and SIGTERM are honoured with every sample kept); everything else (recording
@@ -197,19 +199,12 @@ class NativeKernel:
         assert module is not None  # why_not_native said the extension runs
         model = native.load_model(system.model)
         step = module.ConstantStep if isinstance(control, ConstantStep) else module.PIController
-        Q0, V0 = self._initial
         self.engine = module.Kernel(
             model,
             method=module.Method(**self.method.native_data()),  # type: ignore[attr-defined]
             chart=_chart(system.space),
             control=step(**control.native_data()),
-            damping=np.asarray(system.damping, dtype=float),
-            n_ledger=len(system.ledger_elements),
-            rtol=math.nan if self.rtol is None else float(self.rtol),
-            atol=math.nan if self.atol is None else float(self.atol),
-            Q0=Q0,
-            V0=V0,
-            num_threads=self.num_threads,
+            run=module.RunSettings(**self.native_data()),
         )
         self.engine.t = self._start
         actuators = getattr(system, "actuators", None)
@@ -221,6 +216,21 @@ class NativeKernel:
         if type(self.method) is TimeStepping:  # a contact scene (why_not_native said it renders)
             flow_work = [kind == "work" for _, kind in system.ledger_elements[:-4]]  # the contact's four come last
             self.engine.set_contact(_contact_scene(contact_data(system, self.method), model), flow_work)
+
+    def native_data(self) -> dict[str, Any]:
+        """The run's settings and initial states as _native.RunSettings takes them: damping (nv,), the ledger's size,
+        the tolerances (NaN: none), Q0 (B, nq), V0 (B, nv), the threads."""
+        system = self.system
+        Q0, V0 = self._initial
+        return {
+            "damping": np.asarray(system.damping, dtype=float),
+            "n_ledger": len(system.ledger_elements),
+            "rtol": math.nan if self.rtol is None else float(self.rtol),
+            "atol": math.nan if self.atol is None else float(self.atol),
+            "Q0": Q0,
+            "V0": V0,
+            "num_threads": self.num_threads,
+        }
 
     def control_natively(self, torques: Any, settings: Any, saturation: Any, calls: np.ndarray) -> bool:
         """Hand the run's torques to the engine when it renders them (native_policies): it then computes them at its
@@ -415,11 +425,12 @@ class NativeCore(Core):
             self._load()
             start = time.perf_counter()
             try:
-                result = kernel.engine.advance(
-                    t_stop, limit, tolerance, state=loop, store=kernel.store_arrays(store), sampler=self._sampler,
-                    stops=self._pending, contacts=store.contacts, rows=self.rows,
+                io = native.module.AdvanceIO(  # type: ignore[union-attr]
+                    sampler=self._sampler, stops=self._pending, contacts=store.contacts, rows=self.rows,
                     extra_evaluations=self.extra_evaluations,
                 )  # fmt: skip
+                arrays = kernel.store_arrays(store)
+                result = kernel.engine.advance(t_stop, limit, tolerance, state=loop, store=arrays, io=io)
             finally:
                 self._unload()
             elapsed = time.perf_counter() - start
