@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import xml.etree.ElementTree as ET
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -277,9 +278,9 @@ def test_noise_mean_and_std_match_the_declaration_over_1e5_readings() -> None:
     deviation the declared noise within 3 σ/√(2n)."""
     n, std, bias = 100_000, 0.05, 0.3
     stream, _ = _stream(std, bias)
-    readings = stream.push([0.0], [np.array([0])], [np.full((1, 1), 1.25)])  # the first, then many more
-    times = list(np.arange(1, n) * 1e-3)
-    more = stream.push(times, [np.array([0])] * (n - 1), [np.full((1, 1), 1.25)] * (n - 1))
+    zeros = np.zeros(1, dtype=np.int64)
+    readings = stream.push(np.zeros(1), zeros, np.full((1, 1), 1.25))  # the first, then many more
+    more = stream.push(np.arange(1, n) * 1e-3, np.zeros(n - 1, dtype=np.int64), np.full((n - 1, 1), 1.25))
     values = np.concatenate([readings[0][0][1][:, 0], more[0][0][1][:, 0]])
     assert len(values) == n
     assert abs(values.mean() - (1.25 + bias)) < 3 * std / math.sqrt(n)
@@ -291,10 +292,10 @@ def test_readings_in_one_call_or_many_are_the_same() -> None:
     chunks) reads the same numbers as one call."""
     z = np.linspace(0.0, 1.0, 50)[:, None]
     one, _ = _stream(0.1, 0.0, latency=3, stride=2)
-    whole = one.push(list(np.arange(50.0)), [np.array([0])] * 50, list(z[:, None]))
+    whole = one.push(np.arange(50.0), np.zeros(50, dtype=np.int64), z)
     many, _ = _stream(0.1, 0.0, latency=3, stride=2)
     parts = [
-        many.push(list(np.arange(a, b, dtype=float)), [np.array([0])] * (b - a), list(z[a:b, None]))
+        many.push(np.arange(a, b, dtype=float), np.zeros(b - a, dtype=np.int64), z[a:b])
         for a, b in ((0, 7), (7, 8), (8, 50))
     ]
     times = np.concatenate([p[0][0][0] for p in parts])
@@ -543,3 +544,164 @@ def test_run_mistakes_are_one_line() -> None:
 
     with pytest.raises(InvalidArgumentError, match=r"^observation: unknown sensor 'imu' \(the system's sensors: "):
         MultibodyEnv(scene, reward=lambda q, v, tau: 0.0, observation=["imu"])
+
+
+# ---- the native kernel: the same readings, bit for bit --------------------------------------------------------------
+def _native_or_skip() -> None:
+    from multibody_sim import native
+
+    if not native.available:
+        pytest.skip(f"the native kernel is not available here: {native.why_unavailable}")
+
+
+def _both(monkeypatch: pytest.MonkeyPatch, run: Any) -> tuple[Any, Any]:
+    """run() on the native kernel, then on the Python kernel."""
+    from multibody_sim import native
+
+    on_native = run()
+    with monkeypatch.context() as m:
+        m.setenv(native.ENV, "0")
+        on_python = run()
+    return on_native, on_python
+
+
+def _ur5_sensors() -> ms.Scene:
+    return ms.make_scene(
+        robot={"source": "ur5"},
+        payload=[{"frame": "ee_link", "mass": 0.7, "com": [0.0, 0.02, 0.05]}],  # beyond the wrist sensor
+        sensor=[
+            {"name": "imu", "kind": "imu", "frame": "tool0", "noise": 0.01, "latency": 2},
+            {"name": "pose", "kind": "frame_pose", "frame": "wrist_3_link"},
+            {"name": "wrist", "kind": "force_torque", "frame": "ee_fixed_joint", "rate": 500.0},
+            {"name": "elbow", "kind": "force_torque", "joint": "elbow_joint"},
+            {"name": "enc", "kind": "joint_position", "bias": 0.001},
+            {"name": "gyro", "kind": "joint_velocity"},
+            {"name": "tq", "kind": "joint_torque"},
+        ],
+    )
+
+
+def test_native_readings_equal_the_python_kernels(monkeypatch: pytest.MonkeyPatch) -> None:
+    """ur5 (every kind but contact, a built-in controller inside the engine and a Python one that reads the sensors)
+    and go2 standing (contact forces, an IMU and force-torque sensors whose subtrees touch the ground, on two
+    threads of a rollout): the native kernel's readings are the Python kernel's, bit for bit."""
+    _native_or_skip()
+    scene = _ur5_sensors()
+    q0, v0 = scene.q0 + 0.2, np.full(scene.nv, 0.3)
+    pd = ms.PD(scene, q_ref=scene.q0, kp=50.0, kd=5.0)
+
+    def reads(t: float, q: np.ndarray, v: np.ndarray, readings: dict[str, np.ndarray]) -> np.ndarray:
+        return -20.0 * (readings["enc"] - scene.q0) - 2.0 * readings["gyro"]
+
+    reads.sensors = True  # type: ignore[attr-defined]
+    for controller in (pd, reads):
+        native, python = _both(
+            monkeypatch,
+            lambda c=controller: ms.simulate(scene, q0, v0, duration=0.05, dt=1e-3, control_dt=2e-3, controller=c),
+        )
+        assert native.metadata["kernel"] == "native" and python.metadata["kernel"] != "native"
+        np.testing.assert_array_equal(native.q, python.q)
+        for name in python.sensors:
+            np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=name)
+    go2 = ms.load_scene(_scene_file("go2_standing.toml"))
+    sensors = [{"name": f"{leg}", "kind": "contact_force", "body": f"{leg}_foot"} for leg in ("FL", "RR")]
+    sensors += [
+        {"name": "imu", "kind": "imu", "frame": "base", "noise": 0.05},
+        {"name": "hip", "kind": "force_torque", "joint": "FL_hip_joint"},
+        {"name": "calf", "kind": "force_torque", "frame": "FL_calf"},
+    ]
+    go2 = _with_sensors(go2, sensors)
+    Q0 = np.array([go2.q0, go2.q0, go2.q0])
+    V0 = np.zeros((3, go2.nv))
+    V0[1, 6:] = 0.1
+    native, python = _both(
+        monkeypatch,
+        lambda: ms.rollout(
+            go2,
+            Q0,
+            V0,
+            duration=0.1,
+            dt=1e-3,
+            integrator="timestepping",
+            controller=go2.make_controller(),
+            num_threads=2,
+        ),
+    )
+    assert native.metadata["kernel"] == "native" and python.metadata["kernel"] != "native"
+    for name in python.sensors:
+        np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=name)
+    assert np.abs(native.sensors["FL"][:, -1, 2]).min() > 10.0  # the feet carry the robot
+
+
+def test_native_steppers_read_what_the_python_kernel_reads(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Stepper and BatchStepper (rows reset apart, so their ticks' phases differ) read the same on both kernels."""
+    _native_or_skip()
+    scene = ms.make_scene(
+        robot={"source": "ur5"},
+        sensor=[
+            {"name": "imu", "kind": "imu", "frame": "tool0", "rate": 250.0, "noise": 0.01},
+            {"name": "enc", "kind": "joint_position", "latency": 1},
+        ],
+    )
+
+    def run() -> list[dict[str, np.ndarray]]:
+        seen = []
+        stepper = ms.Stepper(scene, dt=1e-3, control_dt=2e-3, q0=scene.q0)
+        batch = ms.BatchStepper(scene, np.array([scene.q0] * 2), np.zeros((2, scene.nv)), dt=1e-3, control_dt=2e-3)
+        for k in range(12):
+            stepper.step(np.full(scene.nv, 0.5))
+            batch.step(np.full((2, scene.nv), 0.5))
+            if k == 4:
+                batch.reset(np.array([1]), np.array([scene.q0 + 0.1]))
+            seen += [stepper.readings, batch.readings]
+        return seen
+
+    native, python = _both(monkeypatch, run)
+    for a, b in zip(native, python, strict=True):
+        for name in b:
+            np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+def test_native_joint_torque_sensors_read_the_actuators_delivered_torque(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With actuators the joint_torque sensors read what the actuators deliver at the tick (their law, curve and
+    limits at the tick's state under the held command), on the native kernel as on the Python kernel, bit for bit:
+    ur5's stiff position servos near their effort limits (rk4, and semi-implicit Euler's implicit step with its
+    revisions), and go2's catalog motors standing on the ground under torque commands (the time-stepper)."""
+    _native_or_skip()
+    ur5 = ms.make_scene(
+        robot={"source": "ur5"},
+        actuator=[{"joints": "*", "kind": "position", "kp": 1e4, "kv": 100.0, "effort_limit": 40.0}],
+        sensor=[{"name": "tq", "kind": "joint_torque"}, {"name": "enc", "kind": "joint_position", "noise": 1e-3}],
+    )
+    target = ur5.q0 + 0.3
+    for integrator in ("rk4", "semi_implicit_euler"):
+        native, python = _both(
+            monkeypatch,
+            lambda i=integrator: ms.simulate(
+                ur5, ur5.q0, np.zeros(ur5.nv), duration=0.05, dt=1e-3, control_dt=2e-3, integrator=i,
+                controller=lambda t, q, v: target,
+            ),
+        )
+        assert native.metadata["kernel"] == "native" and python.metadata["kernel"] != "native"
+        for name in python.sensors:
+            np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=f"{integrator} {name}")
+        tq = native.sensors["tq"]
+        assert np.abs(tq).max() == 40.0  # the servos saturate: the sensor reads the limited torque
+        assert np.abs(tq[1:] - native.ctrl[1:]).max() > 1.0  # not the command (a target in rad)
+    import dataclasses
+
+    go2 = _with_sensors(
+        ms.load_scene(_scene_file("go2_standing.toml")),
+        [{"name": "tq", "kind": "joint_torque"}, {"name": "FL", "kind": "contact_force", "body": "FL_foot"}],
+    )
+    go2 = ms.Scene(dataclasses.replace(go2.spec, actuator_defaults="catalog"))
+    gains = ms.PDGravity(go2, q_ref=go2.q0, kp=100.0, kd=5.0)
+    native, python = _both(
+        monkeypatch,
+        lambda: ms.simulate(go2, go2.q0, np.zeros(go2.nv), duration=0.05, dt=1e-3, integrator="timestepping",
+                            controller=gains),
+    )
+    assert native.metadata["kernel"] == "native" and python.metadata["kernel"] != "native"
+    for name in python.sensors:
+        np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=f"go2 {name}")
+    assert np.abs(native.sensors["FL"][-1, 2]) > 10.0  # standing on its feet

@@ -28,8 +28,9 @@ Kinds (components; axes):
 Readings (SensorStream): a sensor reads at its own rate (every `stride` ticks of the run's clock); reading m is
 measurement m − latency (the first measurement before that) plus the bias plus Gaussian noise of the declared
 std, drawn from the sensor's own generator (numpy PCG64 seeded with ``seed + row``), one draw per component per
-reading, in order. Between its readings a sensor holds its latest one. The kernels measure; the readings are
-made here, in Python, for every kernel alike.
+reading, in order. Between its readings a sensor holds its latest one. The kernels measure (the Python kernel with
+Sensors.measure, the native one with its rendering in src/native/measure.hpp, bit for bit); the readings are made
+here, in Python, for every kernel alike.
 """
 
 from __future__ import annotations
@@ -190,6 +191,48 @@ class Sensors:
             extra = f", {', '.join(spoil)}" if spoil else ""
             lines.append(f"    {spec.name}: {spec.kind}{where}, {rate}{extra} ({' '.join(p.components)})")
         return "\n".join(lines)
+
+    # ---- the native kernel's data -------------------------------------------------------------------------------
+    def native_reason(self) -> str | None:
+        """Why the native kernel cannot measure these sensors, or None."""
+        kinds = {p.spec.kind for p in self.placed}
+        if self.wrenches and "force_torque" in kinds:
+            return "its force-torque sensors see its [[force]] wrenches, which the native kernel does not measure"
+        return None
+
+    def native_data(self) -> dict[str, Any]:
+        """The sensors as _native.Sensors takes them (src/native/sensors.hpp): each one's kind, place and cut."""
+        items = []
+        for k, p in enumerate(self.placed):
+            cut = p.cut if p.cut is not None else Cut(0, True, pin.SE3.Identity())
+            inertia = cut.inertia if cut.inertia is not None else pin.Inertia.Zero()
+            items.append(
+                {
+                    "kind": p.spec.kind,
+                    "offset": int(self.offsets[k]),
+                    "frame": int(p.frame),
+                    "body": int(p.body),
+                    "q_index": [c[0] for c in p.coordinates],
+                    "v_index": [c[1] for c in p.coordinates],
+                    "q_count": [c[2] for c in p.coordinates],
+                    "cut_joint": int(cut.joint),
+                    "cut_whole": bool(cut.whole),
+                    "cut_rotation": np.array(cut.placement.rotation),
+                    "cut_translation": np.array(cut.placement.translation),
+                    "cut_mass": float(inertia.mass),
+                    "cut_lever": np.array(inertia.lever),
+                    "cut_inertia": np.array(inertia.inertia),
+                    "cut_children": [int(c) for c in cut.children],
+                    "cut_frames": sorted(int(f) for f in cut.frames),
+                }
+            )
+        return {
+            "width": self.width,
+            "gravity": self._gravity.copy(),
+            "items": items,
+            "contact_joints": list(self.contact_joints),
+            "contact_frames": list(self.contact_frames),
+        }
 
     # ---- the measurement ----------------------------------------------------------------------------------------
     def measure(
@@ -500,17 +543,21 @@ class Ticks:
     """When the rows' sensors tick during a run (the end of every `every`-th step of a row, counted from the row's
     start), and the measurements the kernel took there, until the driver takes them (take()).
 
+    The Python core calls after_step() after each accepted step; the native engine ticks inside its own loop and
+    keeps its measurements until take() collects them (`source`).
+
     Attributes:
         every: steps between ticks.
         done: per row (its index in the run), steps it took before the core started, shape (B,).
+        source: the native engine's take_ticks (its ticks since the last call: times (n,), rows (n,), values (n,
+            width)), or None.
     """
 
     def __init__(self, every: int, B: int):
         self.every = every
         self.done = np.zeros(B, dtype=np.int64)
-        self._times: list[float] = []
-        self._rows: list[np.ndarray] = []
-        self._values: list[np.ndarray] = []
+        self.source: Any = None
+        self._taken: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
     def after_step(self, core: Any, h: float, t: float) -> None:
         """The core accepted a step of h landing at t: measure the running rows whose tick it is."""
@@ -530,15 +577,25 @@ class Ticks:
             self._keep(core.t, core.rows[js], core.kernel.measure_start(js, h))
 
     def _keep(self, t: float, rows: np.ndarray, values: np.ndarray) -> None:
-        self._times.append(t)
-        self._rows.append(np.array(rows))
-        self._values.append(values)
+        self._collect()  # the engine's ticks (before this one)
+        self._taken.append((np.full(len(rows), t), np.array(rows, dtype=np.int64), values))
 
-    def take(self) -> tuple[list[float], list[np.ndarray], list[np.ndarray]]:
-        """The ticks since the last call: times, rows, measurements (len(rows), width) each."""
-        taken = self._times, self._rows, self._values
-        self._times, self._rows, self._values = [], [], []
-        return taken
+    def _collect(self) -> None:
+        if self.source is not None:
+            times, rows, values = self.source()
+            if len(times):
+                self._taken.append((np.asarray(times), np.asarray(rows, dtype=np.int64), np.asarray(values)))
+
+    def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The ticks since the last call, in time order: times (n,), rows (n,), measurements (n, width)."""
+        self._collect()
+        taken, self._taken = self._taken, []
+        if len(taken) == 1:
+            return taken[0]
+        if not taken:
+            return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 0))
+        times, rows, values = zip(*taken, strict=True)
+        return np.concatenate(times), np.concatenate(rows), np.concatenate(values)
 
     def clear(self) -> None:
         self.take()
@@ -586,19 +643,23 @@ class SensorStream:
                 self.generators[b] = self._generators(b, int(e))
 
     def push(
-        self, times: list[float], rows: list[np.ndarray], values: list[np.ndarray]
+        self, times: np.ndarray, rows: np.ndarray, values: np.ndarray
     ) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
-        """Turn ticks (as Ticks.take gives them) into readings; returns, per row that read, per sensor: the times of
-        its new readings and the readings (for the samples in between)."""
-        per_row: dict[int, tuple[list[float], list[np.ndarray]]] = {}
-        for t, tick_rows, tick_values in zip(times, rows, values, strict=True):
-            for b, z in zip(tick_rows.tolist(), tick_values, strict=True):
-                entry = per_row.setdefault(b, ([], []))
-                entry[0].append(t)
-                entry[1].append(z)
+        """Turn ticks (as Ticks.take gives them: times (n,), rows (n,), measurements (n, width), in time order)
+        into readings; returns, per row that read, per sensor: the times of its new readings and the readings (for
+        the samples in between)."""
         out: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
-        for b, (row_times, row_values) in per_row.items():
-            out[b] = self._read(b, np.array(row_times), np.array(row_values))
+        if not len(times):
+            return out
+        if rows[0] == rows[-1] and (rows == rows[0]).all():  # one row (simulate, Stepper)
+            out[int(rows[0])] = self._read(int(rows[0]), times, values)
+            return out
+        order = np.argsort(rows, kind="stable")  # each row's ticks, in time order
+        rows, starts = np.unique(rows[order], return_index=True)
+        stops = [*starts[1:].tolist(), len(order)]
+        for b, start, stop in zip(rows.tolist(), starts.tolist(), stops, strict=True):
+            picked = order[start:stop]
+            out[b] = self._read(b, times[picked], values[picked])
         return out
 
     def _read(self, b: int, times: np.ndarray, Z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -608,12 +669,16 @@ class SensorStream:
         self.count[b] += len(times)
         result = []
         for k, p in enumerate(sensors.placed):
-            due = ticks % self.strides[k] == 0
             columns = sensors.columns(k)
-            if not due.any():
-                result.append((np.zeros(0), np.zeros((0, p.width))))
-                continue
-            z = Z[due, columns]
+            stride = self.strides[k]
+            if stride == 1:  # every tick (the common case): slices, no masks
+                due_times, z = times, Z[:, columns]
+            else:
+                due = ticks % stride == 0
+                if not due.any():
+                    result.append((np.zeros(0), np.zeros((0, p.width))))
+                    continue
+                due_times, z = times[due], Z[due, columns]
             latency = p.spec.latency
             if latency:
                 held = self.history[b][k]
@@ -627,7 +692,7 @@ class SensorStream:
             if self._spoiled[k]:
                 readings = readings + p.noise * self.generators[b][k].standard_normal(z.shape)
             self.latest[b, columns] = readings[-1]
-            result.append((times[due], readings))
+            result.append((due_times, readings))
         return result
 
     def readings(self, b: int) -> dict[str, np.ndarray]:
@@ -712,6 +777,11 @@ class Sensing:
         self.ticks.clear()
         self.ticks.done = np.zeros(len(self.ticks.done), dtype=np.int64) if done is None else done.copy()
         core.ticks = self.ticks
+        kernel = core.kernel
+        self.ticks.source = None
+        if hasattr(kernel, "set_sensors"):  # the native engine ticks in its own loop
+            kernel.set_sensors(self.sensors, self.ticks.every, self.ticks.done)
+            self.ticks.source = kernel.take_ticks
         self.ticks.start(core, np.arange(len(core.rows)) if fresh is None else fresh, h)
         self.update()
 
@@ -724,20 +794,27 @@ class Sensing:
         before = self.stream.latest.copy()
         fresh = self.stream.push(*self.ticks.take())
         sensors = self.sensors
+        readings = store.batch_major("SENSORS")
         for b in range(store.B):
             lo, hi = int(store.sensed[b]), store.samples_of(b)
             if hi <= lo:
                 continue
-            out = store.SENSORS[lo:hi, b]
-            out[:] = before[b]
+            block = readings[b, lo:hi]  # (samples, width), contiguous
             new = fresh.get(b)
-            if new is not None:
+            if new is None:
+                block[:] = before[b]
+            else:
                 T = store.T[lo:hi, b]
                 for k, (times, values) in enumerate(new):
-                    if len(times):
-                        index = np.searchsorted(times, T, side="right") - 1
-                        hit = index >= 0
-                        out[hit, sensors.columns(k)] = values[index[hit]]
+                    columns = sensors.columns(k)
+                    if len(times) == len(T) and np.array_equal(times, T):  # a reading at every sample (the default)
+                        block[:, columns] = values
+                        continue
+                    # the latest reading at or before each sample (times ascend, so index does too)
+                    index = np.searchsorted(times, T, side="right") - 1
+                    held = int(np.searchsorted(index, 0))  # the samples before this call's first reading
+                    block[:held, columns] = before[b, columns]
+                    block[held:, columns] = values[index[held:]]
             store.sensed[b] = hi
 
 

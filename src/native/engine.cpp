@@ -235,6 +235,55 @@ namespace multibody_sim
       th->pw = policies ? policies->workspace(model_) : nullptr;
   }
 
+  void Engine::set_sensors(std::shared_ptr<const Sensors> sensors, int64_t every, const std::vector<int64_t> & done)
+  {
+    size_t B = 0;
+    for (auto & th : threads_)
+      B += th->rows.size();
+    if (sensors && (every < 1 || done.size() != B))
+      throw std::invalid_argument("set_sensors: every must be >= 1 and done hold one count per row");
+    sensors_ = sensors;
+    sensor_every_ = every;
+    sensor_done_ = done;
+    sensor_torques_ = false;
+    if (sensors)
+      for (const SensorItem & item : sensors->items)
+        sensor_torques_ = sensor_torques_ || item.kind == SensorKind::joint_torque;
+    for (auto & th : threads_)
+      th->sensw = sensors ? std::make_unique<SensorWork>(model_) : nullptr;
+  }
+
+  std::tuple<Vec, std::vector<int64_t>, RowMatrix> Engine::take_ticks()
+  {
+    size_t n = 0;
+    for (auto & th : threads_)
+      if (th->sensw)
+        n += th->sensw->times.size();
+    const int width = sensors_ ? sensors_->width : 0;
+    Vec times(static_cast<Eigen::Index>(n));
+    std::vector<int64_t> rows;
+    rows.reserve(n);
+    RowMatrix values(static_cast<Eigen::Index>(n), width);
+    Eigen::Index k = 0;
+    for (auto & th : threads_)
+    {
+      if (!th->sensw)
+        continue;
+      SensorWork & w = *th->sensw;
+      for (size_t i = 0; i < w.times.size(); ++i, ++k)
+      {
+        times[k] = w.times[i];
+        rows.push_back(w.rows[i]);
+        for (int c = 0; c < width; ++c)
+          values(k, c) = w.values[i * static_cast<size_t>(width) + static_cast<size_t>(c)];
+      }
+      w.times.clear();
+      w.rows.clear();
+      w.values.clear();
+    }
+    return {times, rows, values};
+  }
+
   AdvanceResult Engine::advance(
     double t_stop, int64_t limit, double tolerance, const Sampler & sampler, const Store & store, CoreState & state)
   {

@@ -24,6 +24,7 @@
 
 #include "contact.hpp"  // a contact scene's geometry, constraints and cone solve (contact.cpp)
 #include "scene.hpp"    // a scene's force elements and the built-in controllers (scene.cpp)
+#include "sensors.hpp"  // a scene's sensors (measured at ticks: measure.hpp)
 
 namespace multibody_sim
 {
@@ -270,6 +271,12 @@ namespace multibody_sim
     {
       return contact_ || (actuators_ && actuators_->servos);
     }
+    // A scene's sensors tick at the end of every `every`-th step of a run row, counted from the row's start (`done`:
+    // the steps each run row took before this engine, shape (B,)); each tick's measurement is kept until
+    // take_ticks() (sensors.Ticks.source).
+    void set_sensors(std::shared_ptr<const Sensors> sensors, int64_t every, const std::vector<int64_t> & done);
+    // The ticks since the last call: times (n,), run rows (n,), measurements (n, width), each row's in time order.
+    std::tuple<Vec, std::vector<int64_t>, RowMatrix> take_ticks();
     // Evaluations each run row made beyond the run's count (contact steps cost two), for rows `rows`.
     std::vector<int64_t> extra_evaluations(const std::vector<int64_t> & rows) const;
 
@@ -303,6 +310,10 @@ namespace multibody_sim
     int n_actuator_flows_ = 0;        // the actuators' ledger entries, after the robot's
     std::shared_ptr<const Policies> policies_;
     std::shared_ptr<const ContactScene> contact_;
+    std::shared_ptr<const Sensors> sensors_;
+    int64_t sensor_every_ = 1;
+    bool sensor_torques_ = false;  // whether a joint_torque sensor reads (the actuators' delivered torque then)
+    std::vector<int64_t> sensor_done_;
     std::vector<bool> flow_work_;
     int64_t *calls_ = nullptr, *saturated_ = nullptr, *saturated_dofs_ = nullptr;
     int n_robot_flows_ = 1;  // the robot's ledger entries before the scene's (joint torques, joint damping)

@@ -9,6 +9,7 @@
 #include <limits>
 #include <vector>
 
+#include "measure.hpp"
 #include "methods.hpp"
 
 namespace multibody_sim
@@ -393,6 +394,36 @@ namespace multibody_sim
         res.taken += 1;
         for (size_t j : bad)
           kill(j);
+        if (e.sensors_)
+          sense(h, t_next);
+      }
+    }
+
+    // sensors.Ticks.after_step: the running rows whose tick ends this step of h (at t) measure their state now with
+    // the step's acceleration (v+ - v) / h (vn holds v since the accept's swap), its contacts, and the torque delivered
+    // under its command (Actuators.joint_torques at the tick's state; the command itself without actuators).
+    void sense(double h, double t)
+    {
+      const Sensors & sensors = *e.sensors_;
+      SensorWork & w = *sensw;
+      for (size_t j = 0; j < rows.size(); ++j)
+      {
+        if (!alive[j] || (e.sensor_done_[static_cast<size_t>(rows[j])] + st.steps) % e.sensor_every_ != 0)
+          continue;
+        w.a = (v[j] - vn[j]) / h;
+        const Vec * delivered = &tau[j];  // the joint_torque sensors': the torque the actuators deliver at the tick
+        if (e.actuators_ && e.sensor_torques_)
+        {
+          e.actuators_->joint_torques(q[j], v[j], tau[j], nullptr, w.tau.data());
+          delivered = &w.tau;
+        }
+        const size_t at = w.values.size();
+        w.values.resize(at + static_cast<size_t>(sensors.width));
+        measure_sensors(
+          sensors, e.model_, w, q[j], v[j], w.a, *delivered, e.contact_ ? &crow[j].active : nullptr, h,
+          w.values.data() + at);
+        w.times.push_back(t);
+        w.rows.push_back(rows[j]);
       }
     }
 

@@ -54,6 +54,7 @@ namespace multibody_sim
     std::unique_ptr<SceneWork> sw;   // a scene's workspace (set_scene)
     std::unique_ptr<PolicyWork> pw;  // the native controllers' (set_policies)
     std::unique_ptr<ContactWork, void (*)(ContactWork *)> cw{nullptr, nullptr};  // a contact scene's (set_contact)
+    std::unique_ptr<SensorWork> sensw;  // a scene's sensors' (set_sensors): their Data and the ticks kept
     std::vector<ContactRow> crow;  // per row: the contact solver state
     std::vector<int64_t> extra;    // per row: evaluations beyond st.evaluations (a contact step costs two)
     // Engine::save's copy of the rows' whole state (Stepper's undo point before each step)

@@ -346,6 +346,41 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
     .field("first_step", &PIControllerData::first_step, "float")
     .field("landing", &PIControllerData::landing, "float")
     .finish();
+  Struct<SensorItem>(m, "SensorItem", "One sensor and, for a force-torque sensor, its cut (sensors.Placed, Cut).")
+    .choice("kind", &SensorItem::kind,
+            {{"imu", SensorKind::imu}, {"frame_pose", SensorKind::frame_pose},
+             {"contact_force", SensorKind::contact_force}, {"force_torque", SensorKind::force_torque},
+             {"joint_position", SensorKind::joint_position}, {"joint_velocity", SensorKind::joint_velocity},
+             {"joint_torque", SensorKind::joint_torque}})
+    .field("offset", &SensorItem::offset, "int")
+    .field("frame", &SensorItem::frame, "int")
+    .field("body", &SensorItem::body, "int")
+    .field("q_index", &SensorItem::q_index, "list[int]")
+    .field("v_index", &SensorItem::v_index, "list[int]")
+    .field("q_count", &SensorItem::q_count, "list[int]")
+    .field("cut_joint", &SensorItem::cut_joint, "int")
+    .field("cut_whole", &SensorItem::cut_whole, "bool")
+    .field("cut_rotation", &SensorItem::cut_rotation, "a 3 x 3 float array")
+    .field("cut_translation", &SensorItem::cut_translation, "3 floats")
+    .field("cut_mass", &SensorItem::cut_mass, "float")
+    .field("cut_lever", &SensorItem::cut_lever, "3 floats")
+    .field("cut_inertia", &SensorItem::cut_inertia, "a 3 x 3 float array")
+    .field("cut_children", &SensorItem::cut_children, "list[int]")
+    .field("cut_frames", &SensorItem::cut_frames, "list[int]")
+    .finish([](SensorItem & s) {
+      if (s.q_index.size() != s.v_index.size() || s.q_index.size() != s.q_count.size())
+        throw std::invalid_argument("SensorItem.q_index, v_index and q_count must have one entry per joint");
+    });
+  Struct<Sensors>(m, "Sensors", "A scene's sensors as the engine measures them (sensors.Sensors.native_data()).")
+    .field("width", &Sensors::width, "int")
+    .field("gravity", &Sensors::gravity, "3 floats")
+    .field("items", &Sensors::items, "list[SensorItem]")
+    .field("contact_joints", &Sensors::contact_joints, "list[int]")
+    .field("contact_frames", &Sensors::contact_frames, "list[int]")
+    .finish([](Sensors & s) {
+      if (s.contact_joints.size() != s.contact_frames.size())
+        throw std::invalid_argument("Sensors.contact_joints and contact_frames must have one entry per body");
+    });
   Struct<Sampler>(m, "Sampler", "When the loop records samples (core.Sampler.native_data(); 0: none).")
     .field("every", &Sampler::every, "int")
     .field("period", &Sampler::period, "float")
@@ -510,6 +545,32 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
       "A contact scene's geometry and constraints (_native.ContactScene) for the timestepping kind; flow_work: "
       "per ledger entry before the contact's four, whether it is work (else dissipated).")
     .def_prop_ro("has_contact", &Engine::has_contact)
+    .def(
+      "set_sensors",
+      [](Engine & self, std::shared_ptr<Sensors> sensors, int64_t every, std::vector<int64_t> done) {
+        const pinocchio::Model & model = self.model();
+        const auto within = [](int i, int n) { return 0 <= i && i < n; };
+        bool valid = true;
+        for (const SensorItem & item : sensors->items)
+        {
+          valid = valid && within(item.offset, sensors->width + 1) && item.frame < static_cast<int>(model.nframes)
+                  && within(item.cut_joint, model.njoints) && item.body < static_cast<int>(sensors->contact_joints.size());
+          for (size_t i = 0; i < item.q_index.size(); ++i)
+            valid = valid && within(item.q_index[i] + item.q_count[i] - 1, model.nq) && within(item.v_index[i], model.nv);
+          for (int k : item.cut_children)
+            valid = valid && within(k, model.njoints);
+        }
+        for (int j : sensors->contact_joints)
+          valid = valid && within(j, model.njoints);
+        if (!valid)
+          throw std::invalid_argument("set_sensors: a sensor's offset, frame, body, joint or coordinate is out of range");
+        self.set_sensors(sensors, every, done);
+      },
+      nb::arg("sensors"), nb::arg("every"), nb::arg("done"),
+      "A scene's sensors (_native.Sensors) tick at the end of every `every`-th step of a row, counted from its "
+      "start (`done`: the steps each row took before, (B,)); take_ticks() collects their measurements.")
+    .def("take_ticks", &Engine::take_ticks,
+         "The ticks since the last call: times (n,), rows (n,), measurements (n, width).")
     .def("contact_row", &Engine::contact_row)
     .def(
       "set_actuators", [](Engine & self, std::shared_ptr<SceneActuators> actuators) { self.set_actuators(actuators); },

@@ -87,7 +87,9 @@ def _scene_reason(scene: Scene) -> str | None:
                 f"{', '.join(NATIVE_SHAPES)})"
             )
     if scene.sensors is not None:
-        return "the scene declares sensors, which the native kernel does not measure yet"
+        reason = scene.sensors.native_reason()
+        if reason is not None:
+            return f"the scene's sensors: {reason}"
     if scene.constraints is not None:
         return f"the scene has constraints ({', '.join(scene.constraints.names)}), which run on the Python kernel"
     if scene.mimic:
@@ -304,6 +306,31 @@ class NativeKernel:
     def _row(self, j: int) -> int:
         """The run row of running position j."""
         return int(self.engine.running_rows()[j])
+
+    # ---- sensors (sensors.Sensing) ----------------------------------------------------------------------------------
+    def set_sensors(self, sensors: Any, every: int, done: np.ndarray) -> None:
+        """The scene's sensors tick in the engine at the end of every `every`-th step of a row (done: the steps each
+        row took before, (B,)); take_ticks() collects their measurements."""
+        module = native.module
+        data = sensors.native_data()
+        items = [module.SensorItem(**item) for item in data["items"]]  # type: ignore[union-attr]
+        struct = module.Sensors(**{**data, "items": items})  # type: ignore[union-attr]
+        self.engine.set_sensors(struct, int(every), [int(d) for d in done])
+
+    def take_ticks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The engine's ticks since the last call: times (n,), rows (n,), measurements (n, width)."""
+        times, rows, values = self.engine.take_ticks()
+        return np.asarray(times), np.asarray(rows, dtype=np.int64), np.asarray(values)
+
+    def measure_start(self, js: np.ndarray, h: float) -> np.ndarray:
+        """The first measurements of the running rows at positions js (RowKernel.measure_start on their states: the
+        same trial step, bit for bit, as the engine's steps are the row kernel's)."""
+        from .row import RowKernel
+
+        Q, V = self.engine.running_q(), self.engine.running_v()
+        trial = RowKernel(self.system, self.method, Q[js], V[js], rtol=self.rtol, atol=self.atol)
+        trial.start_at(self.t)
+        return trial.measure_start(np.arange(len(js)), h)
 
     def write_sample(self, store: SampleStore, i: int, index: Any, js: np.ndarray | None = None) -> None:
         """Write the current state of the run rows `index` (the store's columns: an int, a slice or the rows) as

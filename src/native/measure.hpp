@@ -1,0 +1,182 @@
+// sensors.Sensors.measure in C++: a scene's sensors' noiseless measurement at a tick, each operation in the Python
+// kernel's order (the same Pinocchio calls on the same arguments; the few sums Python writes itself, as ordered.py
+// orders them), so that both kernels give the same readings bit for bit. Included by loop.hpp (engine.cpp) only.
+#pragma once
+
+#include <cmath>
+
+#include "pinocchio/algorithm/frames.hpp"
+#include "pinocchio/algorithm/kinematics.hpp"
+#include "pinocchio/algorithm/rnea.hpp"
+
+#include "sensors.hpp"
+
+namespace multibody_sim
+{
+  namespace sensing
+  {
+    // The sum of the contact impulses on `body` over h (Sensors._contact_force).
+    inline Eigen::Vector3d contact_force(int body, const ContactRows * contacts, double h)
+    {
+      Eigen::Vector3d total = Eigen::Vector3d::Zero();
+      if (contacts)
+        for (const auto & row : *contacts)
+        {
+          const Eigen::Vector3d impulse(row[8], row[9], row[10]);
+          if (static_cast<int>(row[1]) == body)
+            total = total + impulse;
+          if (static_cast<int>(row[0]) == body)
+            total = total - impulse;
+        }
+      return total / h;
+    }
+
+    // Sensors._external: per joint the contact forces on its body, in its frame, and each one with its frame.
+    inline void external(const Sensors & sensors, SensorWork & w, const ContactRows * contacts, double h)
+    {
+      for (size_t j = 0; j < w.fext.size(); ++j)
+      {
+        w.fext[j] = pinocchio::Force::Zero();
+        w.parts[j].clear();
+      }
+      if (!contacts)
+        return;
+      for (const auto & row : *contacts)
+      {
+        const Eigen::Vector3d force = Eigen::Vector3d(row[8], row[9], row[10]) / h;
+        const pinocchio::SE3 at(Eigen::Matrix3d::Identity(), Eigen::Vector3d(row[2], row[3], row[4]));
+        const int sides[2] = {1, 0};
+        const double signs[2] = {1.0, -1.0};
+        for (int k = 0; k < 2; ++k)
+        {
+          const int body = static_cast<int>(row[sides[k]]);
+          const int joint = sensors.contact_joints[static_cast<size_t>(body)];
+          if (!joint)
+            continue;
+          const pinocchio::Force world = at.act(pinocchio::Force(signs[k] * force, Eigen::Vector3d::Zero()));
+          const pinocchio::Force local = w.data.oMi[static_cast<size_t>(joint)].actInv(world);
+          w.fext[static_cast<size_t>(joint)] = w.fext[static_cast<size_t>(joint)] + local;
+          w.parts[static_cast<size_t>(joint)].emplace_back(sensors.contact_frames[static_cast<size_t>(body)], local);
+        }
+      }
+    }
+
+    // Sensors._cut_wrench: the wrench across a force-torque sensor's cut, at its frame in its axes.
+    inline pinocchio::Force cut_wrench(const SensorItem & s, SensorWork & w)
+    {
+      const pinocchio::SE3 placement(s.cut_rotation, s.cut_translation);
+      const size_t j = static_cast<size_t>(s.cut_joint);
+      if (s.cut_whole)
+        return placement.actInv(w.data.f[j]);
+      const pinocchio::Inertia inertia(s.cut_mass, s.cut_lever, pinocchio::Symmetric3(s.cut_inertia));
+      const pinocchio::Motion & velocity = w.data.v[j];
+      pinocchio::Force wrench = inertia * w.data.a_gf[j] + velocity.cross(inertia * velocity);
+      for (int child : s.cut_children)
+        wrench = wrench + w.data.liMi[static_cast<size_t>(child)].act(w.data.f[static_cast<size_t>(child)]);
+      for (const auto & [frame, force] : w.parts[j])
+        for (int distal : s.cut_frames)
+          if (frame == distal)
+          {
+            wrench = wrench - force;
+            break;
+          }
+      return placement.actInv(wrench);
+    }
+  } // namespace sensing
+
+  inline void measure_sensors(
+    const Sensors & sensors,
+    const pinocchio::Model & model,
+    SensorWork & w,
+    const Eigen::VectorXd & q,
+    const Eigen::VectorXd & v,
+    const Eigen::VectorXd & a,
+    const Eigen::VectorXd & tau,
+    const ContactRows * contacts,
+    double h,
+    double * out)
+  {
+    pinocchio::Data & data = w.data;
+    bool kinematics = false, dynamics = false;
+    for (const SensorItem & s : sensors.items)
+      kinematics = kinematics || s.kind == SensorKind::imu || s.kind == SensorKind::frame_pose
+                   || s.kind == SensorKind::force_torque;
+    if (kinematics)
+      pinocchio::forwardKinematics(model, data, q, v, a);
+    for (const SensorItem & s : sensors.items)
+    {
+      double * row = out + s.offset;
+      switch (s.kind)
+      {
+      case SensorKind::imu:
+      {
+        const pinocchio::SE3 & placement =
+          pinocchio::updateFramePlacement(model, data, static_cast<pinocchio::FrameIndex>(s.frame));
+        const Eigen::Vector3d acceleration =
+          pinocchio::getFrameClassicalAcceleration(model, data, static_cast<pinocchio::FrameIndex>(s.frame),
+                                                   pinocchio::LOCAL)
+            .linear();
+        const Eigen::Matrix3d & R = placement.rotation();
+        for (int i = 0; i < 3; ++i)  // ordered_matvec(R.T, g): each product rounded, added in column order
+        {
+          double sum = R(0, i) * sensors.gravity[0];
+          sum = sum + R(1, i) * sensors.gravity[1];
+          sum = sum + R(2, i) * sensors.gravity[2];
+          row[i] = acceleration[i] - sum;
+        }
+        const Eigen::Vector3d angular =
+          pinocchio::getFrameVelocity(model, data, static_cast<pinocchio::FrameIndex>(s.frame), pinocchio::LOCAL)
+            .angular();
+        for (int i = 0; i < 3; ++i)
+          row[3 + i] = angular[i];
+        break;
+      }
+      case SensorKind::frame_pose:
+      {
+        const pinocchio::SE3 & placement =
+          pinocchio::updateFramePlacement(model, data, static_cast<pinocchio::FrameIndex>(s.frame));
+        const Eigen::Quaterniond quaternion(placement.rotation());
+        for (int i = 0; i < 3; ++i)
+          row[i] = placement.translation()[i];
+        for (int i = 0; i < 4; ++i)
+          row[3 + i] = quaternion.coeffs()[i];
+        break;
+      }
+      case SensorKind::contact_force:
+      {
+        const Eigen::Vector3d force = sensing::contact_force(s.body, contacts, h);
+        for (int i = 0; i < 3; ++i)
+          row[i] = force[i];
+        break;
+      }
+      case SensorKind::force_torque:
+      {
+        if (!dynamics)
+        {
+          sensing::external(sensors, w, contacts, h);
+          pinocchio::rnea(model, data, q, v, a, w.fext);
+          dynamics = true;
+        }
+        const pinocchio::Force wrench = sensing::cut_wrench(s, w);
+        for (int i = 0; i < 3; ++i)
+        {
+          row[i] = wrench.linear()[i];
+          row[3 + i] = wrench.angular()[i];
+        }
+        break;
+      }
+      default:  // joint_*
+        for (size_t i = 0; i < s.q_index.size(); ++i)
+        {
+          const int iq = s.q_index[i], iv = s.v_index[i];
+          if (s.kind == SensorKind::joint_position)
+            row[i] = s.q_count[i] == 1 ? q[iq] : std::atan2(q[iq + 1], q[iq]);
+          else if (s.kind == SensorKind::joint_velocity)
+            row[i] = v[iv];
+          else
+            row[i] = tau[iv];
+        }
+      }
+    }
+  }
+} // namespace multibody_sim

@@ -1,0 +1,78 @@
+// A scene's sensors in the engine: their measurement at a tick (the end of a step), in the Python kernel's order
+// (multibody_sim/sensors.py, Sensors.measure: its specification; the readings made of the measurements stay in Python).
+// The structs arrive as named data from Sensors.native_data(); the measurement is measure.hpp's (engine.cpp only).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "pinocchio/multibody.hpp"
+
+namespace multibody_sim
+{
+  enum class SensorKind : int
+  {
+    imu = 0,
+    frame_pose = 1,
+    contact_force = 2,
+    force_torque = 3,
+    joint_position = 4,
+    joint_velocity = 5,
+    joint_torque = 6,
+  };
+
+  // One sensor (sensors.Placed, with its force-torque cut, sensors.Cut): _native.SensorItem.
+  struct SensorItem
+  {
+    SensorKind kind = SensorKind::imu;
+    int offset = 0;  // its first component in a tick's row
+    int frame = -1;  // imu, frame_pose: the frame
+    int body = -1;   // contact_force: the body's index among the contact model's bodies
+    std::vector<int> q_index, v_index, q_count;  // joint_*: each joint's idx_q, idx_v, nq
+    int cut_joint = 0;  // force_torque: the joint whose body is cut
+    bool cut_whole = true;  // ... at the joint: its whole subtree
+    Eigen::Matrix3d cut_rotation = Eigen::Matrix3d::Identity();  // the sensor frame in the joint's frame
+    Eigen::Vector3d cut_translation = Eigen::Vector3d::Zero();
+    double cut_mass = 0.0;  // the distal part's inertia in the joint's frame (cut_whole false)
+    Eigen::Vector3d cut_lever = Eigen::Vector3d::Zero();
+    Eigen::Matrix3d cut_inertia = Eigen::Matrix3d::Zero();
+    std::vector<int> cut_children;  // the child joints hanging from the distal part
+    std::vector<int> cut_frames;    // the frames on the distal part (contact forces on them count)
+  };
+
+  // A scene's sensors (sensors.Sensors.native_data()): _native.Sensors.
+  struct Sensors
+  {
+    int width = 0;
+    Eigen::Vector3d gravity = Eigen::Vector3d::Zero();
+    std::vector<SensorItem> items;
+    std::vector<int> contact_joints, contact_frames;  // per contact body: its joint, its frame on it (-1: none)
+  };
+
+  // One thread's workspace for the measurement (its own Data: the step's is left as the step left it).
+  struct SensorWork
+  {
+    explicit SensorWork(const pinocchio::Model & model)
+    : data(model)
+    , fext(model.njoints, pinocchio::Force::Zero())
+    , parts(model.njoints)
+    , a(Eigen::VectorXd::Zero(model.nv))
+    , tau(Eigen::VectorXd::Zero(model.nv))
+    {
+    }
+
+    pinocchio::Data data;
+    pinocchio::container::aligned_vector<pinocchio::Force> fext;
+    std::vector<std::vector<std::pair<int, pinocchio::Force>>> parts;  // per joint: (frame, force) in order
+    Eigen::VectorXd a;
+    Eigen::VectorXd tau;  // the torque the actuators deliver at the tick (joint_torque sensors)
+    std::vector<double> times;  // the ticks since Engine::take_ticks: time, row, width values each
+    std::vector<int64_t> rows;
+    std::vector<double> values;
+  };
+
+  using ContactRows = std::vector<std::array<double, 11>>;
+} // namespace multibody_sim
