@@ -4,11 +4,13 @@ Full benchmark runs on this shared machine differ by ±3% from one run to the ne
 optimisations gain. This script alternates two interpreters (two worktrees' .venv, each with its own build) in
 pairs of processes; each process times a rollout (RK4, dt = 1 ms, B = 256, every step recorded) and its floor
 (4 × one `pin.abaInParallel` over the same states, one thread) back to back in each of its rounds and reports the
-median ratio. The load of the moment then weighs on both sides of a pair alike.
+median ratio. The load of the moment then weighs on both sides of a pair alike. With `--stepper`, each process
+times `steps` calls of Stepper.step instead (one row, RK4, dt = 1 ms, zero torque: the per-call cost of the entry
+point that gym environments use) against 4 × `pin.aba` per step called from Python.
 
 Usage:
     python scripts/ab_builds.py --a /work/main/.venv/bin/python --b /work/wt/mine/.venv/bin/python \\
-        [--robots double_pendulum,solo12] [--pairs 6] [--rounds 7] [--steps 100]
+        [--robots double_pendulum,solo12] [--pairs 6] [--rounds 7] [--steps 100] [--batch 256] [--stepper]
 
 Prints each pair's ratios, then per robot the median ratio of each side and in how many pairs B read lower.
 Check each build's kernel first (`multibody-sim --version`): a stale editable build runs the Python kernel.
@@ -57,6 +59,41 @@ def measure(name: str, rounds: int, steps: int, batch: int) -> float:
     return statistics.median(ratios)
 
 
+def measure_stepper(name: str, rounds: int, steps: int) -> float:
+    """Median over rounds of `steps` Stepper.step calls / 4 x `steps` pin.aba calls, CPU time (one robot)."""
+    import numpy as np
+    import pinocchio as pin
+
+    from multibody_sim import Stepper, load_robot
+
+    robot = load_robot(name, damping=False)
+    q0 = robot.random_configuration(np.random.default_rng(0))
+    tau = np.zeros(robot.nv)
+    data = robot.model.createData()
+    v0 = np.zeros(robot.nv)
+
+    def floor() -> None:
+        for _ in range(4 * steps):
+            pin.aba(robot.model, data, q0, v0, tau)
+
+    def run() -> float:
+        stepper = Stepper(robot, dt=1e-3, integrator="rk4", q0=q0)
+        start = time.process_time()
+        for _ in range(steps):
+            stepper.step(tau)
+        return time.process_time() - start
+
+    run()
+    floor()
+    ratios = []
+    for _ in range(rounds):
+        start = time.process_time()
+        floor()
+        spent_floor = time.process_time() - start
+        ratios.append(run() / spent_floor)
+    return statistics.median(ratios)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--a", help="the first interpreter (the baseline)")
@@ -66,16 +103,23 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=7, help="rounds per process")
     parser.add_argument("--steps", type=int, default=100, help="steps per timed rollout")
     parser.add_argument("--batch", type=int, default=256, help="states per rollout")
+    parser.add_argument("--stepper", action="store_true", help="time Stepper.step instead of a rollout")
     parser.add_argument("--measure", action="store_true", help=argparse.SUPPRESS)  # one side's process
     args = parser.parse_args()
     robots = args.robots.split(",")
     if args.measure:
-        print(" ".join(f"{name}={measure(name, args.rounds, args.steps, args.batch):.5f}" for name in robots))
+        for name in robots:
+            if args.stepper:
+                ratio = measure_stepper(name, args.rounds, args.steps)
+            else:
+                ratio = measure(name, args.rounds, args.steps, args.batch)
+            print(f"{name}={ratio:.5f}", end=" ")
+        print()
         return
     if not args.a or not args.b:
         parser.error("--a and --b name the two interpreters to compare")
     inner = [__file__, "--measure", "--robots", args.robots, "--rounds", str(args.rounds), "--steps", str(args.steps)]
-    inner += ["--batch", str(args.batch)]
+    inner += ["--batch", str(args.batch)] + (["--stepper"] if args.stepper else [])
     results: dict[str, dict[str, list[float]]] = {"a": {}, "b": {}}
     for pair in range(args.pairs):
         line = []
@@ -90,7 +134,7 @@ def main() -> None:
         a, b = results["a"][name], results["b"][name]
         lower = sum(y < x for x, y in zip(a, b, strict=True))
         print(
-            f"{name}: rollout / floor, median a {statistics.median(a):.4f}, b {statistics.median(b):.4f}; "
+            f"{name}: {'stepper' if args.stepper else 'rollout'} / floor, median a {statistics.median(a):.4f}, b {statistics.median(b):.4f}; "
             f"b lower in {lower} of {len(a)} pairs"
         )
 

@@ -435,6 +435,7 @@ class NativeCore(Core):
         self._sampler = None if sampler is None else native.module.Sampler(**sampler.native_data())  # type: ignore[union-attr]
         self._budget = 64  # steps per engine call, adapted to take about BUDGET_SECONDS
         self._pending: list[Any] = []  # rows the engine stopped (StopEvent), not yet recorded as RowStops
+        self._io: tuple[Any, Any, Any, Any] | None = None  # the AdvanceIO and the objects it holds (_advance_io())
 
     # The core's counts, in the engine's loop state (Core's code reads and writes them as attributes).
     steps = _in_loop("steps")
@@ -452,11 +453,7 @@ class NativeCore(Core):
             self._load()
             start = time.perf_counter()
             try:
-                io = native.module.AdvanceIO(  # type: ignore[union-attr]
-                    sampler=self._sampler, stops=self._pending, contacts=store.contacts, rows=self.rows,
-                    extra_evaluations=self.extra_evaluations,
-                )  # fmt: skip
-                arrays = kernel.store_arrays(store)
+                arrays, io = kernel.store_arrays(store), self._advance_io()
                 result = kernel.engine.advance(t_stop, limit, tolerance, state=loop, store=arrays, io=io)
             finally:
                 self._unload()
@@ -471,6 +468,19 @@ class NativeCore(Core):
             if result.status == STEPPED and (max_steps is None or taken < max_steps):
                 continue  # the budget, not the caller's limit: Python runs here (signals), then the engine again
             return str(result.status)
+
+    def _advance_io(self) -> Any:
+        """What the engine reads and reports beside the loop state, as _native.AdvanceIO: made again only when the
+        store's contacts dict, the rows or their evaluations are new objects (it holds them: Stepper.step calls the
+        engine once per step)."""
+        held = self._io
+        contacts, rows, extra = self.store.contacts, self.rows, self.extra_evaluations
+        if held is None or held[0] is not contacts or held[1] is not rows or held[2] is not extra:
+            io = native.module.AdvanceIO(  # type: ignore[union-attr]
+                sampler=self._sampler, stops=self._pending, contacts=contacts, rows=rows, extra_evaluations=extra
+            )
+            held = self._io = (contacts, rows, extra, io)
+        return held[3]
 
     def _load(self) -> None:
         """The loop state from the store, the sampler and the controller (the core's counts live there already)."""
