@@ -25,14 +25,22 @@ quiet "${pip[@]}" --upgrade pip
 if [ "${MULTIBODY_SIM_NATIVE:-}" = 0 ]; then
   quiet "${pip[@]}" -e ".[test]" --config-settings=wheel.cmake=false
 else
-  # The build requirements (one list: pyproject.toml's), and what scikit-build-core adds (cmake, ninja when the
-  # machine's are missing or too old).
-  read -r -a requires <<<"$(.venv/bin/python -c '
+  # The build requirements, the package's dependencies and the test extra's (pyproject.toml's lists, the extras it
+  # names expanded), installed before the build so that the build lock is held for the build only; then what
+  # scikit-build-core adds (cmake, ninja when the machine's are missing or too old).
+  mapfile -t requires < <(.venv/bin/python -c '
+import re
 try:
     import tomllib
 except ImportError:  # Python 3.10: the copy pip vendors
     from pip._vendor import tomli as tomllib
-print(" ".join(tomllib.load(open("pyproject.toml", "rb"))["build-system"]["requires"]))')"
+pyproject = tomllib.load(open("pyproject.toml", "rb"))
+project, extras = pyproject["project"], pyproject["project"]["optional-dependencies"]
+def expand(extra):
+    for requirement in extras[extra]:
+        own = re.fullmatch(r"multibody-sim\[(.+)\]", requirement)
+        yield from (r for name in own.group(1).split(",") for r in expand(name)) if own else [requirement]
+print("\n".join([*pyproject["build-system"]["requires"], *project["dependencies"], *expand("test")]))')
   quiet "${pip[@]}" "${requires[@]}"
   read -r -a requires <<<"$(.venv/bin/python -c '
 from scikit_build_core.build import get_requires_for_build_editable
