@@ -23,6 +23,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 
 
 def measure(name: str, rounds: int, steps: int, batch: int) -> float:
@@ -43,9 +44,16 @@ def measure(name: str, rounds: int, steps: int, batch: int) -> float:
         for _ in range(4 * steps):
             pin.abaInParallel(1, pool, Q0.T, V0.T, tau.T, acc.T)
 
-    def run() -> None:
+    def run() -> float:
+        start = time.process_time()
         rollout(robot, Q0, V0, duration=steps * 1e-3, dt=1e-3, progress=False)
+        return time.process_time() - start
 
+    return median_ratio(run, floor, rounds)
+
+
+def median_ratio(run: Callable[[], float], floor: Callable[[], None], rounds: int) -> float:
+    """Median over rounds of run's CPU time (which it returns) / floor's, timed back to back, after one call of each."""
     run()
     floor()
     ratios = []
@@ -53,9 +61,7 @@ def measure(name: str, rounds: int, steps: int, batch: int) -> float:
         start = time.process_time()
         floor()
         spent_floor = time.process_time() - start
-        start = time.process_time()
-        run()
-        ratios.append((time.process_time() - start) / spent_floor)
+        ratios.append(run() / spent_floor)
     return statistics.median(ratios)
 
 
@@ -83,15 +89,7 @@ def measure_stepper(name: str, rounds: int, steps: int) -> float:
             stepper.step(tau)
         return time.process_time() - start
 
-    run()
-    floor()
-    ratios = []
-    for _ in range(rounds):
-        start = time.process_time()
-        floor()
-        spent_floor = time.process_time() - start
-        ratios.append(run() / spent_floor)
-    return statistics.median(ratios)
+    return median_ratio(run, floor, rounds)
 
 
 def main() -> None:
@@ -130,11 +128,12 @@ def main() -> None:
                 results[side].setdefault(name, []).append(float(ratio))
             line.append(f"{side}: {done.stdout.strip()}")
         print(f"pair {pair + 1}/{args.pairs}  " + "  |  ".join(line), flush=True)
+    timed = "stepper" if args.stepper else "rollout"
     for name in robots:
         a, b = results["a"][name], results["b"][name]
         lower = sum(y < x for x, y in zip(a, b, strict=True))
         print(
-            f"{name}: {'stepper' if args.stepper else 'rollout'} / floor, median a {statistics.median(a):.4f}, b {statistics.median(b):.4f}; "
+            f"{name}: {timed} / floor, median a {statistics.median(a):.4f}, b {statistics.median(b):.4f}; "
             f"b lower in {lower} of {len(a)} pairs"
         )
 
