@@ -1096,7 +1096,7 @@ CATALOGUE: list[BadInput] = [
         "a misspelt top-level key in a scene",
         "{scene}: unknown key 'gravty' (did you mean 'gravity'? valid: actuator, actuators, constraint, contact, "
         "controller, description, force, friction_velocity, gravity, ground, initial, joints, lock, object, payload, "
-        "robot, sensor, simulation)",
+        "randomize, robot, sensor, simulation)",
         "Fix the key; every table lists its valid keys the same way.",
         scene_trigger('gravty = [0, 0, 0]\n[robot]\nsource = "ur5"\n'),
         ms.SceneError,

@@ -446,7 +446,7 @@ def test_controller_rows_flags_and_exact_floats(robot):
 # ---- errors --------------------------------------------------------------------------------------------
 TOP = (
     "valid: actuator, actuators, constraint, contact, controller, description, force, friction_velocity, gravity, "
-    "ground, initial, joints, lock, object, payload, robot, sensor, simulation"
+    "ground, initial, joints, lock, object, payload, randomize, robot, sensor, simulation"
 )
 TRIANGLE = "break the triangle inequality (each at most the sum of the others)"
 ROBOT_KEYS = "valid: base, damping, mimic, package_dirs, position, rpy, source"

@@ -59,15 +59,17 @@ def choose_kernel(
     atol: float | None = None,
     num_threads: int = 1,
     native: bool | None = None,
+    systems: list[Any] | None = None,
 ) -> RowKernel | NativeKernel:
     """The kernel a run of these rows takes: the native kernel when it runs the method on the system
     (kernels.native.why_not_native; `native`: its answer, when the caller has it), else the row kernel, for one row
-    or many (simulate(), Stepper, BatchStepper and rollout() share this rule)."""
+    or many (simulate(), Stepper, BatchStepper and rollout() share this rule). `systems`: each row's own system (a
+    randomised scene's rows, Scene.with_parameters: the same structure as `system`, other values), or None."""
     if native is None:
-        native = why_not_native(system, method) is None
+        native = why_not_native(system, method, systems) is None
     if native:
-        return NativeKernel(system, method, Q0, V0, rtol=rtol, atol=atol, num_threads=num_threads)
-    return RowKernel(system, method, Q0, V0, rtol=rtol, atol=atol)
+        return NativeKernel(system, method, Q0, V0, rtol=rtol, atol=atol, num_threads=num_threads, systems=systems)
+    return RowKernel(system, method, Q0, V0, rtol=rtol, atol=atol, systems=systems)
 
 
 def core_class(kernel: Any) -> type[Core]:
@@ -278,8 +280,10 @@ class Run:
         progress: Any = None,
         options: dict[str, Any] | None = None,
         row_ids: np.ndarray | None = None,
+        systems: list[Any] | None = None,
     ):
         self.system, self.method, self.settings, self.torques = system, method, settings, torques
+        self.systems = systems  # each row's own system (randomised rows), or None: `system` for every row
         self.options = dict(options or {})
         self.sink = sink or Sink()
         self.on_sample = on_sample
@@ -305,7 +309,7 @@ class Run:
         else:
             control = ConstantStep(settings.dt)
             sampler = Sampler(every=settings.output_every)
-        self.why_not_native = why_not_native(system, method)
+        self.why_not_native = why_not_native(system, method, systems)
         kernel = choose_kernel(
             system,
             method,
@@ -315,6 +319,7 @@ class Run:
             atol=settings.atol,
             num_threads=num_threads,
             native=self.why_not_native is None,
+            systems=systems,
         )
         self.kernel_name = kernel_name(kernel)
         self.core = core_class(kernel)(
@@ -322,8 +327,8 @@ class Run:
         )
         check_sensor_controller(system, torques.reads_sensors)
         self.sensing = _sensing(system, method, settings, self.core, np.arange(B) if row_ids is None else row_ids)
-        self.monitor = Monitor(system, B)
-        self.saturation = Saturation(system, B)
+        self.monitor = Monitor(system, B, systems)
+        self.saturation = Saturation(system, B, systems)
         self.controller_calls = np.zeros(B, dtype=np.int64)
         # Built-in controllers and open-loop torques run inside the native kernel, at its control instants (no
         # return to Python per instant); the counts land in controller_calls and saturation.
@@ -624,7 +629,11 @@ class Run:
         arrays["saturated_controls"] = self.saturation.calls.astype(int)
         return arrays
 
-    def metadata(self) -> dict[str, Any]:
+    def metadata(self, b: int | None = None) -> dict[str, Any]:
+        """The run's metadata; randomised rows: every row's parameter values (a list), or row b's."""
+        rows = {}
+        if self.systems is not None:
+            rows["parameters"] = self.systems[b].parameters if b is not None else [s.parameters for s in self.systems]
         return {
             **run_metadata(self.system),
             "integrator": self.method.name,
@@ -632,6 +641,7 @@ class Run:
             "controller": self.torques.label,
             "kernel": self.kernel_name,
             **({"why_not_native": self.why_not_native} if self.why_not_native else {}),
+            **rows,
         }
 
     def trajectory(self, b: int, *, status: str | None = None, copy: bool = True) -> Trajectory:
@@ -644,7 +654,7 @@ class Run:
             initial_energy=float(self.monitor.initial[b]),
             status=status or self.outcomes[b].status,
             stats=self.stats(b),
-            metadata=self.metadata(),
+            metadata=self.metadata(b),
             copy=copy,
         )
 

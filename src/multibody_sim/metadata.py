@@ -7,8 +7,11 @@ from typing import Any
 
 
 def run_metadata(system: Any) -> dict[str, Any]:
-    """Package versions and the robot's description (its load_robot arguments, URDF SHA-256, a scene's TOML)."""
+    """Package versions and the robot's description (its load_robot arguments, URDF SHA-256, a scene's TOML), and
+    a scene's parameter values where they are not the declared ones (Scene.with_parameters: a randomised row's)."""
+    parameters = getattr(system, "parameters", None)
     return {
+        **({"parameters": parameters} if parameters is not None else {}),
         "versions": dict(versions()),
         "robot": {
             "name": system.name,

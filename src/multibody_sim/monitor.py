@@ -23,8 +23,12 @@ class Monitor:
     what it had or was given: the scale and the work).
     """
 
-    def __init__(self, system: Any, B: int):
+    def __init__(self, system: Any, B: int, systems: list[Any] | None = None):
         self.system = system
+        # each row's energy unit (a randomised row's own masses), or the system's for every row
+        self.energy_scale: Any = system.energy_scale
+        if systems is not None:
+            self.energy_scale = np.array([row.energy_scale for row in systems])
         elements = system.ledger_elements
         self.is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
         self._work_only = bool(self.is_work.all()) and len(self.is_work) == 1
@@ -38,7 +42,8 @@ class Monitor:
     def start(self, rows: np.ndarray, energies: np.ndarray) -> None:
         """The rows' initial (T, V), shape (n, 2)."""
         self.initial[rows] = energies.sum(axis=1)
-        self.scale[rows] = energies[:, 0] + np.abs(energies[:, 1]) + self.system.energy_scale
+        unit = self.energy_scale if np.ndim(self.energy_scale) == 0 else self.energy_scale[rows]
+        self.scale[rows] = energies[:, 0] + np.abs(energies[:, 1]) + unit
         self.started[rows] = True
         self.all_started = bool(self.started.all())
 

@@ -243,6 +243,11 @@ class Robot:
         """Hamiltonian H = T + V [J]."""
         return self.kinetic_energy(q, v) + self.potential_energy(q)
 
+    @property
+    def damped(self) -> bool:
+        """Whether the joint damping term -D v (and its ledger line, joint_damping) is in play."""
+        return self._damped
+
     # Ledger: the power flowing in (work) or out (dissipated) through each element, integrated by the
     # integrator with its own quadrature so that the ledger is as accurate as the trajectory.
     @property

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from .driver import Run, RunSettings
-from .exceptions import InvalidArgumentError, SimulationInterrupted
+from .exceptions import InvalidArgumentError, SceneError, SimulationInterrupted
 from .integrators import Integrator, get_integrator
 from .integrators.timestepping import SOLVER_COUNTS  # a contact scene's, in stats only when kept
 from .progress import ProgressBar
@@ -136,11 +136,19 @@ class BatchTrajectory:
             limit_violations=self.limit_violations[b],
             stats=stats,
             status=str(self.status[b]),
-            metadata={**self.metadata, "element": b % len(self)},
+            metadata=self._element_metadata(b),
             contacts=self.contacts[b] if self.contacts else None,
             ctrl=self.ctrl[b, :n].copy() if self.ctrl is not None else None,
             sensors={name: readings[b, :n].copy() for name, readings in self.sensors.items()},
         )
+
+    def _element_metadata(self, b: int) -> dict[str, Any]:
+        """Element b's metadata: the batch's, its index, and its own parameter values (randomised batches)."""
+        metadata = {**self.metadata, "element": b % len(self)}
+        parameters = self.metadata.get("parameters")
+        if isinstance(parameters, list):
+            metadata["parameters"] = parameters[b]
+        return metadata
 
     def summary(self) -> str:
         """A few lines for people: statuses, cost, and the worst elements."""
@@ -185,6 +193,7 @@ def rollout(
     backend: str = "local",
     num_threads: int = 1,
     chunk_size: int | None = None,
+    randomize: Any = None,
     **options: Any,
 ) -> BatchTrajectory:
     """Simulate a batch of initial states (with controllers or open-loop torques) for `duration` seconds.
@@ -219,6 +228,12 @@ def rollout(
         num_threads: threads the native kernel splits the batch over on the local backend (each Ray task uses 1;
             the row kernel runs on one).
         chunk_size: elements per Ray task (default: the batch split into two chunks per CPU of the cluster).
+        randomize: randomised physics (README "Randomised physics"): None draws each element's scene parameters
+            from the scene's own [randomize] table when it has one; a dict in that table's form ({"seed": 0,
+            "parameter": [{"name": "mass", "bodies": "*", "distribution": "uniform", "scale": [0.9, 1.1]}]})
+            draws from it instead; False draws nothing (the declared values). Element b draws with the seed
+            (seed, b); its values are ``element(b).metadata["parameters"]`` (``metadata["parameters"]``: one dict
+            per element), and ``system.with_parameters(them)`` re-runs it alone bit for bit.
         **options: simulate()'s options: ``output_dt``, ``control_dt``; adaptive methods also ``rtol``,
             ``atol``, ``max_step``.
 
@@ -247,9 +262,9 @@ def rollout(
         raise InvalidArgumentError(f"progress must be True, False or None, got {progress!r}")
     method.check_system(system)
     settings = RunSettings.check(method, duration, dt, options)
-    job = _Job(
-        system, method, Q0, V0, settings, _torques(system, method, settings, controller, taus, B), options, np.arange(B)
-    )
+    system, parameters = _randomized(system, randomize, B)
+    torques = _torques(system, method, settings, controller, taus, B)
+    job = _Job(system, method, Q0, V0, settings, torques, options, np.arange(B), parameters)
     if backend == "ray":
         return _ray_rollout(job, progress=progress, chunk_size=chunk_size)
     if settings.adaptive:
@@ -275,6 +290,7 @@ class _Job:
     torques: Torques
     options: dict[str, Any]
     rows: np.ndarray  # each element's index in the whole batch (its sensors' seeds)
+    parameters: list[dict[str, Any]] | None = None  # randomised: each element's scene parameter values
 
     def subset(self, rows: np.ndarray) -> _Job:
         """The same job for the elements `rows` only."""
@@ -287,10 +303,14 @@ class _Job:
             self.torques.subset(rows),
             self.options,
             self.rows[rows],
+            [self.parameters[b] for b in rows] if self.parameters is not None else None,
         )
 
     def run(self, **kwargs: Any) -> Run:
-        """A run of the driver over these elements."""
+        """A run of the driver over these elements (randomised: each on its scene with its parameter values)."""
+        systems = None
+        if self.parameters is not None:
+            systems = [self.system.with_parameters(p) for p in self.parameters]  # type: ignore[attr-defined]
         return Run(
             system=self.system,
             method=self.method,
@@ -300,6 +320,7 @@ class _Job:
             torques=self.torques,
             options=self.options,
             row_ids=self.rows,
+            systems=systems,
             **kwargs,
         )
 
@@ -322,6 +343,35 @@ def _local(job: _Job, *, num_threads: int, bar: ProgressBar) -> BatchTrajectory:
             trajectory=batch,  # type: ignore[arg-type]
         ) from None
     return _from_run(run, time.perf_counter() - start)
+
+
+def _randomized(system: Robot, randomize: Any, B: int) -> tuple[Robot, list[dict[str, Any]] | None]:
+    """The system the batch runs on and each element's scene parameter values (None: not randomised): drawn from
+    the scene's [randomize] table (randomize None), from `randomize` (a table of that form: the scene with it in
+    place of its own), or none (False)."""
+    from .scenes import Scene
+    from .scenes.parse import parse_randomize
+
+    if randomize is None or randomize is False:
+        randomizer = getattr(system, "randomizer", None) if randomize is None else None
+        return system, None if randomizer is None else [randomizer.row(b) for b in range(B)]
+    if not isinstance(system, Scene):
+        raise InvalidArgumentError(
+            f"randomize draws a scene's parameters: the system must be a Scene (load_scene, make_scene), got a "
+            f"{type(system).__name__}"
+        )
+    if not isinstance(randomize, dict):
+        raise InvalidArgumentError(
+            "randomize must be None (the scene's own [randomize]), False (none) or a dict in the [randomize] "
+            f"table's form ({{'seed': 0, 'parameter': [{{...}}]}}), got {type(randomize).__name__}"
+        )
+    try:
+        spec = parse_randomize(randomize, "rollout")
+        scene = Scene(dataclasses.replace(system.spec, randomize=spec, parameters=None), robot=system.full_robot)
+    except SceneError as exc:
+        raise InvalidArgumentError(str(exc)) from None
+    assert scene.randomizer is not None
+    return scene, [scene.randomizer.row(b) for b in range(B)]
 
 
 def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
@@ -421,6 +471,8 @@ def _row_by_row(job: _Job, *, bar: ProgressBar, start: float) -> BatchTrajectory
         bar.update(1)
     batch = _stack(trajectories, messages, Q0, V0, time.perf_counter() - start)
     batch.metadata = {**metadata, "backend": "local"}
+    if job.parameters is not None:
+        batch.metadata["parameters"] = job.parameters
     return batch
 
 
@@ -743,6 +795,8 @@ def _ray_rollout(job: _Job, *, progress: bool | None, chunk_size: int | None) ->
     batch = _concatenate([r for r in results if r is not None], wall_time=time.perf_counter() - start)
     batch.metadata["backend"] = "ray"
     batch.metadata["chunks"] = len(bounds)
+    if job.parameters is not None:
+        batch.metadata["parameters"] = job.parameters
     return batch
 
 

@@ -49,8 +49,12 @@ class Saturation:
         dofs: per row and dof, how many times it was clipped, shape (B, nv).
     """
 
-    def __init__(self, system: Any, B: int):
+    def __init__(self, system: Any, B: int, systems: list[Any] | None = None):
         low, high = command_bounds(system)
+        if systems is not None:  # randomised rows: their own actuators' bounds, (B, nv), where any row differs
+            bounds = [command_bounds(row) for row in systems]
+            if any(not (np.array_equal(a, low) and np.array_equal(b, high)) for a, b in bounds):
+                low, high = np.array([a for a, _ in bounds]), np.array([b for _, b in bounds])
         bounded = (np.isfinite(low) | np.isfinite(high)).any()
         self.low: np.ndarray | None = low if bounded else None
         self.high: np.ndarray | None = high if bounded else None
@@ -61,12 +65,13 @@ class Saturation:
         """TAU (n, nv) of `rows`, clipped (a new array where anything was clipped)."""
         if self.low is None or self.high is None:
             return TAU
-        over = (self.low > TAU) | (self.high < TAU)
+        low, high = (self.low, self.high) if self.low.ndim == 1 else (self.low[rows], self.high[rows])
+        over = (low > TAU) | (high < TAU)
         if not over.any():
             return TAU
         self.calls[rows] += over.any(axis=1)
         self.dofs[rows] += over
-        return np.minimum(np.maximum(TAU, self.low), self.high)
+        return np.minimum(np.maximum(TAU, low), high)
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
         return self.calls.copy(), self.dofs.copy()

@@ -157,6 +157,7 @@ namespace multibody_sim
     const std::vector<ChartBlock> & blocks,
     const std::vector<double> & half_series,
     const Vec & damping,
+    bool damped,
     int n_ledger,
     const Control & control,
     const RowMatrix & Q0,
@@ -168,7 +169,7 @@ namespace multibody_sim
   , blocks_(blocks)
   , half_series_(half_series)
   , damping_(damping)
-  , damped_(damping.size() && (damping.array() != 0.0).any())
+  , damped_(damped)
   , n_ledger_(n_ledger)
   , control_(control)
   , n_robot_flows_(damped_ ? 2 : 1)
@@ -208,6 +209,7 @@ namespace multibody_sim
         th->servo_model = model_;
         th->servo = actuators->workspace();
       }
+      th->select(0);
     }
   }
 
@@ -219,7 +221,10 @@ namespace multibody_sim
       throw std::invalid_argument("the scene's elements disagree with the model's sizes or the ledger");
     scene_ = scene;
     for (auto & th : threads_)
+    {
       th->sw = scene ? scene->workspace(model_) : nullptr;
+      th->select(0);
+    }
   }
 
   void Engine::set_policies(
@@ -330,6 +335,7 @@ namespace multibody_sim
         for (size_t j = 0; j < th->rows.size(); ++j)
           if (th->rows[j] == b)
           {
+            th->select(j);
             th->write(store, i, b, th->q[j], th->v[j], th->tau[j], th->flows[j].data());
             if (contact_)
               records.push_back(ContactRecord{i, b, th->crow[j].active});
@@ -351,6 +357,99 @@ namespace multibody_sim
         th->cw = contact->workspace(model_);
       else
         th->cw.reset();
+      th->select(0);
+    }
+  }
+
+  namespace
+  {
+    // Whether two scenes' force elements have the same terms (their coefficients may differ).
+    bool same_terms(const SceneForces & a, const SceneForces & b)
+    {
+      const auto dofs = [](const std::vector<CoefficientTerm> & x, const std::vector<CoefficientTerm> & y) {
+        if (x.size() != y.size())
+          return false;
+        for (size_t i = 0; i < x.size(); ++i)
+          if (x[i].dof != y[i].dof)
+            return false;
+        return true;
+      };
+      return a.nv == b.nv && a.zero_all == b.zero_all && a.springs.size() == b.springs.size()
+             && a.circular.size() == b.circular.size() && dofs(a.damped, b.damped) && dofs(a.rough, b.rough)
+             && dofs(a.ledger_damped, b.ledger_damped) && dofs(a.ledger_rough, b.ledger_rough)
+             && a.wrenches.size() == b.wrenches.size() && a.others == b.others
+             && a.push_models.size() == b.push_models.size() && a.energies.size() == b.energies.size();
+    }
+
+    // Whether two contact scenes have the same shapes, pairs and constraints (their coefficients may differ; the
+    // joint friction bounds may not: a thread's workspace holds them).
+    bool same_contact(const ContactScene & a, const ContactScene & b)
+    {
+      if (a.nv != b.nv || a.shapes.size() != b.shapes.size() || a.pairs != b.pairs
+          || a.limited_joints != b.limited_joints || a.friction_joints != b.friction_joints
+          || a.friction_bound != b.friction_bound)
+        return false;
+      for (size_t k = 0; k < a.shapes.size(); ++k)
+        if (a.shapes[k].kind != b.shapes[k].kind || a.shapes[k].joint != b.shapes[k].joint
+            || a.shapes[k].dims != b.shapes[k].dims || a.shapes[k].rotation != b.shapes[k].rotation
+            || a.shapes[k].translation != b.shapes[k].translation)
+          return false;
+      return true;
+    }
+
+    // Whether two scenes' actuators drive the same joints with the same kinds and ledger lines (their gains, limits
+    // and curves may differ).
+    bool same_actuators(const SceneActuators & a, const SceneActuators & b)
+    {
+      if (a.nv != b.nv || a.servos != b.servos || a.n_limited != b.n_limited || a.max_revisions != b.max_revisions
+          || a.terms.size() != b.terms.size())
+        return false;
+      for (size_t k = 0; k < a.terms.size(); ++k)
+        if (a.terms[k].dof != b.terms[k].dof || a.terms[k].iq != b.terms[k].iq || a.terms[k].kind != b.terms[k].kind
+            || a.terms[k].limited != b.terms[k].limited)
+          return false;
+      return true;
+    }
+  } // namespace
+
+  void Engine::set_rows(const std::vector<RowPhysics> & rows)
+  {
+    int64_t B = 0;
+    for (const auto & th : threads_)
+      B += static_cast<int64_t>(th->rows.size());
+    if (static_cast<int64_t>(rows.size()) != B)
+      throw std::invalid_argument("set_rows: one RowPhysics per run row is needed");
+    for (const RowPhysics & r : rows)
+    {
+      const pinocchio::Model * m = r.model ? &r.model->model : nullptr;
+      if (!m || m->nq != model_.nq || m->nv != model_.nv || m->njoints != model_.njoints || m->parents != model_.parents)
+        throw std::invalid_argument("set_rows: a row's model is not the engine's robot");
+      if (r.damping.size() != model_.nv || (!damped_ && (r.damping.array() != 0.0).any()))
+        throw std::invalid_argument("set_rows: a row's damping disagrees with the engine's (size, or damped)");
+      if (static_cast<bool>(r.scene) != static_cast<bool>(scene_) || (r.scene && !same_terms(*r.scene, *scene_)))
+        throw std::invalid_argument("set_rows: a row's force elements disagree with the engine's");
+      if (static_cast<bool>(r.contact) != static_cast<bool>(contact_)
+          || (r.contact && !same_contact(*r.contact, *contact_)))
+        throw std::invalid_argument("set_rows: a row's contact scene disagrees with the engine's");
+      if (static_cast<bool>(r.actuators) != static_cast<bool>(actuators_)
+          || (r.actuators && !same_actuators(*r.actuators, *actuators_)))
+        throw std::invalid_argument("set_rows: a row's actuators disagree with the engine's");
+    }
+    rows_ = rows;
+    for (auto & th : threads_)
+    {
+      th->own.clear();
+      th->own_plain.clear();
+      th->own_servo.clear();
+      for (int64_t b : th->rows)
+      {
+        const RowPhysics & r = rows_[static_cast<size_t>(b)];
+        th->own.push_back(&r);
+        th->own_plain.push_back((r.model->model.armature.array() == 0.0).all());
+        if (actuators_ && actuators_->servos)  // the row's servos raise its own model's armature
+          th->own_servo.push_back(r.model->model);
+      }
+      th->select(0);
     }
   }
 

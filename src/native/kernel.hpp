@@ -23,6 +23,7 @@
 #include "pinocchio/multibody.hpp"
 
 #include "contact.hpp"  // a contact scene's geometry, constraints and cone solve (contact.cpp)
+#include "model.hpp"    // NativeModel: a model handed over from Python
 #include "scene.hpp"    // a scene's force elements and the built-in controllers (scene.cpp)
 #include "sensors.hpp"  // a scene's sensors (measured at ticks: measure.hpp)
 
@@ -190,6 +191,19 @@ namespace multibody_sim
     std::vector<ContactRecord> records;  // the contacts of the samples written (contact scenes)
   };
 
+  // One row's own physics (a randomised scene's row, Scene.with_parameters): its model (masses, inertias, armature),
+  // joint damping, force elements (friction coefficients), contact scene (coefficients) and actuators, with the engine's
+  // structure (the same joints, elements, shapes and pairs; other values). The built-in controllers keep the
+  // engine's model: a controller was made for the scene as declared.
+  struct RowPhysics  // _native.RowPhysics
+  {
+    std::shared_ptr<NativeModel> model;
+    Vec damping;
+    std::shared_ptr<SceneForces> scene;     // null when the engine has none
+    std::shared_ptr<ContactScene> contact;  // null when the engine has none
+    std::shared_ptr<SceneActuators> actuators;  // null when the engine has none (drawn gains, limits, curves)
+  };
+
   struct Rows;    // one thread's rows, their states and workspace (methods.hpp)
   struct Thread;  // ... and the loop over them (loop.hpp)
 
@@ -220,6 +234,7 @@ namespace multibody_sim
       const std::vector<ChartBlock> & blocks,
       const std::vector<double> & half_series,
       const Vec & damping,
+      bool damped,
       int n_ledger,
       const Control & control,
       const RowMatrix & Q0,
@@ -277,6 +292,10 @@ namespace multibody_sim
     void set_sensors(std::shared_ptr<const Sensors> sensors, int64_t every, const std::vector<int64_t> & done);
     // The ticks since the last call: times (n,), run rows (n,), measurements (n, width), each row's in time order.
     std::tuple<Vec, std::vector<int64_t>, RowMatrix> take_ticks();
+    // Each run row's own physics (after set_scene and set_contact, before the first advance()): rows step on their
+    // own model, damping, elements and contact coefficients. Throws invalid_argument naming what disagrees with the
+    // engine's structure.
+    void set_rows(const std::vector<RowPhysics> & rows);
     // Evaluations each run row made beyond the run's count (contact steps cost two), for rows `rows`.
     std::vector<int64_t> extra_evaluations(const std::vector<int64_t> & rows) const;
 
@@ -315,6 +334,7 @@ namespace multibody_sim
     bool sensor_torques_ = false;  // whether a joint_torque sensor reads (the actuators' delivered torque then)
     std::vector<int64_t> sensor_done_;
     std::vector<bool> flow_work_;
+    std::vector<RowPhysics> rows_;  // per run row (set_rows), or empty: the engine's physics for every row
     int64_t *calls_ = nullptr, *saturated_ = nullptr, *saturated_dofs_ = nullptr;
     int n_robot_flows_ = 1;  // the robot's ledger entries before the scene's (joint torques, joint damping)
     std::vector<std::unique_ptr<Thread>> threads_;

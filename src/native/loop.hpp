@@ -56,7 +56,10 @@ namespace multibody_sim
             pending_store = &store;
           }
           else
+          {
+            select(j);
             write(store, i, rows[j], q[j], v[j], tau[j], flows[j].data());
+          }
         }
       advance_count();
       st.recorded = st.t;
@@ -76,6 +79,7 @@ namespace multibody_sim
         return false;
       for (size_t j : js)
       {
+        select(j);
         stamp(store, st.count, rows[j], st.t);
         note_contacts(st.count, j);
         write(store, st.count, rows[j], q[j], v[j], tau[j], flows[j].data());

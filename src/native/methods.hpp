@@ -74,6 +74,17 @@ namespace multibody_sim
     bool dense_ready = false;
     bool no_armature;  // every armature exactly 0: kinetic_energy() needs no per-joint armature term
     int extra_evaluations = 0;
+    // The physics of the row being stepped or sampled (select(j)): the engine's, or the row's own (set_rows).
+    std::vector<const RowPhysics *> own;  // per row: its own physics, or empty (the engine's for every row)
+    std::vector<char> own_plain;          // per row: its model's no_armature
+    const pinocchio::Model * M = nullptr;
+    const Vec * D = nullptr;
+    const SceneForces * S = nullptr;
+    const ContactScene * C = nullptr;
+    const SceneActuators * A = nullptr;
+    pinocchio::Model * SM = nullptr;           // the servo model of the row (servo_model, or own_servo[j])
+    std::vector<pinocchio::Model> own_servo;  // per row with its own physics and servos: its servo model
+    bool plain = true;
 
     Rows(const Engine & engine, const std::vector<int64_t> & owned, const RowMatrix & Q0, const RowMatrix & V0)
     : e(engine)
@@ -115,26 +126,52 @@ namespace multibody_sim
       F = RowMatrix::Zero(7, w);
       fx = tau_control = vfree = Vec::Zero(nv);
       pbuf = Vec::Zero(std::max(m, 1));
+      select(0);
+    }
+
+    // Row j's physics into M, D, S, C, A, SM, plain (before anything that computes with the row's model or elements).
+    void select(size_t j)
+    {
+      if (own.empty())
+      {
+        M = &e.model_;
+        D = &e.damping_;
+        S = e.scene_.get();
+        C = e.contact_.get();
+        A = e.actuators_.get();
+        SM = &servo_model;
+        plain = no_armature;
+        return;
+      }
+      const RowPhysics & r = *own[j];
+      M = &r.model->model;
+      D = &r.damping;
+      S = r.scene.get();
+      C = r.contact.get();
+      A = r.actuators.get();
+      SM = own_servo.empty() ? &servo_model : &own_servo[j];
+      plain = own_plain[j];
     }
 
     // ---- the generalized forces ABA is given: Robot (tau - D v) or Scene._applied (tau + f(q, v, t) - D v, tau the
     // actuators' torques under the command where the scene has actuators) -----------------------------------------
     void applied_at(const Vec & qx, const Vec & vx, const Vec & command, double ts)
     {
-      const Vec & tx = e.actuators_ ? actuated(qx, vx, command) : command;
-      if (e.scene_)
+      const Vec & tx = A ? actuated(qx, vx, command) : command;
+      const Vec & damping = *D;
+      if (S)
       {
-        e.scene_->forces(*sw, e.model_, qx, vx, ts, fx);
+        S->forces(*sw, *M, qx, vx, ts, fx);
         for (int i = 0; i < nv; ++i)
           applied[i] = tx[i] + fx[i];
         if (e.damped_)
           for (int i = 0; i < nv; ++i)
-            applied[i] = applied[i] - e.damping_[i] * vx[i];
+            applied[i] = applied[i] - damping[i] * vx[i];
       }
       else if (e.damped_)
       {
         for (int i = 0; i < nv; ++i)
-          applied[i] = tx[i] - e.damping_[i] * vx[i];
+          applied[i] = tx[i] - damping[i] * vx[i];
       }
       else
         applied = tx;
@@ -143,14 +180,14 @@ namespace multibody_sim
     // Actuators.joint_torques at (qx, vx) under the command (the step's held torques while it takes servos inside)
     const Vec & actuated(const Vec & qx, const Vec & vx, const Vec & command)
     {
-      e.actuators_->joint_torques(qx, vx, command, &servo, tact.data());
+      A->joint_torques(qx, vx, command, &servo, tact.data());
       return tact;
     }
 
     // ---- the dynamics of a stage: Robot.unchecked_forward_dynamics and Robot.ledger_power ----------------------
     void evaluate(const Vec & qx, const Vec & vx, const Vec & tx, int stage, double ts)
     {
-      const pinocchio::Model & model = e.model_;
+      const pinocchio::Model & model = *M;
       applied_at(qx, vx, tx, ts);
       const Vec & a = pinocchio::aba(
         model, data, ConstRef(qx), ConstRef(vx), ConstRef(applied), pinocchio::Convention::WORLD);
@@ -163,22 +200,23 @@ namespace multibody_sim
     // Scene.ledger_power: the robot's (the ideal torque sources' power, joint damping), the actuators', the elements'
     void power(const Vec & qx, const Vec & vx, const Vec & tx, double * out) const  // ordered.ordered_dot
     {
-      const bool actuated = static_cast<bool>(e.actuators_);  // then its dofs' commands are no torques: 0 here
+      const bool actuated = A != nullptr;  // then its dofs' commands are no torques: 0 here
       double s = (actuated && e.actuated_dof_[0] ? 0.0 : tx[0]) * vx[0];
       for (int i = 1; i < nv; ++i)
         s += (actuated && e.actuated_dof_[i] ? 0.0 : tx[i]) * vx[i];
       out[0] = s;
       if (e.damped_)
       {
-        double d = vx[0] * (e.damping_[0] * vx[0]);
+        const Vec & damping = *D;
+        double d = vx[0] * (damping[0] * vx[0]);
         for (int i = 1; i < nv; ++i)
-          d += vx[i] * (e.damping_[i] * vx[i]);
+          d += vx[i] * (damping[i] * vx[i]);
         out[1] = d;
       }
       if (actuated)
-        e.actuators_->powers(qx, vx, tx, out + e.n_robot_flows_);
-      if (e.scene_)  // the elements' powers after the robot's and the actuators'
-        e.scene_->powers(*sw, vx, out + e.n_robot_flows_ + e.n_actuator_flows_);
+        A->powers(qx, vx, tx, out + e.n_robot_flows_);
+      if (S)  // the elements' powers after the robot's and the actuators'
+        S->powers(*sw, vx, out + e.n_robot_flows_ + e.n_actuator_flows_);
     }
 
     // ---- ConfigurationSpace.chart_velocity: Σ c_n Hⁿ v by Horner's rule on each curved block -------------------
@@ -267,6 +305,7 @@ namespace multibody_sim
     // ---- ExplicitRungeKutta.attempt / SemiImplicitEuler.attempt on row j: the pending state in qn, vn, fn -------
     int attempt_fixed(size_t j, double h, double t)
     {
+      select(j);
       const Method & me = e.method_;
       const Vec &qj = q[j], &vj = v[j], &tj = tau[j];
       if (me.kind == Kind::timestepping)
@@ -305,8 +344,8 @@ namespace multibody_sim
       for (int i = 0; i < nv; ++i)
         dv[i] = h * vn[j][i];
       e.integrate_(e.model_, q[j], dv, qn[j]);
-      if (e.scene_ && !e.scene_->wrenches.empty())  // Scene.ledger_power at a new point: the wrenches' parts there
-        e.scene_->forces(*sw, e.model_, qn[j], vn[j], t + h, fx);
+      if (S && !S->wrenches.empty())  // Scene.ledger_power at a new point: the wrenches' parts there
+        S->forces(*sw, *M, qn[j], vn[j], t + h, fx);
       power(qn[j], vn[j], tau[j], pbuf.data());
     }
 
@@ -316,16 +355,16 @@ namespace multibody_sim
     int velocity_update(size_t j, double h, double t, Vec & out)
     {
       const Vec &qj = q[j], &vj = v[j], &tj = tau[j];
-      const bool servos = e.actuators_ && e.actuators_->servos;
+      const bool servos = A && A->servos;
       if (servos)
-        e.actuators_->begin(servo, qj, vj, tj, h, servo_model.armature);
-      const pinocchio::Model & model = servos ? servo_model : e.model_;
+        A->begin(servo, qj, vj, tj, h, SM->armature);
+      const pinocchio::Model & model = servos ? *SM : *M;
       evaluate_acceleration(model, qj, vj, tj, t);
       settle(j);
       for (int i = 0; i < nv; ++i)
         out[i] = vj[i] + h * acc[i];
       int revisions = 0;
-      while (servos && e.actuators_->revise(servo, out, servo_model.armature))
+      while (servos && A->revise(servo, out, SM->armature))
       {
         evaluate_acceleration(model, qj, vj, tj, t);
         for (int i = 0; i < nv; ++i)
@@ -338,7 +377,7 @@ namespace multibody_sim
     void end_servos()
     {
       if (servo.active)
-        e.actuators_->end(servo, servo_model.armature);
+        A->end(servo, SM->armature);
     }
 
     // ---- TimeStepping.attempt on row j (a contact scene): the pending state in qn, vn, fn -----------------------
@@ -348,8 +387,8 @@ namespace multibody_sim
       extra[j] += velocity_update(j, h, t, vfree);
       const bool servos = servo.active;  // the contact problem's M then has the servos' armature too
       double work = 0.0, correction = 0.0, bounce = 0.0;
-      const bool problem = e.contact_->step(
-        *cw, servos ? servo_model : e.model_, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce);
+      const bool problem =
+        C->step(*cw, servos ? *SM : *M, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce);
       end_servos();
       move_along_new_velocity(j, h, t);
       const int smooth_n = m - 4;  // the contact's elements come last: contact, penetration_correction,
@@ -381,7 +420,7 @@ namespace multibody_sim
     // Scene.unchecked_energies: (T, V) at (qx, vx)
     void energies(const Vec & qx, const Vec & vx, double & kinetic, double & potential)
     {
-      pinocchio::forwardKinematics(e.model_, data, qx, vx);
+      pinocchio::forwardKinematics(*M, data, qx, vx);
       energies_from_data(qx, vx, nullptr, kinetic, potential);
     }
 
@@ -394,6 +433,7 @@ namespace multibody_sim
     // ---- AdaptiveRungeKutta.attempt on row 0: the error norm; the pending state in qn, vn, fn -------------------
     double attempt_adaptive(double h, double t, int & evaluations)
     {
+      select(0);
       const Method & me = e.method_;
       const Control & ctl = e.control_;
       const size_t j = 0;
@@ -555,7 +595,7 @@ namespace multibody_sim
     {
       const int64_t at = store.at(i, b);
       write_state(store, at, qx, vx, tx, fl);
-      pinocchio::forwardKinematics(e.model_, data, qx, vx);
+      pinocchio::forwardKinematics(*M, data, qx, vx);
       write_energies(store, at, qx, vx);
     }
 
@@ -566,8 +606,8 @@ namespace multibody_sim
       std::copy(vx.data(), vx.data() + nv, store.V + at * nv);
       std::copy(tx.data(), tx.data() + nv, store.TAU + at * nv);
       std::copy(fl, fl + m, store.FLOWS + at * m);
-      if (e.actuators_)  // Scene.unchecked_record: the torques delivered, after the springs' energies
-        e.actuators_->joint_torques(
+      if (A)  // Scene.unchecked_record: the torques delivered, after the springs' energies
+        A->joint_torques(
           qx, vx, tx, nullptr, store.EXTRA + at * store.extra_width + (e.scene_ ? e.scene_->n_records() : 0));
     }
 
@@ -576,8 +616,8 @@ namespace multibody_sim
     // |v| < 1e150 (else v² may overflow and 0 · inf make it NaN: then Pinocchio's own call)
     double kinetic_energy(const Vec & vx)
     {
-      const pinocchio::Model & model = e.model_;
-      bool exact = no_armature;
+      const pinocchio::Model & model = *M;
+      bool exact = plain;
       for (int r = 0; exact && r < nv; ++r)
         exact = std::abs(vx[r]) < 1e150;  // (false for NaN)
       if (!exact)
@@ -591,7 +631,7 @@ namespace multibody_sim
     // pinocchio::computePotentialEnergy(model, data), written out as Pinocchio 4.1 has it
     double potential_energy() const
     {
-      const pinocchio::Model & model = e.model_;
+      const pinocchio::Model & model = *M;
       const Eigen::Vector3d & g = model.gravity.linear();
       Eigen::Vector3d com_global;
       double energy = 0.0;
@@ -615,8 +655,8 @@ namespace multibody_sim
     {
       kinetic = kinetic_energy(vx);
       potential = potential_energy();
-      if (e.scene_ && e.scene_->n_records())
-        potential = potential + e.scene_->spring_energy(qx, record);
+      if (S && S->n_records())
+        potential = potential + S->spring_energy(qx, record);
     }
 
     // A sample's energies need forwardKinematics(q, v). On fixed steps the next step's first ABA runs at the
@@ -644,7 +684,8 @@ namespace multibody_sim
       for (size_t j = 0; j < rows.size(); ++j)
         if (pending[j] >= 0)
         {
-          pinocchio::forwardKinematics(e.model_, data, q[j], v[j]);
+          select(j);
+          pinocchio::forwardKinematics(*M, data, q[j], v[j]);
           write_energies(*pending_store, pending[j], q[j], v[j]);
           pending[j] = -1;
         }

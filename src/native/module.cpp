@@ -229,6 +229,7 @@ namespace
   struct RunSettings
   {
     Eigen::VectorXd damping;  // (nv,)
+    bool damped = false;  // whether the damping term is in play (its ledger line)
     int n_ledger = 0;  // the ledger's entries
     double rtol = 0.0, atol = 0.0;  // adaptive methods' tolerances (NaN: none)
     multibody_sim::RowMatrix Q0, V0;  // (B, nq), (B, nv)
@@ -404,6 +405,17 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
     .field("previous_error", &LoopState::previous_error, "float")
     .field("rejected_last", &LoopState::rejected_last, "bool")
     .finish();
+  Struct<RowPhysics>(
+    m, "RowPhysics", "One row's own model, damping, force elements, contact scene and actuators (set_rows).")
+    .field("model", &RowPhysics::model, "Model")
+    .field("damping", &RowPhysics::damping, "an array of nv floats")
+    .optional("scene", &RowPhysics::scene, "SceneForces or None")
+    .optional("contact", &RowPhysics::contact, "ContactScene or None")
+    .optional("actuators", &RowPhysics::actuators, "SceneActuators or None")
+    .finish([](RowPhysics & r) {
+      if (!r.model)
+        throw std::invalid_argument("RowPhysics.model must be a Model");
+    });
   Struct<StoreArrays>(m, "Store", "The sample store's batch-major arrays (recording.STORE_ARRAYS).")
     .field("T", &StoreArrays::T, "a C-contiguous float64 array")
     .field("Q", &StoreArrays::Q, "a C-contiguous float64 array")
@@ -416,6 +428,7 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
     .finish(check_store);
   Struct<RunSettings>(m, "RunSettings", "The run's settings and initial states (NativeKernel.native_data()).")
     .field("damping", &RunSettings::damping, "a float64 array (nv,)")
+    .field("damped", &RunSettings::damped, "bool")
     .field("n_ledger", &RunSettings::n_ledger, "int")
     .field("rtol", &RunSettings::rtol, "float")
     .field("atol", &RunSettings::atol, "float")
@@ -483,7 +496,7 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
             || run.damping.size() != robot.nv)
           throw std::invalid_argument("RunSettings: Q0, V0 or damping disagree with the model's sizes");
         new (self) Engine(
-          robot, method, chart.blocks, chart.half_series, run.damping, run.n_ledger, c, run.Q0, run.V0,
+          robot, method, chart.blocks, chart.half_series, run.damping, run.damped, run.n_ledger, c, run.Q0, run.V0,
           run.num_threads);
       },
       nb::arg("model"), nb::kw_only(), nb::arg("method"), nb::arg("chart"), nb::arg("control"), nb::arg("run"),
@@ -544,6 +557,8 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
       nb::arg("contact"), nb::arg("flow_work"),
       "A contact scene's geometry and constraints (_native.ContactScene) for the timestepping kind; flow_work: "
       "per ledger entry before the contact's four, whether it is work (else dissipated).")
+    .def("set_rows", &Engine::set_rows, nb::arg("rows"),
+         "Each run row's own physics (RowPhysics, a randomised scene's rows), after set_scene and set_contact.")
     .def_prop_ro("has_contact", &Engine::has_contact)
     .def(
       "set_sensors",

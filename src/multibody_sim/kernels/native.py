@@ -47,13 +47,19 @@ BUDGET_SECONDS = 0.03
 _NEED_ROOM = "need_room"  # the engine's status besides core.py's REACHED, STEPPED, FULL, EMPTY
 
 
-def why_not_native(system: Any, method: Integrator) -> str | None:
-    """None when the native kernel runs `method` on `system`, else why not (one phrase for describe() and the
-    run header)."""
+def why_not_native(system: Any, method: Integrator, systems: list[Any] | None = None) -> str | None:
+    """None when the native kernel runs `method` on `system` (with `systems`, each row's own: a randomised scene's
+    rows), else why not (one phrase for describe() and the run header)."""
     if os.environ.get(native.ENV, "") == "0":  # read at every run (native.available: once, at import)
         return f"{native.ENV}=0"
     if not native.available:
         return native.why_unavailable
+    if systems is not None and getattr(system, "contact", None) is not None:
+        held = [row.contact.friction_joints for row in systems]
+        if any(joints != held[0] for joints in held):  # a thread's contact workspace holds the bounds
+            return "the rows' exact joint friction differs (randomised), which runs on the Python kernel"
+    if systems is not None and getattr(system, "sensors", None) is not None:  # the engine measures with one Sensors
+        return "randomised rows with sensors (each row's own cut masses) run on the Python kernel"
     if type(method) is TimeStepping:  # any max_iterations: the engine takes it as data
         if getattr(system, "contact", None) is None:
             return "integrator 'timestepping' runs natively on contact scenes only"
@@ -183,8 +189,10 @@ class NativeKernel:
         rtol: float | None = None,
         atol: float | None = None,
         num_threads: int = 1,
+        systems: list[Any] | None = None,
     ):
         self.system, self.method = system, method
+        self.systems = systems
         self.rtol, self.atol = rtol, atol
         self.num_threads = num_threads
         self._initial = (np.ascontiguousarray(Q0, dtype=float), np.ascontiguousarray(V0, dtype=float))
@@ -218,14 +226,35 @@ class NativeKernel:
         if type(self.method) is TimeStepping:  # a contact scene (why_not_native said it renders)
             flow_work = [kind == "work" for _, kind in system.ledger_elements[:-4]]  # the contact's four come last
             self.engine.set_contact(_contact_scene(contact_data(system, self.method), model), flow_work)
+        if self.systems is not None:  # randomised rows: each its own model, damping, elements, contact, actuators
+            self.engine.set_rows([self._row_physics(row) for row in self.systems])
+
+    def _row_physics(self, system: Any) -> Any:
+        """A row's own system (Scene.with_parameters) as _native.RowPhysics."""
+        module = native.module
+        model = native.load_model(system.model)
+        elements = getattr(system, "elements", None)
+        actuators = getattr(system, "actuators", None)
+        contact = None
+        if type(self.method) is TimeStepping:
+            contact = _contact_scene(contact_data(system, self.method), model)
+        return module.RowPhysics(  # type: ignore[union-attr]
+            model=model,
+            damping=np.asarray(system.damping, dtype=float),
+            scene=_scene_forces(elements, model) if elements is not None else None,
+            contact=contact,
+            actuators=_scene_actuators(actuators, model) if actuators is not None else None,
+        )
 
     def native_data(self) -> dict[str, Any]:
-        """The run's settings and initial states as _native.RunSettings takes them: damping (nv,), the ledger's size,
+        """The run's settings and initial states as _native.RunSettings takes them: damping (nv,) and whether its
+        term is in play (its ledger line; a scene that draws damping keeps it in every row), the ledger's size,
         the tolerances (NaN: none), Q0 (B, nq), V0 (B, nv), the threads."""
         system = self.system
         Q0, V0 = self._initial
         return {
             "damping": np.asarray(system.damping, dtype=float),
+            "damped": system.damped,
             "n_ledger": len(system.ledger_elements),
             "rtol": math.nan if self.rtol is None else float(self.rtol),
             "atol": math.nan if self.atol is None else float(self.atol),

@@ -46,14 +46,17 @@ class RowKernel:
         *,
         rtol: float | None = None,
         atol: float | None = None,
+        systems: list[Any] | None = None,
     ):
         self.system, self.method = system, method
         self.rtol, self.atol = rtol, atol
+        # each running row's own system (a randomised scene's rows: same structure, other values), or None
+        self.systems = list(systems) if systems is not None else None
         n_elements = len(system.ledger_elements)
         q = [np.array(row, dtype=float) for row in Q0]
         v = [np.array(row, dtype=float) for row in V0]
         flows = [np.zeros(n_elements) for _ in q]
-        solver = [method.init(system, qj, vj) for qj, vj in zip(q, v, strict=True)]
+        solver = [method.init(self.system_of(j), qj, vj) for j, (qj, vj) in enumerate(zip(q, v, strict=True))]
         self.tau = [np.zeros(system.nv) for _ in q]
         self.now = RowState(q, v, flows, solver, 0.0)
         self.pending: list[Attempt] = []
@@ -62,6 +65,10 @@ class RowKernel:
         # The time-stepper of a contact scene records the contacts of each step (Trajectory.contacts).
         has_contact = getattr(system, "contact", None) is not None
         self._contact_records = getattr(method, "contact_records", None) if has_contact else None
+
+    def system_of(self, j: int) -> Any:
+        """The system running row j steps on."""
+        return self.system if self.systems is None else self.systems[j]
 
     @property
     def n(self) -> int:
@@ -78,20 +85,24 @@ class RowKernel:
     def set_torques(self, TAU: np.ndarray, jump: bool) -> None:
         self.tau = list(TAU)
         if jump:
-            method, system = self.method, self.system
+            method, system_of = self.method, self.system_of
             q, v, flows, solver, t = self.now
-            solver = [method.restart(system, qj, vj, sj) for qj, vj, sj in zip(q, v, solver, strict=True)]
+            solver = [
+                method.restart(system_of(j), qj, vj, sj) for j, (qj, vj, sj) in enumerate(zip(q, v, solver, strict=True))
+            ]
             self.now = RowState(q, v, flows, solver, t)
 
     def attempt(self, h: float) -> KernelAttempt:
         q, v, _, solver, t = self.now
         method, system, rtol, atol = self.method, self.system, self.rtol, self.atol
         if len(q) == 1:  # simulate() and Stepper: one row
+            system = self.system_of(0)
             a = method.attempt(system, q[0], v[0], self.tau[0], h, t, solver[0], rtol=rtol, atol=atol)
             self.pending = [a]
             return KernelAttempt(a.error, a.evaluations, [] if a.status == OK else [(0, a.status, a.message)])
+        systems = self.systems or [system] * len(q)
         self.pending = pending = [
-            method.attempt(system, q[j], v[j], self.tau[j], h, t, solver[j], rtol=rtol, atol=atol)
+            method.attempt(systems[j], q[j], v[j], self.tau[j], h, t, solver[j], rtol=rtol, atol=atol)
             for j in range(len(q))
         ]
         failures = [(j, a.status, a.message) for j, a in enumerate(pending) if a.status != OK]
@@ -123,7 +134,7 @@ class RowKernel:
         if bad_v.any():
             return int(np.argmax(bad_v))
         finite_q = np.where(np.isfinite(a.q), a.q, 0.0)
-        return int(np.argmax(~np.isfinite(self.system.space.difference(q, finite_q))))
+        return int(np.argmax(~np.isfinite(self.system_of(j).space.difference(q, finite_q))))
 
     def accept(self, t_next: float) -> None:
         flows = self.now.flows
@@ -150,6 +161,8 @@ class RowKernel:
         q, v, flows, solver, t = self.now
         js = np.flatnonzero(keep).tolist()
         self.tau = [self.tau[j] for j in js]
+        if self.systems is not None:
+            self.systems = [self.systems[j] for j in js]
         self.pending = [self.pending[j] for j in js] if len(self.pending) == len(q) else []
         self.v_before = [self.v_before[j] for j in js] if len(self.v_before) == len(q) else []
         self.now = RowState([q[j] for j in js], [v[j] for j in js], [flows[j] for j in js], [solver[j] for j in js], t)
@@ -162,7 +175,7 @@ class RowKernel:
         """Put row j at (q, v) by hand (a jump: its solver state restarts; its flows stay)."""
         Q, V, flows, solver, t = self.now
         Q, V, solver = list(Q), list(V), list(solver)
-        Q[j], V[j], solver[j] = q, v, self.method.init(self.system, q, v)
+        Q[j], V[j], solver[j] = q, v, self.method.init(self.system_of(j), q, v)
         self.now = RowState(Q, V, flows, solver, t)
 
     def solver_stats(self, j: int) -> dict[str, int]:
@@ -176,55 +189,56 @@ class RowKernel:
         q, v, flows, solver, t = self.now
         if type(index) is int:  # one row
             j = 0 if js is None else int(js[0])
-            self._write(store, i, index, q[j], v[j], flows[j], self.tau[j], t)
-            self._write_contacts(store, i, index, solver[j])
+            self._write(store, i, index, q[j], v[j], flows[j], self.tau[j], t, j)
+            self._write_contacts(store, i, index, solver[j], j)
             return
         rows = np.arange(store.B)[index] if isinstance(index, slice) else index
         positions = range(len(q)) if js is None else js.tolist()
         for j, b in zip(positions, rows.tolist(), strict=True):
-            self._write(store, i, b, q[j], v[j], flows[j], self.tau[j], t)
-            self._write_contacts(store, i, b, solver[j])
+            self._write(store, i, b, q[j], v[j], flows[j], self.tau[j], t, j)
+            self._write_contacts(store, i, b, solver[j], j)
 
     def measure(self, js: np.ndarray, h: float) -> np.ndarray:
         """The sensors' measurements of the rows at positions js after the step of h they just took, shape
         (len(js), width): their state now, the step's (v⁺ − v) / h, its contacts and the torque held over it."""
-        sensors = self.system.sensors
         q, v, _, solver, t = self.now
-        out = np.empty((len(js), sensors.width))
+        out = np.empty((len(js), self.system.sensors.width))
         for k, j in enumerate(js.tolist()):
             a = (v[j] - self.v_before[j]) / h
-            sensors.measure(q[j], v[j], a, self.tau[j], t, self._records(solver[j]), h, out[k])
+            records = self._records(solver[j], j)
+            self.system_of(j).sensors.measure(q[j], v[j], a, self.tau[j], t, records, h, out[k])
         return out
 
     def measure_start(self, js: np.ndarray, h: float) -> np.ndarray:
         """The sensors' first measurements of the rows at positions js, at their state now (no step has ended):
         with the acceleration and contacts of a step of h under a zero command, taken and discarded (a step that fails
         or raises gives zero acceleration and no contact)."""
-        sensors, method, system = self.system.sensors, self.method, self.system
+        method = self.method
         q, v, _, solver, t = self.now
-        zero = np.zeros(system.nv)
-        out = np.empty((len(js), sensors.width))
+        zero = np.zeros(self.system.nv)
+        out = np.empty((len(js), self.system.sensors.width))
         for k, j in enumerate(js.tolist()):
+            system = self.system_of(j)
             a, records = zero, None
             try:
                 trial = method.attempt(system, q[j], v[j], zero, h, t, solver[j], rtol=self.rtol, atol=self.atol)
             except Exception:  # user code in the system: the run's first step says so
                 trial = None
             if trial is not None and trial.status == OK:
-                a, records = (trial.v - v[j]) / h, self._records(trial.state)
-            sensors.measure(q[j], v[j], a, zero, t, records, h, out[k])
+                a, records = (trial.v - v[j]) / h, self._records(trial.state, j)
+            system.sensors.measure(q[j], v[j], a, zero, t, records, h, out[k])
         return out
 
-    def _records(self, state: Any) -> np.ndarray | None:
-        """A contact method's contacts of the step that produced `state`, or None."""
+    def _records(self, state: Any, j: int) -> np.ndarray | None:
+        """A contact method's contacts of row j's step that produced `state`, or None."""
         records = self._contact_records
-        return records(self.system, state) if records is not None else None
+        return records(self.system_of(j), state) if records is not None else None
 
-    def _write_contacts(self, store: SampleStore, i: int, b: int, state: Any) -> None:
+    def _write_contacts(self, store: SampleStore, i: int, b: int, state: Any, j: int) -> None:
         """A contact method's active contacts (those of the step that ended at this sample) into the store."""
         records = self._contact_records
         if records is not None:
-            store.write_contacts(i, b, records(self.system, state))
+            store.write_contacts(i, b, records(self.system_of(j), state))
 
     def write_dense(self, store: SampleStore, i: int, index: Any, theta: float, h: float, t_out: float) -> int:
         q, v, flows = self.now.q, self.now.v, self.now.flows
@@ -232,8 +246,8 @@ class RowKernel:
         rows = [index] if type(index) is int else (np.arange(store.B)[index] if isinstance(index, slice) else index)
         for j, b in enumerate(list(rows)):
             attempt = self.pending[j]
-            q_out, v_out, flows_out = self.method.dense_output(self.system, q[j], v[j], attempt, h, theta)
-            self._write(store, i, b, q_out, v_out, flows[j] + flows_out, self.tau[j], t_out)
+            q_out, v_out, flows_out = self.method.dense_output(self.system_of(j), q[j], v[j], attempt, h, theta)
+            self._write(store, i, b, q_out, v_out, flows[j] + flows_out, self.tau[j], t_out, j)
             extra = getattr(attempt.detail, "extra_evaluations", 0)
         return extra
 
@@ -247,8 +261,9 @@ class RowKernel:
         flows: np.ndarray,
         tau: np.ndarray,
         t: float,
+        j: int,
     ) -> None:
-        system = self.system
+        system = self.system_of(j)
         store.Q[i, b] = q
         store.V[i, b] = v
         store.TAU[i, b] = tau

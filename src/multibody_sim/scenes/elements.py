@@ -123,6 +123,7 @@ class ForceElements:
         stiffness: np.ndarray,
         rest: np.ndarray,
         wrenches: Sequence[Wrench] = (),
+        keep: np.ndarray | None = None,
     ):
         """Build the elements.
 
@@ -135,6 +136,8 @@ class ForceElements:
             stiffness: spring stiffness k ≥ 0 [N·m/rad or N/m], shape (nv,); 0 means none.
             rest: a full configuration, shape (nq,), whose spring joints sit at their rest positions.
             wrenches: external wrenches.
+            keep: dofs (bool, shape (nv,)) whose friction element stays at a zero coefficient: a scene whose
+                [randomize] draws their friction keeps one ledger for every row.
 
         Raises:
             InvalidArgumentError: wrong shapes, negative or non-finite coefficients, a joint element on a
@@ -172,7 +175,7 @@ class ForceElements:
                 )
 
         self._damped = np.flatnonzero(damping > 0.0)
-        self._rough = np.flatnonzero(friction > 0.0)
+        self._rough = np.flatnonzero((friction > 0.0) | (keep if keep is not None else False))
         self._sprung = np.flatnonzero(stiffness > 0.0)
         self._d = damping[self._damped]
         self._fc = friction[self._rough]

@@ -42,6 +42,7 @@ from .spec import (
     CONTACT_PAIRS,
     CONTACT_SOLVERS,
     DEFAULT_FRICTION_VELOCITY,
+    DISTRIBUTIONS,
     DEFAULT_GROUND_FRICTION,
     FORCE_KEYS,
     GEOMETRY_KEYS,
@@ -50,7 +51,10 @@ from .spec import (
     JOINT_KEYS,
     OBJECT_KEYS,
     OBJECT_SHAPES,
+    PARAMETER_KEYS,
     PAYLOAD_KEYS,
+    QUANTITIES,
+    RANDOMIZE_KEYS,
     REFERENCES,
     ROBOT_GEOMETRY,
     ROBOT_KEYS,
@@ -62,6 +66,7 @@ from .spec import (
     SHAPES,
     SIMULATION_KEYS,
     SIMULATION_OPTIONS,
+    TARGET_KEYS,
     TOP_LEVEL_KEYS,
     ActuatorSpec,
     ConstraintSpec,
@@ -72,7 +77,9 @@ from .spec import (
     GroundSpec,
     JointSpec,
     ObjectSpec,
+    ParameterSpec,
     PayloadSpec,
+    RandomizeSpec,
     RobotSpec,
     SceneSpec,
     SensorSpec,
@@ -196,6 +203,16 @@ def parse_scene(data: Mapping[str, Any], source: str, *, base_dir: Path | None) 
         SceneError: one line naming source, the key path, the problem and the valid options.
     """
     return _Parser(printable(str(source)), base_dir).scene(data)
+
+
+def parse_randomize(data: Any, source: str) -> RandomizeSpec:
+    """A [randomize] table given apart from its scene (rollout's and the gym environments' `randomize`), checked
+    as a scene's is.
+
+    Raises:
+        SceneError: one line naming the key path, the problem and the valid options.
+    """
+    return _Parser(printable(str(source)), None).randomize(data)
 
 
 # ---- validation ----------------------------------------------------------------------------------------
@@ -446,6 +463,7 @@ class _Parser:
                 self.choice(data["actuators"], "actuators", ACTUATOR_SOURCES) if "actuators" in data else None
             ),
             sensors=sensors,
+            randomize=self.randomize(data["randomize"]) if "randomize" in data else None,
             source=self.source,
             text=None,
             base_dir=self.base_dir,
@@ -867,6 +885,93 @@ class _Parser:
         if kind == "vector" and not isinstance(value, (list, tuple, np.ndarray)):
             return (self.plain_number(value, path),)
         return self.plain_vector(value, path)
+
+    def randomize(self, value: Any) -> RandomizeSpec:
+        table = self.table(value, "randomize", RANDOMIZE_KEYS)
+        seed = table.get("seed", 0)
+        if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, numbers.Integral) or seed < 0:
+            self.fail("randomize.seed", f"must be a whole number >= 0, got {_describe(seed)}")
+        tables = self.array_of_tables(
+            self.required(table, "parameter", "randomize", "[[randomize.parameter]] tables: what to draw"),
+            "randomize.parameter",
+        )
+        if not tables:
+            self.fail("randomize.parameter", "must hold at least one [[randomize.parameter]] table")
+        parameters = tuple(self.random_parameter(item, f"randomize.parameter[{i}]") for i, item in enumerate(tables))
+        return RandomizeSpec(seed=int(seed), parameters=parameters)
+
+    def random_parameter(self, value: Any, path: str) -> ParameterSpec:
+        """One [[randomize.parameter]]: its name, targets, distribution and range (checked against the quantity's
+        range where the draw is the value itself; a scale's range is checked when the Scene knows the nominal)."""
+        table = self.table(value, path, PARAMETER_KEYS)
+        names = ", ".join(QUANTITIES)
+        name = self.choice(self.required(table, "name", path, f"valid: {names}"), f"{path}.name", tuple(QUANTITIES))
+        quantity = QUANTITIES[name]
+        for key in TARGET_KEYS:
+            if key in table and key != quantity.target:
+                takes = f"takes {quantity.target} = ..." if quantity.target else "applies to the whole scene"
+                self.fail(f"{path}.{key}", f"'{name}' {takes}, not {key}")
+        targets = self.targets(table.get(quantity.target, "*"), f"{path}.{quantity.target}", quantity.target)
+        distribution = self.choice(
+            self.required(table, "distribution", path, "uniform [low, high], normal [mean, std] or loguniform [low, high]"),
+            f"{path}.distribution",
+            DISTRIBUTIONS,
+        )
+        if ("scale" in table) == ("value" in table):
+            self.fail(
+                path,
+                "give scale = [a, b] (the draw multiplies the declared value) or value = [a, b] (the draw is the "
+                "value)" + (", not both" if "scale" in table else ""),
+            )
+        scale = "scale" in table
+        if quantity.scale_only and not scale:
+            self.fail(f"{path}.value", f"'{name}' is a factor on the declared value: give scale = [a, b]")
+        key = f"{path}.{'scale' if scale else 'value'}"
+        a, b = self.vector(table["scale" if scale else "value"], key, 2)
+        args = "[mean, std]" if distribution == "normal" else "[low, high]"
+        if distribution == "normal":
+            if b < 0:
+                self.fail(key, f"normal takes {args} with std >= 0, got std {b:g}")
+        elif a > b:
+            self.fail(key, f"{distribution} takes {args} with low <= high, got [{a:g}, {b:g}]")
+        if distribution == "loguniform" and a <= 0:
+            self.fail(key, f"loguniform takes {args} with low > 0, got low {a:g}")
+        if scale:
+            low, high, open_low, unit = 0.0, math.inf, quantity.open_low, ""
+        else:
+            low, high, open_low, unit = quantity.low, quantity.high, quantity.open_low, quantity.unit
+        inside = f"{'(' if open_low else '['}{low:g}, {high:g}{']' if math.isfinite(high) else ')'}"
+        lowest = a  # normal: its mean must lie inside (draws outside are drawn again)
+        highest = a if distribution == "normal" else b
+        if lowest < low or (open_low and lowest <= low) or highest > high:
+            what = "a factor" if scale else f"{name}{f' [{unit}]' if unit else ''}"
+            self.fail(key, f"{distribution} {args} = [{a:g}, {b:g}] leaves the range of {what}, {inside}")
+        return ParameterSpec(
+            name=name,
+            targets=targets,
+            distribution=distribution,
+            arguments=(a, b),
+            scale=scale,
+            shared=self.flag(table.get("shared", False), f"{path}.shared"),
+        )
+
+    def targets(self, value: Any, path: str, kind: str | None) -> tuple[Any, ...]:
+        """What a parameter applies to: names or glob patterns (bodies, joints) or indices (payloads, kept as
+        strings); "*" is everything. () for a parameter of the whole scene."""
+        if kind is None:
+            return ()
+        if isinstance(value, str):
+            return (self.string(value, path),)
+        if not isinstance(value, (list, tuple)) or not value:
+            self.fail(path, f"must be a name, a glob pattern or a non-empty list of them, got {_describe(value)}")
+        if kind == "payloads":
+            indices = []
+            for i, item in enumerate(value):
+                if isinstance(item, (bool, np.bool_)) or not isinstance(item, numbers.Integral) or item < 0:
+                    self.fail(f"{path}[{i}]", f"must be a payload's index (0 is the first [[payload]]), got {_describe(item)}")
+                indices.append(str(int(item)))
+            return tuple(indices)
+        return tuple(self.string(item, f"{path}[{i}]") for i, item in enumerate(value))
 
     def plain_number(self, value: Any, path: str) -> int | float:
         self.number(value, path)

@@ -25,7 +25,8 @@ from ..robot import Robot
 from ..text import safe_name
 from ..trajectory import Trajectory
 from .frames import frame_id
-from .spec import CONTACT_INTEGRATOR, RobotSpec, SceneSpec
+from .randomize import Nominals, Randomizer, check_parameters, randomized
+from .spec import ACTUATOR_QUANTITIES, CONTACT_INTEGRATOR, ContactSpec, PayloadSpec, RobotSpec, SceneSpec
 
 # How fast a coordinate held by the contact solve may drift [rad/s or m/s]: its velocity is solved to within the
 # solver's feasibility tolerance (absolute and relative TOLERANCE; talos_standing's held grippers reach |v| = 3.7e-12),
@@ -65,20 +66,35 @@ class Scene(Robot):
             reference pose where it has one, else the neutral configuration).
     """
 
-    def __init__(self, spec: SceneSpec):
+    def __init__(self, spec: SceneSpec, *, robot: Robot | None = None):
+        """Build the scene `spec` declares (with spec.parameters' values where it gives them: with_parameters).
+
+        Args:
+            spec: the parsed scene.
+            robot: its robot, already loaded from spec.robot (a randomised rollout's rows share the nominal scene's
+                `full_robot`); None: loaded here.
+        """
         from .elements import ForceElements
 
         self.spec = spec
         where = spec.source
-        robot = _load_robot(spec)
+        # The parameters [randomize] may draw: their nominal values are noted wherever they enter (values.value).
+        values = None if spec.randomize is None and spec.parameters is None else Nominals(spec.parameters)
+        robot = robot if robot is not None else _load_robot(spec)
         robot_spec = spec.robot if spec.robot is not None else RobotSpec(source="", damping=False)
+        if values is not None and robot_spec.mimic:
+            raise SceneError(f"{where}: randomize: randomised parameters and mimic joints cannot be combined yet")
         model = _build_model(robot, spec)
         self.full_nq, self.full_nv = robot.nq, robot.nv
         self.full_robot = robot
+        if values is not None:
+            _body_masses(model, values)
         _apply_base_pose(model, spec)
         if spec.gravity is not None:
             model.gravity.linear = np.array(spec.gravity, dtype=float)
         for i, payload in enumerate(spec.payloads):
+            if values is not None:
+                payload = _payload_mass(payload, values.value("payload_mass", str(i), payload.mass))
             _add_payload(model, payload, f"{where}: payload[{i}]")
         friction = np.array(model.friction, dtype=float) if robot_spec.damping else np.zeros(model.nv)
         damping = np.array(model.damping, dtype=float) if robot_spec.damping else np.zeros(model.nv)
@@ -103,6 +119,13 @@ class Scene(Robot):
                 if not settings.stiffness:
                     raise SceneError(f"{key}.rest: a rest position needs a spring: give stiffness > 0")
                 rest_values[joint] = settings.rest
+        if values is not None:  # every unlocked 1-dof joint's damping, friction and armature
+            for joint in _one_dof_joints(model):
+                if joint not in spec.lock:
+                    i = model.joints[model.getJointId(joint)].idx_v
+                    damping[i] = values.value("damping", joint, float(damping[i]))
+                    friction[i] = values.value("friction", joint, float(friction[i]))
+                    model.armature[i] = values.value("armature", joint, float(model.armature[i]))
         if robot_spec.mimic:
             if spec.lock:
                 raise SceneError(
@@ -116,11 +139,13 @@ class Scene(Robot):
         built = model  # before locking: the dof indices the per-joint arrays above use
         model, lock_config = _lock_joints(model, spec, robot.floating_base)
         actuators = _actuators(model, spec)
+        if values is not None:
+            actuators = [_actuator_constants(actuator, values) for actuator in actuators]
         for actuator in actuators:  # the rotors' inertia, reflected onto the joints
             model.armature[actuator.dof] += actuator.armature
         self.locked = dict(spec.lock)
         robot_nv, robot_nq = model.nv, model.nq
-        object_joints = _add_objects(model, spec)  # free-flyers after the robot's joints
+        object_joints = _add_objects(model, spec, values)  # free-flyers after the robot's joints
         poses = {name: reduce_configuration(robot.model, model, robot.pose(name)) for name in robot.poses}
         for q_pose in poses.values():
             _place_objects(model, spec, q_pose)
@@ -137,6 +162,8 @@ class Scene(Robot):
             default_pose=robot.default_pose_name,
         )
         _check_scene_model(self, where, robot_nv, len(object_joints))
+        if randomized(spec.randomize, "damping", _one_dof_joints(model)):  # the same ledger in every row, 0 or not
+            self._damped = True
         self.actuated = slice(self.actuated.start, robot_nv)  # free objects are unactuated
         self.actuators = None
         if actuators:
@@ -159,14 +186,21 @@ class Scene(Robot):
                 _set_joint_position(model, jid, rest_values[joint], rest)
         if self.floating_base:
             kept_friction[:6] = 0.0
+        # Joints whose friction [randomize] draws keep their element at 0 too: every row has the same ledger.
+        rough = np.zeros(self.nv, dtype=bool)
+        for joint in randomized(spec.randomize, "friction", _one_dof_joints(model)):
+            rough[model.joints[model.getJointId(joint)].idx_v] = True
         exact_friction: list[tuple[int, float]] = []
         if spec.contact is not None and spec.contact.friction == "exact":
             # Joint dry friction becomes a constraint of the time-stepper (exact stiction), not a tanh element.
             for jid in range(1, model.njoints):
                 joint = model.joints[jid]
-                if joint.nv == 1 and kept_friction[joint.idx_v] > 0.0:
+                if joint.nv == 1 and (kept_friction[joint.idx_v] > 0.0 or rough[joint.idx_v]):
                     exact_friction.append((jid, float(kept_friction[joint.idx_v])))
                     kept_friction[joint.idx_v] = 0.0
+        held = np.zeros(self.nv, dtype=bool)  # the joints whose friction the contact solve holds
+        for jid, _ in exact_friction:
+            held[model.joints[jid].idx_v] = True
         self.q0, self.v0 = _initial_state(self, spec)
         wrenches = [_wrench(model, force, f"{where}: force[{i}]") for i, force in enumerate(spec.forces)]
         elements = ForceElements(
@@ -178,6 +212,7 @@ class Scene(Robot):
             stiffness=kept_stiffness,
             rest=rest,
             wrenches=wrenches,
+            keep=rough & ~held,
         )
         self.elements = None if elements.empty else elements
         self.constraints = None
@@ -201,7 +236,7 @@ class Scene(Robot):
                 )
             from .contact import PENETRATION_SLOP, build_contact
 
-            self.contact = build_contact(self, spec, exact_friction)
+            self.contact = build_contact(self, _contact_values(spec, values), exact_friction)
             # An enforced limit holds to the penetration slop, by design: only an excursion beyond it is a violation.
             for jid in self.contact.limited_joints:
                 iq = model.joints[jid].idx_q
@@ -243,6 +278,11 @@ class Scene(Robot):
             self.no_derivatives_reason = "it honours mimic joints, which Pinocchio's ABA derivatives do not support"
         self.has_derivatives = not self.no_derivatives_reason
         _check_scene_mass_matrix(self, where)
+        # The values of the parameters [randomize] may draw as declared, and the table resolved on them.
+        self.nominal_parameters: dict[str, Any] = values.nominal if values is not None else {}
+        self.randomizer = None
+        if spec.randomize is not None:
+            self.randomizer = Randomizer(spec.randomize, self.nominal_parameters, where)
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, nq={self.nq}, nv={self.nv}, elements={len(self._flow_elements) - 1})"
@@ -258,6 +298,37 @@ class Scene(Robot):
             if not name.startswith("constraint:") and name not in time_stepper
         ]
         return names + (self.elements.potentials if self.elements is not None else [])
+
+    @property
+    def parameters(self) -> dict[str, Any] | None:
+        """The parameter values this scene was built with (with_parameters), None for the declared ones."""
+        return self.spec.parameters
+
+    def with_parameters(self, parameters: dict[str, Any] | None) -> Scene:
+        """This scene with the given parameter values in place of the declared ones (scenes/randomize.py: the form
+        a randomised row records in ``metadata["parameters"]``; None: the declared values). The same robot, built
+        again with them: a randomised row re-run alone on it gives the row's samples bit for bit.
+
+        Raises:
+            InvalidArgumentError: an unknown parameter or target (the message lists the valid ones), a value
+                outside its quantity's range.
+        """
+        if parameters is not None:
+            nominal = self.nominal_parameters or Scene(
+                dataclasses.replace(self.spec, parameters={}), robot=self.full_robot
+            ).nominal_parameters
+            parameters = check_parameters(parameters, nominal)
+        return Scene(dataclasses.replace(self.spec, parameters=parameters), robot=self.full_robot)
+
+    def draw_parameters(self, b: int) -> dict[str, Any]:
+        """The parameter values of randomised rollout row b (the [randomize] table's draw seeded with (seed, b)).
+
+        Raises:
+            InvalidArgumentError: the scene has no [randomize] table.
+        """
+        if self.randomizer is None:
+            raise InvalidArgumentError(f"scene '{self.name}' has no [randomize] table: nothing to draw")
+        return self.randomizer.row(b)
 
     def __reduce__(self) -> tuple[Any, tuple[SceneSpec]]:
         """Pickled as its declaration and built again where it is unpickled (a Ray worker): Pinocchio's collision
@@ -322,6 +393,10 @@ class Scene(Robot):
             lines += self.contact.describe()
         if self.sensors is not None:
             lines.append("  sensors:\n" + self.sensors.describe())
+        if self.randomizer is not None:
+            lines += self.randomizer.describe()
+        if self.spec.parameters is not None:
+            lines.append("  parameters drawn: " + _shown(self.spec.parameters))
         return "\n".join(lines)
 
     def default_pose(self) -> np.ndarray:
@@ -558,6 +633,86 @@ def _actuators(model: pin.Model, spec: SceneSpec) -> list[Any]:
     return resolve_actuators(model, tables, candidates=_one_dof_joints(model), locked=list(spec.lock), where=where)
 
 
+def _body_masses(model: pin.Model, values: Nominals) -> None:
+    """Each moving body's mass (its rotational inertia in proportion) and a factor on its rotational inertia, as
+    `values` gives them, on the robot's model before payloads and locking. A body is the rigid body a joint moves,
+    named by its link (the links welded to it are part of it)."""
+    names = _body_names(model)
+    for jid in range(1, model.njoints):
+        body = model.inertias[jid]
+        if body.mass <= 0.0:  # nothing to scale
+            continue
+        name = names[jid]
+        mass = values.value("mass", name, float(body.mass))
+        factor = values.value("inertia", name, 1.0)
+        if mass != body.mass or factor != 1.0:
+            model.inertias[jid] = pin.Inertia(mass, body.lever, body.inertia * (mass / body.mass * factor))
+
+
+def _body_names(model: pin.Model) -> dict[int, str]:
+    """Each joint's body: the first body frame on it (its link), else the joint's own name."""
+    names: dict[int, str] = {}
+    for frame in model.frames:
+        if frame.type == pin.FrameType.BODY and frame.parentJoint > 0:
+            names.setdefault(int(frame.parentJoint), frame.name)
+    return {jid: names.get(jid, model.names[jid]) for jid in range(1, model.njoints)}
+
+
+def _payload_mass(payload: PayloadSpec, mass: float) -> PayloadSpec:
+    """The payload with another mass, its inertia in proportion."""
+    if mass == payload.mass:
+        return payload
+    ratio = mass / payload.mass
+    return dataclasses.replace(payload, mass=mass, inertia=tuple(x * ratio for x in payload.inertia))  # type: ignore[arg-type]
+
+
+def _actuator_constants(actuator: Any, values: Nominals) -> Any:
+    """An actuator with the constants `values` gives it. Each constant is a parameter only where the actuator
+    has it: kp on position servos, kv on servos, the limits where finite, the curve where declared."""
+    changed = {}
+    for name in ACTUATOR_QUANTITIES:
+        nominal = float(getattr(actuator, name))
+        if name == "kp" and actuator.kind != "position" or name == "kv" and actuator.kind == "torque":
+            continue
+        if not math.isfinite(nominal):  # no limit, no curve: a value would add one, and a line to the ledger
+            continue
+        value = values.value(name, actuator.joint, nominal)
+        if value != nominal:
+            changed[name] = value
+    return dataclasses.replace(actuator, **changed) if changed else actuator
+
+
+def _contact_values(spec: SceneSpec, values: Nominals | None) -> SceneSpec:
+    """The scene with the ground's and the bodies' contact coefficients `values` gives."""
+    if values is None:
+        return spec
+    if spec.ground is not None:
+        ground = spec.ground
+        friction = values.value("ground_friction", None, ground.friction)
+        restitution = values.value("ground_restitution", None, ground.restitution)
+        spec = dataclasses.replace(spec, ground=dataclasses.replace(ground, friction=friction, restitution=restitution))
+    contact = spec.contact if spec.contact is not None else ContactSpec()
+    friction = values.value("body_friction", None, contact.body_friction)
+    restitution = values.value("body_restitution", None, contact.body_restitution)
+    if (friction, restitution) != (contact.body_friction, contact.body_restitution):
+        contact = dataclasses.replace(contact, body_friction=friction, body_restitution=restitution)
+        spec = dataclasses.replace(spec, contact=contact)
+    return spec
+
+
+def _shown(parameters: dict[str, Any]) -> str:
+    """Parameter values in one line, a few per name."""
+    parts = []
+    for name, value in parameters.items():
+        if isinstance(value, dict):
+            items = list(value.items())
+            shown = ", ".join(f"{safe_name(str(k))} {v:.4g}" for k, v in items[:3])
+            parts.append(f"{name} {shown}" + (f", ... ({len(items)})" if len(items) > 3 else ""))
+        else:
+            parts.append(f"{name} {value:.4g}")
+    return "; ".join(parts)
+
+
 def _load_robot(spec: SceneSpec) -> Robot:
     r = spec.robot
     if r is None:  # objects only: an empty world to add them to
@@ -754,13 +909,15 @@ def _check_scene_mass_matrix(scene: Scene, source: str) -> None:
         raise SceneError(str(exc)) from None
 
 
-def _add_objects(model: pin.Model, spec: SceneSpec) -> dict[str, int]:
+def _add_objects(model: pin.Model, spec: SceneSpec, values: Nominals | None = None) -> dict[str, int]:
     """Append each [[object]] as a free-flyer joint of the world carrying its body (uniform density) and a body
-    frame of its name; returns {name: joint id}."""
+    frame of its name, of the mass `values` gives it; returns {name: joint id}."""
     from .contact import shape_inertia
 
     joints = {}
     for i, item in enumerate(spec.objects):
+        if values is not None:
+            item = dataclasses.replace(item, mass=values.value("mass", item.name, item.mass))
         if model.existJointName(item.name) or model.existFrame(item.name):
             raise SceneError(
                 f"{spec.source}: object[{i}].name: '{item.name}' is already a joint or frame of the robot; "

@@ -36,6 +36,7 @@ TOP_LEVEL_KEYS = (
     "actuator",
     "actuators",
     "sensor",
+    "randomize",
 )
 ROBOT_KEYS = ("source", "base", "position", "rpy", "damping", "mimic", "package_dirs")
 JOINT_KEYS = ("damping", "friction", "stiffness", "rest", "armature")
@@ -109,6 +110,59 @@ SENSOR_PLACES = {
     "frame_pose": ("frame",),
 }
 SENSOR_KINDS = tuple(SENSOR_PLACES)
+RANDOMIZE_KEYS = ("seed", "parameter")
+PARAMETER_KEYS = ("name", "bodies", "joints", "payloads", "distribution", "scale", "value", "shared")
+DISTRIBUTIONS = ("uniform", "normal", "loguniform")  # uniform [low, high], normal [mean, std], loguniform [low, high]
+
+
+@dataclass(frozen=True)
+class Quantity:
+    """A scene parameter [randomize] may draw: what it selects, the range of its values, its unit.
+
+    Attributes:
+        target: the key that selects what it applies to ("bodies", "joints", "payloads"), or None (one value for
+            the scene).
+        low, high: the range of its values (of a drawn `value`; of nominal x `scale` when the Scene is built).
+        open_low: whether `low` itself is excluded (masses: > 0).
+        unit: for messages and docs.
+        scale_only: the value is itself a factor (inertia): `value` is refused.
+        what: one line for describe() and the docs.
+    """
+
+    target: str | None
+    low: float
+    high: float
+    open_low: bool
+    unit: str
+    what: str
+    scale_only: bool = False
+
+
+# The parameters [randomize] draws, by name (scenes/randomize.py applies them; docs/randomize.md describes them).
+QUANTITIES = {
+    "mass": Quantity("bodies", 0.0, math.inf, True, "kg", "a body's mass, its rotational inertia in proportion"),
+    "inertia": Quantity("bodies", 0.0, math.inf, True, "", "a factor on a body's rotational inertia", True),
+    "payload_mass": Quantity("payloads", 0.0, math.inf, True, "kg", "a payload's mass, its inertia in proportion"),
+    "ground_friction": Quantity(None, 0.0, math.inf, False, "", "Coulomb μ of every contact with the ground"),
+    "ground_restitution": Quantity(None, 0.0, 1.0, False, "", "Newton's e of every contact with the ground"),
+    "body_friction": Quantity(None, 0.0, math.inf, False, "", "Coulomb μ of every contact between bodies"),
+    "body_restitution": Quantity(None, 0.0, 1.0, False, "", "Newton's e of every contact between bodies"),
+    "damping": Quantity("joints", 0.0, math.inf, False, "N·m·s/rad or N·s/m", "a joint's viscous damping"),
+    "friction": Quantity("joints", 0.0, math.inf, False, "N·m or N", "a joint's Coulomb friction"),
+    "armature": Quantity("joints", 0.0, math.inf, False, "kg·m² or kg", "a joint's armature (its rotor's aside)"),
+    "kp": Quantity("joints", 0.0, math.inf, False, "N·m/rad or N/m", "a position servo's stiffness"),
+    "kv": Quantity("joints", 0.0, math.inf, False, "N·m·s/rad or N·s/m", "a servo's damping"),
+    "gear": Quantity("joints", 0.0, math.inf, True, "", "an actuator's gear ratio"),
+    "rotor_inertia": Quantity("joints", 0.0, math.inf, False, "kg·m²", "an actuator's rotor inertia"),
+    "effort_limit": Quantity("joints", 0.0, math.inf, True, "N·m or N", "an actuator's effort limit"),
+    "velocity_limit": Quantity("joints", 0.0, math.inf, True, "rad/s or m/s", "an actuator's velocity limit"),
+    "stall_torque": Quantity("joints", 0.0, math.inf, True, "N·m or N", "an actuator's stall torque"),
+    "no_load_speed": Quantity("joints", 0.0, math.inf, True, "rad/s or m/s", "an actuator's no-load speed"),
+}
+# The actuator constants among them (scenes/actuators.py's Actuator fields of the same names).
+ACTUATOR_QUANTITIES = ("kp", "kv", "gear", "rotor_inertia", "effort_limit", "velocity_limit", "stall_torque",
+                       "no_load_speed")
+TARGET_KEYS = ("bodies", "joints", "payloads")
 
 
 # ---- the parsed scene ----------------------------------------------------------------------------------
@@ -430,6 +484,44 @@ class SensorSpec:
 
 
 @dataclass(frozen=True)
+class ParameterSpec:
+    """One [[randomize.parameter]] table: a scene parameter drawn from a distribution.
+
+    Attributes:
+        name: a key of QUANTITIES ("mass", "ground_friction", "damping", "kp", ...).
+        targets: what it applies to, as given (names or glob patterns of bodies or joints, payload indices as
+            strings, "*" for all); () for a parameter of the whole scene (ground_friction).
+        distribution: "uniform" (arguments: low, high), "normal" (mean, std; values outside the quantity's range
+            are drawn again: a truncated normal) or "loguniform" (low, high, both > 0).
+        arguments: the distribution's two numbers.
+        scale: the draw multiplies the nominal value (True) or is the value itself (False).
+        shared: one draw for all its targets (True) or one per target (False, the default).
+    """
+
+    name: str
+    targets: tuple[Any, ...]
+    distribution: str
+    arguments: tuple[float, float]
+    scale: bool
+    shared: bool = False
+
+
+@dataclass(frozen=True)
+class RandomizeSpec:
+    """The [randomize] table: scene parameters drawn per rollout row or per gym reset.
+
+    Attributes:
+        seed: the draws' seed, a whole number >= 0 (row b of a rollout draws from numpy's generator seeded with
+            (seed, b)).
+        parameters: the [[randomize.parameter]] tables, in order (a later one overrides an earlier one on the same
+            target).
+    """
+
+    seed: int = 0
+    parameters: tuple[ParameterSpec, ...] = ()
+
+
+@dataclass(frozen=True)
 class SimulationSpec:
     """How to run the scene; None leaves a setting to the caller (the command line or simulate's defaults).
 
@@ -498,6 +590,9 @@ class SceneSpec:
             motor data, models/actuators/<robot>.toml) or None (none: the commands of joints without an actuator
             are ideal torques).
         sensors: the sensors, in the order declared.
+        randomize: the [randomize] table (parameters drawn per rollout row or gym reset), or None.
+        parameters: drawn parameter values this scene is built with (scenes/randomize.py's form: {name: value} or
+            {name: {target: value}}), or None: the declared (nominal) values. Set by Scene.with_parameters.
         source: the name used in messages (the file path as given, or "<scene>").
         text: the scene file's text (for trajectory metadata); None for a dict.
         base_dir: the folder relative paths were resolved against (the scene file's); None for a dict.
@@ -524,6 +619,8 @@ class SceneSpec:
     actuators: tuple[ActuatorSpec, ...] = ()
     actuator_defaults: str | None = None
     sensors: tuple[SensorSpec, ...] = ()
+    randomize: RandomizeSpec | None = None
+    parameters: dict[str, Any] | None = None
     source: str = "<scene>"
     text: str | None = None
     base_dir: Path | None = None

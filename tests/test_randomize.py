@@ -1,0 +1,495 @@
+"""Randomised physics ([randomize], Scene.with_parameters, rollout(randomize=...)): the declarations and their one-line
+errors, the draws against their declared distributions, drawn values against closed forms and against the same
+values declared in a scene, and each row re-run alone bit for bit on both kernels."""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy import stats
+
+import multibody_sim as ms
+from multibody_sim import native
+from multibody_sim.exceptions import InvalidArgumentError, SceneError
+from multibody_sim.scenes import shipped_scenes
+from multibody_sim.scenes.parse import parse_toml
+from multibody_sim.trajectory import Trajectory
+
+from conftest import assert_same_run, both, on_kernel
+
+needs_native = pytest.mark.skipif(
+    not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
+    reason=f"the native kernel is not available here: {native.why_unavailable}",
+)
+
+
+def shipped(name: str) -> dict[str, Any]:
+    """A shipped scene's tables (to add or change some)."""
+    path = shipped_scenes()[name]
+    return parse_toml(path.read_text(encoding="utf-8"), str(path))
+
+
+def uniform(name: str, low: float, high: float, *, scale: bool = False, **targets: Any) -> dict[str, Any]:
+    return {"name": name, "distribution": "uniform", ("scale" if scale else "value"): [low, high], **targets}
+
+
+# A free box floating without ground (timestepping: semi-implicit Euler) pushed by a constant force.
+PUSHED_BOX = {
+    "object": [{"name": "box", "shape": "box", "size": [0.2, 0.1, 0.1], "mass": 2.0, "position": [0, 0, 1]}],
+    "gravity": [0.0, 0.0, 0.0],
+    "force": [{"name": "push", "frame": "box", "force": [3.0, 0.0, 0.0]}],
+}
+
+
+# ---- declarations --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("table", "message"),
+    [
+        (
+            {"sed": 1, "parameter": []},
+            "<scene>: randomize: unknown key 'sed' (did you mean 'seed'? valid: parameter, seed)",
+        ),
+        ({"seed": -1, "parameter": []}, "<scene>: randomize.seed: must be a whole number >= 0, got -1"),
+        ({"parameter": []}, "<scene>: randomize.parameter: must hold at least one [[randomize.parameter]] table"),
+        (
+            {"parameter": [uniform("mas", 1, 2)]},
+            "<scene>: randomize.parameter[0].name: must be one of armature, body_friction, body_restitution, damping, "
+            "effort_limit, friction, gear, ground_friction, ground_restitution, inertia, kp, kv, mass, no_load_speed, "
+            "payload_mass, rotor_inertia, stall_torque, velocity_limit, got 'mas' (did you mean 'mass'?)",
+        ),
+        (
+            {"parameter": [uniform("mass", 1, 2, joints="*")]},
+            "<scene>: randomize.parameter[0].joints: 'mass' takes bodies = ..., not joints",
+        ),
+        (
+            {"parameter": [uniform("ground_friction", 0.1, 0.2, bodies="*")]},
+            "<scene>: randomize.parameter[0].bodies: 'ground_friction' applies to the whole scene, not bodies",
+        ),
+        (
+            {"parameter": [{"name": "mass", "distribution": "uniform"}]},
+            "<scene>: randomize.parameter[0]: give scale = [a, b] (the draw multiplies the declared value) or "
+            "value = [a, b] (the draw is the value)",
+        ),
+        (
+            {"parameter": [{"name": "mass", "distribution": "uniform", "scale": [1, 2], "value": [1, 2]}]},
+            "<scene>: randomize.parameter[0]: give scale = [a, b] (the draw multiplies the declared value) or "
+            "value = [a, b] (the draw is the value), not both",
+        ),
+        (
+            {"parameter": [uniform("mass", 2, 1, scale=True)]},
+            "<scene>: randomize.parameter[0].scale: uniform takes [low, high] with low <= high, got [2, 1]",
+        ),
+        (
+            {"parameter": [{"name": "damping", "distribution": "loguniform", "value": [0, 1]}]},
+            "<scene>: randomize.parameter[0].value: loguniform takes [low, high] with low > 0, got low 0",
+        ),
+        (
+            {"parameter": [{"name": "kp", "distribution": "normal", "value": [10, -1]}]},
+            "<scene>: randomize.parameter[0].value: normal takes [mean, std] with std >= 0, got std -1",
+        ),
+        (
+            {"parameter": [uniform("ground_restitution", 0.5, 1.5)]},
+            "<scene>: randomize.parameter[0].value: uniform [low, high] = [0.5, 1.5] leaves the range of "
+            "ground_restitution, [0, 1]",
+        ),
+        (
+            {"parameter": [uniform("mass", 0, 1)]},
+            "<scene>: randomize.parameter[0].value: uniform [low, high] = [0, 1] leaves the range of mass [kg], "
+            "(0, inf)",
+        ),
+        (
+            {"parameter": [uniform("inertia", 1, 2)]},
+            "<scene>: randomize.parameter[0].value: 'inertia' is a factor on the declared value: give scale = [a, b]",
+        ),
+        (
+            {"parameter": [{"name": "mass", "distribution": "gauss", "scale": [1, 0.1]}]},
+            "<scene>: randomize.parameter[0].distribution: must be one of loguniform, normal, uniform, got 'gauss'",
+        ),
+        (
+            {"parameter": [{**uniform("mass", 1, 2), "shard": True}]},
+            "<scene>: randomize.parameter[0]: unknown key 'shard' (did you mean 'shared'? valid: bodies, distribution, "
+            "joints, name, payloads, scale, shared, value)",
+        ),
+        (
+            {"parameter": [uniform("payload_mass", 1, 2, payloads=[-1])]},
+            "<scene>: randomize.parameter[0].payloads[0]: must be a payload's index (0 is the first [[payload]]), "
+            "got -1",
+        ),
+    ],
+)
+def test_a_bad_table_is_refused_in_one_line(table: dict[str, Any], message: str) -> None:
+    with pytest.raises(SceneError) as caught:
+        ms.make_scene(robot={"source": "double_pendulum"}, randomize=table)
+    assert str(caught.value) == message
+
+
+@pytest.mark.parametrize(
+    ("tables", "message"),
+    [
+        (
+            {"robot": {"source": "double_pendulum"}, "randomize": {"parameter": [uniform("mass", 1, 2, bodies="arm")]}},
+            "<scene>: randomize.parameter[0].bodies: 'arm' matches none of the bodies mass applies to (link1, link2)",
+        ),
+        (
+            {"robot": {"source": "double_pendulum"}, "randomize": {"parameter": [uniform("ground_friction", 0.1, 1)]}},
+            "<scene>: randomize.parameter[0].name: the scene has no ground_friction (it needs a [ground] table)",
+        ),
+        (
+            {"robot": {"source": "double_pendulum"}, "randomize": {"parameter": [uniform("kp", 1, 2)]}},
+            "<scene>: randomize.parameter[0].name: the scene has no kp (it needs [[actuator]] tables)",
+        ),
+        (
+            {
+                "robot": {"source": "double_pendulum"},
+                "actuator": [{"joints": "joint1", "kind": "position", "kp": 10.0, "kv": 1.0}, {"joints": "joint2"}],
+                "randomize": {"parameter": [uniform("kp", 1, 2, joints="joint2")]},
+            },
+            "<scene>: randomize.parameter[0].joints: 'joint2' matches none of the joints kp applies to (joint1)",
+        ),
+    ],
+)
+def test_what_the_scene_does_not_have_is_refused_in_one_line(tables: dict[str, Any], message: str) -> None:
+    with pytest.raises(SceneError) as caught:
+        ms.make_scene(**tables)
+    assert str(caught.value) == message
+
+
+def test_a_scale_that_leaves_the_quantity_s_range_is_refused() -> None:
+    tables = shipped("sliding_box")
+    tables["ground"]["restitution"] = 0.6
+    tables["randomize"] = {"parameter": [uniform("ground_restitution", 0.5, 2.0, scale=True)]}
+    with pytest.raises(SceneError) as caught:
+        ms.make_scene(**tables)
+    assert str(caught.value) == (
+        "<scene>: randomize.parameter[0].scale: uniform [0.5, 2] takes ground_restitution (0.6) to 1.2, beyond its "
+        "range [0, 1]"
+    )
+
+
+def test_with_parameters_names_what_is_wrong() -> None:
+    scene = ms.make_scene(robot={"source": "double_pendulum"})
+    with pytest.raises(InvalidArgumentError) as caught:
+        scene.with_parameters({"mas": {"link1": 1.0}})
+    assert str(caught.value).startswith("parameters: unknown parameter 'mas' (valid: mass, inertia, payload_mass")
+    with pytest.raises(InvalidArgumentError) as caught:
+        scene.with_parameters({"mass": {"link3": 1.0}})
+    assert str(caught.value) == "parameters: mass: unknown body 'link3' (valid: link1, link2)"
+    with pytest.raises(InvalidArgumentError) as caught:
+        scene.with_parameters({"damping": {"joint1": -1.0}})
+    assert str(caught.value) == "parameters: damping['joint1'] must lie in [0, inf], got -1.0"
+    with pytest.raises(InvalidArgumentError) as caught:
+        scene.with_parameters({"ground_friction": 0.5})
+    assert str(caught.value) == "parameters: the scene has no ground_friction (it needs a [ground] table)"
+
+
+def test_describe_says_what_is_randomised() -> None:
+    tables = {
+        **shipped("sliding_box"),
+        "randomize": {
+            "seed": 7,
+            "parameter": [
+                uniform("mass", 0.5, 2.0, scale=True),
+                {"name": "ground_friction", "distribution": "normal", "value": [0.8, 0.1]},
+            ],
+        },
+    }
+    scene = ms.make_scene(**tables)
+    lines = scene.describe().splitlines()
+    assert lines[-3:] == [
+        "  randomized per rollout row / gym reset (seed 7):",
+        "    mass of box × uniform [0.5, 2]",
+        "    ground_friction (0.8) normal mean 0.8, std 0.1",
+    ]
+    variant = scene.with_parameters({"mass": {"box": 1.5}, "ground_friction": 0.7})
+    assert variant.describe().splitlines()[-1] == "  parameters drawn: mass box 1.5; ground_friction 0.7"
+
+
+# ---- draws ---------------------------------------------------------------------------------------------------
+def draws(distribution: str, arguments: list[float], n: int, *, scale: bool = False) -> np.ndarray:
+    """n rows' draws of the ground's friction (declared 0.8) from one [randomize] table."""
+    tables = {
+        **shipped("sliding_box"),
+        "randomize": {
+            "seed": 11,
+            "parameter": [{"name": "ground_friction", "distribution": distribution, ("scale" if scale else "value"): arguments}],
+        },
+    }
+    scene = ms.make_scene(**tables)
+    return np.array([scene.draw_parameters(b)["ground_friction"] for b in range(n)])
+
+
+@pytest.mark.parametrize(
+    ("distribution", "arguments", "scale", "law"),
+    [
+        ("uniform", [0.3, 1.1], False, stats.uniform(0.3, 0.8)),
+        ("normal", [0.7, 0.05], False, stats.norm(0.7, 0.05)),
+        ("loguniform", [0.05, 2.0], False, stats.loguniform(0.05, 2.0)),
+        ("uniform", [0.5, 1.5], True, stats.uniform(0.4, 0.8)),  # × the declared 0.8
+    ],
+)
+def test_draws_follow_the_declared_distribution(
+    distribution: str, arguments: list[float], scale: bool, law: Any
+) -> None:
+    x = draws(distribution, arguments, 4000, scale=scale)
+    # Kolmogorov–Smirnov against the declared law, and the mean within 4 standard errors of its own.
+    assert stats.kstest(x, law.cdf).pvalue > 1e-3
+    assert abs(x.mean() - law.mean()) < 4 * law.std() / math.sqrt(len(x))
+
+
+def test_a_normal_is_truncated_to_the_quantity_s_range() -> None:
+    x = draws("normal", [0.05, 0.1], 3000)  # half its mass below 0, where friction cannot be
+    assert x.min() >= 0.0
+    truncated = stats.truncnorm(-0.5, np.inf, loc=0.05, scale=0.1)
+    assert stats.kstest(x, truncated.cdf).pvalue > 1e-3
+
+
+def test_rows_draw_independently_and_reproducibly() -> None:
+    tables = {
+        "robot": {"source": "double_pendulum"},
+        "randomize": {
+            "seed": 5,
+            "parameter": [
+                uniform("mass", 0.8, 1.2, scale=True),
+                {**uniform("damping", 0.0, 0.2, joints="*"), "shared": True},
+            ],
+        },
+    }
+    scene = ms.make_scene(**tables)
+    first, again, other = scene.draw_parameters(0), ms.make_scene(**tables).draw_parameters(0), scene.draw_parameters(1)
+    assert first == again and first != other
+    assert first["mass"]["link1"] != first["mass"]["link2"]  # one draw per body
+    assert first["damping"]["joint1"] == first["damping"]["joint2"]  # shared: one for both
+
+
+# ---- drawn values act as physics says ----------------------------------------------------------------------------
+def test_a_drawn_mass_gives_the_acceleration_newton_says() -> None:
+    """A box pushed by F from rest: semi-implicit Euler's positions are exactly x_N = (F/m) h² N (N + 1) / 2."""
+    scene = ms.make_scene(
+        **PUSHED_BOX, randomize={"seed": 2, "parameter": [uniform("mass", 0.5, 4.0, bodies="box")]}
+    )
+    B, h, N = 6, 1e-3, 200
+    batch = ms.rollout(scene, np.tile(scene.q0, (B, 1)), np.zeros((B, 6)), duration=N * h, dt=h, integrator="timestepping")
+    masses = [p["mass"]["box"] for p in batch.metadata["parameters"]]
+    assert len(set(masses)) == B and all(0.5 <= m <= 4.0 for m in masses)
+    for b, m in enumerate(masses):
+        x = batch.q[b, -1, 0] - scene.q0[0]
+        assert x == pytest.approx(3.0 / m * h * h * N * (N + 1) / 2, rel=1e-9)
+
+
+def test_a_drawn_ground_friction_stops_a_sliding_box_where_coulomb_says() -> None:
+    """The shipped sliding box (2 m/s): it stops after v0² / (2 μ g), to within a step's travel v0 h."""
+    tables = {**shipped("sliding_box"), "randomize": {"seed": 4, "parameter": [uniform("ground_friction", 0.3, 1.2)]}}
+    scene = ms.make_scene(**tables)
+    B, h = 5, 1e-3
+    batch = ms.rollout(
+        scene, np.tile(scene.q0, (B, 1)), np.tile(scene.v0, (B, 1)), duration=1.0, dt=h, integrator="timestepping"
+    )
+    for b in range(B):
+        mu = batch.element(b).metadata["parameters"]["ground_friction"]
+        travelled = batch.q[b, -1, 0] - scene.q0[0]
+        assert abs(travelled - 2.0**2 / (2 * mu * 9.81)) < 2.0 * h
+        assert abs(batch.v[b, -1, 0]) < 1e-9  # at rest by the end
+
+
+def test_a_drawn_mass_scales_a_spring_pendulum_s_period_as_its_square_root() -> None:
+    """A body on a spring without gravity: T = 2π √(I/k); every body's mass and inertia × s (one draw) makes T × √s."""
+    tables = {
+        "robot": {"source": "double_pendulum", "damping": False},
+        "gravity": [0.0, 0.0, 0.0],
+        "lock": {"joint2": 0.0},
+        "joints": {"joint1": {"stiffness": 40.0}},
+        "randomize": {"seed": 1, "parameter": [{**uniform("mass", 0.5, 2.0, scale=True), "shared": True}]},
+    }
+    scene = ms.make_scene(**tables)
+
+    def period(system: ms.Robot) -> float:
+        traj = ms.simulate(system, [0.1], [0.0], duration=3.0, dt=1e-4, integrator="rk4")
+        q, t = traj.q[:, 0], traj.t
+        up = np.flatnonzero((q[:-1] < 0) & (q[1:] >= 0))
+        crossings = t[up] - q[up] * (t[up + 1] - t[up]) / (q[up + 1] - q[up])
+        return float(np.mean(np.diff(crossings)))
+
+    nominal = period(scene.with_parameters(None))
+    for b in range(3):
+        parameters = scene.draw_parameters(b)
+        s = parameters["mass"]["link1"] / scene.nominal_parameters["mass"]["link1"]
+        assert period(scene.with_parameters(parameters)) == pytest.approx(nominal * math.sqrt(s), rel=1e-6)
+
+
+def test_drawn_values_are_the_values_declared() -> None:
+    """A row's drawn values give the dynamics of the scene that declares them (payload, joint damping, friction
+    and armature, object mass, ground friction): the two paths agree bit for bit."""
+    base = {
+        "robot": {"source": "ur5"},
+        "payload": [{"frame": "tool0", "mass": 1.0, "com": [0, 0, 0.05], "inertia": [1e-3, 1e-3, 2e-3, 0, 0, 0]}],
+        "joints": {"shoulder_lift_joint": {"damping": 0.5}},
+    }
+    randomized = ms.make_scene(
+        **base,
+        randomize={
+            "parameter": [
+                uniform("payload_mass", 0.5, 3.0),
+                uniform("damping", 0.1, 1.0, joints="elbow_joint"),
+                uniform("friction", 0.1, 1.0, joints="wrist_1_joint"),
+                uniform("armature", 0.01, 0.1, joints="wrist_2_joint"),
+            ]
+        },
+    )
+    p = randomized.draw_parameters(3)
+    m = p["payload_mass"]["0"]
+    declared = ms.make_scene(
+        robot={"source": "ur5"},
+        payload=[{"frame": "tool0", "mass": m, "com": [0, 0, 0.05], "inertia": [1e-3 * m, 1e-3 * m, 2e-3 * m, 0, 0, 0]}],
+        joints={
+            "shoulder_lift_joint": {"damping": 0.5},
+            "elbow_joint": {"damping": p["damping"]["elbow_joint"]},
+            "wrist_1_joint": {"friction": p["friction"]["wrist_1_joint"]},
+            "wrist_2_joint": {"armature": p["armature"]["wrist_2_joint"]},
+        },
+    )
+    variant = randomized.with_parameters(p)
+    q0, v0 = variant.q0, np.linspace(-0.5, 0.5, 6)
+    a = ms.simulate(variant, q0, v0, duration=0.05, dt=1e-3)
+    b = ms.simulate(declared, q0, v0, duration=0.05, dt=1e-3)
+    np.testing.assert_array_equal(a.q, b.q)
+    np.testing.assert_array_equal(a.v, b.v)
+
+
+# ---- a row re-run alone: bit for bit -------------------------------------------------------------------------
+RANDOM_ARM = {
+    "robot": {"source": "ur5"},
+    "randomize": {
+        "seed": 3,
+        "parameter": [
+            uniform("mass", 0.8, 1.25, scale=True),
+            uniform("inertia", 0.9, 1.1, scale=True),
+            uniform("damping", 0.0, 0.5),
+            uniform("friction", 0.0, 0.3, joints=["shoulder_*", "elbow_joint"]),
+            uniform("armature", 0.0, 0.02),
+        ],
+    },
+}
+
+
+def rerun(batch: Any, scene: ms.Scene, b: int, **settings: Any) -> Trajectory:
+    """Element b run alone on the scene with its drawn values."""
+    element = batch.element(b)
+    variant = scene.with_parameters(element.metadata["parameters"])
+    return ms.simulate(variant, element.q[0], element.v[0], **settings)
+
+
+@pytest.mark.parametrize("kernel", ["python", pytest.param("native", marks=needs_native)])
+def test_a_randomised_arm_row_re_run_alone_is_bit_for_bit(kernel: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    scene = ms.make_scene(**RANDOM_ARM)
+    rng = np.random.default_rng(0)
+    B = 5
+    Q = np.array([scene.random_configuration(rng) for _ in range(B)])
+    settings = {"duration": 0.1, "dt": 1e-3, "integrator": "rk4"}
+    controller = ms.PD(scene, q_ref=scene.q0, kp=50.0)
+
+    def run() -> tuple[Any, list[Trajectory]]:
+        batch = ms.rollout(scene, Q, np.zeros((B, 6)), controller=controller, num_threads=2, **settings)
+        return batch, [rerun(batch, scene, b, controller=controller, **settings) for b in range(B)]
+
+    batch, alone = on_kernel(kernel == "native", run, monkeypatch)
+    assert batch.metadata["kernel"] == ("native" if kernel == "native" else "python (row)")
+    for b in range(B):
+        assert_same_run(batch.element(b), alone[b])
+    assert len({p["mass"]["shoulder_link"] for p in batch.metadata["parameters"]}) == B
+
+
+@needs_native
+def test_randomised_rows_are_the_same_on_both_kernels(monkeypatch: pytest.MonkeyPatch) -> None:
+    scene = ms.make_scene(**RANDOM_ARM)
+    B = 4
+    Q = np.tile(scene.q0, (B, 1)) + 0.1
+    nat, py = both(lambda: ms.rollout(scene, Q, np.zeros((B, 6)), duration=0.05, dt=1e-3), monkeypatch)
+    assert nat.metadata["kernel"] == "native" and py.metadata["kernel"] == "python (row)"
+    for b in range(B):
+        assert_same_run(nat.element(b), py.element(b))
+
+
+@pytest.mark.parametrize("kernel", ["python", pytest.param("native", marks=needs_native)])
+def test_a_randomised_contact_row_re_run_alone_is_bit_for_bit(kernel: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """go2 standing, its bodies' masses and the ground's friction and restitution drawn per row."""
+    tables = shipped("go2_standing")
+    tables["randomize"] = {
+        "seed": 9,
+        "parameter": [
+            uniform("mass", 0.85, 1.15, scale=True),
+            uniform("ground_friction", 0.4, 1.0),
+            uniform("ground_restitution", 0.0, 0.3),
+        ],
+    }
+    scene = ms.make_scene(**tables)
+    B = 3
+    settings = {"duration": 0.06, "dt": 1e-3, "integrator": "timestepping"}
+    controller = scene.make_controller()
+
+    def run() -> tuple[Any, list[Trajectory]]:
+        batch = ms.rollout(
+            scene, np.tile(scene.q0, (B, 1)), np.zeros((B, scene.nv)), controller=controller, num_threads=2, **settings
+        )
+        return batch, [rerun(batch, scene, b, controller=controller, **settings) for b in range(B)]
+
+    batch, alone = on_kernel(kernel == "native", run, monkeypatch)
+    assert batch.metadata["kernel"] == ("native" if kernel == "native" else "python (row)")
+    for b in range(B):
+        assert_same_run(batch.element(b), alone[b])
+        mine, its = batch.element(b).contacts, alone[b].contacts
+        assert mine is not None and its is not None and mine.bodies == its.bodies
+        for part in ("sample", "pair", "point", "normal", "impulse"):
+            np.testing.assert_array_equal(getattr(mine, part), getattr(its, part), err_msg=part)
+    # the rows differ: their own masses carry them
+    assert not np.array_equal(batch.q[0], batch.q[1])
+
+
+def test_a_saved_row_keeps_its_parameters(tmp_path: Any) -> None:
+    scene = ms.make_scene(**PUSHED_BOX, randomize={"parameter": [uniform("mass", 0.5, 4.0)]})
+    settings = {"duration": 0.02, "dt": 1e-3, "integrator": "timestepping"}
+    batch = ms.rollout(scene, np.tile(scene.q0, (2, 1)), np.zeros((2, 6)), **settings)
+    element = batch.element(1)
+    element.save(tmp_path / "row.npz")
+    loaded = Trajectory.load(tmp_path / "row.npz")
+    assert loaded.metadata["parameters"] == element.metadata["parameters"] == batch.metadata["parameters"][1]
+    again = ms.simulate(scene.with_parameters(loaded.metadata["parameters"]), scene.q0, np.zeros(6), **settings)
+    assert again.metadata["parameters"] == loaded.metadata["parameters"]
+    assert_same_run(again, element)
+
+
+def test_rollout_takes_a_table_or_none() -> None:
+    scene = ms.make_scene(**PUSHED_BOX, randomize={"seed": 1, "parameter": [uniform("mass", 0.5, 4.0)]})
+    Q, V = np.tile(scene.q0, (2, 1)), np.zeros((2, 6))
+    settings = {"duration": 0.01, "dt": 1e-3, "integrator": "timestepping"}
+    plain = ms.rollout(scene, Q, V, randomize=False, **settings)
+    assert "parameters" not in plain.metadata and "parameters" not in plain.element(0).metadata
+    other = ms.rollout(scene, Q, V, randomize={"seed": 2, "parameter": [uniform("mass", 5.0, 6.0)]}, **settings)
+    assert all(5.0 <= p["mass"]["box"] <= 6.0 for p in other.metadata["parameters"])
+    with pytest.raises(InvalidArgumentError) as caught:
+        ms.rollout(scene, Q, V, randomize={"parameter": [uniform("mas", 1, 2)]}, **settings)
+    assert str(caught.value).startswith("rollout: randomize.parameter[0].name: must be one of armature,")
+    with pytest.raises(InvalidArgumentError) as caught:
+        ms.rollout(scene, Q, V, randomize=[1], **settings)
+    assert str(caught.value).startswith("randomize must be None (the scene's own [randomize]), False (none) or a dict")
+    robot = ms.load_robot("double_pendulum")
+    with pytest.raises(InvalidArgumentError) as caught:
+        ms.rollout(robot, np.zeros((1, 2)), np.zeros((1, 2)), randomize={"parameter": []}, **settings)
+    assert str(caught.value) == (
+        "randomize draws a scene's parameters: the system must be a Scene (load_scene, make_scene), got a Robot"
+    )
+
+
+def test_an_adaptive_randomised_rollout_runs_each_row_on_its_own_values() -> None:
+    scene = ms.make_scene(
+        robot={"source": "double_pendulum"}, randomize={"parameter": [uniform("mass", 0.5, 2.0, scale=True)]}
+    )
+    Q = np.tile([0.3, -0.2], (3, 1))
+    settings = {"duration": 0.2, "dt": 1e-3, "integrator": "dp54", "rtol": 1e-8, "atol": 1e-10}
+    batch = ms.rollout(scene, Q, np.zeros((3, 2)), **settings)
+    assert len(batch.metadata["parameters"]) == 3
+    for b in range(3):
+        assert_same_run(batch.element(b), rerun(batch, scene, b, **settings))
