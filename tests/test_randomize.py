@@ -493,3 +493,33 @@ def test_an_adaptive_randomised_rollout_runs_each_row_on_its_own_values() -> Non
     assert len(batch.metadata["parameters"]) == 3
     for b in range(3):
         assert_same_run(batch.element(b), rerun(batch, scene, b, **settings))
+
+
+# ---- per gym reset -----------------------------------------------------------------------------------------------
+def test_each_gym_episode_draws_its_own_scene() -> None:
+    gym = pytest.importorskip("multibody_sim.gym")
+    tables = {**shipped("sliding_box"), "randomize": {"seed": 0, "parameter": [uniform("ground_friction", 0.5, 1.0)]}}
+    scene = ms.make_scene(**tables)
+    settings = {"reward": lambda q, v, tau: 0.0, "dt": 1e-3, "control_dt": 0.01, "reset_noise_q": 0.0, "reset_noise_v": 0.0}
+    env = gym.MultibodyEnv(scene, **settings)
+    _, first = env.reset(seed=4)
+    _, second = env.reset()
+    _, again = env.reset(seed=4)
+    assert first["parameters"] == again["parameters"] != second["parameters"]
+    for _ in range(50):  # 0.5 s: the box stops where its episode's friction says
+        observation, *_ = env.step(np.zeros(6))
+    mu = again["parameters"]["ground_friction"]
+    assert abs(observation[0] - 2.0**2 / (2 * mu * 9.81)) < 2e-3
+    # The vector environment: each row draws from its own generator, as the single environment seeded seed + i.
+    vector = gym.MultibodyVectorEnv(scene, 3, **settings)
+    _, infos = vector.reset(seed=4)
+    drawn = infos["parameters"]["ground_friction"]
+    assert drawn[0] == first["parameters"]["ground_friction"]
+    for i in range(1, 3):
+        _, info = env.reset(seed=4 + i)
+        assert drawn[i] == info["parameters"]["ground_friction"]
+    for _ in range(50):
+        observations, *_ = vector.step(np.zeros((3, 6)))
+    np.testing.assert_allclose(observations[:, 0], 2.0**2 / (2 * drawn * 9.81), atol=2e-3)
+    plain = gym.MultibodyEnv(scene, randomize=False, **settings)
+    assert "parameters" not in plain.reset(seed=4)[1]

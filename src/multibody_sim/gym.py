@@ -29,7 +29,7 @@ from .integrators import Integrator
 from .recording import sample_bytes
 from .robot import Robot, real_array
 from .safety import check_allocation
-from .scenes import Scene
+from .scenes import Scene, randomized_scene
 from .stepper import BatchStepper, Stepper
 from .torques import command_bounds
 from .validation import check_callable, in_range, is_number, positive_number
@@ -73,6 +73,7 @@ class _Task:
     reset_noise_v: float
     failure_reward: float
     sensors: tuple[str, ...] | None  # the observed sensors, or None: the state (q, v)
+    randomizer: Any = None  # randomised physics: what each episode's scene parameters are drawn from
 
     @classmethod
     def check(
@@ -91,11 +92,13 @@ class _Task:
         reset_noise_v: Any,
         failure_reward: Any,
         observation: Any = "state",
+        randomize: Any = None,
     ) -> _Task:
         if not isinstance(system, Robot):
             raise InvalidArgumentError(
                 f"system must be a Robot or a Scene (load_robot, load_scene), got {type(system).__name__}"
             )
+        system, randomizer = randomized_scene(system, randomize, "randomize")
         if reward is None:
             raise InvalidArgumentError("reward is required: a callable reward(q, v, tau) -> float")
         check_callable(reward, "reward", "reward(q, v, tau)")
@@ -132,6 +135,7 @@ class _Task:
             noise_v,
             failure,
             _observed_sensors(system, observation),
+            randomizer,
         )
 
     # ---- spaces ----------------------------------------------------------------------------------------------------
@@ -175,6 +179,14 @@ class _Task:
         dq = rng.uniform(-self.reset_noise_q, self.reset_noise_q, size=system.nv)
         dv = rng.uniform(-self.reset_noise_v, self.reset_noise_v, size=system.nv)
         return system.space.integrate(self.initial_q, dq), self.initial_v + dv
+
+    def parameters(self, rng: np.random.Generator) -> tuple[Any, dict[str, Any]]:
+        """An episode's scene (its parameters drawn from `rng`, after its start: randomised physics) and the reset
+        info's part: {"parameters": the values} (nothing drawn: the system itself and {})."""
+        if self.randomizer is None:
+            return self.system, {}
+        values = self.randomizer.draw(rng)
+        return self.system.with_parameters(values), {"parameters": values}  # type: ignore[attr-defined]
 
     def outcome(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> tuple[float, bool]:
         """(reward, terminated) of a step that ended at (q, v) with tau applied."""
@@ -294,6 +306,11 @@ class MultibodyEnv(gymnasium.Env):
         reset_noise_v: half-width of the uniform perturbation of v [rad/s, m/s].
         failure_reward: the reward of a step that failed.
         observation: "state" (q, v), "sensors" (every sensor of the scene) or a list of sensor names.
+        randomize: randomised physics (README "Randomised physics"): None draws each episode's scene parameters
+            from the scene's own [randomize] table when it has one, a dict in that table's form draws from it
+            instead, False draws nothing. They are drawn from the environment's generator at each reset, after the
+            start, and reset's info holds them ("parameters"); ``system.with_parameters(them)`` is the episode's
+            scene.
         render_mode: None only.
         **options: the integrator's options (rtol, atol, max_step for adaptive ones).
     """
@@ -316,22 +333,27 @@ class MultibodyEnv(gymnasium.Env):
         reset_noise_v: float = 0.01,
         failure_reward: float = 0.0,
         observation: str | list[str] = "state",
+        randomize: Any = None,
         render_mode: str | None = None,
         **options: Any,
     ):
         _check_render_mode(render_mode)
         self.task = task = _Task.check(
             system, reward, terminated, max_episode_steps, control_dt, dt, method, options,
-            initial_q, initial_v, reset_noise_q, reset_noise_v, failure_reward, observation,
+            initial_q, initial_v, reset_noise_q, reset_noise_v, failure_reward, observation, randomize,
         )  # fmt: skip
         self.render_mode = None
         self.observation_space = task.observation_space()
         self.action_space = task.action_space()
-        self.stepper = Stepper(
+        self.stepper = self._stepper(task.system)
+        self._elapsed = 0
+
+    def _stepper(self, system: Robot) -> Stepper:
+        task = self.task
+        return Stepper(
             system, dt=task.dt, integrator=task.method, control_dt=task.control_dt, q0=task.initial_q,
             v0=task.initial_v, **task.options,
         )  # fmt: skip
-        self._elapsed = 0
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -339,15 +361,19 @@ class MultibodyEnv(gymnasium.Env):
         """Start an episode: from options' "q" (and "v") if given, else drawn around the default pose.
 
         Returns:
-            The observation ((q, v), shape (nq + nv,), or the sensors' readings), and info {"t": 0.0}.
+            The observation ((q, v), shape (nq + nv,), or the sensors' readings), and info {"t": 0.0} (randomised
+            physics: and "parameters", the episode's scene parameter values).
         """
         options = _check_options(options)
         seed = _check_seed(seed)
         super().reset(seed=seed)
         q, v = self.task.initial_state(self.np_random, options)
+        system, drawn = self.task.parameters(self.np_random)
+        if drawn:
+            self.stepper = self._stepper(system)
         state = self.stepper.reset(q, v, 0.0, sensor_seed=seed)
         self._elapsed = 0
-        return self.task.observe(state.q, state.v, self.stepper.readings), {"t": state.t}
+        return self.task.observe(state.q, state.v, self.stepper.readings), {"t": state.t, **drawn}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Hold the action as joint torque over one control interval.
@@ -390,7 +416,9 @@ class MultibodyVectorEnv(VectorEnv):
         autoreset_mode: an ``AutoresetMode`` or its value ("NextStep", "SameStep", "Disabled").
         num_threads: threads of Pinocchio's abaInParallel in the batch kernel.
         **kwargs: MultibodyEnv's (reward, terminated, max_episode_steps, control_dt, dt, method, initial_q,
-            initial_v, reset_noise_q, reset_noise_v, failure_reward, observation, the integrator's options).
+            initial_v, reset_noise_q, reset_noise_v, failure_reward, observation, randomize, the integrator's
+            options): with randomised physics each row draws its episode's scene parameters from its own generator at
+            its reset (infos["parameters"]).
     """
 
     def __init__(
@@ -412,6 +440,7 @@ class MultibodyVectorEnv(VectorEnv):
         observation: str | list[str] = "state",
         autoreset_mode: str | AutoresetMode = AutoresetMode.NEXT_STEP,
         num_threads: int = 1,
+        randomize: Any = None,
         render_mode: str | None = None,
         **options: Any,
     ):
@@ -425,8 +454,9 @@ class MultibodyVectorEnv(VectorEnv):
             raise InvalidArgumentError(f"autoreset_mode must be one of {valid}, got {autoreset_mode!r}") from None
         self.task = task = _Task.check(
             system, reward, terminated, max_episode_steps, control_dt, dt, method, options,
-            initial_q, initial_v, reset_noise_q, reset_noise_v, failure_reward, observation,
+            initial_q, initial_v, reset_noise_q, reset_noise_v, failure_reward, observation, randomize,
         )  # fmt: skip
+        system = task.system
         self.num_envs = n = int(num_envs)
         check_allocation(
             ROW_COPIES * sample_bytes(system, n),
@@ -501,12 +531,15 @@ class MultibodyVectorEnv(VectorEnv):
         infos: dict[str, Any] = {}
         states = []
         rngs = {i: seeding.np_random(seeds[i])[0] if seeds[i] is not None else self._rng(i) for i in rows.tolist()}
+        systems = []
         for j, i in enumerate(rows.tolist()):
             exact: dict[str, Any] | None = None  # an exact start, as MultibodyEnv's options
             if Qs is not None or Vs is not None:
                 exact = {key: value[j] for key, value in (("q", Qs), ("v", Vs)) if value is not None}
             states.append(self.task.initial_state(rngs[i], exact, f"[{j}]"))
-            infos = self._add_info(infos, {"t": 0.0}, i)
+            scene, drawn = self.task.parameters(rngs[i])
+            systems.append(scene)
+            infos = self._add_info(infos, {"t": 0.0, **drawn}, i)
         for i, rng in rngs.items():  # every row checked: the rows' generators change only now
             self._rngs[i] = rng
         self.stepper.reset(
@@ -514,6 +547,7 @@ class MultibodyVectorEnv(VectorEnv):
             np.array([q for q, _ in states]),
             np.array([v for _, v in states]),
             sensor_seed=None if seed is None else [seeds[i] for i in rows.tolist()],
+            systems=systems if self.task.randomizer is not None else None,
         )
         self._elapsed[rows] = 0
         self._autoreset[rows] = False
@@ -585,11 +619,19 @@ class MultibodyVectorEnv(VectorEnv):
 
     def _reset_rows(self, rows: np.ndarray, row_infos: list[dict[str, Any]]) -> None:
         """Autoreset: rows start new episodes drawn from their own generators (their infos become reset infos)."""
-        states = [self.task.initial_state(self._rng(i), None) for i in rows.tolist()]
-        self.stepper.reset(rows, np.array([q for q, _ in states]), np.array([v for _, v in states]))
-        self._elapsed[rows] = 0
+        states, systems, drawn = [], [], []
         for i in rows.tolist():
-            row_infos[i] = {"t": 0.0}
+            states.append(self.task.initial_state(self._rng(i), None))
+            scene, values = self.task.parameters(self._rng(i))
+            systems.append(scene)
+            drawn.append(values)
+        self.stepper.reset(
+            rows, np.array([q for q, _ in states]), np.array([v for _, v in states]),
+            systems=systems if self.task.randomizer is not None else None,
+        )  # fmt: skip
+        self._elapsed[rows] = 0
+        for i, values in zip(rows.tolist(), drawn, strict=True):
+            row_infos[i] = {"t": 0.0, **values}
 
     def _observations(self) -> np.ndarray:
         stepper = self.stepper

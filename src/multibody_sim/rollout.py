@@ -19,12 +19,13 @@ from typing import Any
 import numpy as np
 
 from .driver import Run, RunSettings
-from .exceptions import InvalidArgumentError, SceneError, SimulationInterrupted
+from .exceptions import InvalidArgumentError, SimulationInterrupted
 from .integrators import Integrator, get_integrator
 from .integrators.timestepping import SOLVER_COUNTS  # a contact scene's, in stats only when kept
 from .progress import ProgressBar
 from .recording import delivered_torques, limit_reports, sensor_arrays, split_records
 from .robot import Robot, check_system, real_array
+from .scenes import randomized_scene
 from .torques import Torques, controller_name
 from .trajectory import ARRAYS, ConstraintRecord, Contacts, LedgerEntry, LimitViolations, Trajectory
 from .validation import check_options, positive_count, positive_number
@@ -346,32 +347,10 @@ def _local(job: _Job, *, num_threads: int, bar: ProgressBar) -> BatchTrajectory:
 
 
 def _randomized(system: Robot, randomize: Any, B: int) -> tuple[Robot, list[dict[str, Any]] | None]:
-    """The system the batch runs on and each element's scene parameter values (None: not randomised): drawn from
-    the scene's [randomize] table (randomize None), from `randomize` (a table of that form: the scene with it in
-    place of its own), or none (False)."""
-    from .scenes import Scene
-    from .scenes.parse import parse_randomize
-
-    if randomize is None or randomize is False:
-        randomizer = getattr(system, "randomizer", None) if randomize is None else None
-        return system, None if randomizer is None else [randomizer.row(b) for b in range(B)]
-    if not isinstance(system, Scene):
-        raise InvalidArgumentError(
-            f"randomize draws a scene's parameters: the system must be a Scene (load_scene, make_scene), got a "
-            f"{type(system).__name__}"
-        )
-    if not isinstance(randomize, dict):
-        raise InvalidArgumentError(
-            "randomize must be None (the scene's own [randomize]), False (none) or a dict in the [randomize] "
-            f"table's form ({{'seed': 0, 'parameter': [{{...}}]}}), got {type(randomize).__name__}"
-        )
-    try:
-        spec = parse_randomize(randomize, "rollout")
-        scene = Scene(dataclasses.replace(system.spec, randomize=spec, parameters=None), robot=system.full_robot)
-    except SceneError as exc:
-        raise InvalidArgumentError(str(exc)) from None
-    assert scene.randomizer is not None
-    return scene, [scene.randomizer.row(b) for b in range(B)]
+    """The system the batch runs on and each element's scene parameter values (None: not randomised), element b's
+    drawn with the seed (seed, b) (scenes.randomized_scene: from the scene's [randomize], or `randomize`)."""
+    system, randomizer = randomized_scene(system, randomize, "rollout")
+    return system, None if randomizer is None else [randomizer.row(b) for b in range(B)]
 
 
 def _from_run(run: Run, wall_time: float) -> BatchTrajectory:

@@ -553,24 +553,11 @@ class BatchStepper:
         Q, V = self._check_states(Q0, V0, "Q0", "V0")
         self.B = len(Q)
         self._alone: list[Stepper] | None = None
+        # each row's own system (a randomised scene's rows: reset(..., systems=)), or None: `system` for every row
+        self._systems: list[Any] | None = None
+        self._stepper_settings = {"dt": dt, "integrator": method, "control_dt": control_dt, "check_energy": check_energy}
         if method.adaptive or not _time_invariant(system):
-            self._alone = [
-                Stepper(
-                    system,
-                    dt=dt,
-                    integrator=method,
-                    control_dt=control_dt,
-                    q0=q,
-                    v0=v,
-                    check_energy=check_energy,
-                    **options,
-                )  # fmt: skip
-                for q, v in zip(Q, V, strict=True)
-            ]
-            for b, stepper in enumerate(self._alone):  # row b's sensors draw from their seeds + b
-                if stepper._sensing is not None:
-                    stepper._sensing = run_sensing(system, method, stepper.dt, stepper._interval_steps, np.array([b]))
-                    stepper.reset()
+            self._alone = [self._row_stepper(b, system, q, v) for b, (q, v) in enumerate(zip(Q, V, strict=True))]
         self._sensing = (
             run_sensing(system, method, self.dt, self._interval_steps, np.arange(self.B))
             if self._alone is None
@@ -588,6 +575,16 @@ class BatchStepper:
         self._saturation = Saturation(system, self.B)
         self._core: Core | None = None
         self.reset()
+
+    def _row_stepper(self, b: int, system: Any, q: np.ndarray | None, v: np.ndarray | None) -> Stepper:
+        """Row b's own Stepper (adaptive methods, time-varying scenes) on `system`, at (q, v)."""
+        stepper = Stepper(system, q0=q, v0=v, **self._stepper_settings, **self.options)  # type: ignore[arg-type]
+        if stepper._sensing is not None:  # row b's sensors draw from their seeds + b
+            stepper._sensing = run_sensing(
+                system, self.integrator, stepper.dt, stepper._interval_steps, np.array([b])
+            )
+            stepper.reset()
+        return stepper
 
     def _check_states(self, Q: Any, V: Any, q_name: str, v_name: str) -> tuple[np.ndarray, np.ndarray]:
         Q, V = check_batch(self.system, Q, V, q_name, v_name)
@@ -612,7 +609,9 @@ class BatchStepper:
         """Velocities, shape (B, nv) (a copy)."""
         return self._V.copy()
 
-    def reset(self, rows: Any = None, q: Any = None, v: Any = None, *, sensor_seed: Any = None) -> None:
+    def reset(
+        self, rows: Any = None, q: Any = None, v: Any = None, *, sensor_seed: Any = None, systems: Any = None
+    ) -> None:
         """Put rows at new states, time 0, zero torque and a fresh energy reference; a scene's sensors read the new
         states (as Stepper.reset).
 
@@ -621,6 +620,8 @@ class BatchStepper:
             q: their configurations, shape (len(rows), nq); None: the states given at construction.
             v: their velocities, shape (len(rows), nv); None: the states given at construction, or zero with q.
             sensor_seed: as Stepper.reset's: one whole number for every reset row, or one per reset row.
+            systems: each reset row's own scene from now on (randomised physics: the scene's with_parameters()),
+                one per row; None: they keep theirs.
         """
         entropy: Any = None
         if sensor_seed is not None:
@@ -646,9 +647,12 @@ class BatchStepper:
         self._Q[index], self._V[index] = Q, V
         self._steps[index] = 0
         self._TAU[index] = 0.0
+        if systems is not None:
+            self._set_systems(index, systems)
         self._ledger[index] = 0.0
-        unchecked_energies = self.system.unchecked_energies
-        self._monitor.start(index, np.array([unchecked_energies(q, v) for q, v in zip(Q, V, strict=True)]))
+        rows_systems = [self._system_of(b) for b in index.tolist()]
+        energies = [row.unchecked_energies(q, v) for row, q, v in zip(rows_systems, Q, V, strict=True)]
+        self._monitor.start(index, np.array(energies))
         if self._alone is not None:
             for k, (b, q_b, v_b) in enumerate(zip(index.tolist(), Q, V, strict=True)):
                 self._alone[b].reset(q_b, v_b, 0.0, sensor_seed=entropy[k] if isinstance(entropy, list) else entropy)
@@ -656,6 +660,32 @@ class BatchStepper:
         if self._sensing is not None:  # now: the rows read their new states
             self._sensing.stream.restart(index, entropy)
             self._build(fresh=index)
+
+    def _system_of(self, b: int) -> Any:
+        return self.system if self._systems is None else self._systems[b]
+
+    def _set_systems(self, index: np.ndarray, systems: Any) -> None:
+        """Rows `index` step on `systems` (one each, the structure of `system`) from now on."""
+        systems = list(systems)
+        if len(systems) != len(index):
+            raise InvalidArgumentError(f"systems must hold one scene per reset row ({len(index)}), got {len(systems)}")
+        elements = self.system.ledger_elements
+        for row in systems:
+            if not isinstance(row, Robot) or (row.nq, row.nv) != (self.system.nq, self.system.nv) or (
+                row.ledger_elements != elements
+            ):
+                raise InvalidArgumentError(
+                    "systems must be the stepper's scene with other parameter values (its with_parameters()), got "
+                    f"{type(row).__name__} {getattr(row, 'name', '')}"
+                )
+        if self._systems is None:
+            self._systems = [self.system] * self.B
+        for b, row in zip(index.tolist(), systems, strict=True):
+            self._systems[b] = row
+            if self._alone is not None:
+                self._alone[b] = self._row_stepper(b, row, None, None)
+        self._monitor.energy_scale = np.array([row.energy_scale for row in self._systems])
+        self._saturation = Saturation(self.system, self.B, self._systems)
 
     @property
     def readings(self) -> dict[str, np.ndarray]:
@@ -750,7 +780,9 @@ class BatchStepper:
         system, B = self.system, self.B
         self._base = self._ledger.copy()
         self._built_at = self._steps.copy()
-        kernel = choose_kernel(system, self.integrator, self._Q, self._V, num_threads=self._num_threads)
+        kernel = choose_kernel(
+            system, self.integrator, self._Q, self._V, num_threads=self._num_threads, systems=self._systems
+        )
         self._store = SampleStore(B, system.nq, system.nv, len(system.ledger_elements), 0, 1)
         self._store.make_room(math.inf)  # it holds the state of the latest call only
         self._core = core_class(kernel)(

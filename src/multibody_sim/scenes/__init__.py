@@ -21,13 +21,22 @@ from ..catalog import (
     inside_roots,
     shipped_models_dir,
 )
-from ..exceptions import ModelError, SceneError
+from ..exceptions import InvalidArgumentError, ModelError, SceneError
 from ..text import printable
-from .parse import parse_scene, parse_toml, read_scene_file
+from .parse import parse_randomize, parse_scene, parse_toml, read_scene_file
 from .scene import Scene
 from .spec import SceneSpec
 
-__all__ = ["SCENE_PREFIX", "Scene", "SceneSpec", "load_scene", "make_scene", "scene_from_metadata", "shipped_scenes"]
+__all__ = [
+    "SCENE_PREFIX",
+    "Scene",
+    "SceneSpec",
+    "load_scene",
+    "make_scene",
+    "randomized_scene",
+    "scene_from_metadata",
+    "shipped_scenes",
+]
 
 
 def shipped_scenes() -> dict[str, Path]:
@@ -174,3 +183,36 @@ def _recorded_scene_file(scene: dict[str, Any], text: str) -> bool:
             return stat.S_ISREG(os.fstat(fd).st_mode) and stream.read(len(text.encode()) + 1) == text.encode()
     except OSError:
         return False
+
+
+def randomized_scene(system: Any, randomize: Any, where: str) -> tuple[Any, Any]:
+    """What a batch or an environment draws its rows' or episodes' parameters from (rollout's and the gym
+    environments' `randomize`): (the system to run, its Randomizer or None).
+
+    Args:
+        system: a Robot or a Scene.
+        randomize: None (the scene's own [randomize] table, if it has one), False (nothing drawn), or a dict in the
+            [randomize] table's form: the scene with it in place of its own.
+        where: the caller's name, for messages ("rollout").
+
+    Raises:
+        InvalidArgumentError: randomize is none of those, or names what the scene does not have (one line).
+    """
+    if randomize is None or randomize is False:
+        return system, getattr(system, "randomizer", None) if randomize is None else None
+    if not isinstance(system, Scene):
+        raise InvalidArgumentError(
+            f"randomize draws a scene's parameters: the system must be a Scene (load_scene, make_scene), got a "
+            f"{type(system).__name__}"
+        )
+    if not isinstance(randomize, dict):
+        raise InvalidArgumentError(
+            "randomize must be None (the scene's own [randomize]), False (none) or a dict in the [randomize] "
+            f"table's form ({{'seed': 0, 'parameter': [{{...}}]}}), got {type(randomize).__name__}"
+        )
+    try:
+        spec = parse_randomize(randomize, where)
+        scene = Scene(dataclasses.replace(system.spec, randomize=spec, parameters=None), robot=system.full_robot)
+    except SceneError as exc:
+        raise InvalidArgumentError(str(exc)) from None
+    return scene, scene.randomizer
