@@ -47,6 +47,20 @@ def cases() -> dict[str, tuple[ms.Scene, ms.Scene, dict[str, Any], Any]]:
     }
 
 
+def per_state_step(system: ms.Scene, control: Any, settings: dict[str, Any], args: Any) -> tuple[float, str]:
+    """One rollout of `system` from its initial state, timed whole (CPU): µs per state-step, and its kernel."""
+    Q, V = np.tile(system.q0, (args.rows, 1)), np.tile(system.v0, (args.rows, 1))
+    controller = control(system)
+    start = time.process_time()
+    batch = ms.rollout(
+        system, Q, V, duration=args.duration, dt=1e-3, controller=controller, num_threads=args.threads,
+        progress=False, **settings,
+    )  # fmt: skip
+    spent = time.process_time() - start
+    assert batch.completed.all(), batch.summary()
+    return spent / int(np.sum(batch.stats["steps"])) * 1e6, batch.metadata["kernel"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", type=int, default=64)
@@ -54,38 +68,24 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=1.0)
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
-    B, dt = args.rows, 1e-3
     for name, (plain, random, settings, control) in cases().items():
-        Q, V = np.tile(plain.q0, (B, 1)), np.tile(plain.v0, (B, 1))
-
-        def run(system: ms.Scene) -> tuple[float, str]:
-            controller = control(system)
-            start = time.process_time()
-            batch = ms.rollout(
-                system, Q, V, duration=args.duration, dt=dt, controller=controller, num_threads=args.threads,
-                progress=False, **settings,
-            )  # fmt: skip
-            spent = time.process_time() - start
-            assert batch.completed.all(), batch.summary()
-            return spent / int(np.sum(batch.stats["steps"])) * 1e6, batch.metadata["kernel"]
-
-        run(plain), run(random)  # warm: imports, caches
+        per_state_step(plain, control, settings, args), per_state_step(random, control, settings, args)  # warm
         times: dict[str, list[float]] = {"declared": [], "randomised": []}
         kernels = set()
         for r in range(args.rounds):
             order = ("declared", "randomised") if r % 2 == 0 else ("randomised", "declared")
             for which in order:
-                us, kernel = run(plain if which == "declared" else random)
+                us, kernel = per_state_step(plain if which == "declared" else random, control, settings, args)
                 times[which].append(us)
                 kernels.add(kernel)
         start = time.process_time()
-        for b in range(B):
+        for b in range(args.rows):
             random.with_parameters(random.draw_parameters(b))
-        setup = (time.process_time() - start) / B * 1e3
+        setup = (time.process_time() - start) / args.rows * 1e3
         declared, randomised = statistics.median(times["declared"]), statistics.median(times["randomised"])
         print(
-            f"{name}: {B} rows x {args.duration:g} s, {', '.join(sorted(kernels))} kernel: declared {declared:.3f} "
-            f"us per state-step, randomised {randomised:.3f} (median of {args.rounds}); ratio "
+            f"{name}: {args.rows} rows x {args.duration:g} s, {', '.join(sorted(kernels))} kernel: declared "
+            f"{declared:.3f} us per state-step, randomised {randomised:.3f} (medians of {args.rounds}); ratio "
             f"{randomised / declared:.3f}; drawing and building one row's scene: {setup:.2f} ms"
         )
 

@@ -153,6 +153,7 @@ ROWS = [
             "backend": (42,),
             "num_threads": WHOLE,
             "chunk_size": WHOLE,
+            "randomize": ("yes", 42, [{"name": "mass"}]),  # a robot: there is no scene to draw
         },
     ),
     Row(
@@ -500,6 +501,7 @@ ROWS = [
             "initial_q": ARRAY[:3],
             "reset_noise_q": NUMBER,
             "failure_reward": NUMBER[:2],
+            "randomize": ("yes", 42),
         },
     ),
     Row(

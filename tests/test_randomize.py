@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import assert_same_run, both, on_kernel
 from scipy import stats
 
 import multibody_sim as ms
@@ -18,8 +19,6 @@ from multibody_sim.exceptions import InvalidArgumentError, SceneError
 from multibody_sim.scenes import shipped_scenes
 from multibody_sim.scenes.parse import parse_toml
 from multibody_sim.trajectory import Trajectory
-
-from conftest import assert_same_run, both, on_kernel
 
 needs_native = pytest.mark.skipif(
     not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
@@ -215,7 +214,9 @@ def draws(distribution: str, arguments: list[float], n: int, *, scale: bool = Fa
         **shipped("sliding_box"),
         "randomize": {
             "seed": 11,
-            "parameter": [{"name": "ground_friction", "distribution": distribution, ("scale" if scale else "value"): arguments}],
+            "parameter": [
+                {"name": "ground_friction", "distribution": distribution, ("scale" if scale else "value"): arguments}
+            ],
         },
     }
     scene = ms.make_scene(**tables)
@@ -268,11 +269,11 @@ def test_rows_draw_independently_and_reproducibly() -> None:
 # ---- drawn values act as physics says ----------------------------------------------------------------------------
 def test_a_drawn_mass_gives_the_acceleration_newton_says() -> None:
     """A box pushed by F from rest: semi-implicit Euler's positions are exactly x_N = (F/m) h² N (N + 1) / 2."""
-    scene = ms.make_scene(
-        **PUSHED_BOX, randomize={"seed": 2, "parameter": [uniform("mass", 0.5, 4.0, bodies="box")]}
-    )
+    scene = ms.make_scene(**PUSHED_BOX, randomize={"seed": 2, "parameter": [uniform("mass", 0.5, 4.0, bodies="box")]})
     B, h, N = 6, 1e-3, 200
-    batch = ms.rollout(scene, np.tile(scene.q0, (B, 1)), np.zeros((B, 6)), duration=N * h, dt=h, integrator="timestepping")
+    batch = ms.rollout(
+        scene, np.tile(scene.q0, (B, 1)), np.zeros((B, 6)), duration=N * h, dt=h, integrator="timestepping"
+    )
     masses = [p["mass"]["box"] for p in batch.metadata["parameters"]]
     assert len(set(masses)) == B and all(0.5 <= m <= 4.0 for m in masses)
     for b, m in enumerate(masses):
@@ -343,7 +344,9 @@ def test_drawn_values_are_the_values_declared() -> None:
     m = p["payload_mass"]["0"]
     declared = ms.make_scene(
         robot={"source": "ur5"},
-        payload=[{"frame": "tool0", "mass": m, "com": [0, 0, 0.05], "inertia": [1e-3 * m, 1e-3 * m, 2e-3 * m, 0, 0, 0]}],
+        payload=[
+            {"frame": "tool0", "mass": m, "com": [0, 0, 0.05], "inertia": [1e-3 * m, 1e-3 * m, 2e-3 * m, 0, 0, 0]}
+        ],
         joints={
             "shoulder_lift_joint": {"damping": 0.5},
             "elbow_joint": {"damping": p["damping"]["elbow_joint"]},
@@ -500,7 +503,13 @@ def test_each_gym_episode_draws_its_own_scene() -> None:
     gym = pytest.importorskip("multibody_sim.gym")
     tables = {**shipped("sliding_box"), "randomize": {"seed": 0, "parameter": [uniform("ground_friction", 0.5, 1.0)]}}
     scene = ms.make_scene(**tables)
-    settings = {"reward": lambda q, v, tau: 0.0, "dt": 1e-3, "control_dt": 0.01, "reset_noise_q": 0.0, "reset_noise_v": 0.0}
+    settings = {
+        "reward": lambda q, v, tau: 0.0,
+        "dt": 1e-3,
+        "control_dt": 0.01,
+        "reset_noise_q": 0.0,
+        "reset_noise_v": 0.0,
+    }
     env = gym.MultibodyEnv(scene, **settings)
     _, first = env.reset(seed=4)
     _, second = env.reset()

@@ -79,6 +79,10 @@ PRINTS: dict[str, list[str]] = {
         r"^\d+ steps, \d+ rejected, 101 samples$",  # 1 s every 10 ms
     ],
     "study = ms.work_precision(": [r"^reference: dop853", r"^rk4 +4 "],
+    'box = ms.load_scene("sliding_box")  # 1 kg': [
+        rf"^row 3: mass {FLOAT} kg, μ {FLOAT}: slid {FLOAT} m, v0²/\(2μg\) = {FLOAT} m$",
+        r"^row 3 re-run alone: True$",
+    ],
     'solo = ms.load_robot("solo12")': [
         r"^\('standing', 'straight_standing'\) standing$",
         rf"^{FLOAT}$",
@@ -137,6 +141,9 @@ def test_readme_scene_example_runs(index: int, tmp_path: Path) -> None:
     if "[[actuator]]" in TOML_BLOCKS[index]:  # the catalog's 12 motors, the calves as servos
         assert len(scene.actuators.items) == 12 and traj.ctrl is not None
         assert [a.kind for a in scene.actuators.items].count("position") == 4
+    elif "[randomize]" in TOML_BLOCKS[index]:  # the box's mass and the ground's friction, drawn per row
+        assert [table.name for table, _, _ in scene.randomizer.tables] == ["mass", "ground_friction"]
+        assert 0.8 <= scene.draw_parameters(0)["mass"]["box"] <= 1.25
     else:
         assert scene.nv == 7 and "force:push" in traj.ledger  # the locks and the force it declares are in force
 

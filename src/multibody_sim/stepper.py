@@ -555,7 +555,12 @@ class BatchStepper:
         self._alone: list[Stepper] | None = None
         # each row's own system (a randomised scene's rows: reset(..., systems=)), or None: `system` for every row
         self._systems: list[Any] | None = None
-        self._stepper_settings = {"dt": dt, "integrator": method, "control_dt": control_dt, "check_energy": check_energy}
+        self._stepper_settings = {
+            "dt": dt,
+            "integrator": method,
+            "control_dt": control_dt,
+            "check_energy": check_energy,
+        }
         if method.adaptive or not _time_invariant(system):
             self._alone = [self._row_stepper(b, system, q, v) for b, (q, v) in enumerate(zip(Q, V, strict=True))]
         self._sensing = (
@@ -580,9 +585,7 @@ class BatchStepper:
         """Row b's own Stepper (adaptive methods, time-varying scenes) on `system`, at (q, v)."""
         stepper = Stepper(system, q0=q, v0=v, **self._stepper_settings, **self.options)  # type: ignore[arg-type]
         if stepper._sensing is not None:  # row b's sensors draw from their seeds + b
-            stepper._sensing = run_sensing(
-                system, self.integrator, stepper.dt, stepper._interval_steps, np.array([b])
-            )
+            stepper._sensing = run_sensing(system, self.integrator, stepper.dt, stepper._interval_steps, np.array([b]))
             stepper.reset()
         return stepper
 
@@ -671,8 +674,10 @@ class BatchStepper:
             raise InvalidArgumentError(f"systems must hold one scene per reset row ({len(index)}), got {len(systems)}")
         elements = self.system.ledger_elements
         for row in systems:
-            if not isinstance(row, Robot) or (row.nq, row.nv) != (self.system.nq, self.system.nv) or (
-                row.ledger_elements != elements
+            if (
+                not isinstance(row, Robot)
+                or (row.nq, row.nv) != (self.system.nq, self.system.nv)
+                or (row.ledger_elements != elements)
             ):
                 raise InvalidArgumentError(
                     "systems must be the stepper's scene with other parameter values (its with_parameters()), got "

@@ -88,7 +88,8 @@ class RowKernel:
             method, system_of = self.method, self.system_of
             q, v, flows, solver, t = self.now
             solver = [
-                method.restart(system_of(j), qj, vj, sj) for j, (qj, vj, sj) in enumerate(zip(q, v, solver, strict=True))
+                method.restart(system_of(j), qj, vj, sj)
+                for j, (qj, vj, sj) in enumerate(zip(q, v, solver, strict=True))
             ]
             self.now = RowState(q, v, flows, solver, t)
 

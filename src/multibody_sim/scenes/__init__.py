@@ -27,16 +27,7 @@ from .parse import parse_randomize, parse_scene, parse_toml, read_scene_file
 from .scene import Scene
 from .spec import SceneSpec
 
-__all__ = [
-    "SCENE_PREFIX",
-    "Scene",
-    "SceneSpec",
-    "load_scene",
-    "make_scene",
-    "randomized_scene",
-    "scene_from_metadata",
-    "shipped_scenes",
-]
+__all__ = ["SCENE_PREFIX", "Scene", "SceneSpec", "load_scene", "make_scene", "scene_from_metadata", "shipped_scenes"]
 
 
 def shipped_scenes() -> dict[str, Path]:

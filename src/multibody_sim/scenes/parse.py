@@ -42,8 +42,8 @@ from .spec import (
     CONTACT_PAIRS,
     CONTACT_SOLVERS,
     DEFAULT_FRICTION_VELOCITY,
-    DISTRIBUTIONS,
     DEFAULT_GROUND_FRICTION,
+    DISTRIBUTIONS,
     FORCE_KEYS,
     GEOMETRY_KEYS,
     GROUND_KEYS,
@@ -911,9 +911,12 @@ class _Parser:
             if key in table and key != quantity.target:
                 takes = f"takes {quantity.target} = ..." if quantity.target else "applies to the whole scene"
                 self.fail(f"{path}.{key}", f"'{name}' {takes}, not {key}")
-        targets = self.targets(table.get(quantity.target, "*"), f"{path}.{quantity.target}", quantity.target)
+        target = quantity.target
+        targets = self.targets(table.get(target, "*"), f"{path}.{target}", target) if target is not None else ()
         distribution = self.choice(
-            self.required(table, "distribution", path, "uniform [low, high], normal [mean, std] or loguniform [low, high]"),
+            self.required(
+                table, "distribution", path, "uniform [low, high], normal [mean, std] or loguniform [low, high]"
+            ),
             f"{path}.distribution",
             DISTRIBUTIONS,
         )
@@ -955,11 +958,11 @@ class _Parser:
             shared=self.flag(table.get("shared", False), f"{path}.shared"),
         )
 
-    def targets(self, value: Any, path: str, kind: str | None) -> tuple[Any, ...]:
+    def targets(self, value: Any, path: str, kind: str) -> tuple[str, ...]:
         """What a parameter applies to: names or glob patterns (bodies, joints) or indices (payloads, kept as
-        strings); "*" is everything. () for a parameter of the whole scene."""
-        if kind is None:
-            return ()
+        strings); "*" is everything."""
+        if kind == "payloads" and isinstance(value, numbers.Integral) and not isinstance(value, bool):
+            value = [value]
         if isinstance(value, str):
             return (self.string(value, path),)
         if not isinstance(value, (list, tuple)) or not value:
@@ -968,7 +971,9 @@ class _Parser:
             indices = []
             for i, item in enumerate(value):
                 if isinstance(item, (bool, np.bool_)) or not isinstance(item, numbers.Integral) or item < 0:
-                    self.fail(f"{path}[{i}]", f"must be a payload's index (0 is the first [[payload]]), got {_describe(item)}")
+                    self.fail(
+                        f"{path}[{i}]", f"must be a payload's index (0 is the first [[payload]]), got {_describe(item)}"
+                    )
                 indices.append(str(int(item)))
             return tuple(indices)
         return tuple(self.string(item, f"{path}[{i}]") for i, item in enumerate(value))

@@ -314,9 +314,10 @@ class Scene(Robot):
                 outside its quantity's range.
         """
         if parameters is not None:
-            nominal = self.nominal_parameters or Scene(
-                dataclasses.replace(self.spec, parameters={}), robot=self.full_robot
-            ).nominal_parameters
+            nominal = (
+                self.nominal_parameters
+                or Scene(dataclasses.replace(self.spec, parameters={}), robot=self.full_robot).nominal_parameters
+            )
             parameters = check_parameters(parameters, nominal)
         return Scene(dataclasses.replace(self.spec, parameters=parameters), robot=self.full_robot)
 

@@ -160,8 +160,16 @@ QUANTITIES = {
     "no_load_speed": Quantity("joints", 0.0, math.inf, True, "rad/s or m/s", "an actuator's no-load speed"),
 }
 # The actuator constants among them (scenes/actuators.py's Actuator fields of the same names).
-ACTUATOR_QUANTITIES = ("kp", "kv", "gear", "rotor_inertia", "effort_limit", "velocity_limit", "stall_torque",
-                       "no_load_speed")
+ACTUATOR_QUANTITIES = (
+    "kp",
+    "kv",
+    "gear",
+    "rotor_inertia",
+    "effort_limit",
+    "velocity_limit",
+    "stall_torque",
+    "no_load_speed",
+)
 TARGET_KEYS = ("bodies", "joints", "payloads")
 
 
