@@ -532,3 +532,45 @@ def test_each_gym_episode_draws_its_own_scene() -> None:
     np.testing.assert_allclose(observations[:, 0], 2.0**2 / (2 * drawn * 9.81), atol=2e-3)
     plain = gym.MultibodyEnv(scene, randomize=False, **settings)
     assert "parameters" not in plain.reset(seed=4)[1]
+
+
+def test_a_wrist_force_torque_sensor_weighs_the_drawn_masses() -> None:
+    """panda held at rest by its own gravity torque, every body's mass x s (one draw) and a drawn payload m at the
+    hand: a force-torque sensor at the hand's mounting (inside link 7's body, welded to it: it sums the links after
+    it, the finger joints' bodies and the payloads there) reads (s (m_hand + 2 m_finger) + m) g, the link masses
+    read from the URDF file."""
+    import pinocchio as pin
+
+    scene = ms.make_scene(
+        robot={"source": "panda"},
+        payload=[{"frame": "panda_hand_tcp", "mass": 1.0, "com": [0.08, 0.0, 0.0]}],
+        sensor=[
+            {"name": "wrist", "kind": "force_torque", "frame": "panda_hand_joint"},
+            {"name": "mount", "kind": "frame_pose", "frame": "panda_hand_joint"},
+        ],
+        randomize={
+            "parameter": [
+                {**uniform("mass", 0.7, 1.4, scale=True), "shared": True},
+                uniform("payload_mass", 0.5, 3.0),
+            ]
+        },
+    )
+    import xml.etree.ElementTree as ET
+
+    links = ET.parse(scene.full_robot.source["urdf_path"]).getroot().iter("link")
+    masses = {link.get("name"): float(link.find("inertial/mass").get("value")) for link in links}  # type: ignore[union-attr]
+    distal = masses["panda_hand"] + masses["panda_leftfinger"] + masses["panda_rightfinger"]
+    nominal = scene.nominal_parameters["mass"]
+    for b in range(2):
+        drawn = scene.draw_parameters(b)
+        s = drawn["mass"]["panda_leftfinger"] / nominal["panda_leftfinger"]
+        variant = scene.with_parameters(drawn)
+        q = variant.q0
+        gravity = pin.computeGeneralizedGravity(variant.model, variant.data, q).copy()
+        traj = ms.simulate(
+            variant, q, np.zeros(variant.nv), duration=0.02, dt=1e-3, controller=lambda t, q, v, g=gravity: g
+        )
+        x, y, z, w = traj.sensors["mount"][-1, 3:]
+        force = pin.Quaternion(w, x, y, z).matrix() @ traj.sensors["wrist"][-1, :3]
+        expected = (s * distal + drawn["payload_mass"]["0"]) * 9.81
+        np.testing.assert_allclose(force, [0.0, 0.0, expected], rtol=1e-9, atol=1e-9)

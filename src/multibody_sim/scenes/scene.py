@@ -92,9 +92,10 @@ class Scene(Robot):
         _apply_base_pose(model, spec)
         if spec.gravity is not None:
             model.gravity.linear = np.array(spec.gravity, dtype=float)
-        for i, payload in enumerate(spec.payloads):
+        payloads = list(spec.payloads)  # with their drawn masses
+        for i, payload in enumerate(payloads):
             if values is not None:
-                payload = _payload_mass(payload, values.value("payload_mass", str(i), payload.mass))
+                payloads[i] = payload = _payload_mass(payload, values.value("payload_mass", str(i), payload.mass))
             _add_payload(model, payload, f"{where}: payload[{i}]")
         friction = np.array(model.friction, dtype=float) if robot_spec.damping else np.zeros(model.nv)
         damping = np.array(model.damping, dtype=float) if robot_spec.damping else np.zeros(model.nv)
@@ -246,7 +247,7 @@ class Scene(Robot):
             # second (talos_standing's grippers, held at their stops: 7.5e-15 rad after 1 s), which is no violation.
             for jid in {*self.contact.limited_joints, *(jid for jid, _ in exact_friction)}:
                 self.limit_drift[model.joints[jid].idx_q] = HELD_DRIFT_RATE
-        self.sensors = _sensors(self, spec)
+        self.sensors = _sensors(self, spec, payloads)
         self._flow_elements = list(super().ledger_elements)
         self._n_robot_flows = len(self._flow_elements)
         if self.actuators is not None:
@@ -637,7 +638,9 @@ def _actuators(model: pin.Model, spec: SceneSpec) -> list[Any]:
 def _body_masses(model: pin.Model, values: Nominals) -> None:
     """Each moving body's mass (its rotational inertia in proportion) and a factor on its rotational inertia, as
     `values` gives them, on the robot's model before payloads and locking. A body is the rigid body a joint moves,
-    named by its link (the links welded to it are part of it)."""
+    named by its link (the links welded to it are part of it); the links' own inertias (their frames', which a
+    force-torque sensor inside the body sums) scale alike: each link's mass by the body's ratio, its rotational
+    inertia about its own centre by the same factor."""
     names = _body_names(model)
     for jid in range(1, model.njoints):
         body = model.inertias[jid]
@@ -647,7 +650,14 @@ def _body_masses(model: pin.Model, values: Nominals) -> None:
         mass = values.value("mass", name, float(body.mass))
         factor = values.value("inertia", name, 1.0)
         if mass != body.mass or factor != 1.0:
-            model.inertias[jid] = pin.Inertia(mass, body.lever, body.inertia * (mass / body.mass * factor))
+            ratio = mass / body.mass
+            model.inertias[jid] = pin.Inertia(mass, body.lever, body.inertia * (ratio * factor))
+            for fid in range(model.nframes):
+                frame = model.frames[fid]
+                if frame.parentJoint == jid and frame.inertia.mass > 0.0:
+                    link = frame.inertia
+                    frame.inertia = pin.Inertia(link.mass * ratio, link.lever, link.inertia * (ratio * factor))
+                    model.frames[fid] = frame
 
 
 def _body_names(model: pin.Model) -> dict[int, str]:
@@ -827,7 +837,7 @@ def _joint_id(model: pin.Model, name: str, key: str, floating: bool) -> int:
     return model.getJointId(name)
 
 
-def _sensors(scene: Scene, spec: SceneSpec) -> Any:
+def _sensors(scene: Scene, spec: SceneSpec, declared: list[PayloadSpec]) -> Any:
     """The scene's sensors placed on its model (sensors.build_sensors, with this module's name checks), or None."""
     if not spec.sensors:
         return None
@@ -836,7 +846,7 @@ def _sensors(scene: Scene, spec: SceneSpec) -> Any:
     where = spec.source
     payloads = [
         (frame_id(scene.model, p.frame, f"{where}: payload[{i}].frame", moving=True), _payload_inertia(p))
-        for i, p in enumerate(spec.payloads)
+        for i, p in enumerate(declared)
     ]
     return build_sensors(scene, spec, frame_id=frame_id, joint_id=_joint_id, payloads=payloads)
 
