@@ -159,17 +159,9 @@ QUANTITIES = {
     "stall_torque": Quantity("joints", 0.0, math.inf, True, "N·m or N", "an actuator's stall torque"),
     "no_load_speed": Quantity("joints", 0.0, math.inf, True, "rad/s or m/s", "an actuator's no-load speed"),
 }
-# The actuator constants among them (scenes/actuators.py's Actuator fields of the same names).
-ACTUATOR_QUANTITIES = (
-    "kp",
-    "kv",
-    "gear",
-    "rotor_inertia",
-    "effort_limit",
-    "velocity_limit",
-    "stall_torque",
-    "no_load_speed",
-)
+# The actuator constants among them: an [[actuator]] table's keys after joints and kind (scenes/actuators.py's
+# Actuator fields of the same names).
+ACTUATOR_QUANTITIES = ACTUATOR_KEYS[2:]
 TARGET_KEYS = ("bodies", "joints", "payloads")
 
 
