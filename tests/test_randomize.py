@@ -451,6 +451,74 @@ def test_a_randomised_contact_row_re_run_alone_is_bit_for_bit(kernel: str, monke
     assert not np.array_equal(batch.q[0], batch.q[1])
 
 
+# ur5: position servos on the shoulder and elbow, torque motors on the wrists; their constants drawn per row.
+RANDOM_ACTUATORS = {
+    "robot": {"source": "ur5"},
+    "gravity": [0.0, 0.0, 0.0],
+    "actuator": [
+        {"joints": "*", "kind": "torque", "gear": 50.0, "rotor_inertia": 2e-5},
+        {"joints": ["shoulder_*", "elbow_joint"], "kind": "position", "kp": 400.0, "kv": 20.0},
+    ],
+    "randomize": {
+        "seed": 2,
+        "parameter": [
+            uniform("kp", 0.5, 2.0, scale=True, joints=["shoulder_*", "elbow_joint"]),
+            uniform("kv", 0.5, 2.0, scale=True, joints=["shoulder_*", "elbow_joint"]),
+            uniform("gear", 30.0, 80.0),
+            uniform("rotor_inertia", 1e-5, 4e-5),
+            uniform("effort_limit", 2.0, 5.0, joints="wrist_*"),
+        ],
+    },
+}
+
+
+@pytest.mark.parametrize("integrator", ["semi_implicit_euler", "rk4"])
+@pytest.mark.parametrize("kernel", ["python", pytest.param("native", marks=needs_native)])
+def test_randomised_actuator_constants_reach_each_row(
+    kernel: str, integrator: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Servo gains, gears, rotor inertias and effort limits drawn per row: at rest at q0 a position servo delivers
+    -kp q0 (its target 0), a wrist motor commanded 100 N·m its drawn effort limit; each row re-run alone is bit for
+    bit (semi-implicit Euler takes the servos inside the step on the row's own armature gear² I)."""
+    scene = ms.make_scene(**RANDOM_ACTUATORS)
+    B, q0 = 4, np.array([0.1, -0.15, 0.2, 0.3, -0.2, 0.1])
+    command = np.array([0.0, 0.0, 0.0, 100.0, 100.0, 100.0])
+    settings = {"duration": 0.02, "dt": 1e-3, "integrator": integrator, "controller": lambda t, q, v: command}
+
+    def run() -> tuple[Any, list[Trajectory]]:
+        batch = ms.rollout(scene, np.tile(q0, (B, 1)), np.zeros((B, 6)), num_threads=2, **settings)
+        return batch, [rerun(batch, scene, b, **settings) for b in range(B)]
+
+    batch, alone = on_kernel(kernel == "native", run, monkeypatch)
+    assert batch.metadata["kernel"] == ("native" if kernel == "native" else "python (row)")
+    names = [item.joint for item in scene.actuators.items]
+    for b in range(B):
+        element, p = batch.element(b), batch.metadata["parameters"][b]
+        assert_same_run(element, alone[b])
+        kp = np.array([p["kp"][name] for name in names[:3]])
+        np.testing.assert_allclose(element.tau[0, :3], -kp * q0[:3], rtol=1e-14)
+        np.testing.assert_array_equal(element.tau[0, 3:], [p["effort_limit"][name] for name in names[3:]])
+        armature = np.array([p["gear"][name] ** 2 * p["rotor_inertia"][name] for name in names])
+        np.testing.assert_allclose(scene.with_parameters(p).model.armature, armature, rtol=1e-14)
+    assert len({p["kp"]["shoulder_pan_joint"] for p in batch.metadata["parameters"]}) == B
+
+
+@needs_native
+def test_randomised_actuator_rows_are_the_same_on_both_kernels(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Wrist commands of 3.5 N·m: inside the declared effort limits, outside some rows' drawn ones (2 to 5 N·m), so
+    rows saturate differently (counted per row on both kernels)."""
+    scene = ms.make_scene(**RANDOM_ACTUATORS)
+    B = 4
+    taus = np.tile([0.2, -0.1, 0.3, 3.5, -3.5, 3.5], (B, 30, 1))
+    settings = {"duration": 0.03, "dt": 1e-3, "integrator": "semi_implicit_euler"}
+    nat, py = both(lambda: ms.rollout(scene, np.zeros((B, 6)), np.zeros((B, 6)), taus=taus, **settings), monkeypatch)
+    assert nat.metadata["kernel"] == "native" and py.metadata["kernel"] == "python (row)"
+    for b in range(B):
+        assert_same_run(nat.element(b), py.element(b))
+    assert not np.array_equal(nat.q[0], nat.q[1])
+    assert 0 < np.count_nonzero(nat.stats["saturated_controls"]) < B
+
+
 def test_a_saved_row_keeps_its_parameters(tmp_path: Any) -> None:
     scene = ms.make_scene(**PUSHED_BOX, randomize={"parameter": [uniform("mass", 0.5, 4.0)]})
     settings = {"duration": 0.02, "dt": 1e-3, "integrator": "timestepping"}

@@ -422,7 +422,8 @@ namespace multibody_sim
     for (const RowPhysics & r : rows)
     {
       const pinocchio::Model * m = r.model ? &r.model->model : nullptr;
-      if (!m || m->nq != model_.nq || m->nv != model_.nv || m->njoints != model_.njoints || m->parents != model_.parents)
+      if (!m || m->nq != model_.nq || m->nv != model_.nv || m->njoints != model_.njoints
+          || m->parents != model_.parents)
         throw std::invalid_argument("set_rows: a row's model is not the engine's robot");
       if (r.damping.size() != model_.nv || (!damped_ && (r.damping.array() != 0.0).any()))
         throw std::invalid_argument("set_rows: a row's damping disagrees with the engine's (size, or damped)");

@@ -192,16 +192,16 @@ namespace multibody_sim
   };
 
   // One row's own physics (a randomised scene's row, Scene.with_parameters): its model (masses, inertias, armature),
-  // joint damping, force elements (friction coefficients), contact scene (coefficients) and actuators, with the engine's
-  // structure (the same joints, elements, shapes and pairs; other values). The built-in controllers keep the
-  // engine's model: a controller was made for the scene as declared.
+  // joint damping, force elements (friction coefficients), contact scene (coefficients) and actuators (gains, limits,
+  // curves), with the engine's structure (the same joints, elements, shapes, pairs and actuator kinds; other values).
+  // The built-in controllers keep the engine's model: a controller was made for the scene as declared.
   struct RowPhysics  // _native.RowPhysics
   {
     std::shared_ptr<NativeModel> model;
     Vec damping;
     std::shared_ptr<SceneForces> scene;     // null when the engine has none
     std::shared_ptr<ContactScene> contact;  // null when the engine has none
-    std::shared_ptr<SceneActuators> actuators;  // null when the engine has none (drawn gains, limits, curves)
+    std::shared_ptr<SceneActuators> actuators;  // null when the engine has none
   };
 
   struct Rows;    // one thread's rows, their states and workspace (methods.hpp)
@@ -292,9 +292,9 @@ namespace multibody_sim
     void set_sensors(std::shared_ptr<const Sensors> sensors, int64_t every, const std::vector<int64_t> & done);
     // The ticks since the last call: times (n,), run rows (n,), measurements (n, width), each row's in time order.
     std::tuple<Vec, std::vector<int64_t>, RowMatrix> take_ticks();
-    // Each run row's own physics (after set_scene and set_contact, before the first advance()): rows step on their
-    // own model, damping, elements and contact coefficients. Throws invalid_argument naming what disagrees with the
-    // engine's structure.
+    // Each run row's own physics (after set_actuators, set_scene and set_contact, before the first advance()): rows
+    // step on their own model, damping, elements, contact coefficients and actuators. Throws invalid_argument naming
+    // what disagrees with the engine's structure.
     void set_rows(const std::vector<RowPhysics> & rows);
     // Evaluations each run row made beyond the run's count (contact steps cost two), for rows `rows`.
     std::vector<int64_t> extra_evaluations(const std::vector<int64_t> & rows) const;

@@ -48,6 +48,7 @@ namespace multibody_sim
         {
           stamp(store, i, rows[j], st.t);
           note_contacts(i, j);
+          select(j);  // the row's actuators give its delivered torques
           if (defer)
           {
             const int64_t at = store.at(i, rows[j]);
@@ -56,10 +57,7 @@ namespace multibody_sim
             pending_store = &store;
           }
           else
-          {
-            select(j);
             write(store, i, rows[j], q[j], v[j], tau[j], flows[j].data());
-          }
         }
       advance_count();
       st.recorded = st.t;

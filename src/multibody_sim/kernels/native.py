@@ -265,7 +265,11 @@ class NativeKernel:
 
     def control_natively(self, torques: Any, settings: Any, saturation: Any, calls: np.ndarray) -> bool:
         """Hand the run's torques to the engine when it renders them (native_policies): it then computes them at its
-        own control instants, counted into `calls` and `saturation`'s arrays. Returns whether it does."""
+        own control instants, counted into `calls` and `saturation`'s arrays. Returns whether it does. Randomised rows
+        whose command bounds differ (drawn effort limits) are controlled from Python: the engine's controllers clip
+        at one (nv,) pair of bounds."""
+        if saturation.low is not None and saturation.low.ndim == 2:
+            return False
         native_torques = native_policies(self.system, torques, settings)
         if native_torques is None:
             return False
