@@ -642,3 +642,31 @@ def test_a_wrist_force_torque_sensor_weighs_the_drawn_masses() -> None:
         force = pin.Quaternion(w, x, y, z).matrix() @ traj.sensors["wrist"][-1, :3]
         expected = (s * distal + drawn["payload_mass"]["0"]) * 9.81
         np.testing.assert_allclose(force, [0.0, 0.0, expected], rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("kernel", ["python", pytest.param("native", marks=needs_native)])
+def test_randomised_rows_with_sensors_read_their_own_masses(kernel: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rollout's rows measure with their own scenes' sensors (a force-torque sensor's cut masses are drawn):
+    each row's readings equal its re-run alone, bit for bit, and the rows' readings differ. Natively, such rows run
+    on the Python kernel (the engine measures with one set of sensors), and say why."""
+    scene = ms.make_scene(
+        robot={"source": "ur5"},
+        payload=[{"frame": "tool0", "mass": 1.0, "com": [0, 0, 0.05], "inertia": [1e-3, 1e-3, 2e-3, 0, 0, 0]}],
+        sensor=[{"name": "wrist", "kind": "force_torque", "frame": "tool0"}],
+        randomize={"parameter": [uniform("payload_mass", 0.5, 3.0), uniform("mass", 0.9, 1.1, scale=True)]},
+    )
+    B = 3
+    settings = {"duration": 0.02, "dt": 1e-3, "integrator": "rk4", "controller": ms.PD(scene, q_ref=scene.q0, kp=50.0)}
+
+    def run() -> tuple[Any, list[Trajectory]]:
+        batch = ms.rollout(scene, np.tile(scene.q0, (B, 1)), np.zeros((B, 6)), **settings)
+        return batch, [rerun(batch, scene, b, **settings) for b in range(B)]
+
+    batch, alone = on_kernel(kernel == "native", run, monkeypatch)
+    assert batch.metadata["kernel"] == "python (row)"
+    if kernel == "native":
+        assert "randomised rows with sensors" in batch.metadata["why_not_native"]
+    for b in range(B):
+        assert_same_run(batch.element(b), alone[b])
+        np.testing.assert_array_equal(batch.element(b).sensors["wrist"], alone[b].sensors["wrist"])
+    assert not np.array_equal(batch.element(0).sensors["wrist"][0], batch.element(1).sensors["wrist"][0])
