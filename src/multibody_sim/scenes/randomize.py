@@ -17,6 +17,7 @@ quantity's range (a negative mass, a restitution above 1) is drawn again (a trun
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
 import math
 import numbers
@@ -24,10 +25,11 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 
 from ..exceptions import InvalidArgumentError, SceneError
-from ..text import printable
-from .spec import QUANTITIES, ParameterSpec, RandomizeSpec
+from ..text import printable, safe_name
+from .spec import ACTUATOR_QUANTITIES, QUANTITIES, ContactSpec, ParameterSpec, PayloadSpec, RandomizeSpec, SceneSpec
 
 # What one target of each kind is called in messages.
 _ONE = {"bodies": "body", "joints": "joint", "payloads": "payload"}
@@ -266,3 +268,93 @@ def _checked_value(name: str, target: Any, value: Any, quantity: Any) -> float:
             )
         )
     return x
+
+
+# ---- where the Scene applies the values (its constructor calls these) ---------------------------------------------
+def body_masses(model: pin.Model, values: Nominals) -> None:
+    """Each moving body's mass (its rotational inertia in proportion) and a factor on its rotational inertia, as
+    `values` gives them, on the robot's model before payloads and locking. A body is the rigid body a joint moves,
+    named by its link (the links welded to it are part of it); the links' own inertias (their frames', which a
+    force-torque sensor inside the body sums) scale alike: each link's mass by the body's ratio, its rotational
+    inertia about its own centre by the same factor."""
+    names = _body_names(model)
+    for jid in range(1, model.njoints):
+        body = model.inertias[jid]
+        if body.mass <= 0.0:  # nothing to scale
+            continue
+        name = names[jid]
+        mass = values.value("mass", name, float(body.mass))
+        factor = values.value("inertia", name, 1.0)
+        if mass != body.mass or factor != 1.0:
+            ratio = mass / body.mass
+            model.inertias[jid] = pin.Inertia(mass, body.lever, body.inertia * (ratio * factor))
+            for fid in range(model.nframes):
+                frame = model.frames[fid]
+                if frame.parentJoint == jid and frame.inertia.mass > 0.0:
+                    link = frame.inertia
+                    frame.inertia = pin.Inertia(link.mass * ratio, link.lever, link.inertia * (ratio * factor))
+                    model.frames[fid] = frame
+
+
+def _body_names(model: pin.Model) -> dict[int, str]:
+    """Each joint's body: the first body frame on it (its link), else the joint's own name."""
+    names: dict[int, str] = {}
+    for frame in model.frames:
+        if frame.type == pin.FrameType.BODY and frame.parentJoint > 0:
+            names.setdefault(int(frame.parentJoint), frame.name)
+    return {jid: names.get(jid, model.names[jid]) for jid in range(1, model.njoints)}
+
+
+def payload_mass(payload: PayloadSpec, mass: float) -> PayloadSpec:
+    """The payload with another mass, its inertia in proportion."""
+    if mass == payload.mass:
+        return payload
+    ratio = mass / payload.mass
+    return dataclasses.replace(payload, mass=mass, inertia=tuple(x * ratio for x in payload.inertia))  # type: ignore[arg-type]
+
+
+def actuator_constants(actuator: Any, values: Nominals) -> Any:
+    """An actuator with the constants `values` gives it. Each constant is a parameter only where the actuator
+    has it: kp on position servos, kv on servos, the limits where finite, the curve where declared."""
+    changed = {}
+    for name in ACTUATOR_QUANTITIES:
+        nominal = float(getattr(actuator, name))
+        if name == "kp" and actuator.kind != "position" or name == "kv" and actuator.kind == "torque":
+            continue
+        if not math.isfinite(nominal):  # no limit, no curve: a value would add one, and a line to the ledger
+            continue
+        value = values.value(name, actuator.joint, nominal)
+        if value != nominal:
+            changed[name] = value
+    return dataclasses.replace(actuator, **changed) if changed else actuator
+
+
+def contact_values(spec: SceneSpec, values: Nominals | None) -> SceneSpec:
+    """The scene with the ground's and the bodies' contact coefficients `values` gives."""
+    if values is None:
+        return spec
+    if spec.ground is not None:
+        ground = spec.ground
+        friction = values.value("ground_friction", None, ground.friction)
+        restitution = values.value("ground_restitution", None, ground.restitution)
+        spec = dataclasses.replace(spec, ground=dataclasses.replace(ground, friction=friction, restitution=restitution))
+    contact = spec.contact if spec.contact is not None else ContactSpec()
+    friction = values.value("body_friction", None, contact.body_friction)
+    restitution = values.value("body_restitution", None, contact.body_restitution)
+    if (friction, restitution) != (contact.body_friction, contact.body_restitution):
+        contact = dataclasses.replace(contact, body_friction=friction, body_restitution=restitution)
+        spec = dataclasses.replace(spec, contact=contact)
+    return spec
+
+
+def shown(parameters: dict[str, Any]) -> str:
+    """Parameter values in one line, a few per name."""
+    parts = []
+    for name, value in parameters.items():
+        if isinstance(value, dict):
+            items = list(value.items())
+            shown = ", ".join(f"{safe_name(str(k))} {v:.4g}" for k, v in items[:3])
+            parts.append(f"{name} {shown}" + (f", ... ({len(items)})" if len(items) > 3 else ""))
+        else:
+            parts.append(f"{name} {value:.4g}")
+    return "; ".join(parts)

@@ -25,8 +25,18 @@ from ..robot import Robot
 from ..text import safe_name
 from ..trajectory import Trajectory
 from .frames import frame_id
-from .randomize import Nominals, Randomizer, check_parameters, randomized
-from .spec import ACTUATOR_QUANTITIES, CONTACT_INTEGRATOR, ContactSpec, PayloadSpec, RobotSpec, SceneSpec
+from .randomize import (
+    Nominals,
+    Randomizer,
+    actuator_constants,
+    body_masses,
+    check_parameters,
+    contact_values,
+    payload_mass,
+    randomized,
+    shown,
+)
+from .spec import CONTACT_INTEGRATOR, PayloadSpec, RobotSpec, SceneSpec
 
 # How fast a coordinate held by the contact solve may drift [rad/s or m/s]: its velocity is solved to within the
 # solver's feasibility tolerance (absolute and relative TOLERANCE; talos_standing's held grippers reach |v| = 3.7e-12),
@@ -88,14 +98,14 @@ class Scene(Robot):
         self.full_nq, self.full_nv = robot.nq, robot.nv
         self.full_robot = robot
         if values is not None:
-            _body_masses(model, values)
+            body_masses(model, values)
         _apply_base_pose(model, spec)
         if spec.gravity is not None:
             model.gravity.linear = np.array(spec.gravity, dtype=float)
         payloads = list(spec.payloads)  # with their drawn masses
         for i, payload in enumerate(payloads):
             if values is not None:
-                payloads[i] = payload = _payload_mass(payload, values.value("payload_mass", str(i), payload.mass))
+                payloads[i] = payload = payload_mass(payload, values.value("payload_mass", str(i), payload.mass))
             _add_payload(model, payload, f"{where}: payload[{i}]")
         friction = np.array(model.friction, dtype=float) if robot_spec.damping else np.zeros(model.nv)
         damping = np.array(model.damping, dtype=float) if robot_spec.damping else np.zeros(model.nv)
@@ -141,7 +151,7 @@ class Scene(Robot):
         model, lock_config = _lock_joints(model, spec, robot.floating_base)
         actuators = _actuators(model, spec)
         if values is not None:
-            actuators = [_actuator_constants(actuator, values) for actuator in actuators]
+            actuators = [actuator_constants(actuator, values) for actuator in actuators]
         for actuator in actuators:  # the rotors' inertia, reflected onto the joints
             model.armature[actuator.dof] += actuator.armature
         self.locked = dict(spec.lock)
@@ -237,7 +247,7 @@ class Scene(Robot):
                 )
             from .contact import PENETRATION_SLOP, build_contact
 
-            self.contact = build_contact(self, _contact_values(spec, values), exact_friction)
+            self.contact = build_contact(self, contact_values(spec, values), exact_friction)
             # An enforced limit holds to the penetration slop, by design: only an excursion beyond it is a violation.
             for jid in self.contact.limited_joints:
                 iq = model.joints[jid].idx_q
@@ -398,7 +408,7 @@ class Scene(Robot):
         if self.randomizer is not None:
             lines += self.randomizer.describe()
         if self.spec.parameters is not None:
-            lines.append("  parameters drawn: " + _shown(self.spec.parameters))
+            lines.append("  parameters drawn: " + shown(self.spec.parameters))
         return "\n".join(lines)
 
     def default_pose(self) -> np.ndarray:
@@ -633,95 +643,6 @@ def _actuators(model: pin.Model, spec: SceneSpec) -> list[Any]:
         tables += [(f"catalog {name}: actuator[{i}]", t) for i, t in enumerate(catalog_actuators(name, where))]
     tables += [(f"actuator[{i}]", t) for i, t in enumerate(spec.actuators)]
     return resolve_actuators(model, tables, candidates=_one_dof_joints(model), locked=list(spec.lock), where=where)
-
-
-def _body_masses(model: pin.Model, values: Nominals) -> None:
-    """Each moving body's mass (its rotational inertia in proportion) and a factor on its rotational inertia, as
-    `values` gives them, on the robot's model before payloads and locking. A body is the rigid body a joint moves,
-    named by its link (the links welded to it are part of it); the links' own inertias (their frames', which a
-    force-torque sensor inside the body sums) scale alike: each link's mass by the body's ratio, its rotational
-    inertia about its own centre by the same factor."""
-    names = _body_names(model)
-    for jid in range(1, model.njoints):
-        body = model.inertias[jid]
-        if body.mass <= 0.0:  # nothing to scale
-            continue
-        name = names[jid]
-        mass = values.value("mass", name, float(body.mass))
-        factor = values.value("inertia", name, 1.0)
-        if mass != body.mass or factor != 1.0:
-            ratio = mass / body.mass
-            model.inertias[jid] = pin.Inertia(mass, body.lever, body.inertia * (ratio * factor))
-            for fid in range(model.nframes):
-                frame = model.frames[fid]
-                if frame.parentJoint == jid and frame.inertia.mass > 0.0:
-                    link = frame.inertia
-                    frame.inertia = pin.Inertia(link.mass * ratio, link.lever, link.inertia * (ratio * factor))
-                    model.frames[fid] = frame
-
-
-def _body_names(model: pin.Model) -> dict[int, str]:
-    """Each joint's body: the first body frame on it (its link), else the joint's own name."""
-    names: dict[int, str] = {}
-    for frame in model.frames:
-        if frame.type == pin.FrameType.BODY and frame.parentJoint > 0:
-            names.setdefault(int(frame.parentJoint), frame.name)
-    return {jid: names.get(jid, model.names[jid]) for jid in range(1, model.njoints)}
-
-
-def _payload_mass(payload: PayloadSpec, mass: float) -> PayloadSpec:
-    """The payload with another mass, its inertia in proportion."""
-    if mass == payload.mass:
-        return payload
-    ratio = mass / payload.mass
-    return dataclasses.replace(payload, mass=mass, inertia=tuple(x * ratio for x in payload.inertia))  # type: ignore[arg-type]
-
-
-def _actuator_constants(actuator: Any, values: Nominals) -> Any:
-    """An actuator with the constants `values` gives it. Each constant is a parameter only where the actuator
-    has it: kp on position servos, kv on servos, the limits where finite, the curve where declared."""
-    changed = {}
-    for name in ACTUATOR_QUANTITIES:
-        nominal = float(getattr(actuator, name))
-        if name == "kp" and actuator.kind != "position" or name == "kv" and actuator.kind == "torque":
-            continue
-        if not math.isfinite(nominal):  # no limit, no curve: a value would add one, and a line to the ledger
-            continue
-        value = values.value(name, actuator.joint, nominal)
-        if value != nominal:
-            changed[name] = value
-    return dataclasses.replace(actuator, **changed) if changed else actuator
-
-
-def _contact_values(spec: SceneSpec, values: Nominals | None) -> SceneSpec:
-    """The scene with the ground's and the bodies' contact coefficients `values` gives."""
-    if values is None:
-        return spec
-    if spec.ground is not None:
-        ground = spec.ground
-        friction = values.value("ground_friction", None, ground.friction)
-        restitution = values.value("ground_restitution", None, ground.restitution)
-        spec = dataclasses.replace(spec, ground=dataclasses.replace(ground, friction=friction, restitution=restitution))
-    contact = spec.contact if spec.contact is not None else ContactSpec()
-    friction = values.value("body_friction", None, contact.body_friction)
-    restitution = values.value("body_restitution", None, contact.body_restitution)
-    if (friction, restitution) != (contact.body_friction, contact.body_restitution):
-        contact = dataclasses.replace(contact, body_friction=friction, body_restitution=restitution)
-        spec = dataclasses.replace(spec, contact=contact)
-    return spec
-
-
-def _shown(parameters: dict[str, Any]) -> str:
-    """Parameter values in one line, a few per name."""
-    parts = []
-    for name, value in parameters.items():
-        if isinstance(value, dict):
-            items = list(value.items())
-            shown = ", ".join(f"{safe_name(str(k))} {v:.4g}" for k, v in items[:3])
-            parts.append(f"{name} {shown}" + (f", ... ({len(items)})" if len(items) > 3 else ""))
-        else:
-            parts.append(f"{name} {value:.4g}")
-    return "; ".join(parts)
 
 
 def _load_robot(spec: SceneSpec) -> Robot:
