@@ -61,6 +61,15 @@ def hold(u: float):  # noqa: ANN202 - a controller
             "actuator[0]: unknown key 'rotr_inertia' (did you mean 'rotor_inertia'?",
         ),
         ({"actuator": [{"joints": []}]}, "actuator[0].joints: must not be empty"),
+        (
+            {"actuator": [{"joints": "*", "overspeed": "stop"}]},
+            "actuator[0].overspeed: must be one of brake, none, got 'stop'",
+        ),
+        (
+            {"actuator": [{"joints": "*", "overspeed_band": 2.0}]},
+            "actuator[0].overspeed_band: must be <= 1 (a fraction of the velocity limit), got 2",
+        ),
+        ({"actuator": [{"joints": "*", "overspeed_band": 0.0}]}, "actuator[0].overspeed_band: must be > 0"),
         ({"actuators": "published"}, "actuators: must be one of catalog, got 'published'"),
     ],
 )
@@ -97,6 +106,15 @@ def test_table_mistakes_are_one_line(tables: dict, message: str) -> None:
 def test_mistakes_found_on_the_model(tables: dict, message: str) -> None:
     with pytest.raises(SceneError, match=f"^{re.escape('<scene>: ' + message)}"):
         make_scene(robot={"source": "pendulum"}, **tables)
+
+
+def test_a_brake_needs_both_limits() -> None:
+    """spring_chain's sliders have no effort or velocity limit: no brake by default, and asking for one says why."""
+    scene = make_scene(robot={"source": "spring_chain"}, actuator=[{"joints": "*", "velocity_limit": 1.0}])
+    assert {a.overspeed for a in scene.actuators.items} == {"none"}
+    message = "actuator[0]: joint 'slider1': overspeed = \"brake\" needs an effort and a velocity limit (declare"
+    with pytest.raises(SceneError, match=f"^{re.escape('<scene>: ' + message)}"):
+        make_scene(robot={"source": "spring_chain"}, actuator=[{"joints": "*", "overspeed": "brake"}])
 
 
 def test_a_locked_joint_takes_no_actuator() -> None:
@@ -258,22 +276,127 @@ def test_motor_reaches_the_no_load_speed_of_its_curve() -> None:
 
 
 def test_no_driving_torque_past_the_velocity_limit() -> None:
-    """Full torque on a free rotor: it stops accelerating at the velocity limit (one step past it at most)."""
-    scene = rotor(kind="torque", effort_limit=10.0, velocity_limit=3.0)
+    """Full torque on a free rotor without the brake: it stops accelerating at the velocity limit (one step past it at
+    most). With the brake (the default) the drive ramps down to the limit instead: test_semi_implicit_brake_..."""
+    scene = rotor(kind="torque", effort_limit=10.0, velocity_limit=3.0, overspeed="none")
     dt = 1e-3
     traj = scene.run(duration=1.0, dt=dt, integrator="semi_implicit_euler", controller=hold(10.0), q0=[0.0], v0=[0.0])
     assert 3.0 <= traj.v[-1, 0] <= 3.0 + dt * 10.0 / I_ROTOR
     assert traj.v[:, 0].max() <= 3.0 + dt * 10.0 / I_ROTOR
 
 
+# ---- the overspeed brake -----------------------------------------------------------------------------------------
+EFFORT, V_MAX, BAND = 10.0, 3.0, 0.1
+K_BRAKE = EFFORT / (BAND * V_MAX)  # the brake's gain [N·m·s/rad]: full effort 10 % past the limit
+
+
+def spun(load: float = 4.0, **actuator: object) -> ms.Scene:
+    """The free rotor with a torque actuator (effort 10 N·m, velocity limit 3 rad/s) and a constant external torque
+    `load` [N·m] about its hinge (a [[force]] on the bob)."""
+    table = {"joints": "hinge", "kind": "torque", "effort_limit": EFFORT, "velocity_limit": V_MAX, **actuator}
+    force = [{"name": "load", "frame": "bob", "torque": [0.0, load, 0.0]}]
+    return make_scene(robot={"source": "pendulum"}, gravity=[0, 0, 0], actuator=[table], force=force)
+
+
+def test_overspeed_brake_by_hand() -> None:
+    """The brake is a velocity servo toward ± the limit bounding the available torque, within ± the effort limit."""
+    scene = spun()
+    assert scene.actuators.items[0].brake_gain == pytest.approx(K_BRAKE)
+    assert torque(scene, 0.0, 2.9, 5.0) == pytest.approx(K_BRAKE * 0.1)  # below the limit: the drive ramps down
+    assert torque(scene, 0.0, 2.0, 5.0) == 5.0  # far below: the command
+    assert torque(scene, 0.0, 3.06, 5.0) == pytest.approx(-K_BRAKE * 0.06)  # past it: braking whatever the command
+    assert torque(scene, 0.0, 3.06, -1.0) == pytest.approx(-K_BRAKE * 0.06)  # a weaker braking command: the brake's
+    assert torque(scene, 0.0, 3.06, -8.0) == -8.0  # a stronger one passes
+    assert torque(scene, 0.0, 3.5, 5.0) == -EFFORT  # beyond the band: the effort limit
+    assert torque(scene, 0.0, -3.06, -5.0) == pytest.approx(K_BRAKE * 0.06)  # the same on the other side
+    assert torque(scene, 0.0, -3.0 * V_MAX, 10.0) == EFFORT  # braking is never cut
+    off = spun(overspeed="none")
+    assert torque(off, 0.0, 3.06, 5.0) == 0.0 and torque(off, 0.0, 2.9, 5.0) == 5.0  # no drive past it, no brake
+    assert [name for name, _ in off.actuators.ledger] == ["actuator:hinge", "actuator_limit:hinge"]
+    assert scene.actuators.ledger[-1] == ("actuator_overspeed:hinge", "dissipated")
+
+
+def overspeed_solution(t: np.ndarray, load: float) -> np.ndarray:
+    """v(t) of the rotor from rest under the load, command 0: I v' = load up to the limit (at t1), then
+    I v' = load − k (v − v_max) (within the band): v → v_max + load / k."""
+    t1 = V_MAX * I_ROTOR / load
+    steady = V_MAX + load / K_BRAKE
+    after = steady + (V_MAX - steady) * np.exp(-K_BRAKE * (t - t1) / I_ROTOR)
+    return np.where(t < t1, load * t / I_ROTOR, after)
+
+
+def test_a_load_past_the_limit_settles_where_the_brake_holds_it() -> None:
+    """A load below the effort limit spins the rotor past its limit: the brake holds it at v_max + load / k (closed
+    form, both phases), on RK4 and at the fixed point of semi-implicit Euler; the brake's line books the work it
+    takes out, ∫ k (v − v_max) v dt of the closed form (quadrature), and the ledger closes."""
+    from scipy.integrate import quad
+
+    load = V_MAX * I_ROTOR / 0.75  # the limit reached at t = 0.75 s, on the step grid (RK4 keeps its order)
+    scene = spun(load)
+    u = hold(0.0)
+    traj = scene.run(duration=3.0, dt=1e-3, integrator="rk4", controller=u, q0=[0.0], v0=[0.0])
+    np.testing.assert_allclose(traj.v[:, 0], overspeed_solution(traj.t, load), rtol=0, atol=1e-9)
+    t1 = V_MAX * I_ROTOR / load
+    taken, _ = quad(lambda t: K_BRAKE * (overspeed_solution(t, load) - V_MAX) * overspeed_solution(t, load), t1, 3.0)
+    assert traj.ledger["actuator_overspeed:hinge"].energy[-1] == pytest.approx(taken, rel=1e-6)
+    np.testing.assert_allclose(-traj.tau[:, 0], np.maximum(0.0, K_BRAKE * (traj.v[:, 0] - V_MAX)), atol=1e-12)
+    assert abs(traj.energy_error[-1]) < 1e-8 * taken
+    assert np.abs(traj.ledger["actuator_limit:hinge"].energy).max() == 0.0  # the command (0) was never cut
+    for dt in (1e-3, 0.05):  # h k / I = 1.7 and 83: the brake inside the step
+        traj = scene.run(duration=3.0, dt=dt, integrator="semi_implicit_euler", controller=u, q0=[0.0], v0=[0.0])
+        np.testing.assert_allclose(traj.v[-20:, 0], V_MAX + load / K_BRAKE, rtol=0, atol=1e-10)
+
+
+def test_a_joint_far_past_its_limit_is_braked_at_the_effort_limit() -> None:
+    """Started far past its limit (an impact's aftermath), no load: the brake decelerates at the effort limit to
+    the band's edge (1 + band) v_max, then decays to the limit with time constant I / k (closed form)."""
+    scene = spun(0.0)
+    edge = (1 + BAND) * V_MAX
+    t_edge = 0.5  # on the step grid (RK4 keeps its order)
+    v0 = edge + t_edge * EFFORT / I_ROTOR  # 2.77 times the limit
+    traj = scene.run(duration=1.0, dt=1e-3, integrator="rk4", controller=hold(5.0), q0=[0.0], v0=[v0])
+    exact = np.where(
+        traj.t < t_edge,
+        v0 - EFFORT * traj.t / I_ROTOR,
+        V_MAX + (edge - V_MAX) * np.exp(-K_BRAKE * (traj.t - t_edge) / I_ROTOR),
+    )
+    np.testing.assert_allclose(traj.v[:, 0], exact, rtol=0, atol=1e-8)
+
+
+def test_semi_implicit_brake_against_a_drive_at_large_steps() -> None:
+    """Full command (10 N·m) with no load: the drive ramps to 0 at the limit; with a narrow band (h k / I = 33)
+    semi-implicit Euler and the time-stepper land on the limit without chattering, where the drive held over the step
+    would overshoot."""
+    scene = spun(0.0, overspeed_band=0.01)
+    k = EFFORT / (0.01 * V_MAX)
+    for integrator in ("semi_implicit_euler", "timestepping"):
+        traj = scene.run(duration=5.0, dt=0.1, integrator=integrator, controller=hold(EFFORT), q0=[0.0], v0=[0.0])
+        assert traj.status == "completed"
+        np.testing.assert_allclose(traj.v[-20:, 0], V_MAX, rtol=0, atol=1e-12)
+        assert traj.v[:, 0].max() <= V_MAX + 1e-12
+    assert k * 0.1 / I_ROTOR > 30
+
+
+def test_linearize_refuses_a_semi_implicit_brake_where_it_binds() -> None:
+    scene = spun(0.0)
+    with pytest.raises(ms.InvalidArgumentError, match="takes the overspeed brake of hinge implicitly at this state"):
+        ms.linearize(scene, [0.0], [3.1], [0.0], dt=1e-3, integrator="semi_implicit_euler")
+    ms.linearize(scene, [0.0], [1.0], [0.0], dt=1e-3, integrator="semi_implicit_euler")  # far below: no brake
+    dv = scene.actuators.jacobians(np.zeros(1), np.array([3.1]), np.zeros(1))[1]
+    assert dv[0, 0] == pytest.approx(-K_BRAKE)
+
+
 # ---- the ledger --------------------------------------------------------------------------------------------------
 def test_ledger_lines_net_to_the_delivered_work() -> None:
     """Semi-implicit Euler books h τ(q⁺, v⁺) · v⁺ per step: the actuator line minus its limit line is the sum of the
     trajectory's delivered tau · v over the samples after the first (a held command), to round-off."""
-    scene = rotor(kind="position", kp=50.0, kv=1.0, effort_limit=3.0, stall_torque=6.0, no_load_speed=5.0)
+    scene = rotor(
+        kind="position", kp=50.0, kv=1.0, effort_limit=3.0, stall_torque=6.0, no_load_speed=5.0, velocity_limit=4.0
+    )
     dt = 1e-3
     traj = scene.run(duration=1.0, dt=dt, integrator="semi_implicit_euler", controller=hold(1.0), q0=[0.0], v0=[0.0])
     lines = traj.ledger["actuator:hinge"].energy - traj.ledger["actuator_limit:hinge"].energy
+    lines -= traj.ledger["actuator_overspeed:hinge"].energy
     delivered = np.cumsum(dt * traj.tau[1:, 0] * traj.v[1:, 0])
     np.testing.assert_allclose(lines[1:], delivered, rtol=1e-10, atol=1e-12)
     assert traj.ledger["actuator_limit:hinge"].energy[-1] > 0.1  # the limits cut a driving torque here
@@ -408,6 +531,11 @@ def native_cases() -> dict[str, tuple[ms.Scene, str, float]]:
         "go2 motors, free flight": (make_scene(robot={"source": "go2"}, actuators="catalog"), "rk4", 1e-3),
         "go2 motors on the ground": (go2_on_ground(), "timestepping", 1e-3),
         "go2 servos on the ground": (go2_on_ground(kind="position", kp=60.0, kv=2.0), "timestepping", 2e-3),
+        "a loaded rotor on its brake, semi-implicit, revised": (
+            spun(4.0, overspeed_band=0.01),
+            "semi_implicit_euler",
+            0.02,
+        ),
         "ur5 motors with springs and friction": (
             make_scene(
                 robot={"source": "ur5"},

@@ -289,25 +289,27 @@ namespace multibody_sim
   void SceneActuators::evaluate(const ActuatorTerm & a, const Vec & q, const Vec & v, const Vec & u, double & law,
                                 double & tau) const
   {
-    const double w = v[a.dof];
-    switch (a.kind)
-    {
-      case ActuatorKind::torque:
-        law = u[a.dof];
-        break;
-      case ActuatorKind::position:
-        law = a.kp * (u[a.dof] - q[a.iq]) - a.kv * w;
-        break;
-      case ActuatorKind::velocity:
-        law = a.kv * (u[a.dof] - w);
-        break;
-    }
+    law = this->law(a, q, v, u);
     double low, high;
-    interval(a, w, low, high);
+    interval(a, v[a.dof], low, high);
     tau = np_minimum(np_maximum(law, low), high);
   }
 
-  void SceneActuators::interval(const ActuatorTerm & a, double w, double & low, double & high) const
+  double SceneActuators::law(const ActuatorTerm & a, const Vec & q, const Vec & v, const Vec & u) const
+  {
+    const double w = v[a.dof];
+    switch (a.kind)
+    {
+      case ActuatorKind::position:
+        return a.kp * (u[a.dof] - q[a.iq]) - a.kv * w;
+      case ActuatorKind::velocity:
+        return a.kv * (u[a.dof] - w);
+      default:
+        return u[a.dof];
+    }
+  }
+
+  void SceneActuators::limits(const ActuatorTerm & a, double w, double & low, double & high) const
   {
     double drive = a.effort;
     const double speed = std::abs(w);
@@ -318,6 +320,61 @@ namespace multibody_sim
     low = w > 0.0 ? -a.effort : -drive;
     high = w < 0.0 ? a.effort : drive;
   }
+
+  void SceneActuators::brakes(const ActuatorTerm & a, double w, double & upper, double & lower) const
+  {
+    const double limit = a.brake_gain > 0.0 ? a.velocity_limit : 0.0;
+    upper = a.brake_gain * (limit - w);
+    lower = -(a.brake_gain * (limit + w));
+  }
+
+  namespace
+  {
+    // Actuators._interval's second half: the limits (low, high) at speed w within the brake's bounds
+    void within_brake(const SceneActuators & actuators, const ActuatorTerm & a, double w, double & low, double & high)
+    {
+      double upper, lower;
+      actuators.brakes(a, w, upper, lower);
+      high = np_maximum(-a.effort, np_minimum(high, upper));
+      low = np_minimum(a.effort, np_maximum(low, lower));
+    }
+  } // namespace
+
+  void SceneActuators::interval(const ActuatorTerm & a, double w, double & low, double & high) const
+  {
+    limits(a, w, low, high);
+    if (a.brake_gain > 0.0)
+      within_brake(*this, a, w, low, high);
+  }
+
+  // Actuators._select for one actuator; brake: clipped at its brake's bound, within ± the effort limit or beyond it
+  // (`saturated` tells which)
+  void SceneActuators::select(const ActuatorTerm & a, double law, double w, bool & within, bool & brake, int & side,
+                              double & low, double & high) const
+  {
+    interval(a, w, low, high);
+    within = law >= low && law <= high;
+    side = law > high ? 1 : -1;
+    brake = false;
+    if (a.brake_gain > 0.0 && !within)
+    {
+      double limit_low, limit_high, upper, lower;
+      limits(a, w, limit_low, limit_high);
+      brakes(a, w, upper, lower);
+      brake = side > 0 ? upper < limit_high : lower > limit_low;
+    }
+  }
+
+  namespace
+  {
+    // whether an actuator's brake's bound on `side` at speed w is beyond its effort limit
+    bool saturated(const SceneActuators & actuators, const ActuatorTerm & a, double w, int side)
+    {
+      double upper, lower;
+      actuators.brakes(a, w, upper, lower);
+      return side > 0 ? !(upper > -a.effort) : !(lower < a.effort);
+    }
+  } // namespace
 
   void SceneActuators::joint_torques(const Vec & q, const Vec & v, const Vec & u, const ServoStep * step,
                                      double * out) const
@@ -338,16 +395,23 @@ namespace multibody_sim
   void SceneActuators::powers(const Vec & q, const Vec & v, const Vec & u, double * out) const
   {
     const size_t n = terms.size();
-    size_t m = n;
-    double law, tau;
+    size_t m = n, b = n + static_cast<size_t>(n_limited);
+    double low, high;
     for (size_t k = 0; k < n; ++k)
     {
       const ActuatorTerm & a = terms[k];
-      evaluate(a, q, v, u, law, tau);
+      const double c = law(a, q, v, u);
       const double w = v[a.dof];
-      out[k] = law * w;
+      limits(a, w, low, high);
+      const double limited = np_minimum(np_maximum(c, low), high);
+      out[k] = c * w;
       if (a.limited)
-        out[m++] = (law - tau) * w;
+        out[m++] = (c - limited) * w;
+      if (a.brake_gain > 0.0)
+      {
+        within_brake(*this, a, w, low, high);
+        out[b++] = (limited - np_minimum(np_maximum(c, low), high)) * w;
+      }
     }
   }
 
@@ -362,6 +426,7 @@ namespace multibody_sim
     step.saved.assign(n, 0.0);
     step.side.assign(n, 1);
     step.free.assign(n, 0);
+    step.braking.assign(n, 0);
     return step;
   }
 
@@ -370,16 +435,18 @@ namespace multibody_sim
   {
     step.h = h;
     step.iterations = 0;
-    double tau;
+    bool within, brake;
+    double low, high;
     for (size_t k = 0; k < terms.size(); ++k)
     {
       const ActuatorTerm & a = terms[k];
-      evaluate(a, q, v, u, step.law[k], tau);
+      step.law[k] = law(a, q, v, u);
       step.w[k] = v[a.dof];
       step.saved[k] = armature[a.dof];
-      step.free[k] = a.kind != ActuatorKind::torque && step.law[k] == tau;
-      step.clipped[k] = tau;
-      step.side[k] = step.law[k] > tau ? 1 : -1;
+      select(a, step.law[k], step.w[k], within, brake, step.side[k], low, high);
+      step.free[k] = a.kind != ActuatorKind::torque && within;
+      step.braking[k] = brake;  // on its line even beyond the effort limit: it may reach its band in the step
+      step.clipped[k] = np_minimum(np_maximum(step.law[k], low), high);
     }
     step.active = true;
     hold(step, armature);
@@ -388,12 +455,16 @@ namespace multibody_sim
   void SceneActuators::hold(ServoStep & step, Vec & armature) const
   {
     const double h = step.h;
+    double upper, lower;
     for (size_t k = 0; k < terms.size(); ++k)
     {
       const ActuatorTerm & a = terms[k];
       const double hkp = h * a.kp;
-      armature[a.dof] = step.saved[k] + (step.free[k] ? h * a.kv + h * hkp : 0.0);
-      step.held[k] = step.free[k] ? step.law[k] - hkp * step.w[k] : step.clipped[k];
+      armature[a.dof] = step.saved[k] + (step.free[k] ? h * a.kv + h * hkp : step.braking[k] ? h * a.brake_gain : 0.0);
+      brakes(a, step.w[k], upper, lower);
+      step.held[k] = step.free[k]      ? step.law[k] - hkp * step.w[k]
+                     : step.braking[k] ? (step.side[k] > 0 ? upper : lower)
+                                       : step.clipped[k];
     }
   }
 
@@ -401,35 +472,51 @@ namespace multibody_sim
   {
     const size_t n = terms.size();
     const double h = step.h;
-    bool changed = false;
+    bool consistent = true;
     thread_local std::vector<double> law_next, low, high;
-    thread_local std::vector<char> free;
-    law_next.resize(n);
-    low.resize(n);
-    high.resize(n);
-    free.resize(n);
+    thread_local std::vector<char> ok, within, brake, beyond;
+    thread_local std::vector<int> side;
+    for (auto * x : {&law_next, &low, &high})
+      x->resize(n);
+    for (auto * x : {&ok, &within, &brake, &beyond})
+      x->resize(n);
+    side.resize(n);
     for (size_t k = 0; k < n; ++k)
     {
       const ActuatorTerm & a = terms[k];
       const double w = step.w[k], wn = v_next[a.dof];
       law_next[k] = step.law[k] - (h * a.kp) * w - (h * a.kp + a.kv) * (wn - w);  // the law at the step's end
-      interval(a, wn, low[k], high[k]);
-      const bool within = law_next[k] >= low[k] && law_next[k] <= high[k];
-      const bool beyond = step.side[k] > 0 ? law_next[k] >= high[k] : law_next[k] <= low[k];
-      free[k] = a.kind != ActuatorKind::torque && (step.free[k] ? within : !beyond);
-      changed = changed || free[k] != step.free[k];
+      bool in, on_brake;
+      select(a, law_next[k], wn, in, on_brake, side[k], low[k], high[k]);
+      within[k] = in;
+      brake[k] = on_brake && !saturated(*this, a, wn, side[k]);
+      beyond[k] = step.side[k] > 0 ? law_next[k] >= high[k] : law_next[k] <= low[k];
+      const bool servo = a.kind != ActuatorKind::torque;
+      ok[k] = step.free[k]      ? bool(within[k])
+              : step.braking[k] ? brake[k] && side[k] == step.side[k]
+                                : !brake[k] && (!servo || beyond[k]);
+      consistent = consistent && ok[k];
     }
-    if (!changed || step.iterations >= max_revisions)
+    if (consistent || step.iterations >= max_revisions)
       return false;
     step.iterations += 1;
     for (size_t k = 0; k < n; ++k)
     {
-      if (step.free[k] && !free[k])  // clipped where its law left the limits
-      {
+      if (ok[k])
+        continue;
+      const ActuatorTerm & a = terms[k];
+      const bool servo = a.kind != ActuatorKind::torque;
+      // a brake beyond the effort limit at the start that did not land on its line: held at the effort limit
+      const bool stays = step.braking[k] && saturated(*this, a, step.w[k], step.side[k]);
+      const bool freed = servo && !step.free[k] && !step.braking[k] && !beyond[k];
+      step.free[k] = !stays && (freed || (servo && within[k]));
+      step.braking[k] = !stays && brake[k] && !freed;
+      if (!stays)
+        step.side[k] = side[k];
+      if (!step.free[k] && !step.braking[k])  // clipped at the step's end: held at its interval's bound there
         step.clipped[k] = np_minimum(np_maximum(law_next[k], low[k]), high[k]);
-        step.side[k] = law_next[k] > high[k] ? 1 : -1;
-      }
-      step.free[k] = free[k];
+      if (stays)
+        step.clipped[k] = -step.side[k] * a.effort;
     }
     hold(step, armature);
     return true;
@@ -688,6 +775,7 @@ void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
     .field("stall", &ActuatorTerm::stall, "float")
     .field("no_load", &ActuatorTerm::no_load, "float")
     .field("limited", &ActuatorTerm::limited, "bool")
+    .field("brake_gain", &ActuatorTerm::brake_gain, "float")
     .finish();
   auto actuators = std::make_shared<Fields<SceneActuators>>("SceneActuators");
   actuators->member("terms", &SceneActuators::terms, "list[ActuatorTerm]")
@@ -703,8 +791,9 @@ void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
         {
           if (!(0 <= a.dof && a.dof < robot.nv && 0 <= a.iq && a.iq < robot.nq))
             throw std::invalid_argument("SceneActuators: an actuator's dof or coordinate out of range");
-          s.servos = s.servos || a.kind != ActuatorKind::torque;
+          s.servos = s.servos || a.kind != ActuatorKind::torque || a.brake_gain > 0.0;
           s.n_limited += a.limited ? 1 : 0;
+          s.n_braked += a.brake_gain > 0.0 ? 1 : 0;
         }
         new (self) SceneActuators(std::move(s));
       },

@@ -193,17 +193,18 @@ namespace multibody_sim
     int dof = 0, iq = 0;
     ActuatorKind kind = ActuatorKind::torque;
     double kp = 0.0, kv = 0.0, effort = 0.0, velocity_limit = 0.0, stall = 0.0, no_load = 0.0;
-    bool limited = false;  // it has an actuator_limit ledger line
+    bool limited = false;     // it has an actuator_limit ledger line
+    double brake_gain = 0.0;  // its overspeed brake's gain k (0: none; it then has an actuator_overspeed line)
   };
 
-  // One row's velocity update while it takes the servos implicitly (Actuators.begin_implicit .. end_implicit), per
-  // actuator: the law at the step's start, the speed there, the torque held, the clipped torque and its side, which
-  // servos are free, the armature before.
+  // One row's velocity update while it takes the servos and brakes implicitly (Actuators.begin_implicit ..
+  // end_implicit), per actuator: the law at the step's start, the speed there, the torque held, the clipped torque and
+  // its side, which servos are free and which actuators brake, the armature before.
   struct ServoStep
   {
     std::vector<double> law, w, held, clipped, saved;
     std::vector<int> side;
-    std::vector<char> free;
+    std::vector<char> free, braking;
     double h = 0.0;
     int iterations = 0;
     bool active = false;
@@ -217,18 +218,27 @@ namespace multibody_sim
     int nv = 0;
     std::vector<ActuatorTerm> terms;
     int max_revisions = 0;  // actuators.MAX_REVISIONS
-    bool servos = false;
-    int n_limited = 0;
+    bool servos = false;    // Actuators.implicit: a servo or an overspeed brake, taken inside semi-implicit steps
+    int n_limited = 0, n_braked = 0;
 
     int n_flows() const
     {
-      return static_cast<int>(terms.size()) + n_limited;
+      return static_cast<int>(terms.size()) + n_limited + n_braked;
     }
-    // Actuators.evaluate for one actuator: its law's torque c and the torque after the limits
+    // Actuators.evaluate for one actuator: its law's torque c and the torque after the limits and the brake
     void evaluate(const ActuatorTerm & a, const Vec & q, const Vec & v, const Vec & u, double & law,
                   double & tau) const;
+    // Actuators._law for one actuator
+    double law(const ActuatorTerm & a, const Vec & q, const Vec & v, const Vec & u) const;
+    // Actuators._limits for one actuator at speed w (without its brake)
+    void limits(const ActuatorTerm & a, double w, double & low, double & high) const;
+    // Actuators._brakes for one actuator at speed w: the brake's upper and lower bounds
+    void brakes(const ActuatorTerm & a, double w, double & upper, double & lower) const;
     // Actuators._interval for one actuator at speed w
     void interval(const ActuatorTerm & a, double w, double & low, double & high) const;
+    // Actuators._select for one actuator: within, on its brake's bound, side, the interval
+    void select(const ActuatorTerm & a, double law, double w, bool & within, bool & brake, int & side, double & low,
+                double & high) const;
     // Actuators.joint_torques into out (nv): u with the actuators' dofs replaced (the step's held torques if active)
     void joint_torques(const Vec & q, const Vec & v, const Vec & u, const ServoStep * step, double * out) const;
     // Actuators.powers into out (n_flows())
@@ -240,7 +250,7 @@ namespace multibody_sim
     void end(ServoStep & step, Vec & armature) const;
 
   private:
-    void hold(ServoStep & step, Vec & armature) const;  // Actuators._hold of the step's free, clipped, side
+    void hold(ServoStep & step, Vec & armature) const;  // Actuators._hold of the step's free, braking, clipped, side
   };
 } // namespace multibody_sim
 

@@ -56,13 +56,20 @@ class SemiImplicitEuler(Integrator):
         """v' = v + h a(q, v, tau), q' = q ⊕ h v' (see multibody_sim.linearize).
 
         Raises:
-            InvalidArgumentError: the system has servos, whose terms this step takes implicitly (not differentiated).
+            InvalidArgumentError: the system has servos, or an overspeed brake that binds at (q, v, tau), whose
+                terms this step takes implicitly (not differentiated).
         """
         actuators = getattr(system, "actuators", None)
         if actuators is not None and actuators.servos:
             raise InvalidArgumentError(
                 f"linearize: {self.name} takes the scene's servo terms implicitly, which linearize does not "
                 "differentiate yet; use rk4 or implicit_euler"
+            )
+        braking = actuators.braking(q, v, tau) if actuators is not None else []
+        if braking:
+            raise InvalidArgumentError(
+                f"linearize: {self.name} takes the overspeed brake of {', '.join(braking)} implicitly at this state, "
+                "which linearize does not differentiate yet; use rk4 or implicit_euler"
             )
         nv = system.nv
         select_q, select_v, _ = tangent_selectors(nv)

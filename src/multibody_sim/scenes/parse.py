@@ -31,6 +31,8 @@ from .spec import (
     ACTUATOR_GAINS,
     ACTUATOR_KEYS,
     ACTUATOR_KINDS,
+    ACTUATOR_NUMBERS,
+    ACTUATOR_OVERSPEED,
     ACTUATOR_SOURCES,
     BASES,
     CONSTRAINT_FRAMES,
@@ -541,13 +543,19 @@ class _Parser:
                 if gain in table and gain not in ACTUATOR_GAINS[kind]:
                     users = [k for k in ACTUATOR_KINDS if gain in ACTUATOR_GAINS[k]]
                     self.fail(f"{path}.{gain}", f"only for kind {' or '.join(users)}, not {kind}")
+        overspeed = None
+        if "overspeed" in table:
+            overspeed = self.choice(table["overspeed"], f"{path}.overspeed", ACTUATOR_OVERSPEED)
         values: dict[str, float] = {}
-        for key in ACTUATOR_KEYS[2:]:
+        for key in ACTUATOR_NUMBERS:
             if key in table:
                 values[key] = self.positive(
                     table[key], f"{path}.{key}", allow_zero=key in ("kp", "kv", "rotor_inertia")
                 )
-        return ActuatorSpec(joints=joints, kind=kind, **values)
+        if values.get("overspeed_band", 0.0) > 1.0:
+            band = values["overspeed_band"]
+            self.fail(f"{path}.overspeed_band", f"must be <= 1 (a fraction of the velocity limit), got {band:g}")
+        return ActuatorSpec(joints=joints, kind=kind, overspeed=overspeed, **values)
 
     def force(self, value: Any, path: str, index: int) -> ForceSpec:
         table = self.table(value, path, FORCE_KEYS)

@@ -81,9 +81,10 @@ SHAPE_DIMENSIONS = {"box": ("size",), "sphere": ("radius",), "cylinder": ("radiu
 GEOMETRY_KEYS = ("frame", "shape", "size", "radius", "length", "position", "rpy")
 OBJECT_KEYS = ("name", "shape", "size", "radius", "length", "mass", "position", "rpy", "velocity")
 DEFAULT_GROUND_FRICTION = 0.5
-ACTUATOR_KEYS = (
+ACTUATOR_KEYS = (  # the three that take names first, then those that take a number (ACTUATOR_NUMBERS)
     "joints",
     "kind",
+    "overspeed",
     "kp",
     "kv",
     "gear",
@@ -92,8 +93,11 @@ ACTUATOR_KEYS = (
     "velocity_limit",
     "stall_torque",
     "no_load_speed",
+    "overspeed_band",
 )
+ACTUATOR_NUMBERS = ACTUATOR_KEYS[3:]  # the keys that take a number
 ACTUATOR_KINDS = ("torque", "position", "velocity")
+ACTUATOR_OVERSPEED = ("brake", "none")  # the overspeed protections (scenes/actuators.py)
 # Which gains each kind takes (any other is a mistake worth reporting).
 ACTUATOR_GAINS = {"torque": (), "position": ("kp", "kv"), "velocity": ("kv",)}
 ACTUATOR_SOURCES = ("catalog",)  # the top-level `actuators` key: where default actuators come from
@@ -159,9 +163,9 @@ QUANTITIES = {
     "stall_torque": Quantity("joints", 0.0, math.inf, True, "N·m or N", "an actuator's stall torque"),
     "no_load_speed": Quantity("joints", 0.0, math.inf, True, "rad/s or m/s", "an actuator's no-load speed"),
 }
-# The actuator constants among them: an [[actuator]] table's keys after joints and kind (scenes/actuators.py's
-# Actuator fields of the same names).
-ACTUATOR_QUANTITIES = ACTUATOR_KEYS[2:]
+# The actuator constants among them: an [[actuator]] table's numbers but the overspeed brake's band (scenes/
+# actuators.py's Actuator fields of the same names).
+ACTUATOR_QUANTITIES = tuple(key for key in ACTUATOR_NUMBERS if key != "overspeed_band")
 TARGET_KEYS = ("bodies", "joints", "payloads")
 
 
@@ -438,10 +442,15 @@ class ActuatorSpec:
         stall_torque: the torque–speed curve: available |torque| at rest [N·m or N], > 0, falling linearly to 0 at
             no_load_speed [rad/s or m/s], > 0, while the torque drives the motion (both or neither).
         no_load_speed: see stall_torque.
+        overspeed: "brake" (the default where the actuator has an effort and a velocity limit) or "none": whether
+            past its velocity limit the actuator brakes the joint whatever the command (scenes/actuators.py).
+        overspeed_band: the brake's band, a fraction of the velocity limit in (0, 1] (default 0.1): the brake's
+            torque rises from 0 at the limit to the effort limit that far past it.
     """
 
     joints: tuple[str, ...]
     kind: str | None = None
+    overspeed: str | None = None
     kp: float | None = None
     kv: float | None = None
     gear: float | None = None
@@ -450,6 +459,7 @@ class ActuatorSpec:
     velocity_limit: float | None = None
     stall_torque: float | None = None
     no_load_speed: float | None = None
+    overspeed_band: float | None = None
 
 
 @dataclass(frozen=True)
