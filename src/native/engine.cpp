@@ -401,12 +401,12 @@ namespace multibody_sim
     // and curves may differ).
     bool same_actuators(const SceneActuators & a, const SceneActuators & b)
     {
-      if (a.nv != b.nv || a.servos != b.servos || a.n_limited != b.n_limited || a.max_revisions != b.max_revisions
-          || a.terms.size() != b.terms.size())
+      if (a.nv != b.nv || a.servos != b.servos || a.n_limited != b.n_limited || a.n_braked != b.n_braked
+          || a.max_revisions != b.max_revisions || a.terms.size() != b.terms.size())
         return false;
       for (size_t k = 0; k < a.terms.size(); ++k)
         if (a.terms[k].dof != b.terms[k].dof || a.terms[k].iq != b.terms[k].iq || a.terms[k].kind != b.terms[k].kind
-            || a.terms[k].limited != b.terms[k].limited)
+            || a.terms[k].limited != b.terms[k].limited || (a.terms[k].brake_gain > 0.0) != (b.terms[k].brake_gain > 0.0))
           return false;
       return true;
     }

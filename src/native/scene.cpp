@@ -343,7 +343,7 @@ namespace multibody_sim
   void SceneActuators::interval(const ActuatorTerm & a, double w, double & low, double & high) const
   {
     limits(a, w, low, high);
-    if (a.brake_gain > 0.0)
+    if (a.brake_gain > 0.0 && !(std::abs(w) < a.brake_from))
       within_brake(*this, a, w, low, high);
   }
 
@@ -409,7 +409,8 @@ namespace multibody_sim
         out[m++] = (c - limited) * w;
       if (a.brake_gain > 0.0)
       {
-        within_brake(*this, a, w, low, high);
+        if (!(std::abs(w) < a.brake_from))
+          within_brake(*this, a, w, low, high);
         out[b++] = (limited - np_minimum(np_maximum(c, low), high)) * w;
       }
     }
@@ -787,8 +788,13 @@ void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
         SceneActuators s = actuators->parse(kwargs);
         const pinocchio::Model & robot = model.model;
         s.nv = robot.nv;
-        for (const ActuatorTerm & a : s.terms)
+        for (ActuatorTerm & a : s.terms)
         {
+          // With |w| < (1 - band) v_max / 2 the brake's upper bound k (v_max - w) >= effort (1 + band) / (2 band),
+          // above the limits' high (at most the effort limit) with a margin round-off cannot cross while the band
+          // is at most 0.9; the lower bound likewise: Actuators._interval's clamps change nothing there.
+          const double start = a.brake_gain > 0.0 ? a.velocity_limit - a.effort / a.brake_gain : 0.0;
+          a.brake_from = start >= 0.1 * a.velocity_limit ? 0.5 * start : 0.0;
           if (!(0 <= a.dof && a.dof < robot.nv && 0 <= a.iq && a.iq < robot.nq))
             throw std::invalid_argument("SceneActuators: an actuator's dof or coordinate out of range");
           s.servos = s.servos || a.kind != ActuatorKind::torque || a.brake_gain > 0.0;

@@ -195,6 +195,9 @@ namespace multibody_sim
     double kp = 0.0, kv = 0.0, effort = 0.0, velocity_limit = 0.0, stall = 0.0, no_load = 0.0;
     bool limited = false;     // it has an actuator_limit ledger line
     double brake_gain = 0.0;  // its overspeed brake's gain k (0: none; it then has an actuator_overspeed line)
+    // Below this |speed| the brake's bounds provably leave the limits as they are (set by SceneActuators' binding:
+    // half the speed where its band starts, if that band is at most 0.9 of the limit, else 0: always applied).
+    double brake_from = 0.0;
   };
 
   // One row's velocity update while it takes the servos and brakes implicitly (Actuators.begin_implicit ..
