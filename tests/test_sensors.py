@@ -20,6 +20,26 @@ from multibody_sim.sensors import SensorStream
 G = 9.81
 
 
+@pytest.fixture(params=["native", "python"])
+def kernel(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """The closed-form checks run on both kernels: "python" sets MULTIBODY_SIM_NATIVE=0, "native" needs the
+    extension (on_kernel() checks that the run took it)."""
+    from multibody_sim import native
+
+    if request.param == "python":
+        monkeypatch.setenv(native.ENV, "0")
+    elif not native.available:
+        pytest.skip(f"the native kernel is not available here: {native.why_unavailable}")
+    return str(request.param)
+
+
+def on_kernel(traj: Any, kernel: str) -> Any:
+    """traj, after checking that it ran on `kernel` (its metadata says which, and why not native)."""
+    ran = traj.metadata["kernel"]
+    assert (ran == "native") == (kernel == "native"), (ran, traj.metadata.get("native"))
+    return traj
+
+
 def _box(**extra: object) -> ms.Scene:
     """A 1 kg box (20 cm cube) released 0.5 m above the ground, with an IMU at its centre and a touch sensor."""
     return ms.make_scene(
@@ -44,11 +64,11 @@ def _urdf_masses(path: str) -> dict[str, float]:
 
 
 # ---- the IMU ------------------------------------------------------------------------------------------------------
-def test_imu_in_free_fall_reads_zero_specific_force_and_on_the_ground_reads_g_upward() -> None:
+def test_imu_in_free_fall_reads_zero_specific_force_and_on_the_ground_reads_g_upward(kernel: str) -> None:
     """The box falls for ~0.27 s, lands and rests: in the air the IMU reads no specific force (to round-off), at rest
     it reads g upward in the box's axes and the touch sensor the box's weight, m g."""
     scene = _box()
-    traj = ms.simulate(scene, scene.q0, scene.v0, duration=0.6, dt=1e-3, integrator="timestepping")
+    traj = on_kernel(ms.simulate(scene, scene.q0, scene.v0, duration=0.6, dt=1e-3, integrator="timestepping"), kernel)
     imu, touch = traj.sensors["imu"], traj.sensors["touch"]
     falling = traj.t < 0.25  # it reaches the ground at sqrt(2 · 0.4 / g) = 0.286 s
     assert np.abs(imu[falling, :3]).max() < 1e-12
@@ -136,7 +156,7 @@ def _hold(scene: ms.Scene, q: np.ndarray) -> ms.Trajectory:
 
 
 @pytest.mark.parametrize("mass", [0.0, 1.5])
-def test_wrist_force_torque_sensor_reads_the_distal_weight_at_rest(mass: float) -> None:
+def test_wrist_force_torque_sensor_reads_the_distal_weight_at_rest(mass: float, kernel: str) -> None:
     """panda held at rest, a payload of mass m at the hand's TCP (8 cm off the sensor's axis): a sensor at the
     hand's mounting (the URDF's fixed joint panda_hand_joint) carries the hand, both fingers and the payload, so it
     reads (m_hand + 2 m_finger + m) g upward (masses from the URDF file), and the payload's moment about it; a sensor
@@ -153,7 +173,7 @@ def test_wrist_force_torque_sensor_reads_the_distal_weight_at_rest(mass: float) 
     )
     masses = _urdf_masses(scene.full_robot.source["urdf_path"])
     distal = masses["panda_hand"] + masses["panda_leftfinger"] + masses["panda_rightfinger"]
-    traj = _hold(scene, scene.q0)
+    traj = on_kernel(_hold(scene, scene.q0), kernel)
     x, y, z, w = traj.sensors["mount"][-1, 3:]
     rotation = pin.Quaternion(w, x, y, z).matrix()
     wrist = traj.sensors["wrist"][-1]
@@ -162,7 +182,7 @@ def test_wrist_force_torque_sensor_reads_the_distal_weight_at_rest(mass: float) 
         bare = ms.make_scene(
             robot={"source": "panda"}, sensor=[{"name": "wrist", "kind": "force_torque", "frame": "panda_hand_joint"}]
         )
-        without = _hold(bare, scene.q0).sensors["wrist"][-1]
+        without = on_kernel(_hold(bare, scene.q0), kernel).sensors["wrist"][-1]
         tcp = scene.model.frames[scene.model.getFrameId("panda_hand_tcp")].placement
         sensor = scene.model.frames[scene.model.getFrameId("panda_hand_joint")].placement
         offset = (sensor.inverse() * tcp).act(np.array([0.08, 0.0, 0.0]))  # the payload's centre, sensor axes
@@ -174,7 +194,7 @@ def test_wrist_force_torque_sensor_reads_the_distal_weight_at_rest(mass: float) 
     assert np.linalg.norm(joint7[:3]) == pytest.approx((distal + mass + link7) * G, rel=1e-12)
 
 
-def test_force_torque_at_a_joint_carries_contact_forces_on_its_subtree() -> None:
+def test_force_torque_at_a_joint_carries_contact_forces_on_its_subtree(kernel: str) -> None:
     """go2 standing: at rest the wrench across each hip joint balances its leg's weight against the foot's ground
     force: Rᵀ(ground force) - leg weight, as the world sees it (sum of the four hips plus the trunk = 0)."""
     scene = ms.load_scene(_scene_file("go2_standing.toml"))
@@ -183,7 +203,7 @@ def test_force_torque_at_a_joint_carries_contact_forces_on_its_subtree() -> None
     sensors += [{"name": f"{leg}_hip", "kind": "force_torque", "joint": f"{leg}_hip_joint"} for leg in feet]
     sensors += [{"name": f"{leg}_hip_pose", "kind": "frame_pose", "frame": f"{leg}_hip_joint"} for leg in feet]
     scene = _with_sensors(scene, sensors)
-    traj = scene.run(duration=1.0)
+    traj = on_kernel(scene.run(duration=1.0), kernel)
     masses = _urdf_masses(scene.full_robot.source["urdf_path"])
     for leg in feet:
         leg_mass = sum(m for name, m in masses.items() if name.startswith(f"{leg}_"))
@@ -194,7 +214,7 @@ def test_force_torque_at_a_joint_carries_contact_forces_on_its_subtree() -> None
         np.testing.assert_allclose(across + ground, [0.0, 0.0, leg_mass * G], atol=0.05 * leg_mass * G)
 
 
-def test_joint_torque_reads_what_the_actuators_deliver_not_their_command() -> None:
+def test_joint_torque_reads_what_the_actuators_deliver_not_their_command(kernel: str) -> None:
     """ur5 with stiff position servos holding a target: the joint_torque sensor reads the servos' output, which at
     rest balances gravity (Pinocchio's g(q), computed apart), while the commands are the targets; between control
     instants it is the trajectory's tau (the delivered torque at each sample under the same held command)."""
@@ -207,6 +227,7 @@ def test_joint_torque_reads_what_the_actuators_deliver_not_their_command() -> No
     traj = scene.run(
         duration=3.0, dt=2e-3, integrator="semi_implicit_euler", control_dt=2e-2, controller=lambda t, q, v: target
     )
+    on_kernel(traj, kernel)
     tq = traj.sensors["tq"]
     gravity = pin.computeGeneralizedGravity(scene.model, scene.model.createData(), traj.q[-1])
     np.testing.assert_allclose(tq[-1], gravity, atol=1e-9 * np.abs(gravity).max())
@@ -229,7 +250,7 @@ def _with_sensors(scene: ms.Scene, sensors: list[dict[str, object]]) -> ms.Scene
     return ms.Scene(dataclasses.replace(scene.spec, sensors=parsed.sensors))
 
 
-def test_contact_forces_on_a_standing_robot_sum_to_its_weight() -> None:
+def test_contact_forces_on_a_standing_robot_sum_to_its_weight(kernel: str) -> None:
     """go2 dropped 0.6 mm onto its four feet and held at its stance: once settled, the four contact_force sensors
     sum to (0, 0, M g), M the sum of the URDF's link masses. At every step, with the robot still moving, they are
     the rate of change of its linear momentum less gravity (Newton–Euler on the whole robot: Pinocchio's centroidal
@@ -237,7 +258,7 @@ def test_contact_forces_on_a_standing_robot_sum_to_its_weight() -> None:
     scene = ms.load_scene(_scene_file("go2_standing.toml"))
     feet = ["FL", "FR", "RL", "RR"]
     scene = _with_sensors(scene, [{"name": leg, "kind": "contact_force", "body": f"{leg}_foot"} for leg in feet])
-    traj = scene.run(duration=1.5)
+    traj = on_kernel(scene.run(duration=1.5), kernel)
     total = sum(traj.sensors[leg] for leg in feet)
     mass = sum(_urdf_masses(scene.full_robot.source["urdf_path"]).values())
     settled = traj.t > 1.0
@@ -304,7 +325,7 @@ def test_readings_in_one_call_or_many_are_the_same() -> None:
     np.testing.assert_array_equal(values, whole[0][0][1])
 
 
-def test_latency_is_exact_in_readings_and_rate_holds_them_between() -> None:
+def test_latency_is_exact_in_readings_and_rate_holds_them_between(kernel: str) -> None:
     """The double pendulum swinging: a sensor 3 readings late at 250 Hz (every 4 steps of 1 ms) reads exactly what
     its on-time twin read 3 readings (12 ms) before (its first reading before that), and holds each reading for 4
     samples."""
@@ -316,7 +337,7 @@ def test_latency_is_exact_in_readings_and_rate_holds_them_between() -> None:
             {"name": "every", "kind": "joint_velocity"},
         ],
     )
-    traj = ms.simulate(scene, [2.5, 0.3], [0.0, 0.0], duration=0.2, dt=1e-3)
+    traj = on_kernel(ms.simulate(scene, [2.5, 0.3], [0.0, 0.0], duration=0.2, dt=1e-3), kernel)
     now, late, every = traj.sensors["now"], traj.sensors["late"], traj.sensors["every"]
     np.testing.assert_array_equal(every, traj.v)  # every step: the velocity itself
     ticks = np.arange(0, len(traj), 4)
@@ -678,7 +699,13 @@ def test_native_joint_torque_sensors_read_the_actuators_delivered_torque(monkeyp
         native, python = _both(
             monkeypatch,
             lambda i=integrator: ms.simulate(
-                ur5, ur5.q0, np.zeros(ur5.nv), duration=0.05, dt=1e-3, control_dt=2e-3, integrator=i,
+                ur5,
+                ur5.q0,
+                np.zeros(ur5.nv),
+                duration=0.05,
+                dt=1e-3,
+                control_dt=2e-3,
+                integrator=i,
                 controller=lambda t, q, v: target,
             ),
         )
@@ -698,8 +725,9 @@ def test_native_joint_torque_sensors_read_the_actuators_delivered_torque(monkeyp
     gains = ms.PDGravity(go2, q_ref=go2.q0, kp=100.0, kd=5.0)
     native, python = _both(
         monkeypatch,
-        lambda: ms.simulate(go2, go2.q0, np.zeros(go2.nv), duration=0.05, dt=1e-3, integrator="timestepping",
-                            controller=gains),
+        lambda: ms.simulate(
+            go2, go2.q0, np.zeros(go2.nv), duration=0.05, dt=1e-3, integrator="timestepping", controller=gains
+        ),
     )
     assert native.metadata["kernel"] == "native" and python.metadata["kernel"] != "native"
     for name in python.sensors:

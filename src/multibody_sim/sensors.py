@@ -689,8 +689,10 @@ class SensorStream:
                 z = sequence[: len(z)]
             assert p.bias is not None and p.noise is not None
             readings = z + p.bias
-            if self._spoiled[k]:
-                readings = readings + p.noise * self.generators[b][k].standard_normal(z.shape)
+            if self._spoiled[k]:  # (z + bias) + noise · draw, each array made once
+                draws = self.generators[b][k].standard_normal(z.shape)
+                draws *= p.noise
+                readings += draws
             self.latest[b, columns] = readings[-1]
             result.append((due_times, readings))
         return result

@@ -255,7 +255,7 @@ namespace multibody_sim
       for (const SensorItem & item : sensors->items)
         sensor_torques_ = sensor_torques_ || item.kind == SensorKind::joint_torque;
     for (auto & th : threads_)
-      th->sensw = sensors ? std::make_unique<SensorWork>(model_) : nullptr;
+      th->sensw = sensors ? std::make_unique<SensorWork>(model_, *sensors) : nullptr;
   }
 
   std::tuple<Vec, std::vector<int64_t>, RowMatrix> Engine::take_ticks()

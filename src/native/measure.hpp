@@ -15,6 +15,22 @@ namespace multibody_sim
 {
   namespace sensing
   {
+    // pinocchio::forwardKinematics(model, data, q, v, a) on the joints the sensors read (w.kinematic_joints): its
+    // own per-joint step (ForwardKinematicSecondStep) in its order, so those joints' placements, velocities and
+    // accelerations are its, bit for bit, and the joints no sensor reads are skipped (go2's base IMU: 1 of 13).
+    inline void kinematics(
+      const pinocchio::Model & model, SensorWork & w, const Eigen::VectorXd & q, const Eigen::VectorXd & v,
+      const Eigen::VectorXd & a)
+    {
+      using Step = pinocchio::impl::ForwardKinematicSecondStep<
+        double, 0, pinocchio::JointCollectionDefaultTpl, Eigen::VectorXd, Eigen::VectorXd, Eigen::VectorXd>;
+      pinocchio::Data & data = w.data;
+      data.v[0].setZero();
+      data.a[0].setZero();
+      for (pinocchio::JointIndex i : w.kinematic_joints)
+        Step::run(model.joints[i], data.joints[i], Step::ArgsType(model, data, q, v, a));
+    }
+
     // The sum of the contact impulses on `body` over h (Sensors._contact_force).
     inline Eigen::Vector3d contact_force(int body, const ContactRows * contacts, double h)
     {
@@ -97,12 +113,9 @@ namespace multibody_sim
     double * out)
   {
     pinocchio::Data & data = w.data;
-    bool kinematics = false, dynamics = false;
-    for (const SensorItem & s : sensors.items)
-      kinematics = kinematics || s.kind == SensorKind::imu || s.kind == SensorKind::frame_pose
-                   || s.kind == SensorKind::force_torque;
-    if (kinematics)
-      pinocchio::forwardKinematics(model, data, q, v, a);
+    bool dynamics = false;
+    if (!w.kinematic_joints.empty())
+      sensing::kinematics(model, w, q, v, a);
     for (const SensorItem & s : sensors.items)
     {
       double * row = out + s.offset;

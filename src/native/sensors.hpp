@@ -3,6 +3,7 @@
 // The structs arrive as named data from Sensors.native_data(); the measurement is measure.hpp's (engine.cpp only).
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <cstdint>
 #include <vector>
@@ -55,16 +56,32 @@ namespace multibody_sim
   // One thread's workspace for the measurement (its own Data: the step's is left as the step left it).
   struct SensorWork
   {
-    explicit SensorWork(const pinocchio::Model & model)
+    SensorWork(const pinocchio::Model & model, const Sensors & sensors)
     : data(model)
     , fext(model.njoints, pinocchio::Force::Zero())
     , parts(model.njoints)
     , a(Eigen::VectorXd::Zero(model.nv))
     , tau(Eigen::VectorXd::Zero(model.nv))
     {
+      // The joints whose kinematics the sensors read: every joint for a force-torque sensor (its contact forces
+      // are taken to joint frames before the RNEA), else the joints from the root to each imu's or frame_pose's.
+      std::vector<bool> needed(static_cast<size_t>(model.njoints), false);
+      for (const SensorItem & s : sensors.items)
+      {
+        if (s.kind == SensorKind::force_torque)
+          std::fill(needed.begin(), needed.end(), true);
+        else if ((s.kind == SensorKind::imu || s.kind == SensorKind::frame_pose) && s.frame >= 0)
+          for (pinocchio::JointIndex j : model.supports[model.frames[static_cast<size_t>(s.frame)].parentJoint])
+            needed[j] = true;
+      }
+      for (pinocchio::JointIndex j = 1; j < static_cast<pinocchio::JointIndex>(model.njoints); ++j)
+        if (needed[j])
+          kinematic_joints.push_back(j);
     }
 
     pinocchio::Data data;
+    // forwardKinematics(q, v, a)'s joints the sensors read, in its (the model's) order: a parent before its children
+    std::vector<pinocchio::JointIndex> kinematic_joints;
     pinocchio::container::aligned_vector<pinocchio::Force> fext;
     std::vector<std::vector<std::pair<int, pinocchio::Force>>> parts;  // per joint: (frame, force) in order
     Eigen::VectorXd a;
