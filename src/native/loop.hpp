@@ -412,18 +412,18 @@ namespace multibody_sim
       {
         if (!alive[j] || (e.sensor_done_[static_cast<size_t>(rows[j])] + st.steps) % e.sensor_every_ != 0)
           continue;
+        select(j);  // the row's model, actuators and contact
         w.a = (v[j] - vn[j]) / h;
         const Vec * delivered = &tau[j];  // the joint_torque sensors': the torque the actuators deliver at the tick
-        if (e.actuators_ && e.sensor_torques_)
+        if (A && e.sensor_torques_)
         {
-          e.actuators_->joint_torques(q[j], v[j], tau[j], nullptr, w.tau.data());
+          A->joint_torques(q[j], v[j], tau[j], nullptr, w.tau.data());
           delivered = &w.tau;
         }
         const size_t at = w.values.size();
         w.values.resize(at + static_cast<size_t>(sensors.width));
         measure_sensors(
-          sensors, e.model_, w, q[j], v[j], w.a, *delivered, e.contact_ ? &crow[j].active : nullptr, h,
-          w.values.data() + at);
+          sensors, *M, w, q[j], v[j], w.a, *delivered, C ? &crow[j].active : nullptr, h, w.values.data() + at);
         w.times.push_back(t);
         w.rows.push_back(rows[j]);
       }
