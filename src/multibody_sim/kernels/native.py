@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -35,7 +36,7 @@ from ..integrators.timestepping import ANDERSON_CAPACITY, TOLERANCE, TimeSteppin
 from ..recording import STORE_ARRAYS, SampleStore
 from ..robot import Robot
 from ..scenes.scene import Scene
-from ..step_control import LANDING_FRACTION, ConstantStep, ConstantStepState, PIController, PIState
+from ..step_control import LANDING_FRACTION, ConstantStep, PIController
 from ..torques import command_bounds
 
 # The registry's explicit methods (and the contact time-stepper), which the engine renders from their native_data().
@@ -440,8 +441,9 @@ def next_budget(budget: int, steps: int, elapsed: float) -> int:
 
 
 def _in_loop(name: str) -> property:
-    """An attribute of NativeCore kept in its loop state (a _native.LoopState field of this name)."""
-    return property(lambda self: getattr(self.loop, name), lambda self, value: setattr(self.loop, name, value))
+    """An attribute of NativeCore kept in its loop state (a _native.LoopState field of this name); read through
+    attrgetter, without a Python frame (Core's code and the Stepper read the counts at every step)."""
+    return property(attrgetter(f"loop.{name}"), lambda self, value: setattr(self.loop, name, value))
 
 
 class NativeCore(Core):
@@ -495,12 +497,13 @@ class NativeCore(Core):
             taken += result.taken
             if result.taken:
                 self._budget = next_budget(self._budget, result.taken, elapsed)
-            if result.status == _NEED_ROOM:
+            status = result.status
+            if status == _NEED_ROOM:
                 store.room(result.need)
                 continue
-            if result.status == STEPPED and (max_steps is None or taken < max_steps):
+            if status == STEPPED and (max_steps is None or taken < max_steps):
                 continue  # the budget, not the caller's limit: Python runs here (signals), then the engine again
-            return str(result.status)
+            return str(status)
 
     def _advance_io(self) -> Any:
         """What the engine reads and reports beside the loop state, as _native.AdvanceIO: made again only when the
@@ -517,26 +520,19 @@ class NativeCore(Core):
 
     def _load(self) -> None:
         """The loop state from the store, the sampler and the controller (the core's counts live there already)."""
-        loop, store, control = self.loop, self.store, self.control
+        loop, store, sampler = self.loop, self.store, self.sampler
         loop.count, loop.full, loop.soft_capacity = store.count, store.full, store.soft_capacity
-        if self.sampler is not None:
-            loop.next_output = self.sampler.next_output
-        state = control.snapshot()
-        if isinstance(state, PIState):
-            loop.step_time, loop.step_h, loop.previous_error, loop.rejected_last = state
-        else:
-            loop.step_t0, loop.step_k, loop.step_time = state
+        if sampler is not None:
+            loop.next_output = sampler.next_output
+        self.control.write_native_state(loop)
 
     def _unload(self) -> None:
         """... and back, once the engine returned."""
-        loop, store, control = self.loop, self.store, self.control
+        loop, store, sampler = self.loop, self.store, self.sampler
         store.count, store.full = loop.count, loop.full
-        if self.sampler is not None:
-            self.sampler.next_output = loop.next_output
-        if isinstance(control, PIController):
-            control.restore(PIState(loop.step_time, loop.step_h, loop.previous_error, loop.rejected_last))
-        else:
-            control.restore(ConstantStepState(loop.step_t0, loop.step_k, loop.step_time))
+        if sampler is not None:
+            sampler.next_output = loop.next_output
+        self.control.read_native_state(loop)
 
     def _control_failure(self, row: int, t: float) -> InvalidArgumentError:
         """Why row `row`'s native controller output at t was refused: its Python controller's output at the row's
