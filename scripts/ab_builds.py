@@ -8,9 +8,16 @@ median ratio. The load of the moment then weighs on both sides of a pair alike. 
 times `steps` calls of Stepper.step instead (one row, RK4, dt = 1 ms, zero torque: the per-call cost of the entry
 point that gym environments use) against 4 × `pin.aba` per step called from Python.
 
+With `--reports`, each process runs instead one side's own copy of scripts/bench_step_cost.py and
+scripts/bench_rollout.py (the worktree that holds the interpreter's .venv) on the robots, and the figures of their
+per-robot lines are taken as ratios to the floor that the same process measured: bench_step_cost's Python-kernel
+RK4 step, native RK4 step and native rollout state-step, each / 4 × abaInParallel per state; bench_rollout's
+rollout (output every 10 steps) / 4 × abaInParallel, floating robots also base welded. bench_rollout is stopped
+once those lines are out (its scaling sections are not compared); neither writes its report into docs/.
+
 Usage:
     python scripts/ab_builds.py --a /work/main/.venv/bin/python --b /work/wt/mine/.venv/bin/python \\
-        [--robots double_pendulum,solo12] [--pairs 6] [--rounds 7] [--steps 100] [--batch 256] [--stepper]
+        [--robots double_pendulum,solo12] [--pairs 6] [--rounds 7] [--steps 100] [--batch 256] [--stepper | --reports]
 
 Prints each pair's ratios, then per robot the median ratio of each side and in how many pairs B read lower.
 Check each build's kernel first (`multibody-sim --version`): a stale editable build runs the Python kernel.
@@ -19,11 +26,25 @@ Check each build's kernel first (`multibody-sim --version`): a stale editable bu
 from __future__ import annotations
 
 import argparse
+import os
+import re
+import selectors
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+# bench_step_cost.py's per-robot line: python rk4 µs/step (CPU), native µs/step, floor per state, ..., rollout
+STEP_COST_LINE = re.compile(
+    r"^(\S+): python rk4 ([\d.]+) µs/step \(CPU\), native ([\d.]+), floor 4 × abaInParallel ([\d.]+), .*; "
+    r"rollout ([\d.]+) µs/state-step"
+)
+# bench_rollout.py's per-robot line: rollout / floor, median (quartiles)
+ROLLOUT_LINE = re.compile(r"^(.+?): rollout / floor ([\d.]+) ")
 
 
 def measure(name: str, rounds: int, steps: int, batch: int) -> float:
@@ -92,6 +113,53 @@ def measure_stepper(name: str, rounds: int, steps: int) -> float:
     return median_ratio(run, floor, rounds)
 
 
+def report_figures(python: str, robots: str, rounds: int, steps: int) -> dict[str, float]:
+    """Run the side's own bench_step_cost.py and bench_rollout.py (in the worktree of its .venv) and return their
+    figures as ratios to the floor measured in the same process, named "<robot> <figure>"."""
+    root = Path(python).absolute().parent.parent.parent  # <worktree>/.venv/bin/python
+    figures: dict[str, float] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        step_cost = [python, str(root / "scripts" / "bench_step_cost.py"), "--robots", robots]
+        step_cost += ["--repeats", str(rounds), "--steps", str(steps), "--out", str(Path(tmp) / "step_cost.md")]
+        done = subprocess.run(step_cost, capture_output=True, text=True, check=True, cwd=root)
+        for line in done.stdout.splitlines():
+            match = STEP_COST_LINE.match(line)
+            if match:
+                name, python_rk4, native_rk4, floor, rollout = match.groups()
+                figures[f"{name} step_cost python rk4"] = float(python_rk4) / float(floor)
+                figures[f"{name} step_cost native rk4"] = float(native_rk4) / float(floor)
+                figures[f"{name} step_cost rollout"] = float(rollout) / float(floor)
+        bench = [python, str(root / "scripts" / "bench_rollout.py"), "--robots", robots, "--no-ray"]
+        bench += ["--repeats", str(rounds), "--steps", str(steps), "--out", str(Path(tmp) / "rollout_cost.md")]
+        with subprocess.Popen(bench, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, cwd=root) as run:
+            assert run.stdout is not None
+            for line in rollout_lines(run.stdout, len(robots.split(","))):
+                match = ROLLOUT_LINE.match(line)
+                assert match is not None
+                figures[f"{match.group(1)} rollout"] = float(match.group(2))
+            run.terminate()
+    return figures
+
+
+def rollout_lines(out: Any, robots: int) -> list[str]:
+    """bench_rollout.py's per-robot ratio lines from its stdout (binary): the robots' lines, then those of the
+    floating ones base welded, printed together; done when no line followed for 5 s after the robots' lines."""
+    lines: list[str] = []
+    buffer = b""
+    with selectors.DefaultSelector() as selector:
+        selector.register(out, selectors.EVENT_READ)
+        while True:
+            waiting = len(lines) >= robots
+            if not selector.select(timeout=5.0 if waiting else None):
+                return lines
+            chunk = os.read(out.fileno(), 65536)
+            if not chunk:
+                return lines
+            buffer += chunk
+            *complete, buffer = buffer.split(b"\n")
+            lines += [text for text in (c.decode() for c in complete) if ROLLOUT_LINE.match(text)]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--a", help="the first interpreter (the baseline)")
@@ -102,6 +170,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=100, help="steps per timed rollout")
     parser.add_argument("--batch", type=int, default=256, help="states per rollout")
     parser.add_argument("--stepper", action="store_true", help="time Stepper.step instead of a rollout")
+    parser.add_argument("--reports", action="store_true", help="run bench_step_cost.py and bench_rollout.py instead")
     parser.add_argument("--measure", action="store_true", help=argparse.SUPPRESS)  # one side's process
     args = parser.parse_args()
     robots = args.robots.split(",")
@@ -116,6 +185,9 @@ def main() -> None:
         return
     if not args.a or not args.b:
         parser.error("--a and --b name the two interpreters to compare")
+    if args.reports:
+        compare_reports(args)
+        return
     inner = [__file__, "--measure", "--robots", args.robots, "--rounds", str(args.rounds), "--steps", str(args.steps)]
     inner += ["--batch", str(args.batch)] + (["--stepper"] if args.stepper else [])
     results: dict[str, dict[str, list[float]]] = {"a": {}, "b": {}}
@@ -136,6 +208,24 @@ def main() -> None:
             f"{name}: {timed} / floor, median a {statistics.median(a):.4f}, b {statistics.median(b):.4f}; "
             f"b lower in {lower} of {len(a)} pairs"
         )
+
+
+def compare_reports(args: argparse.Namespace) -> None:
+    """--reports: the benchmark scripts' figures, pairs of processes alternating a and b."""
+    results: dict[str, dict[str, list[float]]] = {"a": {}, "b": {}}
+    for pair in range(args.pairs):
+        for side, python in (("a", args.a), ("b", args.b)):
+            for name, ratio in report_figures(python, args.robots, args.rounds, args.steps).items():
+                results[side].setdefault(name, []).append(ratio)
+        print(f"pair {pair + 1}/{args.pairs} done", flush=True)
+    for name, a in results["a"].items():
+        b = results["b"].get(name, [])
+        if len(b) != len(a):
+            print(f"{name}: missing on b")
+            continue
+        lower = sum(y < x for x, y in zip(a, b, strict=True))
+        ma, mb = statistics.median(a), statistics.median(b)
+        print(f"{name} / floor: median a {ma:.4f}, b {mb:.4f}, b/a {mb / ma:.3f}; b lower in {lower} of {len(a)} pairs")
 
 
 if __name__ == "__main__":
