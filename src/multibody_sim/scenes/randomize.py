@@ -277,32 +277,29 @@ def body_masses(model: pin.Model, values: Nominals) -> None:
     named by its link (the links welded to it are part of it); the links' own inertias (their frames', which a
     force-torque sensor inside the body sums) scale alike: each link's mass by the body's ratio, its rotational
     inertia about its own centre by the same factor."""
-    names = _body_names(model)
+    names: dict[int, str] = {}  # each joint's body: the first body frame on it (its link), else the joint's name
+    links: dict[int, list[int]] = {}  # each joint's frames with a mass
+    for fid, frame in enumerate(model.frames):
+        jid = int(frame.parentJoint)
+        if frame.type == pin.FrameType.BODY and jid > 0:
+            names.setdefault(jid, frame.name)
+        if frame.inertia.mass > 0.0:
+            links.setdefault(jid, []).append(fid)
     for jid in range(1, model.njoints):
         body = model.inertias[jid]
         if body.mass <= 0.0:  # nothing to scale
             continue
-        name = names[jid]
+        name = names.get(jid, model.names[jid])
         mass = values.value("mass", name, float(body.mass))
         factor = values.value("inertia", name, 1.0)
         if mass != body.mass or factor != 1.0:
             ratio = mass / body.mass
             model.inertias[jid] = pin.Inertia(mass, body.lever, body.inertia * (ratio * factor))
-            for fid in range(model.nframes):
+            for fid in links.get(jid, ()):
                 frame = model.frames[fid]
-                if frame.parentJoint == jid and frame.inertia.mass > 0.0:
-                    link = frame.inertia
-                    frame.inertia = pin.Inertia(link.mass * ratio, link.lever, link.inertia * (ratio * factor))
-                    model.frames[fid] = frame
-
-
-def _body_names(model: pin.Model) -> dict[int, str]:
-    """Each joint's body: the first body frame on it (its link), else the joint's own name."""
-    names: dict[int, str] = {}
-    for frame in model.frames:
-        if frame.type == pin.FrameType.BODY and frame.parentJoint > 0:
-            names.setdefault(int(frame.parentJoint), frame.name)
-    return {jid: names.get(jid, model.names[jid]) for jid in range(1, model.njoints)}
+                link = frame.inertia
+                frame.inertia = pin.Inertia(link.mass * ratio, link.lever, link.inertia * (ratio * factor))
+                model.frames[fid] = frame
 
 
 def payload_mass(payload: PayloadSpec, mass: float) -> PayloadSpec:
