@@ -362,6 +362,69 @@ def test_drawn_values_are_the_values_declared() -> None:
     np.testing.assert_array_equal(a.v, b.v)
 
 
+def test_drawn_contact_and_motor_constants_are_the_values_declared() -> None:
+    """The coefficients of contacts between bodies (a box sliding on a box) and an actuator's velocity limit and
+    torque-speed curve (ur5's motors), drawn and declared: the same dynamics bit for bit."""
+    boxes = {
+        "ground": {"friction": 0.8},
+        "contact": {"pairs": "all"},
+        "object": [
+            {"name": "base", "shape": "box", "size": [0.6, 0.6, 0.1], "mass": 5.0, "position": [0, 0, 0.05]},
+            {
+                "name": "top",
+                "shape": "box",
+                "size": [0.2, 0.2, 0.1],
+                "mass": 1.0,
+                "position": [0, 0, 0.15],
+                "velocity": [1.0, 0.0, -0.2, 0.0, 0.0, 0.0],
+            },
+        ],
+    }
+    drawn_boxes = ms.make_scene(
+        **boxes,
+        randomize={"parameter": [uniform("body_friction", 0.2, 0.8), uniform("body_restitution", 0.0, 0.5)]},
+    )
+    p = drawn_boxes.draw_parameters(1)
+    coefficients = {"body_friction": p["body_friction"], "body_restitution": p["body_restitution"]}
+    declared_boxes = ms.make_scene(**{**boxes, "contact": {"pairs": "all", **coefficients}})
+    motors = {
+        "robot": {"source": "ur5"},
+        "actuator": [{"joints": "*", "velocity_limit": 2.0, "stall_torque": 40.0, "no_load_speed": 3.0}],
+    }
+    drawn_motors = ms.make_scene(
+        **motors,
+        randomize={
+            "parameter": [
+                uniform("velocity_limit", 0.5, 1.5, scale=True),
+                uniform("stall_torque", 0.5, 1.5, scale=True),
+                uniform("no_load_speed", 0.5, 1.5, scale=True),
+            ]
+        },
+    )
+    m = drawn_motors.draw_parameters(2)
+    names = [item.joint for item in drawn_motors.actuators.items]
+    declared_motors = ms.make_scene(
+        robot=motors["robot"],
+        actuator=motors["actuator"]
+        + [
+            {"joints": n, **{key: m[key][n] for key in ("velocity_limit", "stall_torque", "no_load_speed")}}
+            for n in names
+        ],
+    )
+    command = np.array([30.0, -30.0, 20.0, 10.0, 10.0, 5.0])
+    for drawn, declared, values, settings in [
+        (drawn_boxes, declared_boxes, p, {"integrator": "timestepping"}),
+        (drawn_motors, declared_motors, m, {"integrator": "rk4", "controller": lambda t, q, v: command}),
+    ]:
+        variant = drawn.with_parameters(values)
+        a = ms.simulate(variant, variant.q0, variant.v0, duration=0.1, dt=1e-3, **settings)
+        b = ms.simulate(declared, declared.q0, declared.v0, duration=0.1, dt=1e-3, **settings)
+        assert_same_run(a, b)
+        # the draw matters: the declared values give another run
+        c = ms.simulate(drawn, drawn.q0, drawn.v0, duration=0.1, dt=1e-3, **settings)
+        assert not np.array_equal(a.v, c.v)
+
+
 # ---- a row re-run alone: bit for bit -------------------------------------------------------------------------
 RANDOM_ARM = {
     "robot": {"source": "ur5"},
