@@ -11,7 +11,7 @@ apart, and the ratio without it is given too (the rows' own models while steppin
 - ur5 (rk4, 1 s at 1 ms, a PD natively): every body's mass x U(0.9, 1.1) and each joint's Coulomb friction U(0, 0.5)
   N·m against the arm with a declared 0.25 N·m on each joint (the same friction elements, declared instead of drawn).
 
-Usage: python scripts/bench_randomize.py [--rows 64] [--rounds 7] [--duration 1.0] [--threads 1]
+Usage: python scripts/bench_randomize.py [--rows 64] [--rounds 7] [--duration 1.0] [--threads 1] [--case ur5]
 """
 
 from __future__ import annotations
@@ -68,8 +68,11 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=7)
     parser.add_argument("--duration", type=float, default=1.0)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--case", choices=("go2_standing", "ur5"), help="one case only (default: both)")
     args = parser.parse_args()
     for name, (plain, random, settings, control) in cases().items():
+        if args.case is not None and name != args.case:
+            continue
         per_state_step(plain, control, settings, args), per_state_step(random, control, settings, args)  # warm
         times: dict[str, list[float]] = {"declared": [], "randomised": []}
         kernels = set()
