@@ -130,6 +130,24 @@ def test_shapes_pairs_and_solvers_beyond_the_shipped_scenes(label, monkeypatch):
         assert python_run.ledger["force:push"].energy[-1] > 0.0
 
 
+CAPSULE_MJCF = """<mujoco model="capsule"><worldbody><body name="rod" pos="0 0 0.1"><freejoint name="root"/>
+<geom name="rod" type="capsule" size="0.03 0.1" mass="1.0" euler="0 1.4 0"/></body></worldbody></mujoco>"""
+
+
+def test_urdf_meshes_and_capsules_run_natively_bit_for_bit(monkeypatch, tmp_path):
+    """solo12 released onto the ground on its URDF mesh hulls (their vertices against the ground; coal's archive of
+    each hull crosses for the pairs coal computes) and an MJCF capsule landing on its side."""
+    path = tmp_path / "capsule.xml"
+    path.write_text(CAPSULE_MJCF)
+    for scene, steps in ((make_scene(robot={"source": "solo12"}, ground={"friction": 0.8}), 150),
+                         (make_scene(robot={"source": str(path)}, ground={"friction": 0.8}), 300)):  # fmt: skip
+        kinds = {g.kind for g in scene.contact.geometries}
+        assert kinds & {"mesh", "capsule"} and why_not_native(scene, TIMESTEPPING) is None
+        native_run, python_run = both(lambda s=scene, n=steps: simulate(s, n * 1e-3), monkeypatch)  # noqa: B023
+        assert_same(native_run, python_run)
+        assert python_run.stats["solver_steps"] > 0
+
+
 # ---- Stepper and rollout ------------------------------------------------------------------------------------------
 def test_stepper_on_a_contact_scene(monkeypatch):
     """Stepper with a controller at control instants (jumps keep the warm start) and a state set by hand (a jump
@@ -224,7 +242,11 @@ def test_a_contact_constant_perturbed_on_the_native_side_breaks_the_agreement(na
 
 # ---- solver failures, Ctrl-C, refusals ----------------------------------------------------------------------------
 def test_a_capped_solver_fails_the_run_natively_as_on_python(monkeypatch):
-    scene = ms.load_scene("sliding_box")
+    bottom = {"name": "a", "shape": "box", "size": [0.3, 0.3, 0.1], "mass": 3.0, "position": [0, 0, 0.06],
+              "rpy": [0.05, 0.02, 0.0]}  # fmt: skip
+    top = {"name": "b", "shape": "box", "size": [0.2, 0.2, 0.1], "mass": 2.0, "position": [0, 0, 0.17],
+           "rpy": [0.0, 0.05, 0.1]}  # fmt: skip
+    scene = make_scene(ground={"friction": 0.8}, contact={"pairs": "all"}, object=[bottom, top])  # two tilted landings
     capped = TimeStepping(max_iterations=1)
     assert why_not_native(scene, capped) is None  # the cap is data for the engine
 
@@ -279,10 +301,11 @@ def test_ctrl_c_mid_contact_run_keeps_every_sample(monkeypatch):
 def test_shapes_the_engine_does_not_render_stay_on_python_and_say_so():
     scene = ms.load_scene("sliding_box")
     model = scene.contact
-    model.geometries[1] = dataclasses.replace(model.geometries[1], kind="mesh")
+    model.geometries[1] = dataclasses.replace(model.geometries[1], kind="ellipsoid")
     reason = why_not_native(scene, TIMESTEPPING)
     assert reason == (
-        "the scene's collision geometry has mesh shapes (the native kernel renders halfspace, box, sphere, cylinder)"
+        "the scene's collision geometry has ellipsoid shapes (the native kernel renders halfspace, box, sphere, "
+        "cylinder, capsule, mesh)"
     )
     assert why_not_native(ms.load_scene("sliding_box"), INTEGRATORS["rk4"]) == (
         "the scene has contact, which only the timestepping integrator steps"

@@ -1,24 +1,27 @@
-// The contact part of the `timestepping` step (see contact.hpp): scenes/contact.py's ContactModel.detect and
-// .problem and integrators/timestepping.py's solve, in their order. Each section names the Python it renders.
+// The contact part of the `timestepping` step (see contact.hpp): scenes/narrow_phase.py, scenes/contact.py's
+// ContactModel.detect and .problem and integrators/timestepping.py's solve, in their order. Each section names the
+// Python it renders.
 #include "contact.hpp"
 #include "model.hpp"
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
+#include <sstream>
 #include <stdexcept>
 #include <string>
 
+#include <boost/asio/streambuf.hpp>
 #include <coal/collision_data.h>
+#include <coal/serialization/archive.h>
+#include <coal/serialization/convex.h>
+#include <coal/shape/convex.h>
 #include <coal/shape/geometric_shapes.h>
 
 #include "pinocchio/algorithm/cholesky.hpp"
-#include "pinocchio/algorithm/constraint-cholesky.hpp"
 #include "pinocchio/algorithm/crba.hpp"
 #include "pinocchio/algorithm/geometry.hpp"
-#include "pinocchio/algorithm/solvers/admm-solver.hpp"
-#include "pinocchio/algorithm/solvers/pgs-solver.hpp"
 #include "pinocchio/collision/collision.hpp"
-#include "pinocchio/constraints.hpp"
 #include "pinocchio/multibody/geometry.hpp"
 
 namespace multibody_sim
@@ -26,19 +29,61 @@ namespace multibody_sim
   namespace
   {
     using Matrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+    using Vector3 = Eigen::Vector3d;
 
-    // contact.ContactPoint
-    struct Point
+    // narrow_phase's pair kinds
+    enum PairKind : int
     {
-      int pair = 0, index = 0;
-      int joint1 = 0, joint2 = 0, body1 = 0, body2 = 0;
-      pinocchio::SE3 placement1, placement2;
-      Eigen::Vector3d position, normal;
-      Eigen::Matrix3d rotation;
-      double gap = 0.0, friction = 0.0, restitution = 0.0;
+      SPHERE_GROUND = 0,
+      BOX_GROUND = 1,
+      CYLINDER_GROUND = 2,
+      CAPSULE_GROUND = 3,
+      MESH_GROUND = 4,
+      SPHERE_SPHERE = 5,
+      SPHERE_BOX = 6,
+      BOX_SPHERE = 7,
+      COAL = 8,
     };
 
-    std::shared_ptr<coal::CollisionGeometry> make_shape(const ContactShape & s)  // contact.make_shape
+    int pair_kind(ShapeKind a, ShapeKind b)  // narrow_phase.pair_kind
+    {
+      if (a == ShapeKind::halfspace)
+        switch (b)
+        {
+        case ShapeKind::sphere:
+          return SPHERE_GROUND;
+        case ShapeKind::box:
+          return BOX_GROUND;
+        case ShapeKind::cylinder:
+          return CYLINDER_GROUND;
+        case ShapeKind::capsule:
+          return CAPSULE_GROUND;
+        case ShapeKind::mesh:
+          return MESH_GROUND;
+        default:
+          return COAL;
+        }
+      if (a == ShapeKind::sphere && b == ShapeKind::sphere)
+        return SPHERE_SPHERE;
+      if (a == ShapeKind::sphere && b == ShapeKind::box)
+        return SPHERE_BOX;
+      if (a == ShapeKind::box && b == ShapeKind::sphere)
+        return BOX_SPHERE;
+      return COAL;
+    }
+
+    // A mesh hull from coal's archive (contact.ContactModel.native_data); throws what Boost and coal throw on a bad one.
+    std::shared_ptr<coal::CollisionGeometry> load_hull(const ContactShape & s)
+    {
+      auto hull = std::make_shared<coal::Convex<coal::Triangle>>();
+      boost::asio::streambuf buffer;
+      buffer.sputn(reinterpret_cast<const char *>(s.archive.data()), static_cast<std::streamsize>(s.archive.size()));
+      coal::serialization::loadFromBuffer(*hull, buffer);
+      return hull;
+    }
+
+    // contact.make_shape; a mesh stands as its bounding sphere until a pair needs coal with it (ContactWork.hulls)
+    std::shared_ptr<coal::CollisionGeometry> make_shape(const ContactShape & s)
     {
       switch (s.kind)
       {
@@ -50,39 +95,75 @@ namespace multibody_sim
         return std::make_shared<coal::Sphere>(s.dims.at(0));
       case ShapeKind::cylinder:
         return std::make_shared<coal::Cylinder>(s.dims.at(0), s.dims.at(1));
+      case ShapeKind::capsule:
+        return std::make_shared<coal::Capsule>(s.dims.at(0), s.dims.at(1));
+      case ShapeKind::mesh:
+        return std::make_shared<coal::Sphere>(s.radius);
       }
       throw std::invalid_argument("unknown shape kind");
     }
+
+    // narrow_phase.Candidate
+    struct Candidate
+    {
+      int feature = 0;
+      Vector3 p1, p2;
+      double gap = 0.0;
+    };
+
+    // narrow_phase.transform for one point: ((R0 x + R1 y) + R2 z) + t per coordinate
+    inline Vector3 transform(const Eigen::Matrix3d & R, const Vector3 & t, const Vector3 & l)
+    {
+      Vector3 out;
+      for (int r = 0; r < 3; ++r)
+        out[r] = ((R(r, 0) * l[0] + R(r, 1) * l[1]) + R(r, 2) * l[2]) + t[r];
+      return out;
+    }
+
+    inline double norm3(double a, double b, double c)  // sqrt((a a + b b) + c c)
+    {
+      return std::sqrt((a * a + b * b) + c * c);
+    }
   } // namespace
+
+  // contact.ContactPoint
+  struct Point
+  {
+    int pair = 0, feature = 0;
+    int joint1 = 0, joint2 = 0, body1 = 0, body2 = 0;
+    Vector3 p1, p2, position, normal;
+    Eigen::Matrix3d rotation;
+    double gap = 0.0, friction = 0.0, restitution = 0.0;
+  };
 
   struct ContactWork
   {
     pinocchio::Data data;  // the contact's own Data (ContactModel.data)
     pinocchio::GeometryModel gm;
     pinocchio::GeometryData gd;
-    bool has_limit = false, has_friction = false;
-    pinocchio::JointLimitConstraintModel limit;
-    pinocchio::JointFrictionConstraintModel friction;
-    std::vector<pinocchio::ConstraintModel> models;
-    std::vector<pinocchio::ConstraintData> datas;
-    std::vector<std::vector<int64_t>> keys;
-    std::vector<int> sizes;
-    // The constraint set's structure (per model: a point's joints, the limits' selection, friction): while it
-    // stays, the models and datas are updated in place instead of being built again.
-    std::vector<int64_t> structure, next_structure;
-    pinocchio::ConstraintCholeskyDecomposition cholesky;
-    pinocchio::ADMMConstraintSolver admm;
-    pinocchio::PGSConstraintSolver pgs;
-    pinocchio::ADMMSolverSettings admm_settings;
-    pinocchio::PGSSolverSettings pgs_settings;
-    pinocchio::ADMMSolverResult admm_result;
-    pinocchio::PGSSolverResult pgs_result;
-    std::vector<Point> points;
+    cone::Solver solver;
+    std::vector<Candidate> found, patch;
     std::vector<int> chosen;
-    std::vector<Eigen::Vector2d> tangent;
-    Matrix J;
-    Eigen::VectorXd g, correction, restitution, guess, impulses, generalized, minv, approach;
+    std::vector<double> nearest;
+    std::vector<Vector3> midpoints;
+    std::vector<Point> points;
+    // (sign, v index, joint, distance) of each selected limit
+    struct Limit
+    {
+      double sign;
+      int iv, joint;
+      double distance;
+    };
+    std::vector<Limit> limits;
+    std::vector<std::array<int64_t, 3>> keys;
+    std::vector<int> sizes;
+    std::vector<std::vector<int>> row_support;  // per row: the dofs where its J row (and Z column) may be nonzero
+    std::vector<cone::Block> blocks;
+    Matrix J, G;
+    Eigen::MatrixXd Z, W;  // nv x m
+    Eigen::VectorXd g, free, correction, restitution, guess, impulses, generalized, minv, Dinv;
     std::vector<std::pair<int, double>> landings;
+    std::vector<int> union_;
 
     ContactWork(const pinocchio::Model & model, const ContactScene & scene)
     : data(model)
@@ -103,84 +184,187 @@ namespace multibody_sim
         request.enable_contact = true;  // without it box–box normals are NaN
         request.security_margin = scene.constants.speculative_margin;
       }
-      if (!scene.limited_joints.empty())
-      {
-        pinocchio::JointLimitConstraintModel::JointIndexVector ids(
-          scene.limited_joints.begin(), scene.limited_joints.end());
-        limit = pinocchio::JointLimitConstraintModel(model, ids);
-        limit.setPositionLimitAndMargin(model.lowerPositionLimit, model.upperPositionLimit, scene.limit_margin);
-        has_limit = true;
-      }
-      if (!scene.friction_joints.empty())
-      {
-        pinocchio::JointFrictionConstraintModel::JointIndexVector ids(
-          scene.friction_joints.begin(), scene.friction_joints.end());
-        const Eigen::VectorXd lower = -scene.friction_bound;
-        friction = pinocchio::JointFrictionConstraintModel(model, ids, lower, scene.friction_bound);
-        has_friction = true;
-      }
-      const ContactConstants & c = scene.constants;
-      // timestepping.admm_settings / pgs_settings
-      admm_settings.admm_update_rule = pinocchio::ADMMUpdateRule::SPECTRAL;
-      admm_settings.anderson_capacity = static_cast<std::size_t>(c.anderson_capacity);
-      admm_settings.max_iterations = static_cast<std::size_t>(c.max_iterations);
-      admm_settings.absolute_feasibility_tol = c.tolerance;
-      admm_settings.relative_feasibility_tol = c.tolerance;
-      admm_settings.absolute_complementarity_tol = c.tolerance;
-      admm_settings.relative_complementarity_tol = c.tolerance;
-      pgs_settings.max_iterations = static_cast<std::size_t>(c.max_iterations);
-      pgs_settings.absolute_feasibility_tol = c.tolerance;
-      pgs_settings.relative_feasibility_tol = c.tolerance;
-      pgs_settings.absolute_complementarity_tol = c.tolerance;
-      pgs_settings.relative_complementarity_tol = c.tolerance;
+      solver.settings = scene.constants.solver();
     }
 
-    // contact._patch_points: the indices of a patch's points the constraint uses
-    void patch_points(const coal::ContactPatch & patch, const Eigen::Matrix3d & rotation, int max_points)
+    // The mesh hulls from their archives, once a pair needs coal with one (most hulls only ever meet the ground,
+    // whose pairs the narrow phase computes from their vertices): the geometry data rebuilt on them, placed where
+    // the current kinematics put them.
+    void hulls(const pinocchio::Model & model, const ContactScene & scene)
     {
-      chosen.clear();
-      const int n = static_cast<int>(patch.size());
-      if (n <= max_points)
+      if (hulls_loaded)
+        return;
+      for (size_t k = 0; k < scene.shapes.size(); ++k)
+        if (scene.shapes[k].kind == ShapeKind::mesh)
+          gm.geometryObjects[k].geometry = load_hull(scene.shapes[k]);
+      gd = pinocchio::GeometryData(gm);
+      for (coal::CollisionRequest & request : gd.collisionRequests)
       {
-        for (int i = 0; i < n; ++i)
-          chosen.push_back(i);
+        request.enable_contact = true;
+        request.security_margin = scene.constants.speculative_margin;
+      }
+      pinocchio::updateGeometryPlacements(model, data, gm, gd);
+      hulls_loaded = true;
+    }
+
+    bool hulls_loaded = false;
+  };
+
+  namespace
+  {
+    // ---- narrow_phase.py ------------------------------------------------------------------------------------------
+    // _ground: the candidates of lowest points (already lowered) against z >= height
+    void ground_point(std::vector<Candidate> & out, const Vector3 & p2, double height, int feature, double margin)
+    {
+      const double gap = p2[2] - height;
+      if (gap < margin)
+        out.push_back(Candidate{feature, Vector3(p2[0], p2[1], height), p2, gap});
+    }
+
+    // narrow_phase.cylinder_rims
+    void cylinder_rims(const Eigen::Matrix3d & R, const Vector3 & t, double radius, double half, double flat,
+                       Vector3 (&out)[8])
+    {
+      const Vector3 a = R.col(2);
+      const double px = a[2] * a[0], py = a[2] * a[1], pz = a[2] * a[2] - 1.0;
+      const double norm2 = (px * px + py * py) + pz * pz;
+      Vector3 u, w;
+      if (norm2 <= flat)
+      {
+        u = R.col(0);
+        w = R.col(1);
+      }
+      else
+      {
+        const double norm = std::sqrt(norm2);
+        u = Vector3(px / norm, py / norm, pz / norm);
+        w = Vector3(a[1] * u[2] - a[2] * u[1], a[2] * u[0] - a[0] * u[2], a[0] * u[1] - a[1] * u[0]);
+      }
+      for (int end = 0; end < 2; ++end)
+      {
+        const double sign = end == 0 ? 1.0 : -1.0;
+        Vector3 centre;
+        for (int r = 0; r < 3; ++r)
+          centre[r] = t[r] + (sign * half) * a[r];
+        const Vector3 * dirs[4] = {&u, &u, &w, &w};
+        const double signs[4] = {1.0, -1.0, 1.0, -1.0};
+        for (int k = 0; k < 4; ++k)
+          for (int r = 0; r < 3; ++r)
+            out[4 * end + k][r] = centre[r] + (signs[k] * radius) * (*dirs[k])[r];
+      }
+    }
+
+    // narrow_phase.ground_candidates
+    void ground_candidates(int kind, double height, const Eigen::Matrix3d & R, const Vector3 & t,
+                           const ContactShape & shape, const ContactConstants & c, std::vector<Candidate> & out)
+    {
+      const double margin = c.speculative_margin;
+      const std::vector<double> & dims = shape.dims;
+      switch (kind)
+      {
+      case SPHERE_GROUND:
+        ground_point(out, Vector3(t[0], t[1], t[2] - dims[0]), height, 0, margin);
+        return;
+      case BOX_GROUND:
+      {
+        const double half[3] = {0.5 * dims[0], 0.5 * dims[1], 0.5 * dims[2]};
+        for (int k = 0; k < 8; ++k)  // BOX_CORNERS: x fastest, then y, then z
+        {
+          const Vector3 local((k & 1 ? 1.0 : -1.0) * half[0], (k & 2 ? 1.0 : -1.0) * half[1],
+                              (k & 4 ? 1.0 : -1.0) * half[2]);
+          ground_point(out, transform(R, t, local), height, k, margin);
+        }
         return;
       }
-      tangent.resize(static_cast<size_t>(n));
-      for (int i = 0; i < n; ++i)
+      case CAPSULE_GROUND:
       {
-        const coal::Vec3s p = patch.getPoint(static_cast<size_t>(i));
-        for (int r = 0; r < 2; ++r)  // ordered_matvec(rotation.T, p)[r]
+        const double half = 0.5 * dims[1];
+        for (int k = 0; k < 2; ++k)
         {
-          double s = rotation(0, r) * p[0];
-          s += rotation(1, r) * p[1];
-          s += rotation(2, r) * p[2];
-          tangent[static_cast<size_t>(i)][r] = s;
+          Vector3 end = transform(R, t, Vector3(0.0, 0.0, k == 0 ? half : -half));
+          end[2] = end[2] - dims[0];
+          ground_point(out, end, height, k, margin);
+        }
+        return;
+      }
+      case CYLINDER_GROUND:
+      {
+        Vector3 rims[8];
+        cylinder_rims(R, t, dims[0], 0.5 * dims[1], c.flat_disk, rims);
+        for (int k = 0; k < 8; ++k)
+          ground_point(out, rims[k], height, k, margin);
+        return;
+      }
+      default:  // MESH_GROUND: the z of every vertex first
+      {
+        const auto & V = shape.vertices;
+        for (int k = 0; k < V.rows(); ++k)
+        {
+          const double z = ((R(2, 0) * V(k, 0) + R(2, 1) * V(k, 1)) + R(2, 2) * V(k, 2)) + t[2];
+          if (z - height < margin)
+            ground_point(out, transform(R, t, V.row(k).transpose()), height, k, margin);
         }
       }
-      static const int directions[8][2] = {{1, 0}, {-1, 0}, {0, 1}, {0, -1}, {1, 1}, {-1, -1}, {1, -1}, {-1, 1}};
-      for (const auto & d : directions)
-      {
-        int best = 0;
-        double top = 0.0;
-        for (int i = 0; i < n; ++i)  // np.argmax: the first of the largest
-        {
-          const Eigen::Vector2d & t = tangent[static_cast<size_t>(i)];
-          const double x = t[0] * d[0] + t[1] * d[1];
-          if (i == 0 || x > top)
-          {
-            best = i;
-            top = x;
-          }
-        }
-        if (std::find(chosen.begin(), chosen.end(), best) == chosen.end())
-          chosen.push_back(best);
-        if (static_cast<int>(chosen.size()) == max_points)
-          break;
       }
-      std::sort(chosen.begin(), chosen.end());
     }
-  };
+
+    // narrow_phase.sphere_box: (candidates with p1 on the box, p2 on the sphere) and the normal from the box
+    void sphere_box(const Vector3 & c, double r, const Eigen::Matrix3d & R, const Vector3 & t, const double (&half)[3],
+                    double margin, std::vector<Candidate> & out, Vector3 & normal)
+    {
+      const Vector3 d = c - t;
+      Vector3 local, clamped;
+      for (int i = 0; i < 3; ++i)
+        local[i] = (R(0, i) * d[0] + R(1, i) * d[1]) + R(2, i) * d[2];
+      for (int i = 0; i < 3; ++i)
+      {
+        const double x = local[i] < -half[i] ? -half[i] : local[i];
+        clamped[i] = x > half[i] ? half[i] : x;
+      }
+      Vector3 n_local = Vector3::Zero(), surface;
+      double gap;
+      if (clamped == local)
+      {
+        double depths[3];
+        int axis = 0;
+        for (int i = 0; i < 3; ++i)
+        {
+          depths[i] = half[i] - std::abs(local[i]);
+          if (depths[i] < depths[axis])
+            axis = i;
+        }
+        const double sign = local[axis] >= 0.0 ? 1.0 : -1.0;
+        n_local[axis] = sign;
+        surface = local;
+        surface[axis] = sign * half[axis];
+        gap = -depths[axis] - r;
+      }
+      else
+      {
+        const Vector3 diff = local - clamped;
+        const double dist = norm3(diff[0], diff[1], diff[2]);
+        n_local = Vector3(diff[0] / dist, diff[1] / dist, diff[2] / dist);
+        surface = clamped;
+        gap = dist - r;
+      }
+      for (int i = 0; i < 3; ++i)
+        normal[i] = (R(i, 0) * n_local[0] + R(i, 1) * n_local[1]) + R(i, 2) * n_local[2];
+      if (gap >= margin)
+        return;
+      Vector3 on_sphere;
+      for (int i = 0; i < 3; ++i)
+        on_sphere[i] = c[i] - r * normal[i];
+      out.push_back(Candidate{0, transform(R, t, surface), on_sphere, gap});
+    }
+
+    // narrow_phase._plane_distance2
+    inline double plane_distance2(const Vector3 & a, const Vector3 & p, const Vector3 & n)
+    {
+      const double d0 = a[0] - p[0], d1 = a[1] - p[1], d2 = a[2] - p[2];
+      const double along = (n[0] * d0 + n[1] * d1) + n[2] * d2;
+      return ((d0 * d0 + d1 * d1) + d2 * d2) - along * along;
+    }
+  } // namespace
 
   ContactScene::ContactScene(
     const pinocchio::Model & model,
@@ -189,9 +373,8 @@ namespace multibody_sim
     const std::vector<double> & pair_friction_,
     const std::vector<double> & pair_restitution_,
     const std::vector<int> & limited_joints_,
-    const Vec & limit_margin_,
     const std::vector<int> & friction_joints_,
-    const Vec & friction_bound_,
+    const Vec & friction_force_,
     const ContactConstants & constants_)
   : nv(model.nv)
   , shapes(shapes_)
@@ -200,8 +383,7 @@ namespace multibody_sim
   , pair_restitution(pair_restitution_)
   , limited_joints(limited_joints_)
   , friction_joints(friction_joints_)
-  , limit_margin(limit_margin_)
-  , friction_bound(friction_bound_)
+  , friction_force(friction_force_)
   , constants(constants_)
   {
     const int n = static_cast<int>(shapes.size());
@@ -209,18 +391,34 @@ namespace multibody_sim
       if (s.joint < 0 || s.joint >= model.njoints)
         throw std::invalid_argument("a contact shape's joint is not in the model");
     for (const auto & [a, b] : pairs)
+    {
       if (a < 0 || b < 0 || a >= n || b >= n)
         throw std::invalid_argument("a contact pair names a shape that does not exist");
+      pair_kinds.push_back(pair_kind(shapes[static_cast<size_t>(a)].kind, shapes[static_cast<size_t>(b)].kind));
+      if (pair_kinds.back() == MESH_GROUND && shapes[static_cast<size_t>(b)].vertices.rows() == 0)
+        throw std::invalid_argument("a mesh shape has no vertices");
+    }
     if (pair_friction.size() != pairs.size() || pair_restitution.size() != pairs.size())
       throw std::invalid_argument("one friction and one restitution coefficient per contact pair");
-    if (limit_margin.size() != model.nq || friction_bound.size() != model.nv)
-      throw std::invalid_argument("the limits' margin must have nq entries and the friction bound nv");
+    if (friction_force.size() != model.nv)
+      throw std::invalid_argument("the friction forces must have nv entries");
     for (int j : limited_joints)
-      if (j <= 0 || j >= model.njoints)
-        throw std::invalid_argument("a limited joint is not in the model");
+      if (j <= 0 || j >= model.njoints || model.joints[static_cast<size_t>(j)].nq() != 1
+          || model.joints[static_cast<size_t>(j)].nv() != 1)
+        throw std::invalid_argument("a limited joint is not a one-coordinate joint of the model");
     for (int j : friction_joints)
       if (j <= 0 || j >= model.njoints)
         throw std::invalid_argument("a joint with exact friction is not in the model");
+    supports.assign(static_cast<size_t>(model.njoints), {});
+    for (int j = 1; j < model.njoints; ++j)
+    {
+      std::vector<int> & dofs = supports[static_cast<size_t>(j)];
+      for (auto jj : model.supports[static_cast<size_t>(j)])
+        if (jj > 0)
+          for (int k = 0; k < model.joints[jj].nv(); ++k)
+            dofs.push_back(model.joints[jj].idx_v() + k);
+      std::sort(dofs.begin(), dofs.end());
+    }
   }
 
   ContactScene::~ContactScene() = default;
@@ -237,48 +435,170 @@ namespace multibody_sim
   {
     const ContactConstants & c = constants;
     pinocchio::Data & data = w.data;
-    // ---- ContactModel.detect --------------------------------------------------------------------------------
-    pinocchio::updateGeometryPlacements(model, data, w.gm, w.gd, q);
+    const int nv = model.nv;
+    // ---- ContactModel.detect ----------------------------------------------------------------------------------
     w.points.clear();
     if (!pairs.empty())
     {
-      pinocchio::computeCollisions(w.gm, w.gd, false);
+      pinocchio::updateGeometryPlacements(model, data, w.gm, w.gd, q);
       for (size_t k = 0; k < pairs.size(); ++k)
       {
-        if (!w.gd.collisionResults[k].isCollision())
+        const int a = pairs[k].first, b = pairs[k].second, kind = pair_kinds[k];
+        const ContactShape &s1 = shapes[static_cast<size_t>(a)], &s2 = shapes[static_cast<size_t>(b)];
+        const pinocchio::SE3 M1 = w.gd.oMg[static_cast<size_t>(a)], M2 = w.gd.oMg[static_cast<size_t>(b)];
+        const Eigen::Matrix3d R1 = M1.rotation(), R2 = M2.rotation();
+        const Vector3 t1 = M1.translation(), t2 = M2.translation();
+        // ContactModel._pair_candidates: bounding spheres first
+        const Vector3 c2 = transform(R2, t2, s2.centre);
+        if (s1.kind == ShapeKind::halfspace)
+        {
+          if ((c2[2] - s1.dims[0]) - s2.radius >= c.speculative_margin)
+            continue;
+        }
+        else
+        {
+          const Vector3 c1 = transform(R1, t1, s1.centre);
+          const Vector3 d = c2 - c1;
+          if (norm3(d[0], d[1], d[2]) - (s1.radius + s2.radius) >= c.speculative_margin)
+            continue;
+        }
+        w.found.clear();
+        Vector3 normal(0.0, 0.0, 1.0);
+        if (kind <= MESH_GROUND)
+          ground_candidates(kind, s1.dims[0], R2, t2, s2, c, w.found);
+        else if (kind == SPHERE_SPHERE)
+        {  // narrow_phase.sphere_sphere
+          const Vector3 d = t2 - t1;
+          const double dist = norm3(d[0], d[1], d[2]);
+          if (dist > 0.0)
+            normal = Vector3(d[0] / dist, d[1] / dist, d[2] / dist);
+          const double gap = (dist - s1.dims[0]) - s2.dims[0];
+          if (gap < c.speculative_margin)
+          {
+            Vector3 p1, p2;
+            for (int r = 0; r < 3; ++r)
+            {
+              p1[r] = t1[r] + s1.dims[0] * normal[r];
+              p2[r] = t2[r] - s2.dims[0] * normal[r];
+            }
+            w.found.push_back(Candidate{0, p1, p2, gap});
+          }
+        }
+        else if (kind == SPHERE_BOX || kind == BOX_SPHERE)
+        {
+          const bool sphere_first = kind == SPHERE_BOX;
+          const ContactShape & box = sphere_first ? s2 : s1;
+          const ContactShape & ball = sphere_first ? s1 : s2;
+          const double half[3] = {0.5 * box.dims[0], 0.5 * box.dims[1], 0.5 * box.dims[2]};
+          sphere_box(sphere_first ? t1 : t2, ball.dims[0], sphere_first ? R2 : R1, sphere_first ? t2 : t1, half,
+                     c.speculative_margin, w.found, normal);
+          if (sphere_first)
+          {
+            for (Candidate & x : w.found)
+              std::swap(x.p1, x.p2);
+            normal = -normal;
+          }
+        }
+        else
+        {  // narrow_phase.coal_candidates
+          if (s1.kind == ShapeKind::mesh || s2.kind == ShapeKind::mesh)
+            w.hulls(model, *this);
+          if (!pinocchio::computeCollision(w.gm, w.gd, k))
+            continue;
+          pinocchio::computeContactPatch(w.gm, w.gd, k);
+          const coal::ContactPatchResult & patches = w.gd.contactPatchResults[k];
+          if (patches.numContactPatches() == 0)
+            continue;
+          const coal::ContactPatch & patch = patches.getContactPatch(0);
+          normal = patch.getNormal();
+          for (size_t i = 0; i < patch.size(); ++i)
+          {
+            const Vector3 p1 = patch.getPointShape1(i), p2 = patch.getPointShape2(i);
+            const Vector3 d = p2 - p1;
+            w.found.push_back(Candidate{static_cast<int>(i), p1, p2, (normal[0] * d[0] + normal[1] * d[1]) + normal[2] * d[2]});
+          }
+        }
+        if (w.found.empty())
           continue;
-        pinocchio::computeContactPatch(w.gm, w.gd, k);
-        const coal::ContactPatchResult & patches = w.gd.contactPatchResults[k];
-        if (patches.numContactPatches() == 0)
-          continue;
-        const coal::ContactPatch & patch = patches.getContactPatch(0);
-        const Eigen::Vector3d normal = patch.getNormal();
+        // narrow_phase.select
+        const double spacing =
+          (s1.kind == ShapeKind::mesh || s2.kind == ShapeKind::mesh) ? c.min_patch_spacing : c.primitive_spacing;
+        w.patch.clear();
+        if (w.found.size() <= 1)
+          w.patch = w.found;
+        else
+        {
+          double deepest = w.found[0].gap;
+          for (const Candidate & x : w.found)
+            deepest = x.gap < deepest ? x.gap : deepest;
+          for (const Candidate & x : w.found)
+            if (x.gap <= deepest + c.patch_depth)
+              w.patch.push_back(x);
+        }
+        w.chosen.clear();
+        const int n = static_cast<int>(w.patch.size());
+        if (n <= 1 || w.found.size() <= 1)
+          for (int i = 0; i < n; ++i)
+            w.chosen.push_back(i);
+        else
+        {
+          int first = 0;
+          for (int i = 1; i < n; ++i)  // np.argmin: the first of the smallest
+            if (w.patch[static_cast<size_t>(i)].gap < w.patch[static_cast<size_t>(first)].gap)
+              first = i;
+          w.midpoints.resize(static_cast<size_t>(n));
+          for (int i = 0; i < n; ++i)
+          {
+            const Candidate & x = w.patch[static_cast<size_t>(i)];
+            for (int r = 0; r < 3; ++r)
+              w.midpoints[static_cast<size_t>(i)][r] = 0.5 * (x.p1[r] + x.p2[r]);
+          }
+          w.nearest.resize(static_cast<size_t>(n));
+          for (int i = 0; i < n; ++i)
+            w.nearest[static_cast<size_t>(i)] =
+              plane_distance2(w.midpoints[static_cast<size_t>(i)], w.midpoints[static_cast<size_t>(first)], normal);
+          w.nearest[static_cast<size_t>(first)] = -1.0;
+          w.chosen.push_back(first);
+          const double spacing2 = spacing * spacing;
+          while (static_cast<int>(w.chosen.size()) < c.max_patch_points)
+          {
+            int best = 0;
+            for (int i = 1; i < n; ++i)  // np.argmax: the first of the largest
+              if (w.nearest[static_cast<size_t>(i)] > w.nearest[static_cast<size_t>(best)])
+                best = i;
+            if (!(w.nearest[static_cast<size_t>(best)] >= spacing2))
+              break;
+            w.chosen.push_back(best);
+            for (int i = 0; i < n; ++i)  // np.minimum
+            {
+              const double d =
+                plane_distance2(w.midpoints[static_cast<size_t>(i)], w.midpoints[static_cast<size_t>(best)], normal);
+              double & x = w.nearest[static_cast<size_t>(i)];
+              x = (d < x || std::isnan(d)) ? d : x;
+            }
+            w.nearest[static_cast<size_t>(best)] = -1.0;
+          }
+          std::sort(w.chosen.begin(), w.chosen.end());
+        }
         const Eigen::Matrix3d rotation =
           Eigen::Quaterniond::FromTwoVectors(Eigen::Vector3d::UnitZ(), normal).toRotationMatrix();
-        const ContactShape &g1 = shapes[static_cast<size_t>(pairs[k].first)],
-                           &g2 = shapes[static_cast<size_t>(pairs[k].second)];
-        w.patch_points(patch, rotation, c.max_patch_points);
         for (int i : w.chosen)
         {
-          const Eigen::Vector3d p1 = patch.getPointShape1(static_cast<size_t>(i));
-          const Eigen::Vector3d p2 = patch.getPointShape2(static_cast<size_t>(i));
+          const Candidate & x = w.patch[static_cast<size_t>(i)];
           Point p;
           p.pair = static_cast<int>(k);
-          p.index = i;
-          p.joint1 = g1.joint;
-          p.joint2 = g2.joint;
-          p.body1 = g1.body;
-          p.body2 = g2.body;
-          p.placement1 = data.oMi[static_cast<size_t>(g1.joint)].actInv(pinocchio::SE3(rotation, p1));
-          p.placement2 = data.oMi[static_cast<size_t>(g2.joint)].actInv(pinocchio::SE3(rotation, p2));
-          p.position = 0.5 * (p1 + p2);
+          p.feature = x.feature;
+          p.joint1 = s1.joint;
+          p.joint2 = s2.joint;
+          p.body1 = s1.body;
+          p.body2 = s2.body;
+          p.p1 = x.p1;
+          p.p2 = x.p2;
+          for (int r = 0; r < 3; ++r)
+            p.position[r] = 0.5 * (x.p1[r] + x.p2[r]);
           p.normal = normal;
           p.rotation = rotation;
-          const Eigen::Vector3d d = p2 - p1;
-          double gap = normal[0] * d[0];  // ordered_dot
-          gap += normal[1] * d[1];
-          gap += normal[2] * d[2];
-          p.gap = gap;
+          p.gap = x.gap;
           p.friction = pair_friction[k];
           p.restitution = pair_restitution[k];
           w.points.push_back(p);
@@ -288,34 +608,34 @@ namespace multibody_sim
     // ---- ContactModel.problem --------------------------------------------------------------------------------
     w.keys.clear();
     w.sizes.clear();
-    w.next_structure.clear();
     for (const Point & p : w.points)
     {
-      w.keys.push_back({0, p.pair, p.index});
+      w.keys.push_back({0, p.pair, p.feature});
       w.sizes.push_back(3);
-      w.next_structure.insert(w.next_structure.end(), {0, p.joint1, p.joint2});
     }
-    int limit_rows = 0;
-    if (w.has_limit)
+    w.limits.clear();
+    for (int jid : limited_joints)
     {
-      w.limit.makeSelectionFilteredByLimitProximity(q);
-      limit_rows = w.limit.residualSize();
-      if (limit_rows)
+      const auto & joint = model.joints[static_cast<size_t>(jid)];
+      const int iq = joint.idx_q(), iv = joint.idx_v();
+      const double below = q[iq] - model.lowerPositionLimit[iq], above = model.upperPositionLimit[iq] - q[iq];
+      if (below < c.limit_margin)
       {
-        std::vector<int64_t> key{1};
-        for (auto idx : w.limit.active_idx_in_activable())
-          key.push_back(static_cast<int64_t>(idx));
-        w.next_structure.insert(w.next_structure.end(), key.begin(), key.end());
-        w.keys.push_back(std::move(key));
-        w.sizes.push_back(limit_rows);
+        w.limits.push_back({1.0, iv, jid, below});
+        w.keys.push_back({1, jid, 0});
+        w.sizes.push_back(1);
+      }
+      if (above < c.limit_margin)
+      {
+        w.limits.push_back({-1.0, iv, jid, above});
+        w.keys.push_back({1, jid, 1});
+        w.sizes.push_back(1);
       }
     }
-    if (w.has_friction)
+    for (int jid : friction_joints)
     {
-      w.friction.setTimeStep(h);
-      w.keys.push_back({2});
-      w.sizes.push_back(w.friction.residualSize());
-      w.next_structure.push_back(2);
+      w.keys.push_back({2, jid, 0});
+      w.sizes.push_back(1);
     }
     if (w.keys.empty())  // nothing to solve: TimeStepping.attempt's `problem is None`
     {
@@ -327,63 +647,127 @@ namespace multibody_sim
       row.active.clear();
       return false;
     }
-    const size_t n_models = w.keys.size();
-    if (w.next_structure != w.structure || w.models.size() != n_models)
-    {  // a new constraint set: Python's models (a point contact per point, copies of the limits and friction)
-      w.models.clear();
-      for (const Point & p : w.points)
-        w.models.emplace_back(pinocchio::PointContactConstraintModel(
-          model, static_cast<pinocchio::JointIndex>(p.joint1), p.placement1,
-          static_cast<pinocchio::JointIndex>(p.joint2), p.placement2));
-      if (limit_rows)
-        w.models.emplace_back(w.limit);
-      if (w.has_friction)
-        w.models.emplace_back(w.friction);
-      w.datas.clear();
-      for (const pinocchio::ConstraintModel & cm : w.models)
-        w.datas.push_back(cm.createData());
-      w.structure.swap(w.next_structure);
-    }
-    else
-    {  // the same set: this step's placements, selection and time step (the models hold nothing else)
-      size_t k = 0;
-      for (const Point & p : w.points)
-      {
-        auto & point = boost::get<pinocchio::PointContactConstraintModel>(w.models[k++].toVariant());
-        point.joint1_placement = p.placement1;
-        point.joint2_placement = p.placement2;
-      }
-      if (limit_rows)
-        boost::get<pinocchio::JointLimitConstraintModel>(w.models[k++].toVariant()) = w.limit;
-      if (w.has_friction)
-        boost::get<pinocchio::JointFrictionConstraintModel>(w.models[k++].toVariant()) = w.friction;
-    }
-    for (size_t k = 0; k < w.points.size(); ++k)
-      boost::get<pinocchio::PointContactConstraintModel>(w.models[k].toVariant()).setFriction(w.points[k].friction);
+    const int n_points = static_cast<int>(w.points.size());
+    const int n_limits = static_cast<int>(w.limits.size());
+    const int m = 3 * n_points + n_limits + static_cast<int>(friction_joints.size());
     pinocchio::crba(model, data, q, pinocchio::Convention::WORLD);
-    data.q_in = q;
-    for (size_t k = 0; k < n_models; ++k)
-      w.models[k].calc(model, data, w.datas[k]);
-    w.cholesky.rebuild(model, data, w.models, w.datas);  // = the constructor's work, on the kept storage
-    w.cholesky.compute(model, data, w.models, w.datas, c.delassus_damping);
-    int m = 0;
-    for (int s : w.sizes)
-      m += s;
-    w.J.setZero(m, model.nv);
-    pinocchio::getConstraintsJacobian(model, data, w.models, w.datas, w.J);
-    const int nv = model.nv;
-    w.g.resize(m);
-    for (int r = 0; r < m; ++r)  // ordered_matvec(J, v_free)
+    pinocchio::cholesky::decompose(model, data);
+    // ---- J, row by row on its support (ContactModel._point_rows)
+    w.J.setZero(m, nv);
+    w.row_support.resize(static_cast<size_t>(m));
+    for (int k = 0; k < n_points; ++k)
     {
-      double s = w.J(r, 0) * v_free[0];
-      for (int i = 1; i < nv; ++i)
-        s += w.J(r, i) * v_free[i];
-      w.g[r] = s;
+      const Point & p = w.points[static_cast<size_t>(k)];
+      const std::vector<int> &S1 = supports[static_cast<size_t>(p.joint1)], &S2 = supports[static_cast<size_t>(p.joint2)];
+      w.union_.clear();
+      std::set_union(S1.begin(), S1.end(), S2.begin(), S2.end(), std::back_inserter(w.union_));
+      size_t i1 = 0, i2 = 0;
+      for (int col : w.union_)
+      {
+        const bool in1 = p.joint1 && i1 < S1.size() && S1[i1] == col, in2 = p.joint2 && i2 < S2.size() && S2[i2] == col;
+        if (i1 < S1.size() && S1[i1] == col)
+          ++i1;
+        if (i2 < S2.size() && S2[i2] == col)
+          ++i2;
+        const auto lin = data.J.col(col).head<3>();
+        const auto ang = data.J.col(col).tail<3>();
+        double wv[3] = {0.0, 0.0, 0.0};
+        if (in2)
+        {
+          const Vector3 & x = p.p2;
+          wv[0] = lin[0] + (ang[1] * x[2] - ang[2] * x[1]);
+          wv[1] = lin[1] + (ang[2] * x[0] - ang[0] * x[2]);
+          wv[2] = lin[2] + (ang[0] * x[1] - ang[1] * x[0]);
+        }
+        if (in1)
+        {
+          const Vector3 & x = p.p1;
+          wv[0] = wv[0] - (lin[0] + (ang[1] * x[2] - ang[2] * x[1]));
+          wv[1] = wv[1] - (lin[1] + (ang[2] * x[0] - ang[0] * x[2]));
+          wv[2] = wv[2] - (lin[2] + (ang[0] * x[1] - ang[1] * x[0]));
+        }
+        for (int r = 0; r < 3; ++r)
+          w.J(3 * k + r, col) = (p.rotation(0, r) * wv[0] + p.rotation(1, r) * wv[1]) + p.rotation(2, r) * wv[2];
+      }
+      for (int r = 0; r < 3; ++r)
+        w.row_support[static_cast<size_t>(3 * k + r)] = w.union_;
     }
+    int r0 = 3 * n_points;
+    for (const auto & L : w.limits)
+    {
+      w.J(r0, L.iv) = L.sign;
+      w.row_support[static_cast<size_t>(r0)] = supports[static_cast<size_t>(L.joint)];
+      ++r0;
+    }
+    for (int jid : friction_joints)
+    {
+      w.J(r0, model.joints[static_cast<size_t>(jid)].idx_v()) = 1.0;
+      w.row_support[static_cast<size_t>(r0)] = supports[static_cast<size_t>(jid)];
+      ++r0;
+    }
+    // ---- G = Zᵀ D⁻¹ Z, Z = U⁻¹ Jᵀ on each row's support
+    w.Z.setZero(nv, m);
+    w.W.setZero(nv, m);
+    w.Dinv.resize(nv);
+    for (int k = 0; k < nv; ++k)
+      w.Dinv[k] = 1.0 / data.D[k];
+    for (int r = 0; r < m; ++r)
+    {
+      const std::vector<int> & S = w.row_support[static_cast<size_t>(r)];
+      auto z = w.Z.col(r);
+      for (int col : S)
+        z[col] = w.J(r, col);
+      for (int a = static_cast<int>(S.size()) - 1; a >= 0; --a)
+      {
+        const int k = S[static_cast<size_t>(a)];
+        const int end = k + data.nvSubtree_fromRow[static_cast<size_t>(k)];
+        double s = 0.0;
+        for (size_t b = static_cast<size_t>(a) + 1; b < S.size() && S[b] < end; ++b)
+          s += data.U(k, S[b]) * z[S[b]];
+        z[k] = z[k] - s;
+      }
+      for (int col : S)
+        w.W(col, r) = w.Dinv[col] * z[col];
+    }
+    w.G.resize(m, m);
+    for (int a = 0; a < m; ++a)
+    {
+      const std::vector<int> & Sa = w.row_support[static_cast<size_t>(a)];
+      for (int b = a; b < m; ++b)
+      {
+        const std::vector<int> & Sb = w.row_support[static_cast<size_t>(b)];
+        double s = 0.0;
+        size_t i = 0, j = 0;
+        while (i < Sa.size() && j < Sb.size())
+        {
+          if (Sa[i] < Sb[j])
+            ++i;
+          else if (Sb[j] < Sa[i])
+            ++j;
+          else
+          {
+            s += w.Z(Sa[i], a) * w.W(Sa[i], b);
+            ++i;
+            ++j;
+          }
+        }
+        w.G(a, b) = s;
+        w.G(b, a) = s;
+      }
+    }
+    // ---- g = J v_free + b
+    w.free.resize(m);
+    for (int r = 0; r < m; ++r)
+    {
+      double s = 0.0;
+      for (int col : w.row_support[static_cast<size_t>(r)])
+        s += w.J(r, col) * v_free[col];
+      w.free[r] = s;
+    }
+    w.g = w.free;
     w.correction.setZero(m);
     w.restitution.setZero(m);
     w.landings.clear();
-    const int n_points = static_cast<int>(w.points.size());
     if (n_points)
     {
       const double threshold = -c.gravity * h;
@@ -391,9 +775,9 @@ namespace multibody_sim
       {
         const Point & p = w.points[static_cast<size_t>(k)];
         const int r = 3 * k + 2;
-        double approach = w.J(r, 0) * v[0];  // ordered_matvec(J[2::3], v): the normal velocity at the start
-        for (int i = 1; i < nv; ++i)
-          approach += w.J(r, i) * v[i];
+        double approach = 0.0;  // the normal velocity at the step's start
+        for (int col : w.row_support[static_cast<size_t>(r)])
+          approach += w.J(r, col) * v[col];
         double bias;
         if (p.gap < 0.0)
         {
@@ -433,18 +817,30 @@ namespace multibody_sim
         w.g[r] += bias;
       }
     }
-    if (limit_rows)
+    r0 = 3 * n_points;
+    for (const auto & L : w.limits)  // the distance to the limit as a contact's gap
     {
-      const auto & ld = boost::get<pinocchio::JointLimitConstraintData>(w.datas[static_cast<size_t>(n_points)].toVariant());
-      const int r0 = 3 * n_points;
-      for (int i = 0; i < limit_rows; ++i)
-      {
-        const double distance = ld.constraint_residual[i];
-        const double push = c.penetration_correction * std::min(distance + c.penetration_slop, 0.0) / h;
-        w.correction[r0 + i] = std::max(push, -c.max_correction_speed);
-        w.g[r0 + i] += distance >= 0.0 ? distance / h : w.correction[r0 + i];
-      }
+      const double push = c.penetration_correction * std::min(L.distance + c.penetration_slop, 0.0) / h;
+      w.correction[r0] = std::max(push, -c.max_correction_speed);
+      w.g[r0] += L.distance >= 0.0 ? L.distance / h : w.correction[r0];
+      ++r0;
     }
+    w.blocks.clear();
+    for (int k = 0; k < n_points; ++k)
+      w.blocks.push_back(cone::Block{cone::CONE, 3 * k, w.points[static_cast<size_t>(k)].friction});
+    for (int k = 0; k < n_limits; ++k)
+      w.blocks.push_back(cone::Block{cone::HALFLINE, 3 * n_points + k, 0.0});
+    for (size_t k = 0; k < friction_joints.size(); ++k)
+      w.blocks.push_back(cone::Block{
+        cone::INTERVAL, 3 * n_points + n_limits + static_cast<int>(k),
+        friction_force[model.joints[static_cast<size_t>(friction_joints[k])].idx_v()] * h});
+    double scale = 0.0;
+    for (int r = 0; r < m; ++r)  // np.max(np.abs(free))
+    {
+      const double x = std::abs(w.free[r]);
+      scale = r == 0 ? x : (x > scale || std::isnan(x) ? x : scale);
+    }
+    scale = c.gravity * h > scale ? c.gravity * h : scale;  // Python's max(scale, |g| h)
     // ---- TimeStepping._solve: warm-started from the blocks seen last step -----------------------------------
     w.guess.setZero(m);
     {
@@ -461,28 +857,12 @@ namespace multibody_sim
         start += w.sizes[b];
       }
     }
-    auto delassus = w.cholesky.getDelassusOperatorCholeskyExpression();
-    bool converged;
-    std::size_t iterations;
-    if (c.pgs)
-    {
-      w.pgs_result.setConstraintImpulseGuess(w.guess);
-      converged = w.pgs.solve(delassus, w.g, w.models, w.datas, w.pgs_settings, w.pgs_result);
-      w.impulses.resize(m);
-      w.pgs_result.retrieveConstraintImpulses(w.impulses);
-      iterations = w.pgs_result.iterations;
-    }
-    else
-    {
-      w.admm_result.setConstraintImpulseGuess(w.guess);
-      converged = w.admm.solve(delassus, w.g, w.models, w.datas, w.admm_settings, w.admm_result);
-      w.impulses.resize(m);
-      w.admm_result.retrieveConstraintImpulses(w.impulses);
-      iterations = w.admm_result.iterations;
-    }
+    const cone::Solution solution =
+      w.solver.solve(w.G, w.g, w.blocks, w.guess, scale, c.max_iterations, c.pgs, w.impulses);
     row.steps += 1;
-    row.iterations += static_cast<int64_t>(iterations);
-    row.unconverged += converged ? 0 : 1;
+    row.iterations += solution.iterations;
+    row.unconverged += solution.converged ? 0 : 1;
+    row.fallbacks += solution.fallback ? 1 : 0;
     row.keys.swap(w.keys);  // (w.keys is rebuilt next step)
     row.impulses.resize(row.keys.size());
     {
@@ -494,26 +874,21 @@ namespace multibody_sim
       }
     }
     // ---- TimeStepping.attempt: v⁺ = v_free + M⁻¹ Jᵀ λ and the contact's energies -----------------------------
-    w.generalized.resize(nv);
-    for (int i = 0; i < nv; ++i)  // ordered_matvec(J.T, λ)
-    {
-      double s = w.J(0, i) * w.impulses[0];
-      for (int r = 1; r < m; ++r)
-        s += w.J(r, i) * w.impulses[r];
-      w.generalized[i] = s;
-    }
-    pinocchio::cholesky::decompose(model, data);  // ContactModel.inverse_mass_times
+    w.generalized.setZero(nv);
+    for (int r = 0; r < m; ++r)  // matvec(J.T, λ): per coordinate, the rows in order (structural zeros skipped)
+      for (int col : w.row_support[static_cast<size_t>(r)])
+        w.generalized[col] += w.J(r, col) * w.impulses[r];
     w.minv = w.generalized;
-    pinocchio::cholesky::solve(model, data, w.minv);
+    pinocchio::cholesky::solve(model, data, w.minv);  // ContactModel.inverse_mass_times
     v_next.resize(nv);
     for (int i = 0; i < nv; ++i)
       v_next[i] = v_free[i] + w.minv[i];
-    double s = w.generalized[0] * (v_next[0] + v_free[0]);
-    for (int i = 1; i < nv; ++i)
+    double s = 0.0;
+    for (int i = 0; i < nv; ++i)
       s += w.generalized[i] * (v_next[i] + v_free[i]);
     contact_work = 0.5 * s;
-    double corr = w.impulses[0] * w.correction[0], rest = w.impulses[0] * w.restitution[0];
-    for (int r = 1; r < m; ++r)
+    double corr = 0.0, rest = 0.0;
+    for (int r = 0; r < m; ++r)
     {
       corr += w.impulses[r] * w.correction[r];
       rest += w.impulses[r] * w.restitution[r];
@@ -563,9 +938,10 @@ namespace
     std::vector<std::pair<int, int>> pairs;
     std::vector<double> friction, restitution;
     std::vector<int> limited_joints, friction_joints;
-    Eigen::VectorXd limit_margin, friction_bound;
+    Eigen::VectorXd friction_force;
     multibody_sim::ContactConstants constants;
   };
+  using Bytes = Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>;
 } // namespace
 
 void multibody_sim::bind_contact(nb::module_ & m)  // called by module.cpp
@@ -575,34 +951,62 @@ void multibody_sim::bind_contact(nb::module_ & m)  // called by module.cpp
     .def(nb::init<>())
     .def_prop_ro("steps", [](const ContactRow & r) { return r.steps; })
     .def_prop_ro("unconverged", [](const ContactRow & r) { return r.unconverged; })
-    .def_prop_ro("iterations", [](const ContactRow & r) { return r.iterations; });
-  Struct<ContactShape>(m, "ContactShape", "A collision shape (contact.Geometry) and the joint it moves with.")
+    .def_prop_ro("iterations", [](const ContactRow & r) { return r.iterations; })
+    .def_prop_ro("fallbacks", [](const ContactRow & r) { return r.fallbacks; });
+  Struct<ContactShape>(m, "ContactShape", "A collision shape (contact.Geometry, contact.ShapeData) and its joint.")
     .choice("kind", &ContactShape::kind,
             {{"halfspace", ShapeKind::halfspace}, {"box", ShapeKind::box}, {"sphere", ShapeKind::sphere},
-             {"cylinder", ShapeKind::cylinder}})
+             {"cylinder", ShapeKind::cylinder}, {"capsule", ShapeKind::capsule}, {"mesh", ShapeKind::mesh}})
     .field("joint", &ContactShape::joint, "int")
     .field("body", &ContactShape::body, "int")
     .field("rotation", &ContactShape::rotation, "a 3 x 3 float array")
     .field("translation", &ContactShape::translation, "3 floats")
     .field("dimensions", &ContactShape::dims, "list[float]")
+    .field("vertices", &ContactShape::vertices, "an n x 3 float array (a mesh hull's vertices)")
+    .field("archive", &ContactShape::archive, "a uint8 array (coal's archive of a mesh hull)")
+    .field("centre", &ContactShape::centre, "3 floats (its bounding sphere's centre)")
+    .field("radius", &ContactShape::radius, "float (its bounding sphere's radius)")
     .finish([](ContactShape & s) {
-      const size_t need = s.kind == ShapeKind::box ? 3 : (s.kind == ShapeKind::cylinder ? 2 : 1);
+      const size_t need = s.kind == ShapeKind::box ? 3
+                        : (s.kind == ShapeKind::cylinder || s.kind == ShapeKind::capsule) ? 2
+                        : s.kind == ShapeKind::mesh ? 0 : 1;
       if (s.dims.size() != need)
-        throw std::invalid_argument("ContactShape.dimensions disagree with its kind (box 3, cylinder 2, else 1)");
+        throw std::invalid_argument(
+          "ContactShape.dimensions disagree with its kind (box 3, cylinder and capsule 2, mesh 0, else 1)");
+      if (s.kind == ShapeKind::mesh && (s.vertices.rows() == 0 || s.archive.size() == 0))
+        throw std::invalid_argument("a mesh ContactShape needs its hull's vertices and coal archive");
     });
-  Struct<ContactConstants>(m, "ContactConstants", "contact.py's and timestepping.py's constants of a contact step.")
+  Struct<ContactConstants>(m, "ContactConstants", "contact.py's, narrow_phase.py's and cone_solver.py's constants.")
     .field("speculative_margin", &ContactConstants::speculative_margin, "float")
     .field("penetration_correction", &ContactConstants::penetration_correction, "float")
     .field("penetration_slop", &ContactConstants::penetration_slop, "float")
     .field("max_correction_speed", &ContactConstants::max_correction_speed, "float")
     .field("touching", &ContactConstants::touching, "float")
-    .field("delassus_damping", &ContactConstants::delassus_damping, "float")
-    .field("tolerance", &ContactConstants::tolerance, "float")
+    .field("limit_margin", &ContactConstants::limit_margin, "float")
     .field("max_patch_points", &ContactConstants::max_patch_points, "int")
-    .field("anderson_capacity", &ContactConstants::anderson_capacity, "int")
-    .field("max_iterations", &ContactConstants::max_iterations, "int")
+    .field("min_patch_spacing", &ContactConstants::min_patch_spacing, "float")
+    .field("primitive_spacing", &ContactConstants::primitive_spacing, "float")
+    .field("patch_depth", &ContactConstants::patch_depth, "float")
+    .field("flat_disk", &ContactConstants::flat_disk, "float")
     .field("pgs", &ContactConstants::pgs, "bool")
     .field("gravity", &ContactConstants::gravity, "float")
+    .field("max_iterations", &ContactConstants::max_iterations, "int")
+    .field("tolerance", &ContactConstants::tolerance, "float")
+    .field("fallback_tolerance", &ContactConstants::fallback_tolerance, "float")
+    .field("regularization", &ContactConstants::regularization, "float")
+    .field("damping", &ContactConstants::damping, "float")
+    .field("armijo", &ContactConstants::armijo, "float")
+    .field("shortest_step", &ContactConstants::shortest_step, "float")
+    .field("proximal", &ContactConstants::proximal, "float")
+    .field("relaxation", &ContactConstants::relaxation, "float")
+    .field("rho_power", &ContactConstants::rho_power, "float")
+    .field("rho_step", &ContactConstants::rho_step, "float")
+    .field("rho_balance", &ContactConstants::rho_balance, "float")
+    .field("rho_min", &ContactConstants::rho_min, "float")
+    .field("rho_max", &ContactConstants::rho_max, "float")
+    .field("newton_iterations", &ContactConstants::newton_iterations, "int")
+    .field("fallback_rounds", &ContactConstants::fallback_rounds, "int")
+    .field("local_iterations", &ContactConstants::local_iterations, "int")
     .finish();
   auto fields = std::make_shared<Fields<ContactData>>("ContactScene");
   fields->member("shapes", &ContactData::shapes, "list[ContactShape]")
@@ -610,9 +1014,8 @@ void multibody_sim::bind_contact(nb::module_ & m)  // called by module.cpp
     .member("friction", &ContactData::friction, "list[float]")
     .member("restitution", &ContactData::restitution, "list[float]")
     .member("limited_joints", &ContactData::limited_joints, "list[int]")
-    .member("limit_margin", &ContactData::limit_margin, "an array of nq floats")
     .member("friction_joints", &ContactData::friction_joints, "list[int]")
-    .member("friction_bound", &ContactData::friction_bound, "an array of nv floats")
+    .member("friction_force", &ContactData::friction_force, "an array of nv floats")
     .member("constants", &ContactData::constants, "ContactConstants");
   nb::class_<ContactScene>(m, "ContactScene", "A scene's collision geometry and unilateral constraints.")
     .def(
@@ -620,8 +1023,8 @@ void multibody_sim::bind_contact(nb::module_ & m)  // called by module.cpp
       [fields](ContactScene * self, const NativeModel & model, nb::kwargs kwargs) {
         const ContactData d = fields->parse(kwargs);
         new (self) ContactScene(
-          model.model, d.shapes, d.pairs, d.friction, d.restitution, d.limited_joints, d.limit_margin,
-          d.friction_joints, d.friction_bound, d.constants);
+          model.model, d.shapes, d.pairs, d.friction, d.restitution, d.limited_joints, d.friction_joints,
+          d.friction_force, d.constants);
       },
       nb::arg("model"), nb::arg("kwargs"),
       "From the scene's model and the contact model's named data (kernels/native.contact_data()).")

@@ -1,22 +1,25 @@
 // The contact part of the `timestepping` step, rendered for the native kernel (methods.hpp calls it).
 //
-// The Python code is the specification: scenes/contact.py (ContactModel.detect and .problem: coal collision with
-// the speculative margin, contact patches capped at MAX_PATCH_POINTS, one point-contact constraint per patch
-// point, joint limits selected by proximity, exact joint friction, the speculative / penetration-correction /
-// restitution biases, the Delassus operator by ConstraintCholeskyDecomposition, M⁻¹ by pinocchio's cholesky) and
-// integrators/timestepping.py (the cone solve warm-started per constraint block, the solver state). The geometry
-// arrives as data (shape kinds, dimensions, joints, placements; pairs; coefficients) and every constant from the
-// Python module; the arithmetic is theirs, in their order (sums in index order, as ordered.py forms them).
+// The Python code is the specification: scenes/narrow_phase.py (the contact points: closed forms against the ground
+// and between spheres and boxes, coal for the other pairs, a few well-spread points per patch), scenes/contact.py
+// (ContactModel.detect and .problem: the rows of J from the CRBA's joint Jacobians, G = Zᵀ D⁻¹ Z with Z = U⁻¹ Jᵀ on
+// Pinocchio's tree-sparse Cholesky of M, the speculative / penetration-correction / restitution biases, limits
+// selected by proximity, exact joint friction) and integrators/timestepping.py with integrators/cone_solver.py
+// (cone_solver.hpp: the warm-started cone solve). The geometry arrives as data and every constant from the Python
+// modules; the arithmetic is theirs, in their order (sums from +0.0 in index order, structural zeros skipped).
 #pragma once
 
 #include <array>
 #include <cstdint>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include <Eigen/Core>
 
 #include "pinocchio/multibody.hpp"
+
+#include "cone_solver.hpp"
 
 namespace multibody_sim
 {
@@ -28,9 +31,11 @@ namespace multibody_sim
     box = 1,        // dims: full extents (x, y, z)
     sphere = 2,     // dims: (radius,)
     cylinder = 3,   // dims: (radius, length)
+    capsule = 4,    // dims: (radius, length)
+    mesh = 5,       // a convex hull: vertices (and its coal archive for the pairs coal computes)
   };
 
-  struct ContactShape  // contact.Geometry
+  struct ContactShape  // contact.Geometry with contact.ShapeData
   {
     ShapeKind kind = ShapeKind::sphere;
     int joint = 0;  // the joint it moves with (0: the world)
@@ -38,25 +43,57 @@ namespace multibody_sim
     Eigen::Matrix3d rotation = Eigen::Matrix3d::Identity();  // its pose in the joint's frame
     Eigen::Vector3d translation = Eigen::Vector3d::Zero();
     std::vector<double> dims;
+    Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor> vertices;  // mesh: the hull's vertices
+    Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1> archive;  // mesh: coal's binary archive of the hull
+    Eigen::Vector3d centre = Eigen::Vector3d::Zero();  // bounding sphere, in the shape's frame
+    double radius = 0.0;
   };
 
-  // contact.py's and timestepping.py's constants (ContactScene's constructor takes them from Python).
+  // The Python modules' constants (ContactScene's constructor takes them from Python, by name): contact.py's and
+  // narrow_phase.py's, then the time-stepper's solver settings (cone_solver.py's, TimeStepping.max_iterations).
   struct ContactConstants
   {
     double speculative_margin = 0.0, penetration_correction = 0.0, penetration_slop = 0.0;
-    double max_correction_speed = 0.0, touching = 0.0, delassus_damping = 0.0, tolerance = 0.0;
-    int max_patch_points = 0, anderson_capacity = 0, max_iterations = 0;
-    bool pgs = false;  // the solver: PGS, else ADMM (spectral rule, Anderson acceleration)
+    double max_correction_speed = 0.0, touching = 0.0, limit_margin = 0.0;
+    double min_patch_spacing = 0.0, primitive_spacing = 0.0, patch_depth = 0.0, flat_disk = 0.0;
+    int max_patch_points = 0, max_iterations = 0;
+    bool pgs = false;      // Gauss–Seidel sweeps as the solver's fallback, and no Newton before them
     double gravity = 0.0;  // |g| [m/s²]: approaches slower than |g| dt never bounce
+    double tolerance = 0.0, fallback_tolerance = 0.0, regularization = 0.0, damping = 0.0, armijo = 0.0;
+    double shortest_step = 0.0, proximal = 0.0, relaxation = 0.0, rho_power = 0.0, rho_step = 0.0;
+    double rho_balance = 0.0, rho_min = 0.0, rho_max = 0.0;
+    int newton_iterations = 0, fallback_rounds = 0, local_iterations = 0;
+
+    cone::Settings solver() const
+    {
+      cone::Settings s;
+      s.tolerance = tolerance;
+      s.fallback_tolerance = fallback_tolerance;
+      s.regularization = regularization;
+      s.damping = damping;
+      s.armijo = armijo;
+      s.shortest_step = shortest_step;
+      s.proximal = proximal;
+      s.relaxation = relaxation;
+      s.rho_power = rho_power;
+      s.rho_step = rho_step;
+      s.rho_balance = rho_balance;
+      s.rho_min = rho_min;
+      s.rho_max = rho_max;
+      s.newton_iterations = newton_iterations;
+      s.fallback_rounds = fallback_rounds;
+      s.local_iterations = local_iterations;
+      return s;
+    }
   };
 
   // One row's solver state (timestepping.ContactState): warm-start impulses by block key, counts, landings and
   // the active contacts of the latest step.
   struct ContactRow
   {
-    std::vector<std::vector<int64_t>> keys;  // ("point", pair, i) = (0, pair, i); ("limits", *idx) = (1, ...);
-    std::vector<Vec> impulses;               // ("friction",) = (2,)
-    int64_t steps = 0, unconverged = 0, iterations = 0;
+    std::vector<std::array<int64_t, 3>> keys;  // ("point", pair, feature) = (0, pair, feature);
+    std::vector<Vec> impulses;                 // ("limit", joint, side) = (1, joint, side); ("friction", joint) = (2, joint, 0)
+    int64_t steps = 0, unconverged = 0, iterations = 0, fallbacks = 0;
     std::vector<std::pair<int, double>> landed;  // pair -> approach speed, in insertion order
     std::vector<std::array<double, 11>> active;  // ContactModel.records of the latest step
   };
@@ -74,9 +111,8 @@ namespace multibody_sim
       const std::vector<double> & pair_friction,
       const std::vector<double> & pair_restitution,
       const std::vector<int> & limited_joints,
-      const Vec & limit_margin,
       const std::vector<int> & friction_joints,
-      const Vec & friction_bound,
+      const Vec & friction_force,
       const ContactConstants & constants);
     ~ContactScene();
 
@@ -92,9 +128,11 @@ namespace multibody_sim
     int nv = 0;
     std::vector<ContactShape> shapes;
     std::vector<std::pair<int, int>> pairs;
+    std::vector<int> pair_kinds;  // narrow_phase.pair_kind of each pair
     std::vector<double> pair_friction, pair_restitution;
     std::vector<int> limited_joints, friction_joints;
-    Vec limit_margin, friction_bound;
+    Vec friction_force;  // F [N·m or N] per coordinate (0 where a joint has no exact friction)
+    std::vector<std::vector<int>> supports;  // contact.ContactModel.supports: per joint, its supporting dofs
     ContactConstants constants;
   };
 } // namespace multibody_sim

@@ -151,6 +151,7 @@ namespace multibody_sim
     bool added = false;  // a last sample was written for it at index count
     int64_t counts[3] = {0, 0, 0};  // its frozen (steps, rejected, evaluations)
     double h = 0.0, minimum = 0.0, error = 0.0;  // collapsed: the step, the minimum, the error norm (NaN: none)
+    std::string message;  // failed: the library's exception, as the Python kernel words it
   };
 
   enum Status : int
@@ -166,6 +167,7 @@ namespace multibody_sim
     STOP_DIVERGED = 1,
     STOP_COLLAPSED = 2,
     STOP_CONTROL = 3,  // a native controller's output is not finite (Python says why)
+    STOP_FAILED = 4,   // a library's exception inside the row's step (its message)
   };
 
   struct Sampler  // core.Sampler.native_data(): _native.Sampler

@@ -7,6 +7,10 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <new>
+#include <stdexcept>
+#include <string>
+#include <utility>
 #include <vector>
 
 #include "measure.hpp"
@@ -195,6 +199,42 @@ namespace multibody_sim
       res.stops.push_back(ev);
     }
 
+    // How Python names a C++ library's exception (nanobind's translation), as TimeStepping.attempt words it.
+    static std::string library_message(const std::exception & error)
+    {
+      const char * name = "RuntimeError";
+      if (dynamic_cast<const std::invalid_argument *>(&error) || dynamic_cast<const std::domain_error *>(&error)
+          || dynamic_cast<const std::length_error *>(&error) || dynamic_cast<const std::range_error *>(&error))
+        name = "ValueError";
+      else if (dynamic_cast<const std::out_of_range *>(&error))
+        name = "IndexError";
+      else if (dynamic_cast<const std::overflow_error *>(&error))
+        name = "OverflowError";
+      else if (dynamic_cast<const std::bad_alloc *>(&error))
+        name = "MemoryError";
+      return std::string(name) + " raised in the contact step: " + error.what();
+    }
+
+    std::vector<std::pair<size_t, std::string>> failures;  // this step's rows whose step threw
+    std::vector<size_t> failed_rows;
+
+    // Core._fail_rows: each failed row stops at the step's start, its state there its last sample; false when no
+    // row is left running (Core.advance then returns EMPTY)
+    bool fail_rows(const Store & store, double t)
+    {
+      failed_rows.clear();
+      for (const auto & f : failures)
+        failed_rows.push_back(f.first);
+      const bool added = record_stopping(store, failed_rows);
+      for (const auto & [j, message] : failures)
+      {
+        stop_event(STOP_FAILED, j, t, added, st.steps);
+        res.stops.back().message = message;
+        kill(j);
+      }
+      return n_alive > 0;
+    }
+
     // ---- Core.advance over this thread's rows --------------------------------------------------------------
     // driver.Run._control at a control instant, natively: every running row's torque from the policies, counted
     // and saturated; a row whose output is not finite stops (STOP_CONTROL). Returns false when the store needs room.
@@ -359,10 +399,26 @@ namespace multibody_sim
         else
         {
           int evaluations = 0;
+          failures.clear();
           for (size_t j = 0; j < rows.size(); ++j)
             if (alive[j])
-              evaluations = attempt_fixed(j, h, t);
+            {
+              try  // a library's exception fails this row's step, as in the Python kernel (TimeStepping.attempt)
+              {
+                evaluations = attempt_fixed(j, h, t);
+              }
+              catch (const std::exception & error)
+              {
+                failures.emplace_back(j, library_message(error));
+                evaluations = 1;
+              }
+            }
           st.evaluations += evaluations;
+          if (!failures.empty() && !fail_rows(store, t))
+          {
+            res.status = EMPTY;
+            return;
+          }
         }
         bad.clear();
         for (size_t j = 0; j < rows.size(); ++j)

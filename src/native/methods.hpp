@@ -387,8 +387,16 @@ namespace multibody_sim
       extra[j] += velocity_update(j, h, t, vfree);
       const bool servos = servo.active;  // the contact problem's M then has the servos' armature too
       double work = 0.0, correction = 0.0, bounce = 0.0;
-      const bool problem =
-        C->step(*cw, servos ? *SM : *M, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce);
+      bool problem = false;
+      try  // a library's exception (coal, Boost, Eigen) leaves the servo model as it was, then fails the row
+      {
+        problem = C->step(*cw, servos ? *SM : *M, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce);
+      }
+      catch (...)
+      {
+        end_servos();
+        throw;
+      }
       end_servos();
       move_along_new_velocity(j, h, t);
       const int smooth_n = m - 4;  // the contact's elements come last: contact, penetration_correction,

@@ -268,6 +268,8 @@ namespace
   {
     if (code == multibody_sim::STOP_DIVERGED)
       return "diverged";
+    if (code == multibody_sim::STOP_FAILED)
+      return "failed";
     return code == multibody_sim::STOP_COLLAPSED ? "collapsed" : "control";
   }
 
@@ -458,7 +460,8 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
     .def_prop_ro("evaluations", [](const StopEvent & e) { return e.counts[2]; })
     .def_ro("h", &StopEvent::h, "collapsed: the step [s]")
     .def_ro("minimum", &StopEvent::minimum, "collapsed: the smallest step allowed [s]")
-    .def_ro("error", &StopEvent::error, "collapsed: the error norm (NaN: not judged)");
+    .def_ro("error", &StopEvent::error, "collapsed: the error norm (NaN: not judged)")
+    .def_ro("message", &StopEvent::message, "failed: the library's exception, worded as the Python kernel does");
   nb::class_<Advance>(m, "Advance", "What Kernel.advance() did.")
     .def_ro("status", &Advance::status)
     .def_ro("taken", &Advance::taken)

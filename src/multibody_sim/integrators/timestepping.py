@@ -1,16 +1,16 @@
-"""Velocity-level time-stepping for contact (Moreau–Jean, semi-implicit), on Pinocchio 4.1's cone solvers.
+"""Velocity-level time-stepping for contact (Moreau–Jean, semi-implicit), with an exact Coulomb cone solver.
 
 One step from (q, v) over h with tau held:
 
     v_free = v + h a(q, v, tau)                       (every smooth force: gravity, torques, elements)
-    λ      = argmin ½ λᵀ G λ + gᵀ λ over the cones     (G = J M⁻¹ Jᵀ, g = J v_free + b: scenes/contact.py)
+    λ      = Coulomb's law on u = G λ + g             (G = J M⁻¹ Jᵀ, g = J v_free + b: scenes/contact.py)
     v⁺     = v_free + M⁻¹ Jᵀ λ,      q⁺ = q ⊕ h v⁺
 
 λ are impulses [N·s]: the contact problem is solved at the velocity level, so impacts, stiction and sliding are
-exact within one step (no stiffness, no regularization), at first order in h. The solver is Pinocchio's ADMM
-(SPECTRAL rule, Anderson acceleration of capacity 10: it converges reliably there) or PGS, warm-started from the
-impulses of the previous step at the same contact (the solver state), so a resting contact costs a few
-iterations.
+exact within one step (no stiffness, no regularization), at first order in h. The solver (cone_solver.py) is an
+semismooth Newton method with an ADMM fallback (cone_solver.py), warm-started from the impulses of the previous
+step at the same contact (the solver state: by the contact's pair and feature), so a resting contact costs one
+linear solve.
 
 Energy ledger (each term from its own formula; energy_error then checks that they close):
 
@@ -26,7 +26,8 @@ Energy ledger (each term from its own formula; energy_error then checks that the
 
 A step whose solver stops at its iteration cap continues with the best impulses found and is counted in the solver
 state (``stats``: ``solver_unconverged``); the driver ends a run where that happened on more than 1 % of the steps
-with status "solver_failed".
+with status "solver_failed". An exception raised inside the step by a library it calls (coal, Pinocchio, NumPy)
+ends the row's run with status "failed" and the library's message, as any failed step does.
 """
 
 from __future__ import annotations
@@ -35,15 +36,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import pinocchio as pin
 
-from ..ordered import ordered_dot, ordered_matvec
-from .base import Attempt, Integrator, System, velocity_update
+from . import cone_solver
+from .base import Attempt, Integrator, System, failed, velocity_update
+from .cone_solver import Solution, matvec, solve, zsum
 from .partitioned import SemiImplicitEuler
 
 MAX_ITERATIONS = 1000
-TOLERANCE = 1e-12  # absolute and relative feasibility and complementarity tolerances of the solvers
-ANDERSON_CAPACITY = 10
 _SEMI_IMPLICIT = SemiImplicitEuler()
 
 
@@ -58,6 +57,7 @@ class ContactState:
         iterations: solver iterations in all.
         landed: pair index -> approach speed of the pairs that landed on the latest step (they bounce next).
         active: the contacts of the latest step: (problem, impulses), for recording.
+        fallbacks: of the steps, those that needed the solver's fallback (cone_solver.py).
     """
 
     impulses: dict[tuple[Any, ...], np.ndarray] = field(default_factory=dict)
@@ -66,55 +66,27 @@ class ContactState:
     iterations: int = 0
     landed: dict[int, float] = field(default_factory=dict)
     active: tuple[Any, np.ndarray] | None = None
+    fallbacks: int = 0
 
 
 # The counts a contact run's stats gain (Trajectory.stats, BatchTrajectory.stats, Stepper.stats).
-SOLVER_COUNTS = ("solver_steps", "solver_unconverged", "solver_iterations")
+SOLVER_COUNTS = ("solver_steps", "solver_unconverged", "solver_iterations", "solver_fallbacks")
 
 
 def solver_counts(state: Any) -> dict[str, int]:
-    """The SOLVER_COUNTS of a solver state with steps, unconverged and iterations (ContactState, or the native
-    kernel's row state)."""
-    return dict(zip(SOLVER_COUNTS, (state.steps, state.unconverged, state.iterations), strict=True))
-
-
-def admm_settings(max_iterations: int = MAX_ITERATIONS) -> Any:
-    """ADMM with the SPECTRAL update rule and Anderson acceleration (capacity 10), tolerances TOLERANCE."""
-    settings = pin.ADMMSolverSettings()
-    settings.admm_update_rule = pin.ADMMUpdateRule.SPECTRAL
-    settings.anderson_capacity = ANDERSON_CAPACITY
-    settings.max_iterations = max_iterations
-    for name in (
-        "absolute_feasibility_tol",
-        "relative_feasibility_tol",
-        "absolute_complementarity_tol",
-        "relative_complementarity_tol",
-    ):
-        setattr(settings, name, TOLERANCE)
-    return settings
-
-
-def pgs_settings(max_iterations: int = MAX_ITERATIONS) -> Any:
-    """PGS with tolerances TOLERANCE and max_iterations sweeps."""
-    settings = pin.PGSSolverSettings()
-    settings.max_iterations = max_iterations
-    for name in (
-        "absolute_feasibility_tol",
-        "relative_feasibility_tol",
-        "absolute_complementarity_tol",
-        "relative_complementarity_tol",
-    ):
-        if hasattr(settings, name):
-            setattr(settings, name, TOLERANCE)
-    return settings
+    """The SOLVER_COUNTS of a solver state with steps, unconverged, iterations and fallbacks (ContactState, or the
+    native kernel's row state)."""
+    return dict(
+        zip(SOLVER_COUNTS, (state.steps, state.unconverged, state.iterations, state.fallbacks), strict=True)
+    )
 
 
 class TimeStepping(Integrator):
-    """Moreau–Jean velocity-level time-stepping with Pinocchio's ADMM (or PGS) cone solver (module docstring)."""
+    """Moreau–Jean velocity-level time-stepping with an exact Coulomb cone solver (module docstring)."""
 
     name = "timestepping"
     order = 1
-    description = "velocity-level contact time-stepping (Moreau–Jean), Pinocchio's ADMM or PGS cone solver"
+    description = "velocity-level contact time-stepping (Moreau–Jean), exact Coulomb cone solver"
     evaluations_per_step = 1
     steps_contact = True
     notes = (
@@ -136,6 +108,29 @@ class TimeStepping(Integrator):
         """The method as the native kernel renders it (_native.Method's fields; its solver's constants and the
         scene's geometry cross as _native.ContactScene, kernels/native.contact_data)."""
         return {"kind": "timestepping", "stages": 1, "a": [0.0], "b": [1.0], "c": [0.0], "chart_terms": 0}
+
+    def solver_data(self) -> dict[str, Any]:
+        """The cone solver's settings as the native kernel takes them (_native.ContactConstants' solver fields):
+        cone_solver.py's constants and this time-stepper's max_iterations."""
+        return {
+            "max_iterations": self.max_iterations,
+            "tolerance": cone_solver.TOLERANCE,
+            "fallback_tolerance": cone_solver.FALLBACK_TOLERANCE,
+            "regularization": cone_solver.REGULARIZATION,
+            "damping": cone_solver.DAMPING,
+            "armijo": cone_solver.ARMIJO,
+            "shortest_step": cone_solver.SHORTEST_STEP,
+            "proximal": cone_solver.PROXIMAL,
+            "relaxation": cone_solver.RELAXATION,
+            "rho_power": cone_solver.RHO_POWER,
+            "rho_step": cone_solver.RHO_STEP,
+            "rho_balance": cone_solver.RHO_BALANCE,
+            "rho_min": cone_solver.RHO_MIN,
+            "rho_max": cone_solver.RHO_MAX,
+            "newton_iterations": cone_solver.NEWTON_ITERATIONS,
+            "fallback_rounds": cone_solver.FALLBACK_ROUNDS,
+            "local_iterations": cone_solver.LOCAL_ITERATIONS,
+        }
 
     def init(self, system: System, q: np.ndarray, v: np.ndarray) -> ContactState:
         return ContactState()
@@ -191,23 +186,31 @@ class TimeStepping(Integrator):
                 flows = h * system.ledger_power(q_next, v_free, tau, None, t + h)
                 return Attempt(q_next, v_free, flows, None, state, evaluations)
             state = state if isinstance(state, ContactState) else ContactState()
-            problem = contact.problem(q, v, v_free, h, state.landed)
-            new = ContactState(state.impulses, state.steps, state.unconverged, state.iterations)
-            if problem is None:
+            new = ContactState(
+                state.impulses, state.steps, state.unconverged, state.iterations, fallbacks=state.fallbacks
+            )
+            try:  # a library's exception (coal, Pinocchio, NumPy) fails this row's step, as any failed step does
+                problem = contact.problem(q, v, v_free, h, state.landed)
+                solution = self._solve(contact.solver, problem, state) if problem is not None else None
+            except Exception as exc:  # noqa: BLE001 - any library's error is the row's status and message
+                return failed("failed", f"{type(exc).__name__} raised in the contact step: {exc}", evaluations, state)
+            if problem is None or solution is None:
                 v_next, impulses, work, correction, bounce = v_free, np.zeros(0), 0.0, 0.0, 0.0
                 new.impulses = {}
             else:
-                impulses, converged, iterations = self._solve(contact.solver, problem, state.impulses)
+                impulses = solution.impulses
                 new.steps += 1
-                new.iterations += iterations
-                new.unconverged += not converged
+                new.iterations += solution.iterations
+                new.unconverged += not solution.converged
+                new.fallbacks += solution.fallback
                 new.impulses = _split(impulses, problem.keys, problem.sizes)
-                # sums in index order (ordered.py), as the native kernel (src/native/contact.cpp) forms them
-                generalized = ordered_matvec(problem.jacobian.T, impulses)
+                # sums in index order from +0.0 (cone_solver.zsum), as the native kernel (src/native/contact.cpp)
+                # forms them
+                generalized = matvec(problem.jacobian.T, impulses)
                 v_next = v_free + contact.inverse_mass_times(generalized)
-                work = 0.5 * ordered_dot(generalized, v_next + v_free)  # ½ λᵀ J (v⁺ + v_free)
-                correction = -ordered_dot(impulses, problem.correction)
-                bounce = -ordered_dot(impulses, problem.restitution)
+                work = 0.5 * float(zsum(generalized * (v_next + v_free)))  # ½ λᵀ J (v⁺ + v_free)
+                correction = -float(zsum(impulses * problem.correction))
+                bounce = -float(zsum(impulses * problem.restitution))
                 new.active = (problem, impulses)
                 new.landed = problem.landings
         finally:
@@ -233,34 +236,24 @@ class TimeStepping(Integrator):
             flows[-1] += (kinetic_next - kinetic_free) - work
         return Attempt(q_next, v_next, flows, None, new, evaluations + (problem is not None))
 
-    def _solve(
-        self, solver_name: str, problem: Any, guesses: dict[tuple[Any, ...], np.ndarray]
-    ) -> tuple[np.ndarray, bool, int]:
-        """(impulses, converged, iterations) of the problem, warm-started from the blocks seen last step."""
-        m = len(problem.g)
-        guess = np.zeros(m)
+    def _solve(self, solver_name: str, problem: Any, state: ContactState) -> Solution:
+        """The problem's impulses (cone_solver.solve), warm-started from the blocks seen last step."""
+        guess = np.zeros(len(problem.g))
         start = 0
         for key, size in zip(problem.keys, problem.sizes, strict=True):
-            previous = guesses.get(key)
+            previous = state.impulses.get(key)
             if previous is not None and len(previous) == size:
                 guess[start : start + size] = previous
             start += size
-        if solver_name == "pgs":
-            solver, settings, result = (
-                pin.PGSConstraintSolver(m),
-                pgs_settings(self.max_iterations),
-                pin.PGSSolverResult(),
-            )
-        else:
-            solver, settings, result = (
-                pin.ADMMConstraintSolver(m),
-                admm_settings(self.max_iterations),
-                pin.ADMMSolverResult(),
-            )
-        result.setConstraintImpulseGuess(guess)
-        converged = bool(solver.solve(problem.delassus, problem.g, problem.models, problem.datas, settings, result))
-        impulses = np.array(result.retrieveConstraintImpulses(), dtype=float)
-        return impulses, converged, int(result.iterations)
+        return solve(
+            problem.delassus,
+            problem.g,
+            problem.blocks,
+            guess,
+            problem.velocity_scale,
+            self.max_iterations,
+            pgs=solver_name == "pgs",
+        )
 
 
 def _split(impulses: np.ndarray, keys: list[tuple[Any, ...]], sizes: list[int]) -> dict[tuple[Any, ...], np.ndarray]:

@@ -32,17 +32,16 @@ from ..exceptions import InvalidArgumentError
 from ..integrators import INTEGRATORS, Integrator
 from ..integrators.explicit_rk import DormandPrince853, EmbeddedRungeKutta, ExplicitRungeKutta
 from ..integrators.partitioned import SemiImplicitEuler
-from ..integrators.timestepping import ANDERSON_CAPACITY, TOLERANCE, TimeStepping, solver_counts
+from ..integrators.timestepping import TimeStepping, solver_counts
 from ..recording import STORE_ARRAYS, SampleStore
 from ..robot import Robot
+from ..scenes.contact import NATIVE_SHAPES
 from ..scenes.scene import Scene
 from ..step_control import LANDING_FRACTION, ConstantStep, PIController
 from ..torques import command_bounds
 
 # The registry's explicit methods (and the contact time-stepper), which the engine renders from their native_data().
 NATIVE_METHODS = (ExplicitRungeKutta, EmbeddedRungeKutta, DormandPrince853, SemiImplicitEuler, TimeStepping)
-# The collision shapes the engine rebuilds (src/native/contact.cpp's ShapeKind); others stay on the Python kernel.
-NATIVE_SHAPES = ("halfspace", "box", "sphere", "cylinder")
 # advance() returns to Python after about this much work [s] (interrupts, signals)
 BUDGET_SECONDS = 0.03
 _NEED_ROOM = "need_room"  # the engine's status besides core.py's REACHED, STEPPED, FULL, EMPTY
@@ -119,15 +118,10 @@ _SPACE_HOOKS = ("integrate", "difference", "chart_velocity")
 
 def contact_data(scene: Any, method: TimeStepping) -> dict[str, Any]:
     """A contact scene's geometry, constraints and constants as _native.ContactScene takes them: the contact model's
-    native_data() with the time-stepper's solver constants (timestepping.py) among its constants, read at each run."""
+    native_data() with the time-stepper's solver settings (TimeStepping.solver_data) among its constants, read at
+    each run."""
     data = scene.contact.native_data()
-    constants = {
-        **data["constants"],
-        "tolerance": TOLERANCE,
-        "anderson_capacity": ANDERSON_CAPACITY,
-        "max_iterations": method.max_iterations,
-    }
-    return {**data, "constants": constants}
+    return {**data, "constants": {**data["constants"], **method.solver_data()}}
 
 
 def _chart(space: Any) -> Any:
@@ -560,6 +554,8 @@ class NativeCore(Core):
             failed_step: int | None = int(event.step)
             if event.kind == "diverged":
                 status, detail = "diverged", diverged_detail(self.system, event.dof, self.dt_hint)
+            elif event.kind == "failed":  # a library's exception inside the step (Core._fail_rows's wording)
+                status, detail = "failed", f"{event.message}; try a smaller dt (now {self.dt_hint:g} s)"
             elif event.kind == "control":  # at a control instant, not in a step
                 status, cause = "failed", self._control_failure(row, event.time)
                 detail, failed_step = str(cause), None

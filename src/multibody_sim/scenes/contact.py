@@ -1,16 +1,21 @@
 """Contact: collision geometry, the pairs that may touch, and the unilateral constraints of one time step.
 
-A scene with contact keeps a Pinocchio GeometryModel (coal shapes: the ground's half-space, the objects' shapes and
-the robot's declared collision geometry) and, at each step of the `timestepping` integrator, turns the pairs
-within the speculative margin into Pinocchio 4.1 constraint models: one ``PointContactConstraintModel`` (a Coulomb
-cone, 3 rows: two tangential, then the normal) per point of each pair's contact patch, a
-``JointLimitConstraintModel`` for position limits near their bound (``limits = "enforce"``) and a
-``JointFrictionConstraintModel`` for joint dry friction (``friction = "exact"``). The problem handed to
-Pinocchio's cone solvers is
+A scene with contact keeps its collision shapes (coal shapes: the ground's half-space, the objects' shapes and the
+robot's collision geometry) and, at each step of the `timestepping` integrator, turns the pairs within the
+speculative margin into constraint rows (narrow_phase.py finds the points): a Coulomb cone per contact point (3
+rows: two tangential, then the normal), a row per position limit near its bound (``limits = "enforce"``) and a row
+per joint with dry friction (``friction = "exact"``). The problem handed to the cone solver (integrators/
+cone_solver.py) is Coulomb's law on
 
-    min ½ λᵀ G λ + gᵀ λ  over the cones,    G = J M⁻¹ Jᵀ (the Delassus operator),   g = J v_free + b,
+    u = G λ + g,    G = J M⁻¹ Jᵀ (the Delassus matrix),   g = J v_free + b,
 
 with λ the constraint impulses [N·s, N·m·s] and b the velocity bias of each row (see :class:`ContactProblem`).
+
+One CRBA and Pinocchio's tree-sparse Cholesky M = U D Uᵀ serve the step: contact rows are the frame Jacobians of
+the contact points (from the CRBA's joint Jacobians), limit and friction rows select a coordinate, and
+G = Zᵀ D⁻¹ Z with Z = U⁻¹ Jᵀ, each column of Z nonzero only on the coordinates that support its row (the chains
+from the root to the bodies). Every sum is formed in index order from +0.0 (cone_solver.zsum), as the native
+kernel (src/native/contact.cpp) forms it, which may skip the structural zeros.
 
 Contact frames and signs. A contact point ties point 1 on the first shape of a pair (the ground for ground
 pairs) to point 2 on the second; its frame's z axis is the patch normal, pointing from shape 1 to shape 2. J's
@@ -48,13 +53,13 @@ import numpy as np
 import pinocchio as pin
 
 from ..exceptions import SceneError
-from ..ordered import ordered_dot, ordered_matvec
+from ..integrators.cone_solver import CONE, HALFLINE, INTERVAL, Blocks, matvec, zsum
+from ..ordered import ordered_matvec
 from ..text import safe_name
+from . import narrow_phase as narrow
 from .frames import frame_id
+from .narrow_phase import MAX_PATCH_POINTS, MIN_PATCH_SPACING, PRIMITIVE_SPACING, SPECULATIVE_MARGIN
 
-# Gaps below this are contact candidates [m]: a pair closing faster than SPECULATIVE_MARGIN / dt (10 m/s at 1 ms)
-# may end a step inside each other, which the penetration correction then undoes.
-SPECULATIVE_MARGIN = 0.01
 PENETRATION_CORRECTION = 0.2  # the fraction of a penetration pushed out per step
 # Penetrations below this are left alone [m]: coal's box–plane distance is off by ~5e-12 m, and pushing that out
 # would jitter resting stacks at 1e-9 m/s.
@@ -65,21 +70,10 @@ MAX_CORRECTION_SPEED = 1.0
 # Position limits within this distance of q [rad or m] join the step's problem (speculatively): a joint faster than
 # LIMIT_MARGIN / dt (50 rad/s at 1 ms) may end a step past its limit, which the correction then undoes.
 LIMIT_MARGIN = 0.05
-# A contact patch keeps at most this many points (its extreme ones): a mesh's convex hull flat on the ground gives
-# dozens of coplanar points, redundant rows that slow the solver without changing the wrench it can apply.
-MAX_PATCH_POINTS = 8
-# In a patch with a mesh hull, points closer than this [m] are one point for the constraint: a hull resting on a
-# facet of a few millimetres gives up to 8 points within it, whose nearly equal rows stall the cone solver (solo12
-# standing on its URDF meshes: 38 unconverged steps of 1000 without it, none with it); the wrench range they add is
-# a few millimetres' lever. Declared shapes' patches keep every point (up to MAX_PATCH_POINTS).
-MIN_PATCH_SPACING = 0.01
 TOUCHING = 1e-6  # [m]: a gap below this is a touching contact (restitution applies)
-# Cholesky regularization of the Delassus operator (keeps G's factorization defined on redundant contacts, such
-# as the 4 corners of a box on the ground: 12 rows on 6 dofs). PGS works on this G; ADMM sets its own proximal
-# damping on the decomposition, so under ADMM (the default) this value changes nothing (1e-12 and 1e-6 give the
-# same impulses bit for bit).
-DELASSUS_DAMPING = 1e-12
 _WORLD = pin.Convention.WORLD
+# The shape kinds the native kernel renders (src/native/contact.hpp's ShapeKind); others stay on the Python kernel.
+NATIVE_SHAPES = ("halfspace", "box", "sphere", "cylinder", "capsule", "mesh")
 _Z = np.array([0.0, 0.0, 1.0])
 
 
@@ -109,13 +103,14 @@ class Geometry:
 
 @dataclass(frozen=True)
 class ContactPoint:
-    """One point of a contact patch at the start of a step.
+    """One contact point at the start of a step.
 
     Attributes:
-        key: (pair index, point index): what the warm start is keyed on.
+        key: (pair index, feature index): what the warm start is keyed on (narrow_phase.py's features).
         bodies: (body 1, body 2) names.
         joint1, joint2: the joints the bodies move with.
-        placement1, placement2: the contact frame at point 1 (2) in joint 1's (2's) frame.
+        point1, point2: the closest points on body 1 and body 2, world [m], shape (3,) each.
+        rotation: the contact frame in world axes, its z the normal, shape (3, 3).
         position: the point midway between the shapes, world [m], shape (3,).
         normal: unit normal from shape 1 to shape 2, world, shape (3,).
         gap: signed distance along the normal [m] (negative: penetration).
@@ -127,8 +122,9 @@ class ContactPoint:
     bodies: tuple[str, str]
     joint1: int
     joint2: int
-    placement1: pin.SE3
-    placement2: pin.SE3
+    point1: np.ndarray
+    point2: np.ndarray
+    rotation: np.ndarray
     position: np.ndarray
     normal: np.ndarray
     gap: float
@@ -142,33 +138,44 @@ class ContactProblem:
 
     Attributes:
         points: the contact points, in row order (3 rows each, the normal last).
-        models, datas: Pinocchio's constraint models and datas, points first, then limits, then joint friction.
-        keys: one warm-start key per constraint block.
+        keys: one warm-start key per block: ("point", pair, feature), ("limit", joint, side), ("friction", joint).
         sizes: rows of each block.
-        cholesky: the factorization the Delassus operator refers to (kept alive with it).
-        delassus: G = J M⁻¹ Jᵀ.
+        blocks: the blocks of the cone solver's set K.
         jacobian: J, shape (m, nv).
+        delassus: G = J M⁻¹ Jᵀ, shape (m, m).
         g: J v_free + b, shape (m,).
         correction: b's penetration-correction part, ≤ 0, shape (m,).
         restitution: b's restitution part, ≤ 0, shape (m,).
+        velocity_scale: the largest free constraint velocity |J v_free|, at least |g| h [m/s, rad/s].
         landings: pair index -> approach speed u⁻ (< 0) of the pairs that land this step (restitution).
         limit_rows, friction_rows: rows of the joint-limit and joint-friction blocks.
     """
 
     points: list[ContactPoint]
-    models: Any
-    datas: Any
     keys: list[tuple[Any, ...]]
     sizes: list[int]
-    cholesky: Any
-    delassus: Any
+    blocks: Blocks
     jacobian: np.ndarray
+    delassus: np.ndarray
     g: np.ndarray
     correction: np.ndarray
     restitution: np.ndarray
+    velocity_scale: float
     landings: dict[int, float] = field(default_factory=dict)
     limit_rows: int = 0
     friction_rows: int = 0
+
+
+@dataclass(frozen=True)
+class ShapeData:
+    """What the narrow phase reads of a shape: its kind, dimensions, hull vertices (mesh: (n, 3) in the shape's
+    frame) and bounding sphere (centre in the shape's frame, radius [m])."""
+
+    kind: str
+    dimensions: tuple[float, ...]
+    vertices: np.ndarray | None
+    centre: np.ndarray
+    radius: float
 
 
 def make_shape(kind: str, dimensions: Sequence[float]) -> Any:
@@ -265,25 +272,24 @@ class ContactModel:
         ]
         self.limited_joints = list(limited_joints)
         self.friction_joints = list(friction_joints)
-        self._limit_model: Any = None
-        if self.limited_joints:
-            self._limit_model = pin.JointLimitConstraintModel(model, pin.StdVec_Index(self.limited_joints))
-            self._limit_model.setPositionLimitAndMargin(
-                model.lowerPositionLimit, model.upperPositionLimit, np.full(model.nq, LIMIT_MARGIN)
-            )
-        self._friction_model: Any = None
-        if self.friction_joints:
-            ids = pin.StdVec_Index([j for j, _ in self.friction_joints])
-            bound = np.zeros(model.nv)
-            for jid, force in self.friction_joints:
-                bound[model.joints[jid].idx_v] = force
-            self._friction_model = pin.JointFrictionConstraintModel(model, ids, -bound, bound)
+        self.shapes = [_shape_data(g) for g in self.geometries]
+        self.pair_kinds = [narrow.pair_kind(self.geometries[a].kind, self.geometries[b].kind) for a, b in self.pairs]
+        # the dofs supporting each joint (its own and its ancestors'), ascending: where its Jacobian can be nonzero
+        self.supports = [np.zeros(0, dtype=int)]
+        for jid in range(1, model.njoints):
+            dofs = [
+                model.joints[j].idx_v + k for j in model.supports[jid] if j > 0 for k in range(model.joints[j].nv)
+            ]
+            self.supports.append(np.array(sorted(dofs), dtype=int))
+        self._limits = [
+            (jid, model.joints[jid].idx_q, model.joints[jid].idx_v) for jid in self.limited_joints
+        ]  # (joint, q index, v index)
 
     # ---- what it models ----------------------------------------------------------------------------
     @property
     def empty(self) -> bool:
         """No pair, no enforced limit, no exact friction: nothing to solve, ever."""
-        return not self.pairs and self._limit_model is None and self._friction_model is None
+        return not self.pairs and not self.limited_joints and not self.friction_joints
 
     @property
     def body_names(self) -> list[str]:
@@ -291,15 +297,21 @@ class ContactModel:
         return list(dict.fromkeys(g.body for g in self.geometries))
 
     def native_data(self) -> dict[str, Any]:
-        """The geometry, constraints and this module's constants as the native kernel takes them
-        (_native.ContactScene's fields, shapes as _native.ContactShape's; the time-stepper adds its solver's
-        constants: kernels/native.contact_data)."""
+        """The geometry, constraints and constants (this module's and narrow_phase.py's) as the native kernel takes
+        them (_native.ContactScene's fields, shapes as _native.ContactShape's; the time-stepper adds its solver's
+        settings: kernels/native.contact_data)."""
         model = self.model
-        bound = np.zeros(model.nv)
-        for jid, force in self.friction_joints:
-            bound[model.joints[jid].idx_v] = force
-        return {
-            "shapes": [
+        force = np.zeros(model.nv)
+        for jid, f in self.friction_joints:
+            force[model.joints[jid].idx_v] = f
+        shapes = []
+        for g, data in zip(self.geometries, self.shapes, strict=True):
+            archive = b""
+            if g.kind == "mesh":  # coal's own archive of the hull, for the pairs coal computes
+                buffer = pin.serialization.StreamBuffer()
+                g.shape.saveToBuffer(buffer)
+                archive = bytes(buffer.tobytes())
+            shapes.append(
                 {
                     "kind": g.kind,
                     "joint": int(g.joint),
@@ -307,24 +319,32 @@ class ContactModel:
                     "rotation": np.array(g.placement.rotation, dtype=float),
                     "translation": np.array(g.placement.translation, dtype=float),
                     "dimensions": [float(x) for x in g.dimensions],
+                    "vertices": data.vertices if data.vertices is not None else np.zeros((0, 3)),
+                    "archive": np.frombuffer(archive, dtype=np.uint8).copy(),
+                    "centre": np.array(data.centre, dtype=float),
+                    "radius": float(data.radius),
                 }
-                for g in self.geometries
-            ],
+            )
+        return {
+            "shapes": shapes,
             "pairs": [(int(a), int(b)) for a, b in self.pairs],
             "friction": [float(mu) for mu, _ in self._coefficients],
             "restitution": [float(e) for _, e in self._coefficients],
             "limited_joints": [int(j) for j in self.limited_joints],
-            "limit_margin": np.full(model.nq, LIMIT_MARGIN),
             "friction_joints": [int(j) for j, _ in self.friction_joints],
-            "friction_bound": bound,
+            "friction_force": force,
             "constants": {
                 "speculative_margin": SPECULATIVE_MARGIN,
                 "penetration_correction": PENETRATION_CORRECTION,
                 "penetration_slop": PENETRATION_SLOP,
                 "max_correction_speed": MAX_CORRECTION_SPEED,
                 "touching": TOUCHING,
-                "delassus_damping": DELASSUS_DAMPING,
+                "limit_margin": LIMIT_MARGIN,
                 "max_patch_points": MAX_PATCH_POINTS,
+                "min_patch_spacing": MIN_PATCH_SPACING,
+                "primitive_spacing": PRIMITIVE_SPACING,
+                "patch_depth": narrow.PATCH_DEPTH,
+                "flat_disk": narrow.FLAT_DISK,
                 "pgs": self.solver == "pgs",
                 "gravity": self.gravity,
             },
@@ -339,7 +359,7 @@ class ContactModel:
         index = self._body_index
         rows = np.empty((len(points), 11))
         for c, point in enumerate(points):
-            rotation = pin.Quaternion.FromTwoVectors(_Z, point.normal).matrix()
+            rotation = point.rotation
             rows[c, 0], rows[c, 1] = index[point.bodies[0]], index[point.bodies[1]]
             rows[c, 2:5] = point.position
             rows[c, 5:8] = point.normal
@@ -406,7 +426,8 @@ class ContactModel:
 
     # ---- one step ----------------------------------------------------------------------------------
     def detect(self, q: np.ndarray) -> list[ContactPoint]:
-        """The contact points at q: every point of every pair's patch within SPECULATIVE_MARGIN.
+        """The contact points at q: of every pair whose bounding spheres come within SPECULATIVE_MARGIN, the
+        points narrow_phase.py keeps.
 
         Runs the kinematics of q in the contact's own Data (``updateGeometryPlacements``).
         """
@@ -414,42 +435,60 @@ class ContactModel:
         if not self.pairs:
             return []
         pin.updateGeometryPlacements(model, data, gm, gd, q)
-        pin.computeCollisions(gm, gd, False)
+        poses = [(np.array(p.rotation), np.array(p.translation)) for p in gd.oMg]
         points: list[ContactPoint] = []
-        for k, (a, b) in enumerate(self.pairs):
-            if not gd.collisionResults[k].isCollision():
+        for k, ((a, b), kind) in enumerate(zip(self.pairs, self.pair_kinds, strict=True)):
+            found, normal = self._pair_candidates(k, a, b, kind, poses)
+            if not found:
                 continue
-            pin.computeContactPatch(gm, gd, k)
-            patches = gd.contactPatchResults[k]
-            if patches.numContactPatches() == 0:
-                continue
-            patch = patches.getContactPatch(0)
-            normal = np.array(patch.getNormal(), dtype=float)
-            rotation = pin.Quaternion.FromTwoVectors(_Z, normal).matrix()
             g1, g2 = self.geometries[a], self.geometries[b]
+            spacing = MIN_PATCH_SPACING if "mesh" in (g1.kind, g2.kind) else PRIMITIVE_SPACING
+            rotation = pin.Quaternion.FromTwoVectors(_Z, normal).matrix()
             friction, restitution = self._coefficients[k]
-            spacing = MIN_PATCH_SPACING if "mesh" in (g1.kind, g2.kind) else 0.0
-            for i in _patch_points(patch, rotation, spacing):
-                p1 = np.array(patch.getPointShape1(i), dtype=float)
-                p2 = np.array(patch.getPointShape2(i), dtype=float)
-                frame1 = data.oMi[g1.joint].actInv(pin.SE3(rotation, p1))
-                frame2 = data.oMi[g2.joint].actInv(pin.SE3(rotation, p2))
+            for c in narrow.select(found, normal, spacing):
                 points.append(
                     ContactPoint(
-                        key=(k, i),
+                        key=(k, c.feature),
                         bodies=(g1.body, g2.body),
                         joint1=g1.joint,
                         joint2=g2.joint,
-                        placement1=frame1,
-                        placement2=frame2,
-                        position=0.5 * (p1 + p2),
+                        point1=c.point1,
+                        point2=c.point2,
+                        rotation=rotation,
+                        position=0.5 * (c.point1 + c.point2),
                         normal=normal,
-                        gap=ordered_dot(normal, p2 - p1),
+                        gap=c.gap,
                         friction=friction,
                         restitution=restitution,
                     )
                 )
         return points
+
+    def _pair_candidates(
+        self, k: int, a: int, b: int, kind: int, poses: list[tuple[np.ndarray, np.ndarray]]
+    ) -> tuple[list[narrow.Candidate], np.ndarray]:
+        """Pair k's candidates and normal (narrow_phase.py), none when its bounding spheres are apart."""
+        s1, s2 = self.shapes[a], self.shapes[b]
+        (R1, t1), (R2, t2) = poses[a], poses[b]
+        c2 = narrow.transform(R2, t2, s2.centre[None, :])[0]
+        if s1.kind == "halfspace":
+            if (c2[2] - s1.dimensions[0]) - s2.radius >= SPECULATIVE_MARGIN:
+                return [], _Z
+        else:
+            c1 = narrow.transform(R1, t1, s1.centre[None, :])[0]
+            d = c2 - c1
+            if np.sqrt((d[0] * d[0] + d[1] * d[1]) + d[2] * d[2]) - (s1.radius + s2.radius) >= SPECULATIVE_MARGIN:
+                return [], _Z
+        if kind <= narrow.MESH_GROUND:
+            return narrow.ground_candidates(kind, s1.dimensions[0], R2, t2, s2), _Z
+        if kind == narrow.SPHERE_SPHERE:
+            return narrow.sphere_sphere(t1, s1.dimensions[0], t2, s2.dimensions[0])
+        if kind == narrow.SPHERE_BOX:
+            found, normal = narrow.sphere_box(t1, s1.dimensions[0], R2, t2, 0.5 * np.asarray(s2.dimensions))
+            return [narrow.Candidate(c.feature, c.point2, c.point1, c.gap) for c in found], -normal
+        if kind == narrow.BOX_SPHERE:
+            return narrow.sphere_box(t2, s2.dimensions[0], R1, t1, 0.5 * np.asarray(s1.dimensions))
+        return narrow.coal_candidates(self.geometry_model, self.geometry_data, k)
 
     def problem(
         self, q: np.ndarray, v: np.ndarray, v_free: np.ndarray, dt: float, landed: dict[int, float] | None = None
@@ -466,50 +505,59 @@ class ContactModel:
         """
         model, data = self.model, self.data
         points = self.detect(q)
-        models = pin.StdVec_ConstraintModel()
-        keys: list[tuple[Any, ...]] = []
-        sizes: list[int] = []
-        for point in points:
-            cm = pin.PointContactConstraintModel(model, point.joint1, point.placement1, point.joint2, point.placement2)
-            cm.setFriction(point.friction)
-            models.append(pin.ConstraintModel(cm))
-            keys.append(("point", *point.key))
-            sizes.append(3)
-        limit_rows = 0
-        if self._limit_model is not None:
-            limit = self._limit_model
-            limit.makeSelectionFilteredByLimitProximity(q)  # the limits within LIMIT_MARGIN of q
-            limit_rows = int(limit.residualSize())
-            if limit_rows:
-                models.append(pin.ConstraintModel(limit))  # a copy, with this step's selection
-                keys.append(("limits", *limit.active_idx_in_activable()))
-                sizes.append(limit_rows)
-        friction_rows = 0
-        if self._friction_model is not None:
-            self._friction_model.setTimeStep(dt)
-            friction_rows = int(self._friction_model.residualSize())
-            models.append(pin.ConstraintModel(self._friction_model))
-            keys.append(("friction",))
-            sizes.append(friction_rows)
-        if not len(models):
+        keys: list[tuple[Any, ...]] = [("point", *point.key) for point in points]
+        sizes = [3] * len(points)
+        # (sign, v index, joint, distance) of each limit within LIMIT_MARGIN of q: lower bounds push up, upper down
+        limits = []
+        lower, upper = model.lowerPositionLimit, model.upperPositionLimit
+        for jid, iq, iv in self._limits:
+            below, above = q[iq] - lower[iq], upper[iq] - q[iq]
+            if below < LIMIT_MARGIN:
+                limits.append((1.0, iv, jid, float(below)))
+                keys.append(("limit", jid, 0))
+            if above < LIMIT_MARGIN:
+                limits.append((-1.0, iv, jid, float(above)))
+                keys.append(("limit", jid, 1))
+        keys += [("friction", jid) for jid, _ in self.friction_joints]
+        sizes += [1] * (len(limits) + len(self.friction_joints))
+        if not keys:
             return None
-        pin.crba(model, data, q, _WORLD)  # the decomposition needs CRBA in the WORLD convention (LOCAL: wrong G)
-        data.q_in = q  # the joint-limit constraint reads q there (CRBA does not set it)
-        datas = pin.StdVec_ConstraintData()
-        for cm in models:
-            cd = cm.createData()
-            cm.calc(model, data, cd)  # before appending: the vector holds copies
-            datas.append(cd)
-        cholesky = pin.ConstraintCholeskyDecomposition(model, data, models, datas)
-        cholesky.compute(model, data, models, datas, DELASSUS_DAMPING)
-        jacobian = np.array(pin.getConstraintsJacobian(model, data, models, datas)).reshape(-1, model.nv)
-        # Products summed in index order (ordered.py), as the native kernel sums them
-        g = ordered_matvec(jacobian, v_free).copy()
-        correction = np.zeros(len(g))
-        restitution = np.zeros(len(g))
+        n_points, nv = len(points), model.nv
+        m = 3 * n_points + len(limits) + len(self.friction_joints)
+        pin.crba(model, data, q, _WORLD)  # M (upper triangle) and the joint Jacobians data.J, world frame
+        pin.cholesky.decompose(model, data)  # M = U D Uᵀ
+        # ---- J, row by row on its support
+        J = np.zeros((m, nv))
+        joint_jacobians = np.asarray(data.J)
+        for c, point in enumerate(points):
+            J[3 * c : 3 * c + 3] = self._point_rows(point, joint_jacobians, nv)
+        row = 3 * n_points
+        for sign, iv, _, _ in limits:
+            J[row, iv] = sign
+            row += 1
+        for jid, _ in self.friction_joints:
+            J[row, model.joints[jid].idx_v] = 1.0
+            row += 1
+        # ---- G = Zᵀ D⁻¹ Z, Z = U⁻¹ Jᵀ (the tree-sparse back substitution of Pinocchio's cholesky::Uiv)
+        U = np.asarray(data.U)
+        subtree = data.nvSubtree_fromRow
+        Z = J.T.copy()
+        for k in range(nv - 2, -1, -1):
+            n = subtree[k] - 1
+            if n:
+                Z[k] = Z[k] - zsum(U[k, k + 1 : k + 1 + n][:, None] * Z[k + 1 : k + 1 + n], axis=0)
+        W = (1.0 / np.asarray(data.D))[:, None] * Z
+        G = zsum(Z[:, :, None] * W[:, None, :], axis=0)
+        lower = np.tril_indices(m, -1)
+        G[lower] = G.T[lower]  # exactly symmetric: the upper triangle's sums
+        # ---- g = J v_free + b
+        free = matvec(J, v_free)
+        g = free.copy()
+        correction = np.zeros(m)
+        restitution = np.zeros(m)
         landings: dict[int, float] = {}
         if points:
-            approach = ordered_matvec(jacobian[2 : 3 * len(points) : 3], v)  # normal velocities at the step's start
+            approach = matvec(J[2 : 3 * n_points : 3], v)  # normal velocities at the step's start
             threshold = -self.gravity * dt
             landed = landed or {}
             for c, point in enumerate(points):
@@ -529,34 +577,62 @@ class ContactModel:
                     elif g[row] + bias < 0.0 and approach[c] < threshold:  # lands within this step
                         landings[pair] = min(landings.get(pair, 0.0), float(approach[c]))
                 g[row] += bias
-        if limit_rows:
-            # The distance to each selected limit (negative beyond it), as a contact's gap: speculative inside,
-            # corrected beyond the slop.
-            rows = slice(3 * len(points), 3 * len(points) + limit_rows)
-            distance = np.array(datas[len(points)].extract().constraint_residual, dtype=float)
-            pushes = PENETRATION_CORRECTION * np.minimum(distance + PENETRATION_SLOP, 0.0) / dt
-            correction[rows] = np.maximum(pushes, -MAX_CORRECTION_SPEED)
-            g[rows] += np.where(distance >= 0.0, distance / dt, correction[rows])
+        row = 3 * n_points
+        for _, _, _, distance in limits:  # the distance to the limit as a contact's gap
+            push = PENETRATION_CORRECTION * min(distance + PENETRATION_SLOP, 0.0) / dt
+            correction[row] = max(push, -MAX_CORRECTION_SPEED)
+            g[row] += distance / dt if distance >= 0.0 else correction[row]
+            row += 1
+        kinds = [CONE] * n_points + [HALFLINE] * len(limits) + [INTERVAL] * len(self.friction_joints)
+        starts = [3 * c for c in range(n_points)] + list(range(3 * n_points, m))
+        params = [p.friction for p in points] + [0.0] * len(limits) + [f * dt for _, f in self.friction_joints]
+        blocks = Blocks(np.array(kinds, dtype=int), np.array(starts, dtype=int), np.array(params, dtype=float))
+        scale = max(float(np.max(np.abs(free))), self.gravity * dt)
         return ContactProblem(
             points=points,
-            models=models,
-            datas=datas,
             keys=keys,
             sizes=sizes,
-            cholesky=cholesky,
-            delassus=cholesky.getDelassusOperatorCholeskyExpression(),
-            jacobian=jacobian,
+            blocks=blocks,
+            jacobian=J,
+            delassus=G,
             g=g,
             correction=correction,
             restitution=restitution,
+            velocity_scale=scale,
             landings=landings,
-            limit_rows=limit_rows,
-            friction_rows=friction_rows,
+            limit_rows=len(limits),
+            friction_rows=len(self.friction_joints),
         )
 
+    def _point_rows(self, point: ContactPoint, jacobians: np.ndarray, nv: int) -> np.ndarray:
+        """A contact point's 3 rows of J: the velocity of point 2 relative to point 1 in the contact frame, from the
+        joint Jacobians (world frame: linear velocity at the origin, angular), on the bodies' supports."""
+        out = np.zeros((3, nv))
+        w = np.zeros((3, nv))
+        union = np.union1d(self.supports[point.joint1], self.supports[point.joint2])
+        for joint, p, sign in ((point.joint2, point.point2, 1.0), (point.joint1, point.point1, -1.0)):
+            if not joint:
+                continue
+            cols = self.supports[joint]
+            lin, ang = jacobians[:3, cols], jacobians[3:, cols]
+            vel = np.array(
+                [
+                    lin[0] + (ang[1] * p[2] - ang[2] * p[1]),
+                    lin[1] + (ang[2] * p[0] - ang[0] * p[2]),
+                    lin[2] + (ang[0] * p[1] - ang[1] * p[0]),
+                ]
+            )
+            if sign > 0.0:
+                w[:, cols] = vel
+            else:
+                w[:, cols] = w[:, cols] - vel
+        R, w = point.rotation, w[:, union]
+        for r in range(3):
+            out[r, union] = (R[0, r] * w[0] + R[1, r] * w[1]) + R[2, r] * w[2]
+        return out
+
     def inverse_mass_times(self, x: np.ndarray) -> np.ndarray:
-        """M⁻¹ x at the latest problem's q (its CRBA and a sparse Cholesky of M in the contact's Data)."""
-        pin.cholesky.decompose(self.model, self.data)
+        """M⁻¹ x at the latest problem's q (its Cholesky factors, in the contact's Data)."""
         return np.array(pin.cholesky.solve(self.model, self.data, x), dtype=float)
 
 
@@ -696,37 +772,16 @@ def _urdf_shape(shape: Any) -> tuple[Any, str, tuple[float, ...]]:
         return shape, "sphere", (float(shape.radius),)
     if isinstance(shape, coal.Cylinder):
         return shape, "cylinder", (float(shape.radius), 2.0 * float(shape.halfLength))
+    if isinstance(shape, coal.Capsule):
+        return shape, "capsule", (float(shape.radius), 2.0 * float(shape.halfLength))
     return shape, type(shape).__name__.lower(), ()
 
 
-def _patch_points(patch: Any, rotation: np.ndarray, spacing: float = 0.0) -> list[int]:
-    """The indices of a patch's points the constraint uses: all of them up to MAX_PATCH_POINTS, else the extreme
-    ones along the patch's two tangent axes and their diagonals (a polygon's support: the same resultant wrench
-    range, far fewer redundant rows for the solver); with `spacing` > 0 [m] (pairs with a mesh hull:
-    MIN_PATCH_SPACING) none within that distance of another (a hull's facet on the ground gives a few millimetres'
-    polygon of points: nearly equal rows, on which the cone solver stalls)."""
-    n = patch.size()
-    if n <= MAX_PATCH_POINTS and spacing == 0.0:
-        return list(range(n))
-    points = [np.asarray(patch.getPoint(i), dtype=float) for i in range(n)]
-    tangent = np.array([ordered_matvec(rotation.T, p) for p in points])[:, :2]  # sums in index order (ordered.py)
-    if n <= MAX_PATCH_POINTS and (n < 2 or _spacing(tangent) >= spacing):
-        return list(range(n))
-    chosen: list[int] = []
-    for direction in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
-        best = int(np.argmax(tangent @ np.array(direction, dtype=float)))
-        if best not in chosen and all(np.linalg.norm(tangent[best] - tangent[c]) >= spacing for c in chosen):
-            chosen.append(best)
-        if len(chosen) == MAX_PATCH_POINTS:
-            break
-    return sorted(chosen)
-
-
-def _spacing(points: np.ndarray) -> float:
-    """The smallest distance between two of the points (shape (n, 2), n ≥ 2)."""
-    differences = points[:, None, :] - points[None, :, :]
-    distances = np.linalg.norm(differences, axis=2)
-    return float(distances[np.triu_indices(len(points), 1)].min())
+def _shape_data(geometry: Geometry) -> ShapeData:
+    """The narrow phase's view of a shape (ShapeData)."""
+    vertices = np.array(geometry.shape.points(), dtype=float) if geometry.kind == "mesh" else None
+    centre, radius = narrow.bounding_radius(geometry.kind, geometry.dimensions, vertices)
+    return ShapeData(geometry.kind, tuple(float(x) for x in geometry.dimensions), vertices, centre, radius)
 
 
 def _adjacent(model: pin.Model, a: int, b: int) -> bool:
