@@ -1937,6 +1937,50 @@ def scene_file_now_a_fifo(tmp: Path) -> Trigger:
     return replayed(npz, fields)
 
 
+# ---- a library's exception inside a step (issue 26 class 1) ----------------------------------------------------
+SLIDING_BOX_TOML = """
+[ground]
+friction = 0.8
+
+[[object]]
+name = "box"
+shape = "box"
+size = [0.2, 0.2, 0.1]
+mass = 1.0
+position = [0.0, 0.0, 0.05]
+velocity = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+"""
+
+
+@contextlib.contextmanager
+def cholesky_fails_past(x: float) -> Any:
+    """On the Python kernel, Pinocchio's Cholesky raises what its ADMM raised on go2 ("L should be > m") once the
+    first body is past `x` [m]: a library's exception inside a contact step, whatever the library."""
+    from unittest import mock
+
+    import pinocchio as pin
+
+    decompose = pin.cholesky.decompose
+
+    def failing(model: Any, data: Any) -> Any:
+        if data.oMi[1].translation[0] > x:
+            raise ValueError("L should be > m")
+        return decompose(model, data)
+
+    with mock.patch.dict(os.environ, {"MULTIBODY_SIM_NATIVE": "0"}), mock.patch.object(pin.cholesky, "decompose", failing):
+        yield
+
+
+def library_error_in_a_step(tmp: Path) -> Trigger:
+    """`run` of a box sliding at 1 m/s (a scene file), timestepping for 0.3 s, while Cholesky fails past x = 0.05 m
+    (the API's simulate() raises the same message without the file's part: tests/test_contact_failures.py)."""
+    scene_file = tmp / "scene.toml"
+    scene_file.write_text(SLIDING_BOX_TOML)
+    out = tmp / "run.npz"
+    argv = ["run", str(scene_file), "--integrator", "timestepping", "--dt", "0.001", "--duration", "0.3", "--out",
+            str(out)]  # fmt: skip
+    return Trigger(argv=argv, fields={"out": str(out)}, during=lambda: cholesky_fails_past(0.05))
+
 ROUND_3 = [
     BadInput(
         "vector-env-complex-actions",
@@ -2096,6 +2140,19 @@ ROUND_3 = [
         "Speed it up (--speed) or film a part of it.",
         presentation(long_run, "video"),
         ms.InvalidArgumentError,
+    ),
+    BadInput(
+        "library-error-in-a-step",
+        "run ending early",
+        "a library (Pinocchio, coal, Boost, Eigen) raises inside a step: here Pinocchio's Cholesky, on one row's "
+        "state, in a contact step (the native kernel turns a C++ exception into the same status and message)",
+        "failed at t = 0.069 s (step 70): ValueError raised in the contact step: L should be > m; try a smaller dt "
+        "(now 0.001 s); partial trajectory (70 samples, t = 0..0.069 s) written to {out}",
+        "The run stops at the step that failed and keeps its samples; in a batch (rollout, BatchStepper, a vector "
+        "env) only that row stops. Try a smaller dt; report the library's message if it persists.",
+        library_error_in_a_step,
+        ms.SimulationError,
+        code=1,
     ),
 ]
 CATALOGUE += RANGES_AND_NAMES + TYPES + ROUND_3

@@ -83,6 +83,22 @@ def test_rollout_and_batches_fail_that_row_alone(python_library_error):
     assert seen and all(status == "failed" and MESSAGE in message for _, status, message in seen)
 
 
+def test_the_single_gym_env_ends_the_episode_with_the_failure(python_library_error):
+    pytest.importorskip("gymnasium")
+    from multibody_sim.gym import MultibodyEnv
+
+    scene = boxes()
+    env = MultibodyEnv(scene, reward=lambda q, v, tau: 1.0, dt=1e-3, method="timestepping", failure_reward=-5.0,
+                       reset_noise_q=0.0, reset_noise_v=0.0)  # fmt: skip
+    env.reset(seed=0)
+    for _ in range(200):
+        _, reward, terminated, _, info = env.step(np.zeros(scene.nv))
+        if terminated:
+            break
+    assert terminated and reward == -5.0
+    assert info["failure"] == "failed" and f"ValueError raised in the contact step: {MESSAGE}" in info["message"]
+
+
 def test_stepper_raises_failed_and_stays_where_it_was(python_library_error):
     scene = boxes()
     stepper = ms.Stepper(scene, dt=1e-3, integrator="timestepping", q0=scene.q0, v0=scene.v0)
@@ -164,3 +180,29 @@ def test_a_library_exception_in_the_native_step_fails_that_row_alone(damaged_arc
     batch_stepper = ms.BatchStepper(scene, Q0, V0, dt=1e-3, integrator="timestepping")
     failures = batch_stepper.step(np.zeros((2, scene.nv))).failures
     assert list(failures) == [0] and failures[0][0] == "failed"
+
+
+@native_only
+def test_the_gym_envs_carry_a_native_library_exception_as_the_rows_failure(damaged_archive):
+    """The single env ends its episode with info["failure"] and info["message"]; the vector env fails row 0 alone."""
+    pytest.importorskip("gymnasium")
+    from multibody_sim.gym import MultibodyEnv, MultibodyVectorEnv
+
+    scene = box_on_solo12()
+    q_on = scene.q0.copy()
+    q_on[scene.nq - 7 + 2] = base_top(scene, scene.q0) + 0.025 + 0.002
+    q_far = scene.q0.copy()
+    q_far[scene.nq - 7 + 2] = 1.0
+    env = MultibodyEnv(scene, reward=lambda q, v, tau: 1.0, dt=1e-3, method="timestepping", initial_q=q_on,
+                       reset_noise_q=0.0, reset_noise_v=0.0)  # fmt: skip
+    env.reset(seed=0)
+    _, reward, terminated, _, info = env.step(np.zeros(scene.nv))
+    assert terminated and reward == 0.0 and info["failure"] == "failed"
+    assert "RuntimeError raised in the contact step" in info["message"]
+    vector = MultibodyVectorEnv(scene, 2, reward=lambda q, v, tau: 1.0, dt=1e-3, method="timestepping",
+                                reset_noise_q=0.0, reset_noise_v=0.0)  # fmt: skip
+    vector.reset(seed=0, options={"q": np.array([q_on, q_far]), "v": np.zeros((2, scene.nv))})
+    _, rewards, terminated, _, infos = vector.step(np.zeros((2, scene.nv)))
+    assert list(terminated) == [True, False] and list(rewards) == [0.0, 1.0]
+    assert list(infos["_failure"]) == [True, False] and infos["failure"][0] == "failed"
+    assert "RuntimeError raised in the contact step" in infos["message"][0]
