@@ -1,9 +1,12 @@
-"""Contact side by side with MuJoCo: the sliding and resting boxes and a solo12 drop built from the same geometry,
-and the cost per step of solo12_standing (the native kernel's step and the Python kernel's) against the sum of
-Pinocchio's C++ calls for that step and against mj_step, measured in the same run, and a rollout of it on one and
-two threads. Writes docs/contact.md. A benchmark-only dependency (`pip install mujoco`).
+"""Contact side by side with MuJoCo, and issue 24's targets measured in one run: the sliding and resting boxes and a
+solo12 drop built from the same geometry; the cost per step of solo12_standing, go2_standing, talos_standing and
+box_stack on the native kernel against MuJoCo's whole loop in C (`mujoco.rollout`, one thread) and `mj_step` in a
+Python loop (CPU-time medians of interleaved rounds, ratios from the same run); solo12_standing on its URDF meshes
+against its foot spheres; solo12, go2 and talos released onto the ground on their meshes at 1, 2 and 5 ms (how each
+run ended, its solver counts); a 16-row rollout on one and two threads. Writes docs/contact.md. A benchmark-only
+dependency (`pip install mujoco`).
 
-    python scripts/contact_mujoco.py [--rounds 7] [--steps 300]
+    python scripts/contact_mujoco.py [--rounds 7] [--steps 300] [--out docs/contact.md]
 """
 
 from __future__ import annotations
@@ -314,7 +317,9 @@ def mesh_costs(rounds: int, steps: int) -> dict[str, Any]:
     return {"us": {name: float(np.median(v)) for name, v in samples.items()}, "stats": stats}
 
 
-STUCK_ROBOTS = ("solo12", "go2", "talos")
+# (robot, joint friction): talos's URDF declares joint dry friction, regularized by default (an explicit force,
+# stiff: describe() names the dt it needs) or "exact" (constraints in the contact problem, as talos_standing has it)
+STUCK_ROBOTS = (("solo12", "regularized"), ("go2", "regularized"), ("talos", "regularized"), ("talos", "exact"))
 STUCK_DTS = (1e-3, 2e-3, 5e-3)
 
 
@@ -322,8 +327,9 @@ def never_stuck(duration: float = 1.0) -> list[dict[str, Any]]:
     """Each robot released from its default pose onto the ground on its URDF meshes, no controller, for `duration`
     at each dt: how the run ended, its solver counts, its kernel and CPU time."""
     rows = []
-    for robot in STUCK_ROBOTS:
-        scene = ms.make_scene(robot={"source": robot}, ground={"friction": 0.8}, contact={"robot_geometry": "urdf"})
+    for robot, friction in STUCK_ROBOTS:
+        scene = ms.make_scene(robot={"source": robot}, ground={"friction": 0.8},
+                              contact={"robot_geometry": "urdf", "friction": friction})  # fmt: skip
         for dt in STUCK_DTS:
             start = time.process_time()
             try:
@@ -332,7 +338,7 @@ def never_stuck(duration: float = 1.0) -> list[dict[str, Any]]:
             except ms.SimulationError as error:
                 run, message = error.trajectory, str(error)
             stats = run.stats
-            rows.append({"robot": robot, "dt": dt, "status": run.status, "t": float(run.t[-1]),
+            rows.append({"robot": robot, "friction": friction, "dt": dt, "status": run.status, "t": float(run.t[-1]),
                          "steps": int(stats.get("solver_steps", 0)),
                          "unconverged": int(stats.get("solver_unconverged", 0)),
                          "iterations": int(stats.get("solver_iterations", 0)),
@@ -467,24 +473,28 @@ def main() -> None:
         "",
         "## Never stuck: robots released from their default pose onto the ground, URDF meshes, no controller, 1 s",
         "",
-        "| robot | dt [ms] | status | reached [s] | solver steps | unconverged | fallbacks | iterations per step "
-        "| kernel | CPU [s] |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| robot | joint friction | dt [ms] | status | reached [s] | solver steps | unconverged | fallbacks | "
+        "iterations per step | kernel | CPU [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in stuck:
         per = row["iterations"] / max(row["steps"], 1)
         lines.append(
-            f"| {row['robot']} | {row['dt'] * 1e3:g} | {row['status']} | {row['t']:.3f} | {row['steps']} | "
+            f"| {row['robot']} | {row['friction']} | {row['dt'] * 1e3:g} | {row['status']} | {row['t']:.3f} | {row['steps']} | "
             f"{row['unconverged']} | {row['fallbacks']} | {per:.1f} | {row['kernel']} | {row['cpu']:.1f} |"
         )
     for row in stuck:
         if row["message"]:
-            lines.append(f"\n- {row['robot']} at {row['dt'] * 1e3:g} ms: {row['message']}")
+            lines.append(f"\n- {row['robot']} ({row['friction']} friction) at {row['dt'] * 1e3:g} ms: {row['message']}")
     lines += [
         "",
-        "A step is unconverged when neither the Newton solve nor its fallback reached the tolerance "
-        "(integrators/cone_solver.py: TOLERANCE relative to the step's velocity scale; a fallback step is held to "
-        "FALLBACK_TOLERANCE); fallbacks count the steps that needed ADMM (or Gauss–Seidel) after Newton.",
+        "Every step of a completed run met its tolerance (integrators/cone_solver.py): 1e-9 of the step's velocity "
+        "scale when Newton ends it; a step that needed the fallback (ADMM after 20 Newton iterations, Newton tried "
+        "again from its iterates) and ended at its iteration budget is held to 1e-4 of that scale instead, else it "
+        "counts as unconverged (more than 1 % of the steps: status solver_failed). `fallbacks` counts the steps "
+        "that needed the fallback. talos's default joint friction is regularized: an explicit force element whose "
+        "stiffness (`describe()`: a mode of ~9e5 1/s in its grippers) semi-implicit Euler cannot take at 5 ms; "
+        "`[contact] friction = \"exact\"` (talos_standing's) makes it constraints in the contact problem.",
         "",
         f"## A rollout of solo12_standing, 16 rows, 0.3 s, on one and two threads (native kernel, medians)",
         "",
@@ -517,28 +527,18 @@ def main() -> None:
 MEASURED_APART = """
 ## The URDF's collision geometry (robot_geometry = "urdf")
 
-Measured apart from MuJoCo (not regenerated by this script; commands given). A robot without declared
-`[[contact.geometry]]` collides with its URDF's collision shapes: Pinocchio's `buildGeomFromUrdf` with the loader's
-package folders, meshes as their convex hulls (coal's qhull hull: `buildConvexRepresentation` would take an STL's own
-triangles as the hull, and their unshared vertices left coal's support search on a local vertex: a solo12 foot sank
-28 µm), contact patches of at most 8 points none closer than 1 cm (a hull's facet on the ground gives up to 8
-points within a few millimetres, nearly equal rows on which ADMM stalled: solo12 standing on its meshes had 38
-unconverged steps of 1000 at 4.3 ms per step without the spacing, none at 0.9 ms with it).
+Not regenerated by this script. A robot without declared `[[contact.geometry]]` collides with its URDF's collision
+shapes: Pinocchio's `buildGeomFromUrdf` with the loader's package folders, meshes as their convex hulls (coal's qhull
+hull). Against the ground, the narrow phase (scenes/narrow_phase.py) takes a hull's vertices within the speculative
+margin, keeps those within 1 mm of the deepest and of them at most 4 points, the deepest first, then each the
+farthest from those kept, none closer than 1 cm to another (a hull's facet on the ground gave up to 8 points within
+a few millimetres, nearly equal rows on which Pinocchio's ADMM stalled). Hull against hull goes to coal. Both kernels
+run the same narrow phase, bit for bit (tests/test_native_contact.py); the cost and the never-stuck tables above are
+its measurements.
 
 - Rest height: solo12 with its legs locked (one rigid body), dropped 1.1 cm on its meshes, comes to rest with the
-  lowest vertex of its collision meshes (read by trimesh, placed by Pinocchio's kinematics) at -1e-14 m, within
-  the 1 nm penetration slop (`tests/test_contact.py`).
-- Cost, `python scripts/bench_contact_geometry.py --steps 300 --repeats 7` (solo12 standing under the scene's PD +
-  gravity compensation, timestepping at 1 ms, CPU-time medians of interleaved rounds, load average 7.6-8.7; both
-  converged on every step). Both on the Python kernel (`MULTIBODY_SIM_NATIVE=0`): URDF meshes 765-814 µs per step,
-  four declared foot spheres 206-217 µs: 3.5-4.0x over two runs (17 hulls against the ground instead of 4 spheres:
-  more pairs to test, 8 contact points at rest instead of 4, the lower legs' speculative rows, more solver
-  iterations). By default the spheres run on the native kernel (36.6 µs) while mesh hulls stay on the Python
-  kernel (771 µs): 21x.
-- Limit: a robot that collapses onto many links at once (solo12, go2 or talos dropped without a controller: 30-100
-  points on 10-40 links) leaves ADMM at residuals of 1e-9..1e-7 on 2-5 % of the steps, above the 1e-12 tolerance,
-  and the run ends "solver_failed" (partial samples kept; it does not pass through the ground). Hold the robot with
-  a controller, declare geometry (spheres on feet), or use a smaller dt.
+  lowest vertex of its collision meshes (read by trimesh, placed by Pinocchio's kinematics) within the 1 nm
+  penetration slop (`tests/test_contact.py`).
 
 ## go2_standing: why it moved while held, and what holds it still
 

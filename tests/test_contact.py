@@ -262,7 +262,7 @@ def test_objects_join_the_state_after_the_robot_with_world_velocities():
 def test_describe_says_what_is_modelled():
     text = load_scene("box_stack").describe()
     assert "contact pairs: ground-bottom, ground-middle, ground-top, bottom-middle, bottom-top, middle-top" in text
-    assert "contact solver: ADMM" in text
+    assert "contact solver: semismooth Newton, ADMM after 20 Newton iterations" in text
     assert "position limits: reported, not enforced" in text
     assert "joint dry friction: regularized" in text
     assert "force elements: none" in text

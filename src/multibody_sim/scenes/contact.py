@@ -53,7 +53,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..exceptions import SceneError
-from ..integrators.cone_solver import CONE, HALFLINE, INTERVAL, Blocks, matvec, zsum
+from ..integrators.cone_solver import CONE, HALFLINE, INTERVAL, NEWTON_ITERATIONS, Blocks, matvec, zsum
 from ..ordered import ordered_matvec
 from ..text import safe_name
 from . import narrow_phase as narrow
@@ -407,7 +407,10 @@ class ContactModel:
             f" (+{len(pairs) - 12} more)" if len(pairs) > 12 else ""
         )
         lines.append(f"  contact pairs: {shown if pairs else 'none'}")
-        solver = "ADMM (spectral rule, Anderson 10)" if self.solver == "admm" else "PGS"
+        solver = (
+            f"semismooth Newton, ADMM after {NEWTON_ITERATIONS} Newton iterations" if self.solver == "admm"
+            else "Gauss-Seidel sweeps, semismooth Newton between them"
+        )
         lines.append(
             f"  contact solver: {solver}, velocity-level time-stepping (exact Coulomb cones, speculative margin "
             f"{SPECULATIVE_MARGIN:g} m, penetration correction {PENETRATION_CORRECTION:g} per step)"
