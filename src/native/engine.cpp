@@ -381,13 +381,12 @@ namespace multibody_sim
              && a.push_models.size() == b.push_models.size() && a.energies.size() == b.energies.size();
     }
 
-    // Whether two contact scenes have the same shapes, pairs and constraints (their coefficients may differ; the
-    // joint friction bounds may not: a thread's workspace holds them).
+    // Whether two contact scenes have the same shapes, pairs and constraints (their coefficients may differ, the
+    // joint friction forces included: a step reads them from its row's scene; a thread's workspace holds the shapes).
     bool same_contact(const ContactScene & a, const ContactScene & b)
     {
       if (a.nv != b.nv || a.shapes.size() != b.shapes.size() || a.pairs != b.pairs
-          || a.limited_joints != b.limited_joints || a.friction_joints != b.friction_joints
-          || a.friction_bound != b.friction_bound)
+          || a.limited_joints != b.limited_joints || a.friction_joints != b.friction_joints)
         return false;
       for (size_t k = 0; k < a.shapes.size(); ++k)
         if (a.shapes[k].kind != b.shapes[k].kind || a.shapes[k].joint != b.shapes[k].joint
