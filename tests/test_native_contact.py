@@ -7,6 +7,7 @@ failures, Ctrl-C and the scenes that stay on Python behave as on the Python kern
 from __future__ import annotations
 
 import dataclasses
+import gc
 import os
 import signal
 import threading
@@ -284,9 +285,12 @@ def test_ctrl_c_mid_contact_run_keeps_every_sample(monkeypatch):
     contacts."""
     scene = ms.load_scene("box_stack")
     monkeypatch.setenv("MULTIBODY_SIM_NATIVE", "1")
-    # Python's own Ctrl-C, whatever handler an earlier test left (in a full run, one after tests/test_fuzz.py
-    # swallowed this SIGINT and the run went on for its 1e4 s)
+    # Python's own Ctrl-C, and no gc callbacks meanwhile: Hypothesis (tests/test_fuzz.py) leaves one installed, and
+    # a KeyboardInterrupt raised while it runs is lost ("Exception ignored in ... gc_callback"): in a full run the
+    # interrupt was swallowed and the run went on for its 1e4 s
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    callbacks = gc.callbacks[:]
+    gc.callbacks.clear()
     timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT))
     timer.start()
     try:
@@ -294,6 +298,7 @@ def test_ctrl_c_mid_contact_run_keeps_every_sample(monkeypatch):
             simulate(scene, 1e4, output_dt=0.01)
     finally:
         timer.cancel()
+        gc.callbacks.extend(callbacks)
         signal.signal(signal.SIGINT, previous)
     traj = info.value.trajectory
     assert traj.status == "interrupted" and len(traj) > 5
