@@ -624,3 +624,14 @@ def test_stepper_steps_a_contact_scene_as_simulate_does():
     np.testing.assert_array_equal(stepper.v, traj.v[-1])
     solver = {k: v for k, v in traj.stats.items() if k.startswith("solver_")}
     assert solver["solver_steps"] == 100 and {k: stepper.stats[k] for k in solver} == solver
+
+
+def test_a_misspelt_body_in_contact_pairs_gets_a_did_you_mean() -> None:
+    """A contact pair naming a body the scene's geometry lacks names the closest ones, not every body."""
+    box = {"name": "box", "shape": "box", "size": [0.1, 0.1, 0.05], "mass": 0.2, "position": [0.0, 0.0, 0.5]}
+    with pytest.raises(ms.SceneError) as caught:
+        make_scene(robot={"source": "solo12"}, ground={"friction": 0.8}, object=[box],
+                   contact={"pairs": [["ground", "base_lnk"]]})  # fmt: skip
+    message = str(caught.value)
+    assert message.endswith("contact.pairs[0][1]: unknown body 'base_lnk' (did you mean 'base_link'?)"), message
+    assert "FL_FOOT" not in message  # solo12's other bodies are not listed

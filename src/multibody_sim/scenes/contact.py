@@ -55,7 +55,7 @@ import pinocchio as pin
 from ..exceptions import SceneError
 from ..integrators.cone_solver import CONE, HALFLINE, INTERVAL, NEWTON_ITERATIONS, Blocks, matvec, zsum
 from ..ordered import ordered_matvec
-from ..text import safe_name
+from ..text import name_hint, safe_name
 from . import narrow_phase as narrow
 from .frames import frame_id
 from .narrow_phase import MAX_PATCH_POINTS, MIN_PATCH_SPACING, PRIMITIVE_SPACING, SPECULATIVE_MARGIN
@@ -701,8 +701,9 @@ def build_contact(scene: Any, spec: Any, exact_friction: Sequence[tuple[int, flo
         for i, pair in enumerate(pairs_setting):
             for k, name in enumerate(pair):
                 if name not in names:
-                    valid = ", ".join(names) or "none (declare [ground], [[object]] or [[contact.geometry]])"
-                    raise SceneError(f"{where}: contact.pairs[{i}][{k}]: unknown body '{name}' (valid: {valid})")
+                    none = "valid: none (declare [ground], [[object]] or [[contact.geometry]])"
+                    hint = name_hint(name, names) if names else none
+                    raise SceneError(f"{where}: contact.pairs[{i}][{k}]: unknown body {safe_name(name)!r} ({hint})")
             first, second = pair if pair[1] != "ground" else (pair[1], pair[0])
             for a in (k for k, g in enumerate(geometries) if g.body == first):
                 for b in (k for k, g in enumerate(geometries) if g.body == second):
