@@ -733,3 +733,93 @@ def test_randomised_rows_with_sensors_read_their_own_masses(kernel: str, monkeyp
         assert_same_run(batch.element(b), alone[b])
         np.testing.assert_array_equal(batch.element(b).sensors["wrist"], alone[b].sensors["wrist"])
     assert not np.array_equal(batch.element(0).sensors["wrist"][0], batch.element(1).sensors["wrist"][0])
+
+
+# ---- a row built as a variant of its scene is the scene built alone ---------------------------------------------
+VARIANT_SCENES = {
+    "arm": (RANDOM_ARM, {"integrator": "rk4"}),
+    "actuators": (RANDOM_ACTUATORS, {"integrator": "semi_implicit_euler"}),
+    "go2": (
+        {
+            **shipped("go2_standing"),
+            "randomize": {
+                "seed": 4,
+                "parameter": [
+                    uniform("mass", 0.85, 1.15, scale=True),
+                    uniform("inertia", 0.9, 1.1, scale=True),
+                    uniform("ground_friction", 0.4, 1.0),
+                    uniform("ground_restitution", 0.0, 0.3),
+                ],
+            },
+        },
+        {"integrator": "timestepping"},
+    ),
+    # a locked joint, a payload, a sensor, a free object on the ground, exact joint friction, body coefficients
+    "locked": (
+        {
+            "robot": {"source": "ur5"},
+            "lock": {"wrist_3_joint": 0.3},
+            "payload": [{"frame": "wrist_2_link", "mass": 1.0, "com": [0, 0, 0.05]}],
+            "sensor": [{"name": "wrist", "kind": "force_torque", "frame": "wrist_2_link"}],
+            "ground": {"friction": 0.8},
+            "contact": {"friction": "exact", "robot_geometry": "declared", "pairs": "all"},
+            "object": [{"name": "box", "shape": "box", "size": [0.2, 0.2, 0.2], "mass": 2.0, "position": [0.6, 0, 0.1]}],
+            "randomize": {
+                "seed": 5,
+                "parameter": [
+                    uniform("mass", 0.8, 1.2, scale=True),
+                    uniform("payload_mass", 0.5, 3.0),
+                    uniform("friction", 0.1, 0.4, joints=["shoulder_*"]),
+                    uniform("damping", 0.0, 0.5),
+                    uniform("armature", 0.0, 0.02),
+                    uniform("body_friction", 0.2, 0.9),
+                    uniform("body_restitution", 0.0, 0.5),
+                ],
+            },
+        },
+        {"integrator": "timestepping"},
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(VARIANT_SCENES))
+def test_a_variant_row_is_its_scene_built_alone(case: str) -> None:
+    """with_parameters builds a row from its scene (taking the joints' structure from it, checking nothing again):
+    the same model (Pinocchio's archive, byte for byte), arrays, elements, contact and actuators (their native data)
+    and the same run, bit for bit, as the row's declaration built alone by the constructor (robot loaded again)."""
+    import dataclasses
+
+    from multibody_sim.native import model_bytes
+
+    tables, settings = VARIANT_SCENES[case]
+    scene = ms.make_scene(**tables)
+    for b in range(2):
+        drawn = scene.draw_parameters(b)
+        variant = scene.with_parameters(drawn)
+        alone = ms.Scene(dataclasses.replace(scene.spec, parameters=drawn))
+        assert variant.full_robot is scene.full_robot and alone.full_robot is not scene.full_robot
+        assert model_bytes(variant.model) == model_bytes(alone.model)
+        for name in ("damping", "effort_limit", "velocity_limit", "limit_tolerance", "limit_drift", "q0", "v0"):
+            np.testing.assert_array_equal(getattr(variant, name), getattr(alone, name), err_msg=name)
+        assert variant.total_mass == alone.total_mass and variant.energy_scale == alone.energy_scale
+        assert variant.ledger_elements == alone.ledger_elements and variant.record_fields == alone.record_fields
+        assert variant.nominal_parameters == alone.nominal_parameters == scene.nominal_parameters
+        assert variant.parameters == alone.parameters == drawn
+        for part in ("elements", "contact", "actuators"):
+            mine, its = getattr(variant, part), getattr(alone, part)
+            assert (mine is None) == (its is None), part
+            if mine is not None:
+                data = (mine.native_data(model_bytes), its.native_data(model_bytes)) if part == "elements" else (
+                    mine.native_data(), its.native_data())
+                assert repr(data[0]) == repr(data[1]), part
+        if variant.contact is not None:
+            assert variant.contact.friction_joints == alone.contact.friction_joints
+        run = {"duration": 0.03, "dt": 1e-3, **settings}
+        q0 = variant.q0
+        a, c = ms.simulate(variant, q0, variant.v0, **run), ms.simulate(alone, q0, alone.v0, **run)
+        assert a.metadata["kernel"] == c.metadata["kernel"]
+        assert_same_run(a, c)
+        for name in a.sensors or {}:
+            np.testing.assert_array_equal(a.sensors[name], c.sensors[name], err_msg=name)
+    # the rows differ from the declared scene
+    assert model_bytes(scene.with_parameters(scene.draw_parameters(0)).model) != model_bytes(scene.model)

@@ -63,13 +63,15 @@ class Robot:
         source: dict[str, Any] | None = None,
         poses: dict[str, np.ndarray] | None = None,
         default_pose: str | None = None,
+        space: ConfigurationSpace | None = None,
     ):
         self.model = model
         self.data = model.createData()
         self.name = name
         self.floating_base = floating_base
         self.source = dict(source or {})
-        self.space = ConfigurationSpace(model)
+        # the configuration space depends on the joints only: a model of the same joints may lend its own
+        self.space = ConfigurationSpace(model) if space is None else space
         self.nq = model.nq
         self.nv = model.nv
         self.joint_names = [model.names[i] for i in range(1, model.njoints) if model.joints[i].nv > 0]

@@ -76,13 +76,18 @@ class Scene(Robot):
             reference pose where it has one, else the neutral configuration).
     """
 
-    def __init__(self, spec: SceneSpec, *, robot: Robot | None = None):
+    def __init__(self, spec: SceneSpec, *, robot: Robot | None = None, variant_of: Scene | None = None):
         """Build the scene `spec` declares (with spec.parameters' values where it gives them: with_parameters).
 
         Args:
             spec: the parsed scene.
             robot: its robot, already loaded from spec.robot (a randomised rollout's rows share the nominal scene's
                 `full_robot`); None: loaded here.
+            variant_of: a scene built from the same declaration with other parameter values (with_parameters: a
+                randomised row): what parameter values cannot change is taken from it instead of being made and
+                checked again (the configuration space, the named poses, the model's checks, the [randomize]
+                table). Values within their quantities' ranges keep masses and inertias physical. Every value the
+                parameters enter is computed by this very code, so the scene is the one `Scene(spec)` builds.
         """
         from .elements import ForceElements
 
@@ -157,9 +162,12 @@ class Scene(Robot):
         self.locked = dict(spec.lock)
         robot_nv, robot_nq = model.nv, model.nq
         object_joints = _add_objects(model, spec, values)  # free-flyers after the robot's joints
-        poses = {name: reduce_configuration(robot.model, model, robot.pose(name)) for name in robot.poses}
-        for q_pose in poses.values():
-            _place_objects(model, spec, q_pose)
+        if variant_of is not None:  # the joints' structure only
+            poses = variant_of._poses
+        else:
+            poses = {name: reduce_configuration(robot.model, model, robot.pose(name)) for name in robot.poses}
+            for q_pose in poses.values():
+                _place_objects(model, spec, q_pose)
         # The Robot part: argument checks, limits, energies, damping (tau - D v) on the scene's model.
         super().__init__(
             model,
@@ -171,8 +179,10 @@ class Scene(Robot):
             # where the scene puts them).
             poses=poses,
             default_pose=robot.default_pose_name,
+            space=variant_of.space if variant_of is not None else None,
         )
-        _check_scene_model(self, where, robot_nv, len(object_joints))
+        if variant_of is None:
+            _check_scene_model(self, where, robot_nv, len(object_joints))
         if randomized(spec.randomize, "damping", _one_dof_joints(model)):  # the same ledger in every row, 0 or not
             self._damped = True
         self.actuated = slice(self.actuated.start, robot_nv)  # free objects are unactuated
@@ -288,11 +298,14 @@ class Scene(Robot):
         elif self.mimic:
             self.no_derivatives_reason = "it honours mimic joints, which Pinocchio's ABA derivatives do not support"
         self.has_derivatives = not self.no_derivatives_reason
-        _check_scene_mass_matrix(self, where)
+        if variant_of is None:
+            _check_scene_mass_matrix(self, where)
         # The values of the parameters [randomize] may draw as declared, and the table resolved on them.
         self.nominal_parameters: dict[str, Any] = values.nominal if values is not None else {}
         self.randomizer = None
-        if spec.randomize is not None:
+        if variant_of is not None and variant_of.spec.randomize == spec.randomize:
+            self.randomizer = variant_of.randomizer
+        elif spec.randomize is not None:
             self.randomizer = Randomizer(spec.randomize, self.nominal_parameters, where)
 
     def __repr__(self) -> str:
@@ -330,7 +343,7 @@ class Scene(Robot):
                 or Scene(dataclasses.replace(self.spec, parameters={}), robot=self.full_robot).nominal_parameters
             )
             parameters = check_parameters(parameters, nominal)
-        return Scene(dataclasses.replace(self.spec, parameters=parameters), robot=self.full_robot)
+        return Scene(dataclasses.replace(self.spec, parameters=parameters), robot=self.full_robot, variant_of=self)
 
     def draw_parameters(self, b: int) -> dict[str, Any]:
         """The parameter values of randomised rollout row b (the [randomize] table's draw seeded with (seed, b)).
