@@ -823,3 +823,41 @@ def test_a_variant_row_is_its_scene_built_alone(case: str) -> None:
             np.testing.assert_array_equal(a.sensors[name], c.sensors[name], err_msg=name)
     # the rows differ from the declared scene
     assert model_bytes(scene.with_parameters(scene.draw_parameters(0)).model) != model_bytes(scene.model)
+
+
+# ur5 whose joints' dry friction is exact (a constraint of the time-stepper: stiction), drawn per row, and its masses.
+RANDOM_STICTION = {
+    "robot": {"source": "ur5"},
+    "ground": {},
+    "contact": {"friction": "exact", "robot_geometry": "declared"},
+    "randomize": {
+        "seed": 6,
+        "parameter": [uniform("friction", 0.0, 12.0), uniform("mass", 0.9, 1.1, scale=True)],
+    },
+}
+
+
+@needs_native
+def test_randomised_exact_joint_friction_runs_natively_bit_for_bit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rows whose exact joint friction forces are drawn run on the native kernel (each step reads its row's forces),
+    bit for bit with the Python kernel and with each row re-run alone; the rows hold or slip as their forces say."""
+    scene = ms.make_scene(**RANDOM_STICTION)
+    assert scene.contact is not None and len(scene.contact.friction_joints) == 6
+    B = 4
+    Q = np.tile(scene.q0, (B, 1)) + np.array([0.0, -0.6, 0.9, -0.4, 0.3, 0.0])
+    settings = {"duration": 0.05, "dt": 1e-3, "integrator": "timestepping"}
+
+    def run() -> tuple[Any, list[Trajectory]]:
+        batch = ms.rollout(scene, Q, np.zeros((B, 6)), num_threads=2, **settings)
+        return batch, [rerun(batch, scene, b, **settings) for b in range(B)]
+
+    (nat, nat_alone), (py, _) = both(run, monkeypatch)
+    assert nat.metadata["kernel"] == "native" and py.metadata["kernel"] == "python (row)"
+    for b in range(B):
+        assert_same_run(nat.element(b), py.element(b))
+        assert_same_run(nat.element(b), nat_alone[b])
+    forces = [[f for _, f in scene.with_parameters(p).contact.friction_joints] for p in nat.metadata["parameters"]]
+    assert len({tuple(f) for f in forces}) == B
+    moved = np.abs(nat.q[:, -1] - nat.q[:, 0])  # (B, 6): some joints held (to the solver's accuracy), some slipping
+    held = moved < 1e-12
+    assert held[:, 2].any() and (moved[:, 2] > 1e-4).any()  # the elbow: held in one row, slipping in another

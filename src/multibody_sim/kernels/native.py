@@ -55,9 +55,9 @@ def why_not_native(system: Any, method: Integrator, systems: list[Any] | None = 
     if not native.available:
         return native.why_unavailable
     if systems is not None and getattr(system, "contact", None) is not None:
-        held = [row.contact.friction_joints for row in systems]
-        if any(joints != held[0] for joints in held):  # a thread's contact workspace holds the bounds
-            return "the rows' exact joint friction differs (randomised), which runs on the Python kernel"
+        held = [[jid for jid, _ in row.contact.friction_joints] for row in systems]  # (their forces may differ)
+        if any(joints != held[0] for joints in held):  # the engine's rows share their constraints (same_contact)
+            return "the rows' joints with exact dry friction differ, which runs on the Python kernel"
     if systems is not None and getattr(system, "sensors", None) is not None:  # the engine measures with one Sensors
         return "randomised rows with sensors (each row's own cut masses) run on the Python kernel"
     if type(method) is TimeStepping:  # any max_iterations: the engine takes it as data
