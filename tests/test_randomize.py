@@ -710,8 +710,8 @@ def test_a_wrist_force_torque_sensor_weighs_the_drawn_masses() -> None:
 @pytest.mark.parametrize("kernel", ["python", pytest.param("native", marks=needs_native)])
 def test_randomised_rows_with_sensors_read_their_own_masses(kernel: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """A rollout's rows measure with their own scenes' sensors (a force-torque sensor's cut masses are drawn):
-    each row's readings equal its re-run alone, bit for bit, and the rows' readings differ. Natively, such rows run
-    on the Python kernel (the engine measures with one set of sensors), and say why."""
+    each row's readings equal its re-run alone, bit for bit, and the rows' readings differ, on either kernel (the
+    engine measures each row with its own sensors: RowPhysics.sensors)."""
     scene = ms.make_scene(
         robot={"source": "ur5"},
         payload=[{"frame": "tool0", "mass": 1.0, "com": [0, 0, 0.05], "inertia": [1e-3, 1e-3, 2e-3, 0, 0, 0]}],
@@ -726,9 +726,7 @@ def test_randomised_rows_with_sensors_read_their_own_masses(kernel: str, monkeyp
         return batch, [rerun(batch, scene, b, **settings) for b in range(B)]
 
     batch, alone = on_kernel(kernel == "native", run, monkeypatch)
-    assert batch.metadata["kernel"] == "python (row)"
-    if kernel == "native":
-        assert "randomised rows with sensors" in batch.metadata["why_not_native"]
+    assert batch.metadata["kernel"] == ("native" if kernel == "native" else "python (row)")
     for b in range(B):
         assert_same_run(batch.element(b), alone[b])
         np.testing.assert_array_equal(batch.element(b).sensors["wrist"], alone[b].sensors["wrist"])
@@ -861,3 +859,62 @@ def test_randomised_exact_joint_friction_runs_natively_bit_for_bit(monkeypatch: 
     moved = np.abs(nat.q[:, -1] - nat.q[:, 0])  # (B, 6): some joints held (to the solver's accuracy), some slipping
     held = moved < 1e-12
     assert held[:, 2].any() and (moved[:, 2] > 1e-4).any()  # the elbow: held in one row, slipping in another
+
+
+@needs_native
+def test_randomised_rows_with_sensors_are_the_same_on_both_kernels(monkeypatch: pytest.MonkeyPatch) -> None:
+    """go2 on the ground with an IMU, foot contact forces and a force-torque sensor at its foot (cutting the foot from
+    its calf: the cut mass is drawn), its masses and the ground's friction drawn per row, under its own PD controller,
+    sensors ticking at 500 Hz with noise: every row's samples and readings on the native kernel equal the Python
+    kernel's, bit for bit."""
+    tables = shipped("go2_standing")
+    tables["sensor"] = [
+        {"name": "imu", "kind": "imu", "frame": "base", "noise": 0.01, "seed": 1},
+        {"name": "foot", "kind": "contact_force", "body": "FL_foot"},
+        {"name": "ankle", "kind": "force_torque", "frame": "FL_foot", "rate": 500.0},
+    ]
+    tables["randomize"] = {
+        "seed": 7,
+        "parameter": [uniform("mass", 0.8, 1.2, scale=True), uniform("ground_friction", 0.4, 1.0)],
+    }
+    scene = ms.make_scene(**tables)
+    B = 3
+    settings = {"duration": 0.03, "dt": 1e-3, "integrator": "timestepping", "controller": scene.make_controller()}
+
+    def run() -> Any:
+        Q = np.tile(scene.q0, (B, 1))
+        return ms.rollout(scene, Q, np.zeros((B, scene.nv)), num_threads=2, **settings)
+
+    nat, py = both(run, monkeypatch)
+    assert nat.metadata["kernel"] == "native" and py.metadata["kernel"] == "python (row)"
+    for b in range(B):
+        assert_same_run(nat.element(b), py.element(b))
+        for name in ("imu", "foot", "ankle"):
+            np.testing.assert_array_equal(nat.element(b).sensors[name], py.element(b).sensors[name], err_msg=name)
+    ankles = [nat.element(b).sensors["ankle"][-1] for b in range(B)]
+    assert not np.array_equal(ankles[0], ankles[1])  # each row's own cut masses
+
+
+@needs_native
+def test_the_engine_refuses_rows_whose_sensors_measure_other_things() -> None:
+    """A row's own sensors must measure what the engine's do, at the same places (only their cuts' masses may
+    differ): the engine refuses others in one line, whichever of set_rows and set_sensors comes first."""
+    from multibody_sim.integrators import INTEGRATORS
+    from multibody_sim.kernels.native import NativeKernel
+    from multibody_sim.step_control import ConstantStep
+
+    def arm(frame: str) -> ms.Scene:
+        return ms.make_scene(robot={"source": "ur5"}, sensor=[{"name": "s", "kind": "force_torque", "frame": frame}])
+
+    scene, other = arm("tool0"), arm("wrist_1_link")
+    Q, V = np.tile(scene.q0, (2, 1)), np.zeros((2, 6))
+    for rows, fails in (([scene, scene], False), ([scene, other], True)):
+        kernel = NativeKernel(scene, INTEGRATORS["rk4"], Q, V, systems=rows)
+        kernel.bind(ConstantStep(1e-3))
+        if fails:
+            with pytest.raises(ValueError, match="a row's sensors disagree with the engine's"):
+                kernel.set_sensors(scene.sensors, 1, np.zeros(2, dtype=int))
+        else:
+            kernel.set_sensors(scene.sensors, 1, np.zeros(2, dtype=int))
+            with pytest.raises(ValueError, match="a row's sensors disagree with the engine's"):
+                kernel.engine.set_rows([kernel._row_physics(row) for row in (scene, other)])

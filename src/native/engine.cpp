@@ -247,6 +247,7 @@ namespace multibody_sim
       B += th->rows.size();
     if (sensors && (every < 1 || done.size() != B))
       throw std::invalid_argument("set_sensors: every must be >= 1 and done hold one count per row");
+    check_row_sensors(sensors.get(), rows_);
     sensors_ = sensors;
     sensor_every_ = every;
     sensor_done_ = done;
@@ -409,7 +410,33 @@ namespace multibody_sim
           return false;
       return true;
     }
+
+    // Whether two scenes' sensors measure the same things at the same places (their cuts' masses may differ).
+    bool same_sensors(const Sensors & a, const Sensors & b)
+    {
+      if (a.width != b.width || a.gravity != b.gravity || a.items.size() != b.items.size()
+          || a.contact_joints != b.contact_joints || a.contact_frames != b.contact_frames)
+        return false;
+      for (size_t k = 0; k < a.items.size(); ++k)
+      {
+        const SensorItem & x = a.items[k];
+        const SensorItem & y = b.items[k];
+        if (x.kind != y.kind || x.offset != y.offset || x.frame != y.frame || x.body != y.body
+            || x.q_index != y.q_index || x.v_index != y.v_index || x.q_count != y.q_count || x.cut_joint != y.cut_joint
+            || x.cut_whole != y.cut_whole || x.cut_rotation != y.cut_rotation || x.cut_translation != y.cut_translation
+            || x.cut_children != y.cut_children || x.cut_frames != y.cut_frames)
+          return false;
+      }
+      return true;
+    }
   } // namespace
+
+  void Engine::check_row_sensors(const Sensors * sensors, const std::vector<RowPhysics> & rows)
+  {
+    for (const RowPhysics & r : rows)
+      if (r.sensors && (!sensors || !same_sensors(*r.sensors, *sensors)))
+        throw std::invalid_argument("a row's sensors disagree with the engine's (set_sensors)");
+  }
 
   void Engine::set_rows(const std::vector<RowPhysics> & rows)
   {
@@ -435,6 +462,8 @@ namespace multibody_sim
           || (r.actuators && !same_actuators(*r.actuators, *actuators_)))
         throw std::invalid_argument("set_rows: a row's actuators disagree with the engine's");
     }
+    if (sensors_)
+      check_row_sensors(sensors_.get(), rows);
     rows_ = rows;
     for (auto & th : threads_)
     {

@@ -194,8 +194,9 @@ namespace multibody_sim
   };
 
   // One row's own physics (a randomised scene's row, Scene.with_parameters): its model (masses, inertias, armature),
-  // joint damping, force elements (friction coefficients), contact scene (coefficients) and actuators (gains, limits,
-  // curves), with the engine's structure (the same joints, elements, shapes, pairs and actuator kinds; other values).
+  // joint damping, force elements (friction coefficients), contact scene (coefficients, exact friction forces),
+  // actuators (gains, limits, curves) and sensors (a force-torque sensor's cut masses), with the engine's structure
+  // (the same joints, elements, shapes, pairs, actuator kinds and sensors; other values).
   // The built-in controllers keep the engine's model: a controller was made for the scene as declared.
   struct RowPhysics  // _native.RowPhysics
   {
@@ -204,6 +205,7 @@ namespace multibody_sim
     std::shared_ptr<SceneForces> scene;     // null when the engine has none
     std::shared_ptr<ContactScene> contact;  // null when the engine has none
     std::shared_ptr<SceneActuators> actuators;  // null when the engine has none
+    std::shared_ptr<Sensors> sensors;  // null: the engine's (set_sensors)
   };
 
   struct Rows;    // one thread's rows, their states and workspace (methods.hpp)
@@ -295,9 +297,12 @@ namespace multibody_sim
     // The ticks since the last call: times (n,), run rows (n,), measurements (n, width), each row's in time order.
     std::tuple<Vec, std::vector<int64_t>, RowMatrix> take_ticks();
     // Each run row's own physics (after set_actuators, set_scene and set_contact, before the first advance()): rows
-    // step on their own model, damping, elements, contact coefficients and actuators. Throws invalid_argument naming
-    // what disagrees with the engine's structure.
+    // step on their own model, damping, elements, contact coefficients and actuators, and measure with their own
+    // sensors (set_sensors may come before or after). Throws invalid_argument naming what disagrees with the
+    // engine's structure.
     void set_rows(const std::vector<RowPhysics> & rows);
+    // Throws invalid_argument when a row's own sensors are not `sensors`' (same kinds, places and cuts' joints).
+    static void check_row_sensors(const Sensors * sensors, const std::vector<RowPhysics> & rows);
     // Evaluations each run row made beyond the run's count (contact steps cost two), for rows `rows`.
     std::vector<int64_t> extra_evaluations(const std::vector<int64_t> & rows) const;
 

@@ -462,13 +462,13 @@ namespace multibody_sim
     // under its command (Actuators.joint_torques at the tick's state; the command itself without actuators).
     void sense(double h, double t)
     {
-      const Sensors & sensors = *e.sensors_;
       SensorWork & w = *sensw;
       for (size_t j = 0; j < rows.size(); ++j)
       {
         if (!alive[j] || (e.sensor_done_[static_cast<size_t>(rows[j])] + st.steps) % e.sensor_every_ != 0)
           continue;
-        select(j);  // the row's model, actuators and contact
+        select(j);  // the row's model, actuators, contact and sensors
+        const Sensors & sensors = *SS;
         w.a = (v[j] - vn[j]) / h;
         const Vec * delivered = &tau[j];  // the joint_torque sensors': the torque the actuators deliver at the tick
         if (A && e.sensor_torques_)

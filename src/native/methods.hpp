@@ -82,6 +82,7 @@ namespace multibody_sim
     const SceneForces * S = nullptr;
     const ContactScene * C = nullptr;
     const SceneActuators * A = nullptr;
+    const Sensors * SS = nullptr;              // the sensors the row measures with (the engine's, or its own)
     pinocchio::Model * SM = nullptr;           // the servo model of the row (servo_model, or own_servo[j])
     std::vector<pinocchio::Model> own_servo;  // per row with its own physics and servos: its servo model
     bool plain = true;
@@ -139,6 +140,7 @@ namespace multibody_sim
         S = e.scene_.get();
         C = e.contact_.get();
         A = e.actuators_.get();
+        SS = e.sensors_.get();
         SM = &servo_model;
         plain = no_armature;
         return;
@@ -149,6 +151,7 @@ namespace multibody_sim
       S = r.scene.get();
       C = r.contact.get();
       A = r.actuators.get();
+      SS = r.sensors ? r.sensors.get() : e.sensors_.get();
       SM = own_servo.empty() ? &servo_model : &own_servo[j];
       plain = own_plain[j];
     }

@@ -408,12 +408,14 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
     .field("rejected_last", &LoopState::rejected_last, "bool")
     .finish();
   Struct<RowPhysics>(
-    m, "RowPhysics", "One row's own model, damping, force elements, contact scene and actuators (set_rows).")
+    m, "RowPhysics",
+    "One row's own model, damping, force elements, contact scene, actuators and sensors (set_rows).")
     .field("model", &RowPhysics::model, "Model")
     .field("damping", &RowPhysics::damping, "an array of nv floats")
     .optional("scene", &RowPhysics::scene, "SceneForces or None")
     .optional("contact", &RowPhysics::contact, "ContactScene or None")
     .optional("actuators", &RowPhysics::actuators, "SceneActuators or None")
+    .optional("sensors", &RowPhysics::sensors, "Sensors or None (the engine's)")
     .finish([](RowPhysics & r) {
       if (!r.model)
         throw std::invalid_argument("RowPhysics.model must be a Model");

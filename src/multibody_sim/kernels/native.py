@@ -58,8 +58,6 @@ def why_not_native(system: Any, method: Integrator, systems: list[Any] | None = 
         held = [[jid for jid, _ in row.contact.friction_joints] for row in systems]  # (their forces may differ)
         if any(joints != held[0] for joints in held):  # the engine's rows share their constraints (same_contact)
             return "the rows' joints with exact dry friction differ, which runs on the Python kernel"
-    if systems is not None and getattr(system, "sensors", None) is not None:  # the engine measures with one Sensors
-        return "randomised rows with sensors (each row's own cut masses) run on the Python kernel"
     if type(method) is TimeStepping:  # any max_iterations: the engine takes it as data
         if getattr(system, "contact", None) is None:
             return "integrator 'timestepping' runs natively on contact scenes only"
@@ -161,6 +159,14 @@ def _scene_actuators(actuators: Any, model: Any) -> Any:
     return module.SceneActuators(model, **data)  # type: ignore[union-attr]
 
 
+def _sensors(sensors: Any) -> Any:
+    """A scene's sensors (Sensors.native_data()) as _native.Sensors."""
+    module = native.module
+    data = sensors.native_data()
+    items = [module.SensorItem(**item) for item in data["items"]]  # type: ignore[union-attr]
+    return module.Sensors(**{**data, "items": items})  # type: ignore[union-attr]
+
+
 def _contact_scene(data: dict[str, Any], model: Any) -> Any:
     """contact_data()'s dict as _native.ContactScene."""
     module = native.module
@@ -230,6 +236,7 @@ class NativeKernel:
         model = native.load_model(system.model)
         elements = getattr(system, "elements", None)
         actuators = getattr(system, "actuators", None)
+        sensors = getattr(system, "sensors", None)
         contact = None
         if type(self.method) is TimeStepping:
             contact = _contact_scene(contact_data(system, self.method), model)
@@ -239,6 +246,7 @@ class NativeKernel:
             scene=_scene_forces(elements, model) if elements is not None else None,
             contact=contact,
             actuators=_scene_actuators(actuators, model) if actuators is not None else None,
+            sensors=_sensors(sensors) if sensors is not None else None,
         )
 
     def native_data(self) -> dict[str, Any]:
@@ -339,11 +347,7 @@ class NativeKernel:
     def set_sensors(self, sensors: Any, every: int, done: np.ndarray) -> None:
         """The scene's sensors tick in the engine at the end of every `every`-th step of a row (done: the steps each
         row took before, (B,)); take_ticks() collects their measurements."""
-        module = native.module
-        data = sensors.native_data()
-        items = [module.SensorItem(**item) for item in data["items"]]  # type: ignore[union-attr]
-        struct = module.Sensors(**{**data, "items": items})  # type: ignore[union-attr]
-        self.engine.set_sensors(struct, int(every), [int(d) for d in done])
+        self.engine.set_sensors(_sensors(sensors), int(every), [int(d) for d in done])
 
     def take_ticks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The engine's ticks since the last call: times (n,), rows (n,), measurements (n, width)."""
@@ -356,7 +360,11 @@ class NativeKernel:
         from .row import RowKernel
 
         Q, V = self.engine.running_q(), self.engine.running_v()
-        trial = RowKernel(self.system, self.method, Q[js], V[js], rtol=self.rtol, atol=self.atol)
+        systems = None
+        if self.systems is not None:  # randomised rows: each on its own system
+            rows = self.engine.running_rows()
+            systems = [self.systems[int(rows[j])] for j in js]
+        trial = RowKernel(self.system, self.method, Q[js], V[js], rtol=self.rtol, atol=self.atol, systems=systems)
         trial.start_at(self.t)
         return trial.measure_start(np.arange(len(js)), h)
 
