@@ -271,20 +271,31 @@ def _checked_value(name: str, target: Any, value: Any, quantity: Any) -> float:
 
 
 # ---- where the Scene applies the values (its constructor calls these) ---------------------------------------------
-def body_masses(model: pin.Model, values: Nominals) -> None:
-    """Each moving body's mass (its rotational inertia in proportion) and a factor on its rotational inertia, as
-    `values` gives them, on the robot's model before payloads and locking. A body is the rigid body a joint moves,
-    named by its link (the links welded to it are part of it); the links' own inertias (their frames', which a
-    force-torque sensor inside the body sums) scale alike: each link's mass by the body's ratio, its rotational
-    inertia about its own centre by the same factor."""
-    names: dict[int, str] = {}  # each joint's body: the first body frame on it (its link), else the joint's name
-    links: dict[int, list[int]] = {}  # each joint's frames with a mass
+BodyLinks = tuple[dict[int, str], dict[int, list[int]]]
+
+
+def body_links(model: pin.Model) -> BodyLinks:
+    """The robot's bodies as body_masses scales them: each joint's body name (the first body frame on it, its link;
+    else the joint's name where it has none) and each joint's frames with a mass. The joints' and frames' structure
+    only: a model with other masses has the same."""
+    names: dict[int, str] = {}
+    links: dict[int, list[int]] = {}
     for fid, frame in enumerate(model.frames):
         jid = int(frame.parentJoint)
         if frame.type == pin.FrameType.BODY and jid > 0:
             names.setdefault(jid, frame.name)
         if frame.inertia.mass > 0.0:
             links.setdefault(jid, []).append(fid)
+    return names, links
+
+
+def body_masses(model: pin.Model, values: Nominals, bodies: BodyLinks) -> None:
+    """Each moving body's mass (its rotational inertia in proportion) and a factor on its rotational inertia, as
+    `values` gives them, on the robot's model before payloads and locking. A body is the rigid body a joint moves,
+    named by its link (the links welded to it are part of it); the links' own inertias (their frames', which a
+    force-torque sensor inside the body sums) scale alike: each link's mass by the body's ratio, its rotational
+    inertia about its own centre by the same factor. `bodies`: body_links() of that model."""
+    names, links = bodies
     for jid in range(1, model.njoints):
         body = model.inertias[jid]
         if body.mass <= 0.0:  # nothing to scale

@@ -29,6 +29,7 @@ from .randomize import (
     Nominals,
     Randomizer,
     actuator_constants,
+    body_links,
     body_masses,
     check_parameters,
     contact_values,
@@ -102,8 +103,11 @@ class Scene(Robot):
         model = _build_model(robot, spec)
         self.full_nq, self.full_nv = robot.nq, robot.nv
         self.full_robot = robot
+        self._body_links = None  # the robot's bodies and their links (structure only: a variant's are its scene's)
         if values is not None:
-            body_masses(model, values)
+            known = variant_of._body_links if variant_of is not None else None
+            self._body_links = known if known is not None else body_links(model)
+            body_masses(model, values, self._body_links)
         _apply_base_pose(model, spec)
         if spec.gravity is not None:
             model.gravity.linear = np.array(spec.gravity, dtype=float)
@@ -763,6 +767,8 @@ def _one_dof_joints(model: pin.Model) -> list[str]:
 
 def _joint_id(model: pin.Model, name: str, key: str, floating: bool) -> int:
     """The id of a 1-dof joint by name, or SceneError naming the valid ones."""
+    if model.existJointName(name) and model.joints[model.getJointId(name)].nv == 1:
+        return model.getJointId(name)
     valid = _one_dof_joints(model)
     if name not in valid:
         if floating and model.existJointName(name) and model.joints[model.getJointId(name)].nv == 6:
