@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import os
 import time
+import weakref
 from operator import attrgetter
 from typing import Any
 
@@ -45,6 +46,10 @@ NATIVE_METHODS = (ExplicitRungeKutta, EmbeddedRungeKutta, DormandPrince853, Semi
 # advance() returns to Python after about this much work [s] (interrupts, signals)
 BUDGET_SECONDS = 0.03
 _NEED_ROOM = "need_room"  # the engine's status besides core.py's REACHED, STEPPED, FULL, EMPTY
+# Randomised rows' physics as rendered for the engine, by row system (a Scene.with_parameters scene, not modified
+# after it is built) with the time-stepper's solver settings they were rendered with: a BatchStepper (gym vector
+# environments) makes a new engine at every reset, and renders again only the rows whose scene is new.
+_RENDERED: weakref.WeakKeyDictionary[Any, tuple[Any, Any]] = weakref.WeakKeyDictionary()
 
 
 def why_not_native(system: Any, method: Integrator, systems: list[Any] | None = None) -> str | None:
@@ -231,7 +236,17 @@ class NativeKernel:
             self.engine.set_rows([self._row_physics(row) for row in self.systems])
 
     def _row_physics(self, system: Any) -> Any:
-        """A row's own system (Scene.with_parameters) as _native.RowPhysics."""
+        """A row's own system (Scene.with_parameters) as _native.RowPhysics (made once per system and solver
+        settings: _RENDERED)."""
+        settings = self.method.solver_data() if type(self.method) is TimeStepping else None
+        held = _RENDERED.get(system)
+        if held is not None and held[0] == settings:
+            return held[1]
+        physics = self._render_row(system)
+        _RENDERED[system] = (settings, physics)
+        return physics
+
+    def _render_row(self, system: Any) -> Any:
         module = native.module
         model = native.load_model(system.model)
         elements = getattr(system, "elements", None)
