@@ -733,3 +733,74 @@ def test_native_joint_torque_sensors_read_the_actuators_delivered_torque(monkeyp
     for name in python.sensors:
         np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=f"go2 {name}")
     assert np.abs(native.sensors["FL"][-1, 2]) > 10.0  # standing on its feet
+
+
+def test_native_kinematic_sensors_taken_from_the_next_steps_aba_equal_the_python_kernels(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Without force-torque sensors the engine takes a tick's IMU and frame pose from the next step's first ABA at
+    the tick's state (measure.hpp, kinematics_after_aba), and the last tick of each engine call from a pass of its
+    own: the readings are still the Python kernel's bit for bit. ur5 under servos with rk4 and semi-implicit Euler
+    (a built-in controller: many steps per engine call; sensors at 500 Hz: ticks every other step), a one-row
+    rollout of torques, and go2 standing on two threads under the time-stepper with its catalog motors."""
+    _native_or_skip()
+    import dataclasses
+
+    sensors: list[dict[str, object]] = [
+        {"name": "imu", "kind": "imu", "frame": "tool0", "noise": 0.01, "latency": 1},
+        {"name": "pose", "kind": "frame_pose", "frame": "wrist_3_link"},
+        {"name": "enc", "kind": "joint_position"},
+        {"name": "tq", "kind": "joint_torque"},
+    ]
+    servos = [{"joints": "*", "kind": "position", "kp": 1e3, "kv": 30.0}]
+    for rate in (None, 500.0):
+        chosen = [{**s, "rate": rate} for s in sensors] if rate else sensors
+        ur5 = ms.make_scene(robot={"source": "ur5"}, actuator=servos, sensor=chosen)
+        pd = ms.PD(ur5, q_ref=ur5.q0 + 0.3, kp=50.0, kd=5.0)
+        for integrator in ("rk4", "semi_implicit_euler"):
+            native, python = _both(
+                monkeypatch,
+                lambda s=ur5, i=integrator, c=pd: ms.simulate(
+                    s, s.q0, np.full(s.nv, 0.2), duration=0.03, dt=1e-3, control_dt=2e-3, integrator=i, controller=c
+                ),
+            )
+            assert native.metadata["kernel"] == "native" and python.metadata["kernel"] != "native"
+            np.testing.assert_array_equal(native.q, python.q)
+            for name in python.sensors:
+                np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=f"{integrator} {name}")
+            assert np.abs(np.diff(native.sensors["imu"][:, :3], axis=0)).max() > 1e-3  # the arm moves
+    bare = ms.make_scene(robot={"source": "ur5"}, sensor=sensors[:2])
+    taus = np.tile(np.linspace(-2.0, 2.0, bare.nv), (1, 40, 1))
+    native, python = _both(
+        monkeypatch,
+        lambda: ms.rollout(bare, bare.q0[None], np.zeros((1, bare.nv)), duration=0.04, dt=1e-3, taus=taus),
+    )
+    for name in python.sensors:
+        np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=f"rollout {name}")
+    go2 = _with_sensors(
+        ms.load_scene(_scene_file("go2_standing.toml")),
+        [
+            {"name": "imu", "kind": "imu", "frame": "base"},
+            {"name": "foot", "kind": "frame_pose", "frame": "FL_foot"},
+            {"name": "FL", "kind": "contact_force", "body": "FL_foot"},
+        ],
+    )
+    go2 = ms.Scene(dataclasses.replace(go2.spec, actuator_defaults="catalog"))
+    V0 = np.zeros((2, go2.nv))
+    V0[1, 6:] = 0.1
+    native, python = _both(
+        monkeypatch,
+        lambda: ms.rollout(
+            go2,
+            np.array([go2.q0, go2.q0]),
+            V0,
+            duration=0.05,
+            dt=1e-3,
+            integrator="timestepping",
+            controller=go2.make_controller(),
+            num_threads=2,
+        ),
+    )
+    assert native.metadata["kernel"] == "native" and python.metadata["kernel"] != "native"
+    for name in python.sensors:
+        np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=f"go2 {name}")

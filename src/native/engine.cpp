@@ -259,7 +259,7 @@ namespace multibody_sim
       th->sensw = sensors ? std::make_unique<SensorWork>(model_, *sensors) : nullptr;
   }
 
-  std::tuple<Vec, std::vector<int64_t>, RowMatrix> Engine::take_ticks()
+  std::tuple<Vec, Eigen::Matrix<int64_t, Eigen::Dynamic, 1>, RowMatrix> Engine::take_ticks()
   {
     size_t n = 0;
     for (auto & th : threads_)
@@ -267,8 +267,7 @@ namespace multibody_sim
         n += th->sensw->times.size();
     const int width = sensors_ ? sensors_->width : 0;
     Vec times(static_cast<Eigen::Index>(n));
-    std::vector<int64_t> rows;
-    rows.reserve(n);
+    Eigen::Matrix<int64_t, Eigen::Dynamic, 1> rows(static_cast<Eigen::Index>(n));  // an array, not a list of ints
     RowMatrix values(static_cast<Eigen::Index>(n), width);
     Eigen::Index k = 0;
     for (auto & th : threads_)
@@ -276,18 +275,16 @@ namespace multibody_sim
       if (!th->sensw)
         continue;
       SensorWork & w = *th->sensw;
-      for (size_t i = 0; i < w.times.size(); ++i, ++k)
-      {
-        times[k] = w.times[i];
-        rows.push_back(w.rows[i]);
-        for (int c = 0; c < width; ++c)
-          values(k, c) = w.values[i * static_cast<size_t>(width) + static_cast<size_t>(c)];
-      }
+      const size_t count = w.times.size();
+      std::copy(w.times.begin(), w.times.end(), times.data() + k);
+      std::copy(w.rows.begin(), w.rows.end(), rows.data() + k);
+      std::copy(w.values.begin(), w.values.end(), values.data() + k * width);  // row-major: the ticks' rows in order
+      k += static_cast<Eigen::Index>(count);
       w.times.clear();
       w.rows.clear();
       w.values.clear();
     }
-    return {times, rows, values};
+    return {std::move(times), std::move(rows), std::move(values)};
   }
 
   AdvanceResult Engine::advance(

@@ -295,7 +295,7 @@ namespace multibody_sim
     // take_ticks() (sensors.Ticks.source).
     void set_sensors(std::shared_ptr<const Sensors> sensors, int64_t every, const std::vector<int64_t> & done);
     // The ticks since the last call: times (n,), run rows (n,), measurements (n, width), each row's in time order.
-    std::tuple<Vec, std::vector<int64_t>, RowMatrix> take_ticks();
+    std::tuple<Vec, Eigen::Matrix<int64_t, Eigen::Dynamic, 1>, RowMatrix> take_ticks();
     // Each run row's own physics (after set_actuators, set_scene and set_contact, before the first advance()): rows
     // step on their own model, damping, elements, contact coefficients and actuators, and measure with their own
     // sensors (set_sensors may come before or after). Throws invalid_argument naming what disagrees with the

@@ -478,8 +478,11 @@ namespace multibody_sim
         }
         const size_t at = w.values.size();
         w.values.resize(at + static_cast<size_t>(sensors.width));
-        measure_sensors(
-          sensors, *M, w, q[j], v[j], w.a, *delivered, C ? &crow[j].active : nullptr, h, w.values.data() + at);
+        const bool defer = w.deferrable && !e.control_.adaptive;
+        measure_sensors(sensors, *M, w, q[j], v[j], w.a, *delivered, C ? &crow[j].active : nullptr, h,
+                        w.values.data() + at, defer ? SensorPart::now : SensorPart::all);
+        if (defer)
+          w.defer(j, rows.size(), at, w.a);
         w.times.push_back(t);
         w.rows.push_back(rows[j]);
       }

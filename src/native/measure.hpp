@@ -1,6 +1,6 @@
 // sensors.Sensors.measure in C++: a scene's sensors' noiseless measurement at a tick, each operation in the Python
 // kernel's order (the same Pinocchio calls on the same arguments; the few sums Python writes itself, as ordered.py
-// orders them), so that both kernels give the same readings bit for bit. Included by loop.hpp (engine.cpp) only.
+// orders them), so that both kernels give the same readings bit for bit. Included by methods.hpp and loop.hpp (engine.cpp) only.
 #pragma once
 
 #include <cmath>
@@ -29,6 +29,45 @@ namespace multibody_sim
       data.a[0].setZero();
       for (pinocchio::JointIndex i : w.kinematic_joints)
         Step::run(model.joints[i], data.joints[i], Step::ArgsType(model, data, q, v, a));
+    }
+
+    // The same joints' velocities and accelerations when the thread's step has just run its first ABA at (q, v):
+    // ABA's first pass left each joint's calc (jdata: M, v, S, c), liMi and oMi exactly as forwardKinematics' step
+    // computes them (the same calls in the same order: pinocchio/algorithm/aba.hxx, kinematics.hxx), so only the
+    // rest of that step is done here, in its arithmetic: the readings are kinematics()' bit for bit, at a fraction
+    // of its cost (no sin/cos, no placement products).
+    struct AfterAba : pinocchio::fusion::JointUnaryVisitorBase<AfterAba>
+    {
+      typedef boost::fusion::vector<const pinocchio::Model &, const pinocchio::Data &, pinocchio::Data &,
+                                    const Eigen::VectorXd &>
+        ArgsType;
+
+      template<typename JointModel>
+      static void algo(const pinocchio::JointModelBase<JointModel> & jmodel,
+                       pinocchio::JointDataBase<typename JointModel::JointDataDerived> & jdata,
+                       const pinocchio::Model & model, const pinocchio::Data & step, pinocchio::Data & data,
+                       const Eigen::VectorXd & a)
+      {
+        const pinocchio::JointIndex i = jmodel.id();
+        const pinocchio::JointIndex parent = model.parents[i];
+        data.v[i] = jdata.v();
+        data.liMi[i] = step.liMi[i];
+        data.oMi[i] = step.oMi[i];
+        if (parent > 0)
+          data.v[i] += data.liMi[i].actInv(data.v[parent]);
+        data.a[i] = jdata.S() * jmodel.JointMappedVelocitySelector(a) + jdata.c() + (data.v[i] ^ jdata.v());
+        data.a[i] += data.liMi[i].actInv(data.a[parent]);
+      }
+    };
+
+    inline void kinematics_after_aba(
+      const pinocchio::Model & model, pinocchio::Data & step, SensorWork & w, const Eigen::VectorXd & a)
+    {
+      pinocchio::Data & data = w.data;
+      data.v[0].setZero();
+      data.a[0].setZero();
+      for (pinocchio::JointIndex i : w.kinematic_joints)
+        AfterAba::run(model.joints[i], step.joints[i], AfterAba::ArgsType(model, step, data, a));
     }
 
     // The sum of the contact impulses on `body` over h (Sensors._contact_force).
@@ -100,6 +139,16 @@ namespace multibody_sim
     }
   } // namespace sensing
 
+  // Which of a tick's sensors measure_sensors measures: all of them; all but the imu and frame_pose sensors (whose
+  // kinematics wait for the next step's first ABA: SensorWork::deferred); or only those, from w.data as
+  // sensing::kinematics_after_aba left it.
+  enum class SensorPart
+  {
+    all,
+    now,
+    kinematic,
+  };
+
   inline void measure_sensors(
     const Sensors & sensors,
     const pinocchio::Model & model,
@@ -110,14 +159,18 @@ namespace multibody_sim
     const Eigen::VectorXd & tau,
     const ContactRows * contacts,
     double h,
-    double * out)
+    double * out,
+    SensorPart part = SensorPart::all)
   {
     pinocchio::Data & data = w.data;
     bool dynamics = false;
-    if (!w.kinematic_joints.empty())
+    if (part == SensorPart::all && !w.kinematic_joints.empty())
       sensing::kinematics(model, w, q, v, a);
     for (const SensorItem & s : sensors.items)
     {
+      const bool kinematic = s.kind == SensorKind::imu || s.kind == SensorKind::frame_pose;
+      if ((part == SensorPart::now && kinematic) || (part == SensorPart::kinematic && !kinematic))
+        continue;
       double * row = out + s.offset;
       switch (s.kind)
       {
@@ -125,10 +178,15 @@ namespace multibody_sim
       {
         const pinocchio::SE3 & placement =
           pinocchio::updateFramePlacement(model, data, static_cast<pinocchio::FrameIndex>(s.frame));
-        const Eigen::Vector3d acceleration =
-          pinocchio::getFrameClassicalAcceleration(model, data, static_cast<pinocchio::FrameIndex>(s.frame),
-                                                   pinocchio::LOCAL)
-            .linear();
+        // getFrameClassicalAcceleration(LOCAL) as Pinocchio computes it, its frame velocity kept for the angular
+        // rate (getFrameVelocity(LOCAL): the same call)
+        const pinocchio::Frame & frame = model.frames[static_cast<size_t>(s.frame)];
+        const pinocchio::Motion velocity =
+          pinocchio::getFrameVelocity(model, data, frame.parentJoint, frame.placement, pinocchio::LOCAL);
+        pinocchio::Motion classical =
+          pinocchio::getFrameAcceleration(model, data, frame.parentJoint, frame.placement, pinocchio::LOCAL);
+        classical.linear() += velocity.angular().cross(velocity.linear());
+        const Eigen::Vector3d acceleration = classical.linear();
         const Eigen::Matrix3d & R = placement.rotation();
         for (int i = 0; i < 3; ++i)  // ordered_matvec(R.T, g): each product rounded, added in column order
         {
@@ -137,11 +195,8 @@ namespace multibody_sim
           sum = sum + R(2, i) * sensors.gravity[2];
           row[i] = acceleration[i] - sum;
         }
-        const Eigen::Vector3d angular =
-          pinocchio::getFrameVelocity(model, data, static_cast<pinocchio::FrameIndex>(s.frame), pinocchio::LOCAL)
-            .angular();
         for (int i = 0; i < 3; ++i)
-          row[3 + i] = angular[i];
+          row[3 + i] = velocity.angular()[i];
         break;
       }
       case SensorKind::frame_pose:

@@ -18,6 +18,7 @@
 #include "pinocchio/algorithm/joint-configuration.hpp"
 
 #include "kernel.hpp"
+#include "measure.hpp"  // the sensors' kinematics that wait for a step's first ABA (settle)
 
 namespace multibody_sim
 {
@@ -158,9 +159,9 @@ namespace multibody_sim
 
     // ---- the generalized forces ABA is given: Robot (tau - D v) or Scene._applied (tau + f(q, v, t) - D v, tau the
     // actuators' torques under the command where the scene has actuators) -----------------------------------------
-    void applied_at(const Vec & qx, const Vec & vx, const Vec & command, double ts)
+    void applied_at(const Vec & qx, const Vec & vx, const Vec & command, double ts, bool actuated_ready = false)
     {
-      const Vec & tx = A ? actuated(qx, vx, command) : command;
+      const Vec & tx = A ? (actuated_ready ? tact : actuated(qx, vx, command)) : command;
       const Vec & damping = *D;
       if (S)
       {
@@ -191,18 +192,23 @@ namespace multibody_sim
     void evaluate(const Vec & qx, const Vec & vx, const Vec & tx, int stage, double ts)
     {
       const pinocchio::Model & model = *M;
-      applied_at(qx, vx, tx, ts);
+      double * row = K.row(stage).data();
+      // the actuators' torques and ledger powers at once (their law and limits evaluated once per stage)
+      const bool fused = A && !servo.active;
+      if (fused)
+        A->torques_and_powers(qx, vx, tx, tact.data(), row + 2 * nv + e.n_robot_flows_);
+      applied_at(qx, vx, tx, ts, fused);
       const Vec & a = pinocchio::aba(
         model, data, ConstRef(qx), ConstRef(vx), ConstRef(applied), pinocchio::Convention::WORLD);
-      double * row = K.row(stage).data();
       for (int i = 0; i < nv; ++i)
         row[nv + i] = a[i];
-      power(qx, vx, tx, row + 2 * nv);
+      power(qx, vx, tx, row + 2 * nv, fused);
     }
 
-    // Scene.ledger_power: the robot's (the ideal torque sources' power, joint damping), the actuators', the elements'
-    void power(const Vec & qx, const Vec & vx, const Vec & tx, double * out) const  // ordered.ordered_dot
-    {
+    // Scene.ledger_power: the robot's (the ideal torque sources' power, joint damping), the actuators' (unless
+    // `actuators_done`: evaluate() wrote them), the elements'
+    void power(const Vec & qx, const Vec & vx, const Vec & tx, double * out, bool actuators_done = false) const
+    {  // ordered.ordered_dot
       const bool actuated = A != nullptr;  // then its dofs' commands are no torques: 0 here
       double s = (actuated && e.actuated_dof_[0] ? 0.0 : tx[0]) * vx[0];
       for (int i = 1; i < nv; ++i)
@@ -216,7 +222,7 @@ namespace multibody_sim
           d += vx[i] * (damping[i] * vx[i]);
         out[1] = d;
       }
-      if (actuated)
+      if (actuated && !actuators_done)
         A->powers(qx, vx, tx, out + e.n_robot_flows_);
       if (S)  // the elements' powers after the robot's and the actuators'
         S->powers(*sw, vx, out + e.n_robot_flows_ + e.n_actuator_flows_);
@@ -622,20 +628,33 @@ namespace multibody_sim
           qx, vx, tx, nullptr, store.EXTRA + at * store.extra_width + (e.scene_ ? e.scene_->n_records() : 0));
     }
 
-    // pinocchio::computeKineticEnergy(model, data) at velocity vx: without armature, the same sum in the same order
-    // without its per-joint visitor, which adds each joint's armature term: exactly 0 when the armature is and every
-    // |v| < 1e150 (else v² may overflow and 0 · inf make it NaN: then Pinocchio's own call)
+    // pinocchio::computeKineticEnergy(model, data) at velocity vx: the same sum in the same order without its
+    // per-joint visitor. Per joint it adds vtiv, then its armature term Σ armature · v² (joint_v is vx's segment):
+    // for a 1-dof joint armature · (v · v), written out; for a joint of more dofs (a free flyer) exactly +0 when its
+    // armature is 0 and every |v| < 1e150 (else v² may overflow and 0 · inf make it NaN), and adding +0 changes no
+    // sum here (it starts at +0). Otherwise (armature on a multi-dof joint, huge or NaN speeds) Pinocchio's own call.
     double kinetic_energy(const Vec & vx)
     {
       const pinocchio::Model & model = *M;
-      bool exact = plain;
+      bool exact = true;
       for (int r = 0; exact && r < nv; ++r)
         exact = std::abs(vx[r]) < 1e150;  // (false for NaN)
       if (!exact)
         return pinocchio::computeKineticEnergy(model, data);
       double sum = 0.0;
       for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
+      {
         sum += model.inertias[i].vtiv(data.v[i]);
+        if (plain)
+          continue;
+        const int dofs = model.nvs[i], at = model.idx_vs[i];
+        if (dofs == 1)
+          sum += model.armature[at] * (vx[at] * vx[at]);
+        else
+          for (int k = 0; k < dofs; ++k)
+            if (model.armature[at + k] != 0.0)
+              return pinocchio::computeKineticEnergy(model, data);
+      }
       return sum * .5;
     }
 
@@ -676,6 +695,12 @@ namespace multibody_sim
     // whose row takes no such step before advance() returns gets its energies by flush().
     void settle(size_t j)
     {
+      if (sensw && sensw->waits(j))
+      {
+        SensorWork & sw_ = *sensw;
+        sensing::kinematics_after_aba(*M, data, sw_, sw_.pending_a[j]);
+        measure_kinematic(j);
+      }
       if (pending[j] < 0)
         return;
       const pinocchio::Model & model = e.model_;
@@ -690,8 +715,26 @@ namespace multibody_sim
       pending[j] = -1;
     }
 
+    // Row j's waiting tick: its imu and frame_pose sensors from sensw->data's kinematics
+    void measure_kinematic(size_t j)
+    {
+      SensorWork & w = *sensw;
+      const Vec & a = w.pending_a[j];
+      measure_sensors(*e.sensors_, *M, w, q[j], v[j], a, a, nullptr, 1.0,
+                      w.values.data() + w.pending[j], SensorPart::kinematic);
+      w.pending[j] = -1;
+    }
+
     void flush()
     {
+      if (sensw)
+        for (size_t j = 0; j < rows.size(); ++j)
+          if (sensw->waits(j))
+          {
+            select(j);
+            sensing::kinematics(*M, *sensw, q[j], v[j], sensw->pending_a[j]);
+            measure_kinematic(j);
+          }
       for (size_t j = 0; j < rows.size(); ++j)
         if (pending[j] >= 0)
         {

@@ -416,6 +416,36 @@ namespace multibody_sim
     }
   }
 
+  void SceneActuators::torques_and_powers(const Vec & q, const Vec & v, const Vec & u, double * torques,
+                                         double * flows) const
+  {
+    for (int i = 0; i < nv; ++i)
+      torques[i] = u[i];
+    const size_t n = terms.size();
+    size_t m = n, b = n + static_cast<size_t>(n_limited);
+    double low, high;
+    for (size_t k = 0; k < n; ++k)
+    {
+      const ActuatorTerm & a = terms[k];
+      const double c = law(a, q, v, u);
+      const double w = v[a.dof];
+      limits(a, w, low, high);
+      const double limited = np_minimum(np_maximum(c, low), high);  // evaluate's torque without a brake
+      flows[k] = c * w;
+      if (a.limited)
+        flows[m++] = (c - limited) * w;
+      double tau = limited;
+      if (a.brake_gain > 0.0)  // evaluate's interval: the limits within the brake's bounds from brake_from on
+      {
+        if (!(std::abs(w) < a.brake_from))
+          within_brake(*this, a, w, low, high);
+        tau = np_minimum(np_maximum(c, low), high);
+        flows[b++] = (limited - tau) * w;
+      }
+      torques[a.dof] = tau;
+    }
+  }
+
   ServoStep SceneActuators::workspace() const
   {
     const size_t n = terms.size();

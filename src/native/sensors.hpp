@@ -77,11 +77,39 @@ namespace multibody_sim
       for (pinocchio::JointIndex j = 1; j < static_cast<pinocchio::JointIndex>(model.njoints); ++j)
         if (needed[j])
           kinematic_joints.push_back(j);
+      bool force_torque = false;
+      for (const SensorItem & s : sensors.items)
+        force_torque = force_torque || s.kind == SensorKind::force_torque;
+      deferrable = !kinematic_joints.empty() && !force_torque;
+    }
+
+    // Row j's tick waits for its kinematics (deferrable sensors on fixed steps): the next step's first ABA at the
+    // tick's state computes most of them (sensing::kinematics_after_aba); a tick whose row takes no such step before
+    // the engine returns gets them from a pass of its own (measure.hpp). Its other sensors are measured at once.
+    void defer(size_t j, size_t rows, size_t slot, const Eigen::VectorXd & acceleration)
+    {
+      if (pending.size() != rows)
+      {
+        pending.assign(rows, -1);
+        pending_a.assign(rows, Eigen::VectorXd::Zero(acceleration.size()));
+      }
+      pending[j] = static_cast<int64_t>(slot);
+      pending_a[j] = acceleration;
+    }
+
+    bool waits(size_t j) const
+    {
+      return j < pending.size() && pending[j] >= 0;
     }
 
     pinocchio::Data data;
     // forwardKinematics(q, v, a)'s joints the sensors read, in its (the model's) order: a parent before its children
     std::vector<pinocchio::JointIndex> kinematic_joints;
+    // Whether a tick's kinematics may wait for the next step's first ABA: kinematic sensors (imu, frame_pose) and no
+    // force-torque sensor (its RNEA and contact forces need the whole pass at the tick)
+    bool deferrable = false;
+    std::vector<int64_t> pending;  // per row: where its waiting tick's measurement starts in `values` (-1: none)
+    std::vector<Eigen::VectorXd> pending_a;  // ... and that tick's acceleration (v+ - v) / h
     pinocchio::container::aligned_vector<pinocchio::Force> fext;
     std::vector<std::vector<std::pair<int, pinocchio::Force>>> parts;  // per joint: (frame, force) in order
     Eigen::VectorXd a;
