@@ -6,7 +6,10 @@ pairs of processes; each process times a rollout (RK4, dt = 1 ms, B = 256, every
 (4 × one `pin.abaInParallel` over the same states, one thread) back to back in each of its rounds and reports the
 median ratio. The load of the moment then weighs on both sides of a pair alike. With `--stepper`, each process
 times `steps` calls of Stepper.step instead (one row, RK4, dt = 1 ms, zero torque: the per-call cost of the entry
-point that gym environments use) against 4 × `pin.aba` per step called from Python.
+point that gym environments use) against 4 × `pin.aba` per step called from Python. With `--contact`, `--robots`
+names contact scenes and each process times their native timestepping step from the scene's start under its
+controller (a 10·steps run less a steps run, per step, as scripts/contact_mujoco.py does) against one `pin.aba` per
+step called from Python.
 
 With `--reports`, each process runs instead one side's own copy of scripts/bench_step_cost.py and
 scripts/bench_rollout.py (the worktree that holds the interpreter's .venv) on the robots, and the figures of their
@@ -17,7 +20,8 @@ once those lines are out (its scaling sections are not compared); neither writes
 
 Usage:
     python scripts/ab_builds.py --a /work/main/.venv/bin/python --b /work/wt/mine/.venv/bin/python \\
-        [--robots double_pendulum,solo12] [--pairs 6] [--rounds 7] [--steps 100] [--batch 256] [--stepper | --reports]
+        [--robots double_pendulum,solo12] [--pairs 6] [--rounds 7] [--steps 100] [--batch 256] [--stepper | --reports |
+        --contact]
 
 Prints each pair's ratios, then per robot the median ratio of each side and in how many pairs B read lower.
 Check each build's kernel first (`multibody-sim --version`): a stale editable build runs the Python kernel.
@@ -113,6 +117,34 @@ def measure_stepper(name: str, rounds: int, steps: int) -> float:
     return median_ratio(run, floor, rounds)
 
 
+def measure_contact(name: str, rounds: int, steps: int) -> float:
+    """Median over rounds of a contact scene's native timestepping step (the difference of a 10·steps and a steps
+    run from the scene's start under its controller, per step: scripts/contact_mujoco.py's figure) / one pin.aba on
+    its model, CPU time."""
+    import numpy as np
+    import pinocchio as pin
+
+    import multibody_sim as ms
+
+    scene = ms.load_scene(name)
+    controller = scene.make_controller() if scene.spec.controller is not None else None
+    data = scene.model.createData()
+    q0, v0, tau = np.asarray(scene.q0), np.zeros(scene.model.nv), np.zeros(scene.model.nv)
+
+    def cpu(n: int) -> float:
+        start = time.process_time()
+        run = ms.simulate(scene, scene.q0, scene.v0, duration=n * 1e-3, dt=1e-3, integrator="timestepping",
+                          controller=controller, output_dt=n * 1e-3, progress=False)  # fmt: skip
+        assert run.metadata["kernel"] == "native", "the native kernel is not built"
+        return time.process_time() - start
+
+    def floor() -> None:
+        for _ in range(9 * steps):
+            pin.aba(scene.model, data, q0, v0, tau)
+
+    return median_ratio(lambda: cpu(10 * steps) - cpu(steps), floor, rounds)
+
+
 def report_figures(python: str, robots: str, rounds: int, steps: int) -> dict[str, float]:
     """Run the side's own bench_step_cost.py and bench_rollout.py (in the worktree of its .venv) and return their
     figures as ratios to the floor measured in the same process, named "<robot> <figure>"."""
@@ -171,12 +203,15 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=256, help="states per rollout")
     parser.add_argument("--stepper", action="store_true", help="time Stepper.step instead of a rollout")
     parser.add_argument("--reports", action="store_true", help="run bench_step_cost.py and bench_rollout.py instead")
+    parser.add_argument("--contact", action="store_true", help="time contact scenes' native steps (--robots: scenes)")
     parser.add_argument("--measure", action="store_true", help=argparse.SUPPRESS)  # one side's process
     args = parser.parse_args()
     robots = args.robots.split(",")
     if args.measure:
         for name in robots:
-            if args.stepper:
+            if args.contact:
+                ratio = measure_contact(name, args.rounds, args.steps)
+            elif args.stepper:
                 ratio = measure_stepper(name, args.rounds, args.steps)
             else:
                 ratio = measure(name, args.rounds, args.steps, args.batch)
@@ -189,7 +224,7 @@ def main() -> None:
         compare_reports(args)
         return
     inner = [__file__, "--measure", "--robots", args.robots, "--rounds", str(args.rounds), "--steps", str(args.steps)]
-    inner += ["--batch", str(args.batch)] + (["--stepper"] if args.stepper else [])
+    inner += ["--batch", str(args.batch)] + (["--stepper"] if args.stepper else []) + (["--contact"] if args.contact else [])
     results: dict[str, dict[str, list[float]]] = {"a": {}, "b": {}}
     for pair in range(args.pairs):
         line = []
@@ -200,7 +235,7 @@ def main() -> None:
                 results[side].setdefault(name, []).append(float(ratio))
             line.append(f"{side}: {done.stdout.strip()}")
         print(f"pair {pair + 1}/{args.pairs}  " + "  |  ".join(line), flush=True)
-    timed = "stepper" if args.stepper else "rollout"
+    timed = "contact step" if args.contact else "stepper" if args.stepper else "rollout"
     for name in robots:
         a, b = results["a"][name], results["b"][name]
         lower = sum(y < x for x, y in zip(a, b, strict=True))

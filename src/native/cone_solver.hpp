@@ -115,16 +115,36 @@ namespace multibody_sim
           }
       }
 
-      // matvec(A, x) + b into out (each row's products summed in column order from +0.0)
+      // matvec(A, x) + b into out (each row's products summed in column order from +0.0; four rows at a time, each
+      // its own sum, so that the additions of different rows overlap)
       static void affine(const Matrix & A, const Vector & x, const Vector & b, Vector & out)
       {
         const int m = static_cast<int>(A.rows()), n = static_cast<int>(A.cols());
-        for (int i = 0; i < m; ++i)
+        const double * xs = x.data();
+        int i = 0;
+        for (; i + 4 <= m; i += 4)
+        {
+          const double *r0 = A.row(i).data(), *r1 = r0 + n, *r2 = r1 + n, *r3 = r2 + n;
+          double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+          for (int j = 0; j < n; ++j)
+          {
+            const double xj = xs[j];
+            s0 += r0[j] * xj;
+            s1 += r1[j] * xj;
+            s2 += r2[j] * xj;
+            s3 += r3[j] * xj;
+          }
+          out[i] = s0 + b[i];
+          out[i + 1] = s1 + b[i + 1];
+          out[i + 2] = s2 + b[i + 2];
+          out[i + 3] = s3 + b[i + 3];
+        }
+        for (; i < m; ++i)
         {
           const double * row = A.row(i).data();
           double s = 0.0;
           for (int j = 0; j < n; ++j)
-            s += row[j] * x[j];
+            s += row[j] * xs[j];
           out[i] = s + b[i];
         }
       }

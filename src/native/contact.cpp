@@ -160,10 +160,13 @@ namespace multibody_sim
     std::vector<std::vector<int>> row_support;  // per row: the dofs where its J row (and Z column) may be nonzero
     std::vector<cone::Block> blocks;
     Matrix J, G;
-    Eigen::MatrixXd Z, W;  // nv x m
-    Eigen::VectorXd g, free, correction, restitution, guess, impulses, generalized, minv, Dinv;
+    Matrix Z, W;  // nv x m
+    Eigen::VectorXd g, free, correction, restitution, guess, impulses, generalized, minv, Dinv, acc;
     std::vector<std::pair<int, double>> landings;
     std::vector<int> union_;
+    // the contact frame of the normal +z (the ground's), as every other normal's is computed
+    const Eigen::Matrix3d up =
+      Eigen::Quaterniond::FromTwoVectors(Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ()).toRotationMatrix();
 
     ContactWork(const pinocchio::Model & model, const ContactScene & scene)
     : data(model)
@@ -580,8 +583,10 @@ namespace multibody_sim
           }
           std::sort(w.chosen.begin(), w.chosen.end());
         }
+        const bool up = normal[0] == 0.0 && normal[1] == 0.0 && normal[2] == 1.0 && !std::signbit(normal[0])
+                        && !std::signbit(normal[1]);  // the ground's +z, bit for bit: its frame is computed once
         const Eigen::Matrix3d rotation =
-          Eigen::Quaterniond::FromTwoVectors(Eigen::Vector3d::UnitZ(), normal).toRotationMatrix();
+          up ? w.up : Eigen::Quaterniond::FromTwoVectors(Eigen::Vector3d::UnitZ(), normal).toRotationMatrix();
         for (int i : w.chosen)
         {
           const Candidate & x = w.patch[static_cast<size_t>(i)];
@@ -705,55 +710,62 @@ namespace multibody_sim
       w.row_support[static_cast<size_t>(r0)] = supports[static_cast<size_t>(jid)];
       ++r0;
     }
-    // ---- G = Zᵀ D⁻¹ Z, Z = U⁻¹ Jᵀ on each row's support
+    // ---- G = Zᵀ D⁻¹ Z, Z = U⁻¹ Jᵀ on each row's support. Z and W = D⁻¹ Z are nv x m, row-major and zero off the
+    // supports; consecutive rows with one support (a point's three, a foot's points) are substituted together, each
+    // column's sums in Python's order. G's row a gathers Z(k, a) W(k, b) over k in a's support for every b >= a at
+    // once: a k off b's support adds an exact zero, which leaves a sum started at +0.0 as it was (Python adds them all).
     w.Z.setZero(nv, m);
     w.W.setZero(nv, m);
     w.Dinv.resize(nv);
+    w.acc.resize(m);
     for (int k = 0; k < nv; ++k)
       w.Dinv[k] = 1.0 / data.D[k];
-    for (int r = 0; r < m; ++r)
+    for (int r0 = 0; r0 < m;)
     {
-      const std::vector<int> & S = w.row_support[static_cast<size_t>(r)];
-      auto z = w.Z.col(r);
+      const std::vector<int> & S = w.row_support[static_cast<size_t>(r0)];
+      int r1 = r0 + 1;
+      while (r1 < m && w.row_support[static_cast<size_t>(r1)] == S)
+        ++r1;
+      const int width = r1 - r0;
       for (int col : S)
-        z[col] = w.J(r, col);
+        for (int r = r0; r < r1; ++r)
+          w.Z(col, r) = w.J(r, col);
+      double * acc = w.acc.data();
       for (int a = static_cast<int>(S.size()) - 1; a >= 0; --a)
       {
         const int k = S[static_cast<size_t>(a)];
         const int end = k + data.nvSubtree_fromRow[static_cast<size_t>(k)];
-        double s = 0.0;
+        for (int r = 0; r < width; ++r)
+          acc[r] = 0.0;
         for (size_t b = static_cast<size_t>(a) + 1; b < S.size() && S[b] < end; ++b)
-          s += data.U(k, S[b]) * z[S[b]];
-        z[k] = z[k] - s;
+        {
+          const double u = data.U(k, S[b]);
+          const double * zb = &w.Z(S[b], r0);
+          for (int r = 0; r < width; ++r)
+            acc[r] += u * zb[r];
+        }
+        double * zk = &w.Z(k, r0);
+        for (int r = 0; r < width; ++r)
+          zk[r] = zk[r] - acc[r];
       }
       for (int col : S)
-        w.W(col, r) = w.Dinv[col] * z[col];
+        for (int r = r0; r < r1; ++r)
+          w.W(col, r) = w.Dinv[col] * w.Z(col, r);
+      r0 = r1;
     }
-    w.G.resize(m, m);
+    w.G.setZero(m, m);
     for (int a = 0; a < m; ++a)
     {
-      const std::vector<int> & Sa = w.row_support[static_cast<size_t>(a)];
-      for (int b = a; b < m; ++b)
+      double * Ga = &w.G(a, 0);
+      for (int k : w.row_support[static_cast<size_t>(a)])
       {
-        const std::vector<int> & Sb = w.row_support[static_cast<size_t>(b)];
-        double s = 0.0;
-        size_t i = 0, j = 0;
-        while (i < Sa.size() && j < Sb.size())
-        {
-          if (Sa[i] < Sb[j])
-            ++i;
-          else if (Sb[j] < Sa[i])
-            ++j;
-          else
-          {
-            s += w.Z(Sa[i], a) * w.W(Sa[i], b);
-            ++i;
-            ++j;
-          }
-        }
-        w.G(a, b) = s;
-        w.G(b, a) = s;
+        const double z = w.Z(k, a);
+        const double * Wk = &w.W(k, 0);
+        for (int b = a; b < m; ++b)
+          Ga[b] += z * Wk[b];
       }
+      for (int b = a + 1; b < m; ++b)
+        w.G(b, a) = Ga[b];
     }
     // ---- g = J v_free + b
     w.free.resize(m);

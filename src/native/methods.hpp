@@ -415,13 +415,10 @@ namespace multibody_sim
         fn[j][i] = h * pbuf[i];
         smooth += e.flow_work_[static_cast<size_t>(i)] ? fn[j][i] : -fn[j][i];
       }
-      double kinetic, potential, kinetic_free, kinetic_next, kinetic_end, potential_end, unused;
+      double kinetic, potential, kinetic_free, kinetic_next, kinetic_end, potential_end;
       energies(qj, vj, kinetic, potential);
-      energies(qj, vfree, kinetic_free, unused);
-      if (problem)
-        energies(qj, vn[j], kinetic_next, unused);
-      else
-        kinetic_next = kinetic_free;
+      kinetic_free = kinetic_at_same_q(qj, vfree);
+      kinetic_next = problem ? kinetic_at_same_q(qj, vn[j]) : kinetic_free;
       energies(qn[j], vn[j], kinetic_end, potential_end);
       fn[j][m - 4] = correction + bounce - work;
       fn[j][m - 3] = correction;
@@ -439,6 +436,55 @@ namespace multibody_sim
     {
       pinocchio::forwardKinematics(*M, data, qx, vx);
       energies_from_data(qx, vx, nullptr, kinetic, potential);
+    }
+
+    // T at (qx, vx) right after energies(qx, ·): forwardKinematics(qx, vx)'s velocities from the joint placements
+    // data holds, its arithmetic (each joint's velocity-only calc is its calc(q, v)'s velocity part for the joint
+    // kinds below; any other kind has forwardKinematics run in full)
+    double kinetic_at_same_q(const Vec & qx, const Vec & vx)
+    {
+      const pinocchio::Model & model = *M;
+      const auto njoints = static_cast<pinocchio::JointIndex>(model.njoints);
+      for (pinocchio::JointIndex i = 1; i < njoints; ++i)
+        if (!velocity_calc(model.joints[i], data.joints[i], vx, false))
+        {
+          pinocchio::forwardKinematics(model, data, qx, vx);
+          return kinetic_energy(vx);
+        }
+      for (pinocchio::JointIndex i = 1; i < njoints; ++i)
+      {
+        velocity_calc(model.joints[i], data.joints[i], vx, true);
+        const pinocchio::JointIndex parent = model.parents[i];
+        data.v[i] = data.joints[i].v();
+        if (parent > 0)
+          data.v[i] += data.liMi[i].actInv(data.v[parent]);
+      }
+      return kinetic_energy(vx);
+    }
+
+    // whether the joint is of a kind above (and, if run, its velocity-only calc at vx)
+    static bool velocity_calc(const pinocchio::JointModel & joint, pinocchio::JointData & jd, const Vec & vx, bool run)
+    {
+      using namespace pinocchio;
+      return velocity_calc_as<JointModelRX, JointModelRY, JointModelRZ, JointModelFreeFlyer, JointModelRevoluteUnaligned,
+                              JointModelRUBX, JointModelRUBY, JointModelRUBZ, JointModelRevoluteUnboundedUnaligned,
+                              JointModelPX, JointModelPY, JointModelPZ, JointModelPrismaticUnaligned,
+                              JointModelSpherical, JointModelTranslation>(joint, jd, vx, run);
+    }
+
+    template<typename... Kinds>
+    static bool velocity_calc_as(const pinocchio::JointModel & joint, pinocchio::JointData & jd, const Vec & vx, bool run)
+    {
+      return (velocity_calc_one<Kinds>(joint, jd, vx, run) || ...);
+    }
+
+    template<typename Kind>
+    static bool velocity_calc_one(const pinocchio::JointModel & joint, pinocchio::JointData & jd, const Vec & vx, bool run)
+    {
+      const Kind * kind = boost::get<Kind>(&joint.toVariant());
+      if (kind && run)
+        kind->calc(boost::get<typename Kind::JointDataDerived>(jd.toVariant()), pinocchio::Blank(), vx);
+      return kind != nullptr;
     }
 
     void evaluate_acceleration(const pinocchio::Model & model, const Vec & qx, const Vec & vx, const Vec & tx, double t)
