@@ -325,6 +325,50 @@ def test_readings_in_one_call_or_many_are_the_same() -> None:
     np.testing.assert_array_equal(values, whole[0][0][1])
 
 
+def test_readings_made_at_once_at_every_tick_equal_those_made_sensor_by_sensor() -> None:
+    """When every sensor reads at every tick, SensorStream makes all their readings in one array: the same numbers,
+    bit for bit, as the sensor-by-sensor path that rates need (bias, latency, per-component noise, two rows, a run
+    cut into pieces), and the same latest readings."""
+    from multibody_sim.sensors import SensorStream
+
+    scene = ms.make_scene(
+        robot={"source": "ur5"},
+        sensor=[
+            {
+                "name": "imu",
+                "kind": "imu",
+                "frame": "tool0",
+                "noise": 0.01,
+                "bias": [0.1, 0, 0, 0, 0, -0.2],
+                "latency": 2,
+            },
+            {"name": "enc", "kind": "joint_position", "bias": 0.001, "latency": 1},
+            {"name": "gyro", "kind": "joint_velocity", "noise": [1e-3, 2e-3, 0, 0, 1e-3, 1.0]},
+            {"name": "tq", "kind": "joint_torque"},
+        ],
+    )
+    sensors = scene.sensors
+    rng = np.random.default_rng(3)
+    Z = rng.normal(size=(60, sensors.width))
+    fast = SensorStream(sensors, [1] * len(sensors), np.array([4, 9]))
+    slow = SensorStream(sensors, [1] * len(sensors), np.array([4, 9]))
+    slow.every_tick = False
+    assert fast.every_tick
+    for a, b in ((0, 1), (1, 17), (17, 60)):
+        times = np.repeat(np.arange(a, b) * 1e-3, 2)
+        rows = np.tile([0, 1], b - a)
+        values = np.repeat(Z[a:b], 2, axis=0)
+        values[1::2] *= 2.0
+        got, expected = fast.push(times, rows, values), slow.push(times, rows, values)
+        assert got.keys() == expected.keys() == {0, 1}
+        for row in (0, 1):
+            for (t1, r1), (t2, r2) in zip(got[row], expected[row], strict=True):
+                np.testing.assert_array_equal(t1, t2)
+                np.testing.assert_array_equal(r1, r2)
+        np.testing.assert_array_equal(fast.latest, slow.latest)
+    assert np.abs(fast.latest[0] - Z[-1]).max() > 0.0  # spoiled: not the measurement
+
+
 def test_latency_is_exact_in_readings_and_rate_holds_them_between(kernel: str) -> None:
     """The double pendulum swinging: a sensor 3 readings late at 250 Hz (every 4 steps of 1 ms) reads exactly what
     its on-time twin read 3 readings (12 ms) before (its first reading before that), and holds each reading for 4
@@ -767,7 +811,9 @@ def test_native_kinematic_sensors_taken_from_the_next_steps_aba_equal_the_python
             assert native.metadata["kernel"] == "native" and python.metadata["kernel"] != "native"
             np.testing.assert_array_equal(native.q, python.q)
             for name in python.sensors:
-                np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=f"{integrator} {name}")
+                np.testing.assert_array_equal(
+                    native.sensors[name], python.sensors[name], err_msg=f"{integrator} {name}"
+                )
             assert np.abs(np.diff(native.sensors["imu"][:, :3], axis=0)).max() > 1e-3  # the arm moves
     bare = ms.make_scene(robot={"source": "ur5"}, sensor=sensors[:2])
     taus = np.tile(np.linspace(-2.0, 2.0, bare.nv), (1, 40, 1))

@@ -623,6 +623,10 @@ class SensorStream:
         self.count = np.zeros(B, dtype=np.int64)  # ticks each row took
         self.history: list[list[np.ndarray | None]] = [[None] * len(sensors) for _ in range(B)]
         self._spoiled = [bool(np.any(p.noise)) for p in sensors.placed]
+        # Every sensor reads at every tick (the common case): a push makes one (ticks, width) array of readings
+        self.every_tick = all(stride == 1 for stride in strides)
+        self._bias = np.concatenate([p.bias for p in sensors.placed]) if sensors.placed else np.zeros(0)
+        self.whole: dict[int, np.ndarray] = {}  # per row that read in the last push: its readings (ticks, width)
 
     def _generators(self, b: int, entropy: int | None = None) -> list[np.random.Generator]:
         """Row b's generators: seeded with each sensor's seed + b, or with (its seed, entropy)."""
@@ -649,6 +653,7 @@ class SensorStream:
         into readings; returns, per row that read, per sensor: the times of its new readings and the readings (for
         the samples in between)."""
         out: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+        self.whole = {}
         if not len(times):
             return out
         if rows[0] == rows[-1] and (rows == rows[0]).all():  # one row (simulate, Stepper)
@@ -664,6 +669,8 @@ class SensorStream:
 
     def _read(self, b: int, times: np.ndarray, Z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         """Row b's new readings from its ticks at `times` with measurements Z (m, width)."""
+        if self.every_tick:
+            return self._read_every_tick(b, times, Z)
         sensors = self.sensors
         ticks = self.count[b] + np.arange(len(times))
         self.count[b] += len(times)
@@ -696,6 +703,33 @@ class SensorStream:
             self.latest[b, columns] = readings[-1]
             result.append((due_times, readings))
         return result
+
+    def _read_every_tick(self, b: int, times: np.ndarray, Z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """_read when every sensor reads at every tick: the same arithmetic, element by element ((z + bias) +
+        noise · draw, the draws in the same order), on one (m, width) array; each sensor's readings are a view of
+        its columns (Sensing.update copies the whole array at once)."""
+        sensors = self.sensors
+        self.count[b] += len(times)
+        readings = Z + self._bias
+        for k, p in enumerate(sensors.placed):
+            assert p.bias is not None and p.noise is not None
+            latency = p.spec.latency
+            columns = sensors.columns(k)
+            if latency:
+                z = Z[:, columns]
+                held = self.history[b][k]
+                if held is None:
+                    held = np.repeat(z[:1], latency, axis=0)
+                sequence = np.concatenate([held, z])
+                self.history[b][k] = sequence[-latency:]
+                readings[:, columns] = sequence[: len(z)] + p.bias
+            if self._spoiled[k]:
+                draws = self.generators[b][k].standard_normal((len(Z), p.width))
+                draws *= p.noise
+                readings[:, columns] += draws
+        self.latest[b] = readings[-1]
+        self.whole[b] = readings
+        return [(times, readings[:, sensors.columns(k)]) for k in range(len(sensors.placed))]
 
     def readings(self, b: int) -> dict[str, np.ndarray]:
         """Row b's current readings by sensor name (copies)."""
@@ -807,6 +841,11 @@ class Sensing:
                 block[:] = before[b]
             else:
                 T = store.T[lo:hi, b]
+                whole = self.stream.whole.get(b)  # every sensor's new readings in one array (every_tick)
+                if whole is not None and len(whole) == len(T) and np.array_equal(new[0][0], T):
+                    block[:] = whole  # a reading at every sample (the default): the sensors' columns at once
+                    store.sensed[b] = hi
+                    continue
                 for k, (times, values) in enumerate(new):
                     columns = sensors.columns(k)
                     if len(times) == len(T) and np.array_equal(times, T):  # a reading at every sample (the default)
