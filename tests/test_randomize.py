@@ -821,6 +821,10 @@ def test_a_variant_row_is_its_scene_built_alone(case: str) -> None:
             np.testing.assert_array_equal(a.sensors[name], c.sensors[name], err_msg=name)
     # the rows differ from the declared scene
     assert model_bytes(scene.with_parameters(scene.draw_parameters(0)).model) != model_bytes(scene.model)
+    # a variant is of the same declaration, other parameter values only
+    other = dataclasses.replace(scene.spec, gravity=(0.0, 0.0, -1.0), parameters=scene.draw_parameters(0))
+    with pytest.raises(InvalidArgumentError, match=r"^variant_of must be built from the same declaration"):
+        ms.Scene(other, variant_of=scene)
 
 
 # ur5 whose joints' dry friction is exact (a constraint of the time-stepper: stiction), drawn per row, and its masses.

@@ -83,20 +83,27 @@ class Scene(Robot):
         Args:
             spec: the parsed scene.
             robot: its robot, already loaded from spec.robot (a randomised rollout's rows share the nominal scene's
-                `full_robot`); None: loaded here.
+                `full_robot`); None: loaded here (variant_of's, with variant_of).
             variant_of: a scene built from the same declaration with other parameter values (with_parameters: a
                 randomised row): what parameter values cannot change is taken from it instead of being made and
-                checked again (the configuration space, the named poses, the model's checks, the [randomize]
-                table). Values within their quantities' ranges keep masses and inertias physical. Every value the
-                parameters enter is computed by this very code, so the scene is the one `Scene(spec)` builds.
+                checked again (the robot, the configuration space, the named poses, the bodies' links, the model's
+                checks, the [randomize] table). Values within their quantities' ranges keep masses and inertias
+                physical. Every value the parameters enter is computed by this very code, so the scene is the one
+                `Scene(spec)` builds.
+
+        Raises:
+            InvalidArgumentError: variant_of's declaration differs from spec's in more than its parameters.
         """
         from .elements import ForceElements
 
+        if variant_of is not None and not _same_declaration(variant_of.spec, spec):
+            raise InvalidArgumentError("variant_of must be built from the same declaration (other parameters only)")
         self.spec = spec
         where = spec.source
         # The parameters [randomize] may draw: their nominal values are noted wherever they enter (values.value).
         values = None if spec.randomize is None and spec.parameters is None else Nominals(spec.parameters)
-        robot = robot if robot is not None else _load_robot(spec)
+        if robot is None:
+            robot = variant_of.full_robot if variant_of is not None else _load_robot(spec)
         robot_spec = spec.robot if spec.robot is not None else RobotSpec(source="", damping=False)
         if values is not None and robot_spec.mimic:
             raise SceneError(f"{where}: randomize: randomised parameters and mimic joints cannot be combined yet")
@@ -307,7 +314,7 @@ class Scene(Robot):
         # The values of the parameters [randomize] may draw as declared, and the table resolved on them.
         self.nominal_parameters: dict[str, Any] = values.nominal if values is not None else {}
         self.randomizer = None
-        if variant_of is not None and variant_of.spec.randomize == spec.randomize:
+        if variant_of is not None:
             self.randomizer = variant_of.randomizer
         elif spec.randomize is not None:
             self.randomizer = Randomizer(spec.randomize, self.nominal_parameters, where)
@@ -638,6 +645,15 @@ class Scene(Robot):
 
 
 # ---- building ----------------------------------------------------------------------------------------
+def _same_declaration(a: SceneSpec, b: SceneSpec) -> bool:
+    """Whether two scenes declare the same thing but for their parameter values (Scene's variant_of)."""
+    return all(
+        getattr(a, f.name) is getattr(b, f.name) or getattr(a, f.name) == getattr(b, f.name)
+        for f in dataclasses.fields(a)
+        if f.name != "parameters"
+    )
+
+
 def _actuators(model: pin.Model, spec: SceneSpec) -> list[Any]:
     """The scene's actuators on its model (locked joints removed): the catalog's defaults when it asks for them,
     then its [[actuator]] tables, merged joint by joint (scenes/actuators.py)."""
