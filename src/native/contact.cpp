@@ -163,7 +163,7 @@ namespace multibody_sim
     Matrix Z, W;  // nv x m
     Eigen::VectorXd g, free, correction, restitution, guess, impulses, generalized, minv, Dinv, acc;
     std::vector<std::pair<int, double>> landings;
-    std::vector<int> union_;
+    std::vector<int> union_, last;
     // the contact frame of the normal +z (the ground's), as every other normal's is computed
     const Eigen::Matrix3d up =
       Eigen::Quaterniond::FromTwoVectors(Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ()).toRotationMatrix();
@@ -735,6 +735,15 @@ namespace multibody_sim
       {
         const int k = S[static_cast<size_t>(a)];
         const int end = k + data.nvSubtree_fromRow[static_cast<size_t>(k)];
+        double * zk = &w.Z(k, r0);
+        if (width == 1)  // a row alone (a joint's friction or limit): its sum in a register
+        {
+          double sum = 0.0;
+          for (size_t b = static_cast<size_t>(a) + 1; b < S.size() && S[b] < end; ++b)
+            sum += data.U(k, S[b]) * w.Z(S[b], r0);
+          zk[0] = zk[0] - sum;
+          continue;
+        }
         for (int r = 0; r < width; ++r)
           acc[r] = 0.0;
         for (size_t b = static_cast<size_t>(a) + 1; b < S.size() && S[b] < end; ++b)
@@ -744,7 +753,6 @@ namespace multibody_sim
           for (int r = 0; r < width; ++r)
             acc[r] += u * zb[r];
         }
-        double * zk = &w.Z(k, r0);
         for (int r = 0; r < width; ++r)
           zk[r] = zk[r] - acc[r];
       }
@@ -753,6 +761,10 @@ namespace multibody_sim
           w.W(col, r) = w.Dinv[col] * w.Z(col, r);
       r0 = r1;
     }
+    w.last.assign(static_cast<size_t>(nv), 0);  // per dof: the last row whose support holds it (W(k, b) = 0 past it)
+    for (int r = 0; r < m; ++r)
+      for (int k : w.row_support[static_cast<size_t>(r)])
+        w.last[static_cast<size_t>(k)] = r;
     w.G.setZero(m, m);
     for (int a = 0; a < m; ++a)
     {
@@ -761,7 +773,8 @@ namespace multibody_sim
       {
         const double z = w.Z(k, a);
         const double * Wk = &w.W(k, 0);
-        for (int b = a; b < m; ++b)
+        const int last = w.last[static_cast<size_t>(k)];
+        for (int b = a; b <= last; ++b)
           Ga[b] += z * Wk[b];
       }
       for (int b = a + 1; b < m; ++b)
