@@ -18,6 +18,7 @@ from conftest import joint, link, urdf
 import multibody_sim as ms
 from multibody_sim import tables
 from multibody_sim.cli import main
+from multibody_sim.integrators.cone_solver import TOLERANCE
 from multibody_sim.trajectory import write_chunk
 
 for _module in ("pandas", "pyarrow"):
@@ -251,16 +252,6 @@ def stack() -> tuple[ms.Scene, ms.Trajectory]:
     return scene, scene.run(duration=0.0205)
 
 
-# coal's box–box contact patch (EPA) gives exactly aligned faces a normal tilted by up to ~3e-3 rad once the stack
-# has rested a few steps (1e-6 at the first step), with patch points spread ~0.2 mm along it; the motion stays exact
-# (the boxes' tilt stays below 3e-13 rad, their speeds below 1e-10 m/s: friction carries the tilted normals'
-# horizontal part), but the forces split along those normals no longer show the statics these tests check to 1e-9.
-# Known since the contact rewrite of issue 24 (its own solver follows another path through the solution set than
-# Pinocchio's ADMM did); the fix is a closed-form box–box face contact in scenes/narrow_phase.py.
-BOX_BOX_NORMALS = pytest.mark.xfail(strict=True, reason="coal's box-box patch normals tilt by ~3e-3 rad at rest")
-
-
-@BOX_BOX_NORMALS
 def test_contact_columns_carry_the_weights_a_resting_stack_holds(stack: tuple[ms.Scene, ms.Trajectory]) -> None:
     """Each body's normal force is the weight resting on it plus the weight it rests with (statics, independent of
     the solver), its tangential force zero; the counts are its contact points; at every sample, the last one (over a
@@ -276,11 +267,14 @@ def test_contact_columns_carry_the_weights_a_resting_stack_holds(stack: tuple[ms
     above = {"bottom": mass["middle"] + mass["top"], "middle": mass["top"], "top": 0.0}
     later = frame.iloc[1:]  # sample 0 has no contacts: no step has ended there
     total = sum(mass.values()) * g
-    np.testing.assert_allclose(later["contact.ground.normal"], total, rtol=1e-9)
+    # To the solver's tolerance: each step's constraint velocities are within TOLERANCE of g dt of their solution, so
+    # a box's momentum may change by up to that on either side of a step (~2 TOLERANCE of its weight x dt).
+    rtol = 2 * TOLERANCE
+    np.testing.assert_allclose(later["contact.ground.normal"], total, rtol=rtol)
     for body in bodies[1:]:  # what rests on it, and its own weight with that, on what is below
-        np.testing.assert_allclose(later[f"contact.{body}.normal"], (2 * above[body] + mass[body]) * g, rtol=1e-9)
-        # At rest: no net friction, to what the box-box patches' normals (tilted by ~1e-6 rad) leak into it.
-        assert later[f"contact.{body}.tangential"].max() < 1e-5 * later[f"contact.{body}.normal"].min()
+        np.testing.assert_allclose(later[f"contact.{body}.normal"], (2 * above[body] + mass[body]) * g, rtol=rtol)
+        # At rest on exactly vertical normals (narrow_phase.box_box): no friction, to the solver's tolerance.
+        assert later[f"contact.{body}.tangential"].max() < 1e-9 * later[f"contact.{body}.normal"].min()
     counts = {"ground": 4, "bottom": 8, "middle": 8, "top": 4}  # the face-to-face patches: four corners each
     for body, count in counts.items():
         assert (later[f"contact.{body}.count"] == count).all()
@@ -300,7 +294,6 @@ def test_contact_columns_of_a_sliding_box_follow_coulomb(tmp_path: Path) -> None
     np.testing.assert_array_equal(sliding["contact.ground.tangential"], sliding["contact.box.tangential"])
 
 
-@BOX_BOX_NORMALS
 def test_contacts_in_long_form_add_up_to_the_columns(stack: tuple[ms.Scene, ms.Trajectory]) -> None:
     _, run = stack
     wide = run.to_dataframe()
@@ -308,11 +301,19 @@ def test_contacts_in_long_form_add_up_to_the_columns(stack: tuple[ms.Scene, ms.T
     assert len(long) == len(run.contacts.sample)
     assert list(long.columns[:4]) == ["t", "sample", "body1", "body2"]
     np.testing.assert_array_equal(long[["force.x", "force.y", "force.z"]].to_numpy(), run.contact_forces())
-    # The last sample's step was half as long: its impulses are half, its forces the same.
+    # The last sample's step was half as long: its impulses are half, its forces the same. Each pair's (what statics
+    # fixes) to the solver's tolerance (a box's momentum may change by TOLERANCE of g h on either side of a step: up to
+    # 3 TOLERANCE of the half step's impulses, 2 of the one before); each point's to 1e-4 only: a
+    # patch's four corners share its load in a statically indeterminate way (the diagonal mode, +-+- at the
+    # corners: no force, no moment), which round-off against the solver's regularization sets, here to ~1e-5.
     last = long[long["sample"] == len(run.t) - 1]
     before = long[long["sample"] == len(run.t) - 2]
-    np.testing.assert_allclose(last["impulse.z"].to_numpy(), before["impulse.z"].to_numpy() / 2, rtol=1e-6)
-    np.testing.assert_allclose(last["normal_force"].to_numpy(), before["normal_force"].to_numpy(), rtol=1e-6)
+    pairs = ["body1", "body2"]
+    last_sums, before_sums = last.groupby(pairs)["impulse.z"].sum(), before.groupby(pairs)["impulse.z"].sum()
+    assert len(last_sums) == 3
+    np.testing.assert_allclose(last_sums.to_numpy(), before_sums.to_numpy() / 2, rtol=5 * TOLERANCE)
+    np.testing.assert_allclose(last["impulse.z"].to_numpy(), before["impulse.z"].to_numpy() / 2, rtol=1e-4)
+    np.testing.assert_allclose(last["normal_force"].to_numpy(), before["normal_force"].to_numpy(), rtol=1e-4)
     for body in run.contacts.bodies:
         touching = long[(long["body1"] == body) | (long["body2"] == body)]
         sums = touching.groupby("sample")["normal_force"].sum().reindex(range(len(run.t)), fill_value=0.0)

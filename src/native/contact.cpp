@@ -42,7 +42,8 @@ namespace multibody_sim
       SPHERE_SPHERE = 5,
       SPHERE_BOX = 6,
       BOX_SPHERE = 7,
-      COAL = 8,
+      BOX_BOX = 8,
+      COAL = 9,
     };
 
     int pair_kind(ShapeKind a, ShapeKind b)  // narrow_phase.pair_kind
@@ -69,6 +70,8 @@ namespace multibody_sim
         return SPHERE_BOX;
       if (a == ShapeKind::box && b == ShapeKind::sphere)
         return BOX_SPHERE;
+      if (a == ShapeKind::box && b == ShapeKind::box)
+        return BOX_BOX;
       return COAL;
     }
 
@@ -360,6 +363,250 @@ namespace multibody_sim
       out.push_back(Candidate{0, transform(R, t, surface), on_sphere, gap});
     }
 
+    // ---- narrow_phase.box_box ------------------------------------------------------------------------------------
+    inline double dot3(const double * u, const double * v)  // narrow_phase._dot
+    {
+      return (u[0] * v[0] + u[1] * v[1]) + u[2] * v[2];
+    }
+
+    struct Box  // a box's pose and half extents, its axes as rows (a[i] = R.col(i))
+    {
+      double a[3][3];
+      const Eigen::Matrix3d * R;
+      const Vector3 * t;
+      double half[3];
+    };
+
+    Box make_box(const Eigen::Matrix3d & R, const Vector3 & t, const std::vector<double> & dims)
+    {
+      Box b;
+      for (int i = 0; i < 3; ++i)
+      {
+        for (int r = 0; r < 3; ++r)
+          b.a[i][r] = R(r, i);
+        b.half[i] = 0.5 * dims[static_cast<size_t>(i)];
+      }
+      b.R = &R;
+      b.t = &t;
+      return b;
+    }
+
+    // narrow_phase._separation
+    double separation(const double * d, const Box & A, const Box & B, const double * n)
+    {
+      const double r1 = (A.half[0] * std::abs(dot3(A.a[0], n)) + A.half[1] * std::abs(dot3(A.a[1], n)))
+                        + A.half[2] * std::abs(dot3(A.a[2], n));
+      const double r2 = (B.half[0] * std::abs(dot3(B.a[0], n)) + B.half[1] * std::abs(dot3(B.a[1], n)))
+                        + B.half[2] * std::abs(dot3(B.a[2], n));
+      return std::abs(dot3(d, n)) - (r1 + r2);
+    }
+
+    struct PolygonPoint  // narrow_phase._face_contact's polygon: a point in the reference frame, its edge's label
+    {
+      double x[3];
+      int label;
+    };
+
+    // narrow_phase._clip: `in` (n points) into `out`, returns the new count
+    int clip(const PolygonPoint * in, int n, int p, double sigma, double h, int label, PolygonPoint * out)
+    {
+      int m = 0;
+      for (int k = 0; k < n; ++k)
+      {
+        const PolygonPoint & P = in[k];
+        const PolygonPoint & Q = in[(k + 1) % n];
+        const double fP = sigma * P.x[p] - h, fQ = sigma * Q.x[p] - h;
+        if (fP <= 0.0)
+          out[m++] = P;
+        if ((fP <= 0.0) != (fQ <= 0.0))
+        {
+          const double t = fP / (fP - fQ);
+          PolygonPoint X;
+          for (int r = 0; r < 3; ++r)
+            X.x[r] = P.x[r] + t * (Q.x[r] - P.x[r]);
+          X.x[p] = sigma * h;
+          X.label = fP <= 0.0 ? label : P.label;
+          out[m++] = X;
+        }
+      }
+      return m;
+    }
+
+    constexpr int FACE_POINTS = 64, EDGE_FEATURES = 72 * FACE_POINTS;  // narrow_phase's
+
+    // narrow_phase._face_contact: candidates with p1 on the reference box Ref, p2 on the incident box Inc
+    Vector3 face_contact(const Box & Ref, int axis, double sign, const Box & Inc, int ref, double margin,
+                         std::vector<Candidate> & out)
+    {
+      const Eigen::Matrix3d & Rr = *Ref.R;
+      const Vector3 & tr = *Ref.t;
+      const double outward[3] = {sign * Rr(0, axis), sign * Rr(1, axis), sign * Rr(2, axis)};
+      double dots[3];
+      for (int j = 0; j < 3; ++j)
+        dots[j] = dot3(Inc.a[j], outward);
+      int j = 0;
+      for (int k = 1; k < 3; ++k)
+        if (std::abs(dots[k]) > std::abs(dots[j]))
+          j = k;
+      const double s = dots[j] >= 0.0 ? -1.0 : 1.0;
+      const int ju = (j + 1) % 3, jv = (j + 2) % 3;
+      PolygonPoint buffers[2][8];
+      int n = 4;
+      const double cu[4] = {1.0, -1.0, -1.0, 1.0}, cv[4] = {1.0, 1.0, -1.0, -1.0};
+      for (int label = 0; label < 4; ++label)
+      {
+        Vector3 corner;
+        corner[j] = s * Inc.half[j];
+        corner[ju] = cu[label] * Inc.half[ju];
+        corner[jv] = cv[label] * Inc.half[jv];
+        const Vector3 world = transform(*Inc.R, *Inc.t, corner);
+        const double w[3] = {world[0] - tr[0], world[1] - tr[1], world[2] - tr[2]};
+        PolygonPoint & P = buffers[0][label];
+        for (int r = 0; r < 3; ++r)
+          P.x[r] = (Rr(0, r) * w[0] + Rr(1, r) * w[1]) + Rr(2, r) * w[2];
+        P.label = label;
+      }
+      const int sides[4] = {(axis + 1) % 3, (axis + 1) % 3, (axis + 2) % 3, (axis + 2) % 3};
+      const double sigmas[4] = {1.0, -1.0, 1.0, -1.0};
+      int current = 0;
+      for (int side = 0; side < 4 && n > 0; ++side)
+      {
+        n = clip(buffers[current], n, sides[side], sigmas[side], Ref.half[sides[side]], 4 + side,
+                 buffers[1 - current]);
+        current = 1 - current;
+      }
+      const int code = ((6 * ref + 2 * axis + (sign < 0.0 ? 1 : 0)) * 6 + 2 * j + (s < 0.0 ? 1 : 0)) * FACE_POINTS;
+      const PolygonPoint * polygon = buffers[current];
+      for (int k = 0; k < n; ++k)
+      {
+        const PolygonPoint & X = polygon[k];
+        const double gap = sign * X.x[axis] - Ref.half[axis];
+        if (gap >= margin)
+          continue;
+        Vector3 on_face(X.x[0], X.x[1], X.x[2]);
+        on_face[axis] = sign * Ref.half[axis];
+        const int before = polygon[(k + n - 1) % n].label;
+        out.push_back(Candidate{code + 8 * before + X.label, transform(Rr, tr, on_face),
+                                transform(Rr, tr, Vector3(X.x[0], X.x[1], X.x[2])), gap});
+      }
+      return Vector3(outward[0], outward[1], outward[2]);
+    }
+
+    // narrow_phase._edge_contact
+    Vector3 edge_contact(const Box & A, const Box & B, int i, int j, const double * axis, const double * d, double gap,
+                         std::vector<Candidate> & out)
+    {
+      double n[3] = {axis[0], axis[1], axis[2]};
+      if (dot3(d, n) < 0.0)
+        for (double & x : n)
+          x = -x;
+      Vector3 local1 = Vector3::Zero(), local2 = Vector3::Zero();
+      int id1 = 4 * i, id2 = 4 * j;
+      for (int q = 0; q < 2; ++q)
+      {
+        const int k = (i + 1 + q) % 3, bit = q == 0 ? 2 : 1;
+        const bool up = dot3(A.a[k], n) > 0.0;
+        local1[k] = up ? A.half[k] : -A.half[k];
+        id1 += up ? bit : 0;
+      }
+      for (int q = 0; q < 2; ++q)
+      {
+        const int k = (j + 1 + q) % 3, bit = q == 0 ? 2 : 1;
+        const bool up = dot3(B.a[k], n) <= 0.0;
+        local2[k] = up ? B.half[k] : -B.half[k];
+        id2 += up ? bit : 0;
+      }
+      const Vector3 pA = transform(*A.R, *A.t, local1), pB = transform(*B.R, *B.t, local2);
+      const double r[3] = {pB[0] - pA[0], pB[1] - pA[1], pB[2] - pA[2]};
+      const double c = dot3(A.a[i], B.a[j]);
+      const double ur = dot3(A.a[i], r), wr = dot3(B.a[j], r);
+      const double denom = 1.0 - c * c;
+      const double s1 = (ur - c * wr) / denom, s2 = (c * ur - wr) / denom;
+      local1[i] = std::min(std::max(s1, -A.half[i]), A.half[i]);
+      local2[j] = std::min(std::max(s2, -B.half[j]), B.half[j]);
+      out.push_back(Candidate{EDGE_FEATURES + 12 * id1 + id2, transform(*A.R, *A.t, local1),
+                              transform(*B.R, *B.t, local2), gap});
+      return Vector3(n[0], n[1], n[2]);
+    }
+
+    // narrow_phase.box_box: the candidates and the normal from box 1 to box 2
+    Vector3 box_box(const Box & A, const Box & B, const ContactConstants & c, std::vector<Candidate> & out)
+    {
+      const Vector3 & t1 = *A.t;
+      const Vector3 & t2 = *B.t;
+      const double d[3] = {t2[0] - t1[0], t2[1] - t1[1], t2[2] - t1[2]};
+      const double inf = std::numeric_limits<double>::infinity();
+      double best = -inf, best2 = -inf;
+      int axis = 0, axis2 = 0;
+      bool on2 = false;
+      for (int i = 0; i < 3; ++i)
+      {
+        const double sep = separation(d, A, B, A.a[i]);
+        if (sep > best)
+        {
+          best = sep;
+          axis = i;
+        }
+      }
+      for (int j = 0; j < 3; ++j)
+      {
+        const double sep = separation(d, A, B, B.a[j]);
+        if (sep > best2)
+        {
+          best2 = sep;
+          axis2 = j;
+        }
+      }
+      if (best2 > best + c.axis_tolerance)
+      {
+        best = best2;
+        axis = axis2;
+        on2 = true;
+      }
+      int edge_i = -1, edge_j = -1;
+      double edge_best = -inf, edge_n[3] = {0.0, 0.0, 0.0};
+      for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+        {
+          const double *u = A.a[i], *w = B.a[j];
+          const double L[3] = {u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]};
+          const double norm2 = (L[0] * L[0] + L[1] * L[1]) + L[2] * L[2];
+          if (norm2 < c.parallel_edges)
+            continue;
+          const double norm = std::sqrt(norm2);
+          const double n[3] = {L[0] / norm, L[1] / norm, L[2] / norm};
+          const double sep = separation(d, A, B, n);
+          if (sep > edge_best)
+          {
+            edge_i = i;
+            edge_j = j;
+            edge_best = sep;
+            for (int r = 0; r < 3; ++r)
+              edge_n[r] = n[r];
+          }
+        }
+      const Vector3 up(0.0, 0.0, 1.0);
+      if (edge_i >= 0 && edge_best > best + c.axis_tolerance)
+      {
+        if (edge_best >= c.speculative_margin)
+          return up;
+        return edge_contact(A, B, edge_i, edge_j, edge_n, d, edge_best, out);
+      }
+      if (best >= c.speculative_margin)
+        return up;
+      if (on2)
+      {
+        const double sign = dot3(d, B.a[axis]) >= 0.0 ? -1.0 : 1.0;
+        const size_t first = out.size();
+        const Vector3 outward = face_contact(B, axis, sign, A, 1, c.speculative_margin, out);
+        for (size_t k = first; k < out.size(); ++k)
+          std::swap(out[k].p1, out[k].p2);
+        return -outward;
+      }
+      const double sign = dot3(d, A.a[axis]) >= 0.0 ? 1.0 : -1.0;
+      return face_contact(A, axis, sign, B, 0, c.speculative_margin, out);
+    }
+
     // narrow_phase._plane_distance2
     inline double plane_distance2(const Vector3 & a, const Vector3 & p, const Vector3 & n)
     {
@@ -502,6 +749,8 @@ namespace multibody_sim
             normal = -normal;
           }
         }
+        else if (kind == BOX_BOX)
+          normal = box_box(make_box(R1, t1, s1.dims), make_box(R2, t2, s2.dims), c, w.found);
         else
         {  // narrow_phase.coal_candidates
           if (s1.kind == ShapeKind::mesh || s2.kind == ShapeKind::mesh)
@@ -1013,6 +1262,8 @@ void multibody_sim::bind_contact(nb::module_ & m)  // called by module.cpp
     .field("primitive_spacing", &ContactConstants::primitive_spacing, "float")
     .field("patch_depth", &ContactConstants::patch_depth, "float")
     .field("flat_disk", &ContactConstants::flat_disk, "float")
+    .field("axis_tolerance", &ContactConstants::axis_tolerance, "float")
+    .field("parallel_edges", &ContactConstants::parallel_edges, "float")
     .field("pgs", &ContactConstants::pgs, "bool")
     .field("gravity", &ContactConstants::gravity, "float")
     .field("max_iterations", &ContactConstants::max_iterations, "int")

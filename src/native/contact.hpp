@@ -1,12 +1,13 @@
 // The contact part of the `timestepping` step, rendered for the native kernel (methods.hpp calls it).
 //
 // The Python code is the specification: scenes/narrow_phase.py (the contact points: closed forms against the ground
-// and between spheres and boxes, coal for the other pairs, a few well-spread points per patch), scenes/contact.py
-// (ContactModel.detect and .problem: the rows of J from the CRBA's joint Jacobians, G = Zᵀ D⁻¹ Z with Z = U⁻¹ Jᵀ on
-// Pinocchio's tree-sparse Cholesky of M, the speculative / penetration-correction / restitution biases, limits
-// selected by proximity, exact joint friction) and integrators/timestepping.py with integrators/cone_solver.py
-// (cone_solver.hpp: the warm-started cone solve). The geometry arrives as data and every constant from the Python
-// modules; the arithmetic is theirs, in their order (sums from +0.0 in index order, structural zeros skipped).
+// and between spheres and boxes, box against box by separating axes, coal for the other pairs, a few well-spread
+// points per patch), scenes/contact.py (ContactModel.detect and .problem: the rows of J from the CRBA's joint
+// Jacobians, G = Zᵀ D⁻¹ Z with Z = U⁻¹ Jᵀ on Pinocchio's tree-sparse Cholesky of M, the speculative /
+// penetration-correction / restitution biases, limits selected by proximity, exact joint friction) and
+// integrators/timestepping.py with integrators/cone_solver.py (cone_solver.hpp: the warm-started cone solve). The
+// geometry arrives as data and every constant from the Python modules; the arithmetic is theirs, in their order
+// (sums from +0.0 in index order, structural zeros skipped).
 #pragma once
 
 #include <array>
@@ -56,6 +57,7 @@ namespace multibody_sim
     double speculative_margin = 0.0, penetration_correction = 0.0, penetration_slop = 0.0;
     double max_correction_speed = 0.0, touching = 0.0, limit_margin = 0.0;
     double min_patch_spacing = 0.0, primitive_spacing = 0.0, patch_depth = 0.0, flat_disk = 0.0;
+    double axis_tolerance = 0.0, parallel_edges = 0.0;  // narrow_phase.box_box's
     int max_patch_points = 0, max_iterations = 0;
     bool pgs = false;      // Gauss–Seidel sweeps as the solver's fallback, and no Newton before them
     double gravity = 0.0;  // |g| [m/s²]: approaches slower than |g| dt never bounce

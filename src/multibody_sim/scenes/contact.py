@@ -345,6 +345,8 @@ class ContactModel:
                 "primitive_spacing": PRIMITIVE_SPACING,
                 "patch_depth": narrow.PATCH_DEPTH,
                 "flat_disk": narrow.FLAT_DISK,
+                "axis_tolerance": narrow.AXIS_TOLERANCE,
+                "parallel_edges": narrow.PARALLEL_EDGES,
                 "pgs": self.solver == "pgs",
                 "gravity": self.gravity,
             },
@@ -491,6 +493,8 @@ class ContactModel:
             return [narrow.Candidate(c.feature, c.point2, c.point1, c.gap) for c in found], -normal
         if kind == narrow.BOX_SPHERE:
             return narrow.sphere_box(t2, s2.dimensions[0], R1, t1, 0.5 * np.asarray(s1.dimensions))
+        if kind == narrow.BOX_BOX:
+            return narrow.box_box(R1, t1, 0.5 * np.asarray(s1.dimensions), R2, t2, 0.5 * np.asarray(s2.dimensions))
         return narrow.coal_candidates(self.geometry_model, self.geometry_data, k)
 
     def problem(

@@ -10,9 +10,16 @@ rim), which is the warm start's identity across steps:
   along its own x and y axes);
 - capsule: the lowest points of its two end spheres;
 - mesh (a convex hull): its vertices;
-- sphere–sphere, sphere–box: the closest points, along the line between them.
+- sphere–sphere, sphere–box: the closest points, along the line between them;
+- box–box: the separating-axis test over the 15 axes (3 face normals of each box, 9 edge cross products) gives
+  the normal and the deepest separation; on a face axis, the other box's face most opposed to it (the incident
+  face) clipped to the reference face (Sutherland–Hodgman against its 4 sides), each point of the clipped polygon
+  named by the two polygon edges it joins (incident edges or reference sides); on an edge axis, the closest points
+  of the two edges, one point (box_box). Apart (within the margin), a face contact's points are real point pairs and
+  an edge contact's gap is the separation along its axis, a lower bound of the distance; a nearest pair that no axis
+  names (vertex–vertex, vertex–edge) is seen through the best axis' points.
 
-Every other pair (box–box, hulls between themselves, cylinders against boxes, ...) goes to coal (Pinocchio's
+Every other pair (hulls between themselves, cylinders against boxes, ...) goes to coal (Pinocchio's
 computeCollision and computeContactPatch on the pair alone), whose patch points are the features.
 
 A pair's candidates are its features whose gap is below SPECULATIVE_MARGIN. Its patch is the candidates within
@@ -44,7 +51,11 @@ PATCH_DEPTH = 1e-3  # [m] a patch's points are within this of its deepest one
 FLAT_DISK = 1e-9  # a cylinder's axis within this (squared sine) of vertical: its disks lie flat
 # The pair kinds computed here (others: coal)
 SPHERE_GROUND, BOX_GROUND, CYLINDER_GROUND, CAPSULE_GROUND, MESH_GROUND = 0, 1, 2, 3, 4
-SPHERE_SPHERE, SPHERE_BOX, BOX_SPHERE, COAL = 5, 6, 7, 8
+SPHERE_SPHERE, SPHERE_BOX, BOX_SPHERE, BOX_BOX, COAL = 5, 6, 7, 8, 9
+# Box–box: an edge axis, or box 2's face, is the contact's axis only when its separation exceeds box 1's best face's
+# by this [m] (exact ties, as a box resting flat on another, keep box 1's face; near-ties do not flip each step)
+AXIS_TOLERANCE = 1e-6
+PARALLEL_EDGES = 1e-12  # box–box: edges whose cross product's squared length is below this make no axis
 
 
 @dataclass(frozen=True)
@@ -79,6 +90,8 @@ def pair_kind(kind1: str, kind2: str) -> int:
         return SPHERE_BOX
     if kind1 == "box" and kind2 == "sphere":
         return BOX_SPHERE
+    if kind1 == "box" and kind2 == "box":
+        return BOX_BOX
     return COAL
 
 
@@ -207,6 +220,166 @@ def sphere_box(c: np.ndarray, r: float, R: np.ndarray, t: np.ndarray, half: np.n
         return [], normal
     on_box = transform(R, t, surface[None, :])[0]
     return [Candidate(0, on_box, c - r * normal, float(gap))], normal
+
+
+def _dot(u: Any, v: Any) -> float:
+    return (u[0] * v[0] + u[1] * v[1]) + u[2] * v[2]
+
+
+def _separation(d: list[float], a: list[np.ndarray], half1: Any, b: list[np.ndarray], half2: Any, n: Any) -> float:
+    """The boxes' separation along the unit axis n [m]: |n·d| minus both boxes' half widths along n."""
+    r1 = (half1[0] * abs(_dot(a[0], n)) + half1[1] * abs(_dot(a[1], n))) + half1[2] * abs(_dot(a[2], n))
+    r2 = (half2[0] * abs(_dot(b[0], n)) + half2[1] * abs(_dot(b[1], n))) + half2[2] * abs(_dot(b[2], n))
+    return abs(_dot(d, n)) - (r1 + r2)
+
+
+# Box–box features: a face contact's point is ((reference face, incident face) code) * FACE_POINTS + 8 * (label of
+# the polygon edge into it) + (label of the edge out of it), labels 0..3 the incident face's edges, 4..7 the
+# reference face's sides; an edge contact's is EDGE_FEATURES + 12 * (edge of box 1) + (edge of box 2), an edge
+# 4 * axis + 2 * (sign of the next axis > 0) + (sign of the last axis > 0).
+FACE_POINTS = 64
+EDGE_FEATURES = 72 * FACE_POINTS
+
+
+def box_box(
+    R1: np.ndarray, t1: np.ndarray, half1: Any, R2: np.ndarray, t2: np.ndarray, half2: Any
+) -> tuple[list[Candidate], np.ndarray]:
+    """The candidates of two boxes (poses R, t; half extents [m]) and the normal from box 1 to box 2 (module
+    docstring): the separating axis of largest separation (box 1's faces first, then box 2's, then the edge pairs,
+    each replacing the best so far only by more than AXIS_TOLERANCE), then its contact points."""
+    d = [t2[0] - t1[0], t2[1] - t1[1], t2[2] - t1[2]]
+    a = [R1[:, i] for i in range(3)]
+    b = [R2[:, j] for j in range(3)]
+    best, axis, on2 = -np.inf, 0, False
+    for i in range(3):
+        sep = _separation(d, a, half1, b, half2, a[i])
+        if sep > best:
+            best, axis = sep, i
+    best2, axis2 = -np.inf, 0
+    for j in range(3):
+        sep = _separation(d, a, half1, b, half2, b[j])
+        if sep > best2:
+            best2, axis2 = sep, j
+    if best2 > best + AXIS_TOLERANCE:
+        best, axis, on2 = best2, axis2, True
+    edge, edge_best, edge_n = None, -np.inf, None
+    for i in range(3):
+        for j in range(3):
+            u, w = a[i], b[j]
+            L = [u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]]
+            norm2 = (L[0] * L[0] + L[1] * L[1]) + L[2] * L[2]
+            if norm2 < PARALLEL_EDGES:
+                continue
+            norm = np.sqrt(norm2)
+            n = [L[0] / norm, L[1] / norm, L[2] / norm]
+            sep = _separation(d, a, half1, b, half2, n)
+            if sep > edge_best:
+                edge, edge_best, edge_n = (i, j), sep, n
+    if edge is not None and edge_best > best + AXIS_TOLERANCE:
+        if edge_best >= SPECULATIVE_MARGIN:
+            return [], np.array([0.0, 0.0, 1.0])
+        return _edge_contact(R1, t1, half1, R2, t2, half2, edge, edge_n, d, edge_best)
+    if best >= SPECULATIVE_MARGIN:
+        return [], np.array([0.0, 0.0, 1.0])
+    if on2:  # box 2's face is the reference, its outward normal towards box 1
+        sign = -1.0 if _dot(d, b[axis]) >= 0.0 else 1.0
+        found, outward = _face_contact(R2, t2, half2, axis, sign, R1, t1, half1, 1)
+        found = [Candidate(c.feature, c.point2, c.point1, c.gap) for c in found]
+        return found, np.array([-outward[0], -outward[1], -outward[2]])
+    sign = 1.0 if _dot(d, a[axis]) >= 0.0 else -1.0
+    return _face_contact(R1, t1, half1, axis, sign, R2, t2, half2, 0)
+
+
+def _face_contact(
+    Rr: np.ndarray, tr: np.ndarray, hr: Any, axis: int, sign: float, Ri: np.ndarray, ti: np.ndarray, hi: Any, ref: int
+) -> tuple[list[Candidate], np.ndarray]:
+    """The reference box's (Rr, tr, half extents hr) face at local coordinate axis = sign * hr[axis] against the
+    incident box's face most opposed to it, clipped to it: (candidates with point1 on the reference box, point2 on
+    the incident one, the reference face's outward normal); `ref` (0 or 1: box 1 or 2 is the reference) enters the
+    features only."""
+    outward = np.array([sign * Rr[0, axis], sign * Rr[1, axis], sign * Rr[2, axis]])
+    dots = [_dot(Ri[:, j], outward) for j in range(3)]
+    j = 0
+    for k in (1, 2):  # the first of the largest |dot|
+        if abs(dots[k]) > abs(dots[j]):
+            j = k
+    s = -1.0 if dots[j] >= 0.0 else 1.0
+    ju, jv = (j + 1) % 3, (j + 2) % 3
+    polygon = []  # (point in the reference box's frame, label of the polygon edge from it to the next)
+    for label, (cu, cv) in enumerate(((1.0, 1.0), (-1.0, 1.0), (-1.0, -1.0), (1.0, -1.0))):
+        corner = np.empty(3)
+        corner[j], corner[ju], corner[jv] = s * hi[j], cu * hi[ju], cv * hi[jv]
+        world = transform(Ri, ti, corner[None, :])[0]
+        w = [world[0] - tr[0], world[1] - tr[1], world[2] - tr[2]]
+        polygon.append(([(Rr[0, r] * w[0] + Rr[1, r] * w[1]) + Rr[2, r] * w[2] for r in range(3)], label))
+    for side, (p, sigma) in enumerate((((axis + 1) % 3, 1.0), ((axis + 1) % 3, -1.0), ((axis + 2) % 3, 1.0),
+                                       ((axis + 2) % 3, -1.0))):  # fmt: skip
+        polygon = _clip(polygon, p, sigma, hr[p], 4 + side)
+    code = ((6 * ref + 2 * axis + (sign < 0.0)) * 6 + 2 * j + (s < 0.0)) * FACE_POINTS
+    out = []
+    for k, (X, label) in enumerate(polygon):
+        gap = sign * X[axis] - hr[axis]
+        if gap >= SPECULATIVE_MARGIN:
+            continue
+        on_face = list(X)
+        on_face[axis] = sign * hr[axis]
+        points = transform(Rr, tr, np.array([on_face, X]))
+        out.append(Candidate(int(code + 8 * polygon[k - 1][1] + label), points[0], points[1], float(gap)))
+    return out, outward
+
+
+def _clip(polygon: list, p: int, sigma: float, h: float, label: int) -> list:
+    """Sutherland–Hodgman: the part of a convex polygon [(point, label of its edge to the next)] where
+    sigma * x[p] <= h; the new edge along that side labelled `label`."""
+    out = []
+    n = len(polygon)
+    for k in range(n):
+        P, edge = polygon[k]
+        Q = polygon[(k + 1) % n][0]
+        fP, fQ = sigma * P[p] - h, sigma * Q[p] - h
+        if fP <= 0.0:
+            out.append((P, edge))
+        if (fP <= 0.0) != (fQ <= 0.0):
+            t = fP / (fP - fQ)
+            X = [P[r] + t * (Q[r] - P[r]) for r in range(3)]
+            X[p] = sigma * h
+            out.append((X, label if fP <= 0.0 else edge))
+    return out
+
+
+def _edge_contact(
+    R1: np.ndarray, t1: np.ndarray, half1: Any, R2: np.ndarray, t2: np.ndarray, half2: Any,
+    edge: tuple[int, int], n: list[float], d: list[float], gap: float,
+) -> tuple[list[Candidate], np.ndarray]:  # fmt: skip
+    """The closest points of box 1's edge along its axis i farthest along n and box 2's along its axis j farthest
+    against n (n oriented from box 1 to box 2), each clamped to its edge: one candidate, its gap the separation."""
+    i, j = edge
+    if _dot(d, n) < 0.0:
+        n = [-n[0], -n[1], -n[2]]
+    local1, local2 = np.zeros(3), np.zeros(3)
+    id1, id2 = 4 * i, 4 * j
+    for k, bit in (((i + 1) % 3, 2), ((i + 2) % 3, 1)):
+        up = _dot(R1[:, k], n) > 0.0
+        local1[k] = half1[k] if up else -half1[k]
+        id1 += bit if up else 0
+    for k, bit in (((j + 1) % 3, 2), ((j + 2) % 3, 1)):
+        up = _dot(R2[:, k], n) <= 0.0
+        local2[k] = half2[k] if up else -half2[k]
+        id2 += bit if up else 0
+    pA = transform(R1, t1, local1[None, :])[0]
+    pB = transform(R2, t2, local2[None, :])[0]
+    u, w = R1[:, i], R2[:, j]
+    r = [pB[0] - pA[0], pB[1] - pA[1], pB[2] - pA[2]]
+    c = _dot(u, w)
+    ur, wr = _dot(u, r), _dot(w, r)
+    denom = 1.0 - c * c
+    s1 = (ur - c * wr) / denom
+    s2 = (c * ur - wr) / denom
+    local1[i] = min(max(s1, -half1[i]), half1[i])
+    local2[j] = min(max(s2, -half2[j]), half2[j])
+    p1 = transform(R1, t1, local1[None, :])[0]
+    p2 = transform(R2, t2, local2[None, :])[0]
+    return [Candidate(EDGE_FEATURES + 12 * id1 + id2, p1, p2, float(gap))], np.array(n)
 
 
 def coal_candidates(gm: Any, gd: Any, k: int) -> tuple[list[Candidate], np.ndarray]:
