@@ -9,16 +9,18 @@ rounds, each against its peer in the same run).
    go2_standing on the ground (timestepping), at dt = 1 and 2 ms; without an actuator model (today's ideal torques,
    clipped at the URDF's effort limits) and with the catalog's (actuators = "catalog": Unitree's gear ratios, rotor
    inertia, limits and torque–speed curve, with its overspeed brake, the default, and without it: overspeed =
-   "none"). Counts the episodes that did not complete, the largest joint speed over its velocity limit, the share of
-   joint samples past the limit and past the brake's band (1.1 times the limit), and the longest run of consecutive
-   steps one joint spends past the band.
+   "none"; on the ground the brakes' velocity limits are also rows of the contact problem, the default, and the
+   same without those rows: [contact] velocity_limits = "brake"). Counts the episodes that did not complete, the
+   largest joint speed over its velocity limit, the share of joint samples past the limit and past the brake's band
+   (1.1 times the limit), and the longest run of consecutive steps one joint spends past the band.
 2. ur5 holding a pose 0.05 rad from its start against gravity with kp = 1e4 N·m/rad, kv = 100 N·m·s/rad on every
    joint (effort limits the URDF's, no velocity limit): position servos inside the step, against a PD with the same
    gains held over each step (control_dt = dt), on rk4 and semi-implicit Euler. A step is stable when the 1 s run
    completes, stays within 0.5 rad of the target and ends within 0.01 rad of it; the ladder runs from 0.1 s down
    by 2 and reports the largest stable step whose next smaller rung is stable too.
 3. Cost per step, native kernel where it runs: ur5 (rk4, 1 ms) and go2_standing (timestepping, 1 ms) with the
-   catalog's or declared actuators against the same scene without them, under the same torques.
+   catalog's or declared actuators against the same scene without them, under the same torques; go2_standing's
+   velocity-limit rows against the same motors without them.
 
 Usage: python scripts/actuator_study.py [--quick] [--out docs/actuator_study.md]
 """
@@ -41,7 +43,9 @@ CONTROL_DT = 2e-3
 
 
 # ---- 1. go2 under random actions ---------------------------------------------------------------------------------
-MODELS = ("none", "catalog", "catalog, no brake")  # the actuator models compared: none, the catalog's, without brake
+# The actuator models compared: none, the catalog's (on the ground with its velocity limits as contact rows), the same
+# without those rows (ground only: free flight has no contact problem), without brakes (and so without rows).
+MODELS = ("none", "catalog", "catalog, brake only", "catalog, no brake")
 BAND = 0.1  # the catalog's overspeed band (the default): full braking torque 10 % past the limit
 
 
@@ -56,7 +60,14 @@ def go2_scene(ground: bool, model: str) -> ms.Scene:
         tables["actuators"] = "catalog"
     if model == "catalog, no brake":
         tables["actuator"] = [{"joints": "*", "overspeed": "none"}]
+    if model == "catalog, brake only":
+        tables["contact"] = {**tables.get("contact", {}), "velocity_limits": "brake"}
     return make_scene(**tables)
+
+
+def show_ratio(x: float) -> str:
+    """A speed / limit ratio: 3 digits, or its excess over 1 where that is below 1e-3 (the solver's tolerance)."""
+    return f"1 + {x - 1:.1e}" if 1.0 < x < 1.001 else f"{x:.3g}"
 
 
 def longest_run(over: np.ndarray) -> int:
@@ -186,6 +197,9 @@ def costs(steps: int, rounds: int) -> list[dict]:
                           np.zeros(go2.nv), steps, rounds))  # fmt: skip
     rows.append(cost_pair("go2_standing, timestepping: catalog motors without brakes", go2, go2_unbraked,
                           "timestepping", np.zeros(go2.nv), steps, rounds))  # fmt: skip
+    go2_braked = go2_scene(ground=True, model="catalog, brake only")
+    rows.append(cost_pair("go2_standing, timestepping: catalog motors, velocity-limit rows against brakes only",
+                          go2_braked, go2_model, "timestepping", np.zeros(go2.nv), steps, rounds))  # fmt: skip
     return rows
 
 
@@ -206,8 +220,11 @@ def main() -> None:
         "",
         "Torques uniform within the effort limits, a new draw every 2 ms, episode b from seed b; the same draws "
         "with and without the actuator model. *catalog*: Unitree's motors with their overspeed brake (the default; "
-        f"full braking torque {100 * BAND:g} % past the limit); *catalog, no brake*: the same with `overspeed = "
-        '"none"`. *speed / limit*: the largest joint speed over its velocity limit (URDF: 30.1 rad/s hip and thigh, '
+        f"full braking torque {100 * BAND:g} % past the limit) and, on the ground, their velocity limits as "
+        "constraints of the time-stepper's contact problem (the default; docs/actuators.md); *catalog, brake only*: "
+        '(ground) the same without those constraints, `[contact] velocity_limits = "brake"`; *catalog, no brake*: '
+        'the same with `overspeed = "none"` (no brake, no constraint). *speed / limit*: the largest joint speed over '
+        "its velocity limit (URDF: 30.1 rad/s hip and thigh, "
         "15.7 rad/s calf) in any sample of any episode that ran; *past limit*, *past band*: the share of joint "
         f"samples (every step is sampled) faster than the limit, and than {1 + BAND:g} times it; *longest past band*: "
         "the most consecutive steps one joint spent faster than that.",
@@ -220,19 +237,22 @@ def main() -> None:
     for ground, integrator in ((False, "rk4"), (False, "semi_implicit_euler"), (True, "timestepping")):
         for dt in (1e-3, 2e-3):
             for model in MODELS:
+                if model == "catalog, brake only" and not ground:
+                    continue
                 r = go2_episodes(ground, model, integrator, dt, episodes)
                 ratio, run = worst.get((ground, model), (0.0, 0))
                 worst[ground, model] = (max(ratio, r["worst_speed_ratio"]), max(run, r["longest_past_band"]))
                 failed = f"{r['failed']} of {episodes}" + (f" ({', '.join(r['statuses'])})" if r["failed"] else "")
                 lines.append(
                     f"| {'go2_standing (ground)' if ground else 'free flight'} | {integrator} | {dt * 1e3:g} ms | "
-                    f"{model} | {failed} | {r['worst_speed_ratio']:.3g} ({r['worst_joint']}) | "
+                    f"{model} | {failed} | {show_ratio(r['worst_speed_ratio'])} ({r['worst_joint']}) | "
                     f"{100 * r['past_limit']:.2g} % | {100 * r['past_band']:.2g} % | {r['longest_past_band']} | "
                     f"{r['kernel']} |"
                 )
                 print(lines[-1], flush=True)
     flight, ground_ = worst[False, "catalog"], worst[True, "catalog"]
     old_flight, old_ground = worst[False, "catalog, no brake"], worst[True, "catalog, no brake"]
+    braked = worst[True, "catalog, brake only"]
     lines += [
         "",
         "Reading: with the catalog's model no episode fails at 1 or 2 ms on any setup; without it, semi-implicit "
@@ -242,12 +262,13 @@ def main() -> None:
         f"{100 * BAND:g} % past it. In free flight (the other joints' motion carries a joint on) it holds the "
         f"joints within {flight[0]:.3g} times their limits (without the brake: {old_flight[0]:.3g}), "
         + (f"with at most {flight[1]} consecutive steps past the band" if flight[1] else "never past the band")
-        + ". On the ground the feet's impacts change joint speeds within "
-        "a step by impulses that no finite torque can stop in that step: joints still reach "
-        f"{ground_[0]:.3g} times their limits (without the brake: {old_ground[0]:.3g}), and the brake brings them "
-        f"back within the band in at most {ground_[1]} steps (without it, joints stay past the band for up to "
-        f"{old_ground[1]} steps). A hard cap at the impact itself would need the velocity limit as a constraint of "
-        "the contact problem.",
+        + ". On the ground the feet's impacts change joint speeds within a step by impulses that no finite torque "
+        f"can stop in that step: with the brake alone joints reach {braked[0]:.3g} times their limits, and the "
+        f"brake brings them back within the band in at most {braked[1]} steps (without the brake: "
+        f"{old_ground[0]:.3g} times, up to {old_ground[1]} steps past the band). With the velocity limits as "
+        "constraints of the contact problem, solved with the impacts, every joint sample stays within "
+        f"{show_ratio(ground_[0])} times its limit (the solver's tolerance is 1e-9 of the step's velocity scale), "
+        "never past the band; *past limit* counts those samples within the tolerance.",
         "",
         "## 2. A stiff position servo inside the step, against the same gains held as a PD",
         "",
@@ -286,9 +307,10 @@ def main() -> None:
         "## 3. Cost per step",
         "",
         f"CPU µs per step (medians of {rounds} interleaved rounds of {steps} steps at 1 ms, one row, every step "
-        "sampled), each scene against the same scene without actuators, under the same commands.",
+        "sampled), each scene against its peer (the same scene without actuators; for the velocity-limit rows, the "
+        "same motors without them), under the same commands.",
         "",
-        "| scene | without [µs] | with actuators [µs] | ratio | kernels |",
+        "| scene | peer [µs] | scene [µs] | ratio | kernels |",
         "|---|---:|---:|---:|---|",
     ]
     load = os.getloadavg()[0]
@@ -302,7 +324,11 @@ def main() -> None:
         "give each an overspeed brake and its line). On go2_standing under zero commands the actuators change the "
         "motion itself (the legs fold under the robot's weight: with the catalog's motors and brakes at joint speeds "
         "up to 16 rad/s, without a model up to 135 rad/s, without the brakes 46 rad/s, over 2 s at 1 ms), and with it "
-        "the contact problems the steps solve: that ratio compares different motions, not an overhead.",
+        "the contact problems the steps solve: that ratio compares different motions, not an overhead. The "
+        "velocity-limit rows' row is the same motors with and without the rows, under the same zero commands (the "
+        "calves fold at up to their limit, so rows join some steps); where no joint comes within 2 % of its limit "
+        "the rows add no row and no solve (tests/test_velocity_limits.py: the same problems, solver iterations "
+        "and samples bit for bit as without them).",
     ]
     args.out.write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")

@@ -886,7 +886,7 @@ ERRORS = [
         "contact key",
         scene(contact={"pair": "all"}),
         "contact: unknown key 'pair' (did you mean 'pairs'? valid: body_friction, body_restitution, friction, "
-        "geometry, limits, pairs, robot_geometry, solver)",
+        "geometry, limits, pairs, robot_geometry, solver, velocity_limits)",
     ),
     (
         "geometry frame",

@@ -158,6 +158,15 @@ namespace multibody_sim
       double distance;
     };
     std::vector<Limit> limits;
+    // (sign, v index, joint, v_max, ledger line, side) of each velocity-limit row, in the order they joined
+    struct Speed
+    {
+      double sign;
+      int iv, joint;
+      double vmax;
+      int line, side;
+    };
+    std::vector<Speed> speeds;
     std::vector<std::array<int64_t, 3>> keys;
     std::vector<int> sizes;
     std::vector<std::vector<int>> row_support;  // per row: the dofs where its J row (and Z column) may be nonzero
@@ -170,6 +179,84 @@ namespace multibody_sim
     // the contact frame of the normal +z (the ground's), as every other normal's is computed
     const Eigen::Matrix3d up =
       Eigen::Quaterniond::FromTwoVectors(Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ()).toRotationMatrix();
+
+    void add_speed(const Speed & sp)  // a velocity-limit row with its warm-start key ("speed", joint, side)
+    {
+      speeds.push_back(sp);
+      keys.push_back({3, sp.joint, sp.side});
+      sizes.push_back(1);
+    }
+
+    // The rows of speeds[from:] appended to the assembled problem (J, Z, W, G, g and its parts, the blocks), each
+    // entry as ContactModel.problem forms it with every row at once: a selection row's Z column by the same
+    // back substitution, G(a, r) = Σ_k Z(k, a) W(k, r) over the shared support in index order, u = v_max ± v⁺.
+    // Returns the problem's rows.
+    int append_speed_rows(size_t from, const std::vector<std::vector<int>> & supports, const Vec & v_free)
+    {
+      const int old = static_cast<int>(g.size()), added = static_cast<int>(speeds.size() - from);
+      const int m = old + added, nv = static_cast<int>(v_free.size());
+      J.conservativeResize(m, nv);
+      J.bottomRows(added).setZero();
+      Z.conservativeResize(nv, m);
+      Z.rightCols(added).setZero();
+      W.conservativeResize(nv, m);
+      W.rightCols(added).setZero();
+      G.conservativeResize(m, m);
+      row_support.resize(static_cast<size_t>(m));
+      free.conservativeResize(m);
+      g.conservativeResize(m);
+      correction.conservativeResize(m);
+      restitution.conservativeResize(m);
+      for (int r = old; r < m; ++r)
+      {
+        const Speed & sp = speeds[from + static_cast<size_t>(r - old)];
+        J(r, sp.iv) = sp.sign;
+        const std::vector<int> & S = row_support[static_cast<size_t>(r)] = supports[static_cast<size_t>(sp.joint)];
+        for (int col : S)
+          Z(col, r) = J(r, col);
+        for (int a = static_cast<int>(S.size()) - 1; a >= 0; --a)
+        {
+          const int k = S[static_cast<size_t>(a)];
+          const int end = k + data.nvSubtree_fromRow[static_cast<size_t>(k)];
+          double s = 0.0;
+          for (size_t b = static_cast<size_t>(a) + 1; b < S.size() && S[b] < end; ++b)
+            s += data.U(k, S[b]) * Z(S[b], r);
+          Z(k, r) = Z(k, r) - s;
+        }
+        for (int col : S)
+          W(col, r) = (1.0 / data.D[col]) * Z(col, r);
+        for (int a = 0; a <= r; ++a)
+        {
+          const std::vector<int> & Sa = row_support[static_cast<size_t>(a)];
+          double s = 0.0;
+          size_t i = 0, j = 0;
+          while (i < Sa.size() && j < S.size())
+          {
+            if (Sa[i] < S[j])
+              ++i;
+            else if (S[j] < Sa[i])
+              ++j;
+            else
+            {
+              s += Z(Sa[i], a) * W(Sa[i], r);
+              ++i;
+              ++j;
+            }
+          }
+          G(a, r) = s;
+          G(r, a) = s;
+        }
+        double s = 0.0;
+        for (int col : S)
+          s += J(r, col) * v_free[col];
+        free[r] = s;
+        g[r] = s + sp.vmax;
+        correction[r] = 0.0;
+        restitution[r] = 0.0;
+        blocks.push_back(cone::Block{cone::HALFLINE, r, 0.0});
+      }
+      return m;
+    }
 
     ContactWork(const pinocchio::Model & model, const ContactScene & scene)
     : data(model)
@@ -607,6 +694,18 @@ namespace multibody_sim
       return face_contact(A, axis, sign, B, 0, c.speculative_margin, out);
     }
 
+    // ContactProblem.velocity_scale: max(np.max(np.abs(free)), |g| h), NaN as numpy and Python propagate it
+    inline double velocity_scale(const Eigen::VectorXd & free, double floor)
+    {
+      double scale = 0.0;
+      for (Eigen::Index r = 0; r < free.size(); ++r)
+      {
+        const double x = std::abs(free[r]);
+        scale = r == 0 ? x : (x > scale || std::isnan(x) ? x : scale);
+      }
+      return floor > scale ? floor : scale;
+    }
+
     // narrow_phase._plane_distance2
     inline double plane_distance2(const Vector3 & a, const Vector3 & p, const Vector3 & n)
     {
@@ -625,6 +724,9 @@ namespace multibody_sim
     const std::vector<int> & limited_joints_,
     const std::vector<int> & friction_joints_,
     const Vec & friction_force_,
+    const std::vector<int> & speed_joints_,
+    const std::vector<double> & speed_limits_,
+    const std::vector<int> & speed_lines_,
     const ContactConstants & constants_)
   : nv(model.nv)
   , shapes(shapes_)
@@ -634,6 +736,9 @@ namespace multibody_sim
   , limited_joints(limited_joints_)
   , friction_joints(friction_joints_)
   , friction_force(friction_force_)
+  , speed_joints(speed_joints_)
+  , speed_limits(speed_limits_)
+  , speed_lines(speed_lines_)
   , constants(constants_)
   {
     const int n = static_cast<int>(shapes.size());
@@ -659,6 +764,17 @@ namespace multibody_sim
     for (int j : friction_joints)
       if (j <= 0 || j >= model.njoints)
         throw std::invalid_argument("a joint with exact friction is not in the model");
+    if (speed_limits.size() != speed_joints.size() || speed_lines.size() != speed_joints.size())
+      throw std::invalid_argument("one velocity limit and one ledger line per velocity-limited joint");
+    for (size_t k = 0; k < speed_joints.size(); ++k)
+    {
+      const int j = speed_joints[k];
+      if (j <= 0 || j >= model.njoints || model.joints[static_cast<size_t>(j)].nv() != 1)
+        throw std::invalid_argument("a velocity-limited joint is not a one-dof joint of the model");
+      if (!(speed_limits[k] > 0.0) || speed_lines[k] < 0)
+        throw std::invalid_argument("a velocity limit must be > 0 with a ledger line");
+      speed_dofs.push_back(model.joints[static_cast<size_t>(j)].idx_v());
+    }
     supports.assign(static_cast<size_t>(model.njoints), {});
     for (int j = 1; j < model.njoints; ++j)
     {
@@ -681,7 +797,8 @@ namespace multibody_sim
 
   bool ContactScene::step(
     ContactWork & w, const pinocchio::Model & model, const Vec & q, const Vec & v, const Vec & v_free, double h,
-    ContactRow & row, Vec & v_next, double & contact_work, double & correction, double & bounce) const
+    ContactRow & row, Vec & v_next, double & contact_work, double & correction, double & bounce,
+    std::vector<std::pair<int, double>> & speed_work) const
   {
     const ContactConstants & c = constants;
     pinocchio::Data & data = w.data;
@@ -891,6 +1008,17 @@ namespace multibody_sim
       w.keys.push_back({2, jid, 0});
       w.sizes.push_back(1);
     }
+    w.speeds.clear();  // the velocity limits the free velocity comes within the band of (appended after assembly)
+    for (size_t k = 0; k < speed_joints.size(); ++k)
+    {
+      const int iv = speed_dofs[k];
+      const double vmax = speed_limits[k], reach = (1.0 - c.speed_band) * vmax;
+      if (v_free[iv] < -reach)
+        w.add_speed({1.0, iv, speed_joints[k], vmax, speed_lines[k], 0});
+      if (v_free[iv] > reach)
+        w.add_speed({-1.0, iv, speed_joints[k], vmax, speed_lines[k], 1});
+    }
+    speed_work.clear();
     if (w.keys.empty())  // nothing to solve: TimeStepping.attempt's `problem is None`
     {
       v_next = v_free;
@@ -903,7 +1031,7 @@ namespace multibody_sim
     }
     const int n_points = static_cast<int>(w.points.size());
     const int n_limits = static_cast<int>(w.limits.size());
-    const int m = 3 * n_points + n_limits + static_cast<int>(friction_joints.size());
+    int m = 3 * n_points + n_limits + static_cast<int>(friction_joints.size());  // then the speeds' rows
     pinocchio::crba(model, data, q, pinocchio::Convention::WORLD);
     pinocchio::cholesky::decompose(model, data);
     // ---- J, row by row on its support (ContactModel._point_rows)
@@ -1108,13 +1236,9 @@ namespace multibody_sim
       w.blocks.push_back(cone::Block{
         cone::INTERVAL, 3 * n_points + n_limits + static_cast<int>(k),
         friction_force[model.joints[static_cast<size_t>(friction_joints[k])].idx_v()] * h});
-    double scale = 0.0;
-    for (int r = 0; r < m; ++r)  // np.max(np.abs(free))
-    {
-      const double x = std::abs(w.free[r]);
-      scale = r == 0 ? x : (x > scale || std::isnan(x) ? x : scale);
-    }
-    scale = c.gravity * h > scale ? c.gravity * h : scale;  // Python's max(scale, |g| h)
+    if (!w.speeds.empty())  // the velocity-limit rows, last
+      m = w.append_speed_rows(0, supports, v_free);
+    double scale = velocity_scale(w.free, c.gravity * h);
     // ---- TimeStepping._solve: warm-started from the blocks seen last step -----------------------------------
     w.guess.setZero(m);
     {
@@ -1131,10 +1255,51 @@ namespace multibody_sim
         start += w.sizes[b];
       }
     }
-    const cone::Solution solution =
+    cone::Solution solution =
       w.solver.solve(w.G, w.g, w.blocks, w.guess, scale, c.max_iterations, c.pgs, w.impulses);
+    int iterations = solution.iterations;
+    // ---- TimeStepping.attempt: v⁺ = v_free + M⁻¹ Jᵀ λ, and again with the velocity-limit rows ContactModel.speeding
+    // adds (the joints past their limit at v⁺ without their row), warm-started from the impulses so far, until none
+    const auto end_velocity = [&]() {
+      w.generalized.setZero(nv);
+      for (int r = 0; r < m; ++r)  // matvec(J.T, λ): per coordinate, the rows in order (structural zeros skipped)
+        for (int col : w.row_support[static_cast<size_t>(r)])
+          w.generalized[col] += w.J(r, col) * w.impulses[r];
+      w.minv = w.generalized;
+      pinocchio::cholesky::solve(model, data, w.minv);  // ContactModel.inverse_mass_times
+      v_next.resize(nv);
+      for (int i = 0; i < nv; ++i)
+        v_next[i] = v_free[i] + w.minv[i];
+    };
+    end_velocity();
+    for (;;)
+    {
+      const size_t selected = w.speeds.size();
+      for (size_t k = 0; k < speed_joints.size(); ++k)
+      {
+        const int jid = speed_joints[k], iv = speed_dofs[k];
+        const double vmax = speed_limits[k];
+        bool lower = false, upper = false;
+        for (size_t o = 0; o < selected; ++o)
+          if (w.speeds[o].joint == jid)
+            (w.speeds[o].side ? upper : lower) = true;
+        if (v_next[iv] < -vmax && !lower)
+          w.add_speed({1.0, iv, jid, vmax, speed_lines[k], 0});
+        if (v_next[iv] > vmax && !upper)
+          w.add_speed({-1.0, iv, jid, vmax, speed_lines[k], 1});
+      }
+      if (w.speeds.size() == selected)
+        break;
+      m = w.append_speed_rows(selected, supports, v_free);
+      scale = velocity_scale(w.free, c.gravity * h);
+      w.guess.setZero(m);
+      w.guess.head(w.impulses.size()) = w.impulses;
+      solution = w.solver.solve(w.G, w.g, w.blocks, w.guess, scale, c.max_iterations, c.pgs, w.impulses);
+      iterations += solution.iterations;
+      end_velocity();
+    }
     row.steps += 1;
-    row.iterations += solution.iterations;
+    row.iterations += iterations;
     row.unconverged += solution.converged ? 0 : 1;
     row.fallbacks += solution.fallback ? 1 : 0;
     row.keys.swap(w.keys);  // (w.keys is rebuilt next step)
@@ -1147,16 +1312,14 @@ namespace multibody_sim
         start += w.sizes[b];
       }
     }
-    // ---- TimeStepping.attempt: v⁺ = v_free + M⁻¹ Jᵀ λ and the contact's energies -----------------------------
-    w.generalized.setZero(nv);
-    for (int r = 0; r < m; ++r)  // matvec(J.T, λ): per coordinate, the rows in order (structural zeros skipped)
-      for (int col : w.row_support[static_cast<size_t>(r)])
-        w.generalized[col] += w.J(r, col) * w.impulses[r];
-    w.minv = w.generalized;
-    pinocchio::cholesky::solve(model, data, w.minv);  // ContactModel.inverse_mass_times
-    v_next.resize(nv);
-    for (int i = 0; i < nv; ++i)
-      v_next[i] = v_free[i] + w.minv[i];
+    // ---- TimeStepping.attempt: the contact's energies; each velocity-limit row's work for its actuator's line ----
+    const int n_fixed = m - static_cast<int>(w.speeds.size());
+    for (size_t k = 0; k < w.speeds.size(); ++k)
+    {
+      const ContactWork::Speed & sp = w.speeds[k];
+      const double lam = w.impulses[n_fixed + static_cast<int>(k)];
+      speed_work.emplace_back(sp.line, 0.5 * ((sp.sign * lam) * (v_next[sp.iv] + v_free[sp.iv])));
+    }
     double s = 0.0;
     for (int i = 0; i < nv; ++i)
       s += w.generalized[i] * (v_next[i] + v_free[i]);
@@ -1213,6 +1376,8 @@ namespace
     std::vector<double> friction, restitution;
     std::vector<int> limited_joints, friction_joints;
     Eigen::VectorXd friction_force;
+    std::vector<int> speed_joints, speed_lines;
+    std::vector<double> speed_limits;
     multibody_sim::ContactConstants constants;
   };
   using Bytes = Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>;
@@ -1257,6 +1422,7 @@ void multibody_sim::bind_contact(nb::module_ & m)  // called by module.cpp
     .field("max_correction_speed", &ContactConstants::max_correction_speed, "float")
     .field("touching", &ContactConstants::touching, "float")
     .field("limit_margin", &ContactConstants::limit_margin, "float")
+    .field("speed_band", &ContactConstants::speed_band, "float")
     .field("max_patch_points", &ContactConstants::max_patch_points, "int")
     .field("min_patch_spacing", &ContactConstants::min_patch_spacing, "float")
     .field("primitive_spacing", &ContactConstants::primitive_spacing, "float")
@@ -1292,6 +1458,9 @@ void multibody_sim::bind_contact(nb::module_ & m)  // called by module.cpp
     .member("limited_joints", &ContactData::limited_joints, "list[int]")
     .member("friction_joints", &ContactData::friction_joints, "list[int]")
     .member("friction_force", &ContactData::friction_force, "an array of nv floats")
+    .member("speed_joints", &ContactData::speed_joints, "list[int]")
+    .member("speed_limits", &ContactData::speed_limits, "list[float]")
+    .member("speed_lines", &ContactData::speed_lines, "list[int]")
     .member("constants", &ContactData::constants, "ContactConstants");
   nb::class_<ContactScene>(m, "ContactScene", "A scene's collision geometry and unilateral constraints.")
     .def(
@@ -1300,7 +1469,7 @@ void multibody_sim::bind_contact(nb::module_ & m)  // called by module.cpp
         const ContactData d = fields->parse(kwargs);
         new (self) ContactScene(
           model.model, d.shapes, d.pairs, d.friction, d.restitution, d.limited_joints, d.friction_joints,
-          d.friction_force, d.constants);
+          d.friction_force, d.speed_joints, d.speed_limits, d.speed_lines, d.constants);
       },
       nb::arg("model"), nb::arg("kwargs"),
       "From the scene's model and the contact model's named data (kernels/native.contact_data()).")

@@ -55,7 +55,7 @@ namespace multibody_sim
   struct ContactConstants
   {
     double speculative_margin = 0.0, penetration_correction = 0.0, penetration_slop = 0.0;
-    double max_correction_speed = 0.0, touching = 0.0, limit_margin = 0.0;
+    double max_correction_speed = 0.0, touching = 0.0, limit_margin = 0.0, speed_band = 0.0;
     double min_patch_spacing = 0.0, primitive_spacing = 0.0, patch_depth = 0.0, flat_disk = 0.0;
     double axis_tolerance = 0.0, parallel_edges = 0.0;  // narrow_phase.box_box's
     int max_patch_points = 0, max_iterations = 0;
@@ -94,7 +94,8 @@ namespace multibody_sim
   struct ContactRow
   {
     std::vector<std::array<int64_t, 3>> keys;  // ("point", pair, feature) = (0, pair, feature);
-    std::vector<Vec> impulses;                 // ("limit", joint, side) = (1, joint, side); ("friction", joint) = (2, joint, 0)
+    std::vector<Vec> impulses;                 // ("limit", joint, side) = (1, joint, side); ("friction", joint) = (2, joint, 0);
+                                               // ("speed", joint, side) = (3, joint, side)
     int64_t steps = 0, unconverged = 0, iterations = 0, fallbacks = 0;
     std::vector<std::pair<int, double>> landed;  // pair -> approach speed, in insertion order
     std::vector<std::array<double, 11>> active;  // ContactModel.records of the latest step
@@ -115,17 +116,21 @@ namespace multibody_sim
       const std::vector<int> & limited_joints,
       const std::vector<int> & friction_joints,
       const Vec & friction_force,
+      const std::vector<int> & speed_joints,
+      const std::vector<double> & speed_limits,
+      const std::vector<int> & speed_lines,
       const ContactConstants & constants);
     ~ContactScene();
 
     std::unique_ptr<ContactWork, void (*)(ContactWork *)> workspace(const pinocchio::Model & model) const;
 
     /// The contact part of TimeStepping.attempt from (q, v) with end velocity v_free before impulses: v_next,
-    /// the contact work ½ λᵀJ(v⁺ + v_free), -λᵀb_corr and -λᵀb_rest; `row` updated as the Python solver state
-    /// is. Returns whether there was a problem to solve (the Python step's evaluations: 2, else 1).
+    /// the contact work ½ λᵀJ(v⁺ + v_free), -λᵀb_corr and -λᵀb_rest, and (ledger line, work ½ λ J (v⁺ + v_free))
+    /// of each velocity-limit row; `row` updated as the Python solver state is. Returns whether there was a
+    /// problem to solve (the Python step's evaluations: 2, else 1).
     bool step(ContactWork & work, const pinocchio::Model & model, const Vec & q, const Vec & v, const Vec & v_free,
               double h, ContactRow & row, Vec & v_next, double & contact_work, double & correction,
-              double & bounce) const;
+              double & bounce, std::vector<std::pair<int, double>> & speed_work) const;
 
     int nv = 0;
     std::vector<ContactShape> shapes;
@@ -134,6 +139,11 @@ namespace multibody_sim
     std::vector<double> pair_friction, pair_restitution;
     std::vector<int> limited_joints, friction_joints;
     Vec friction_force;  // F [N·m or N] per coordinate (0 where a joint has no exact friction)
+    // the joints whose velocity limit is a constraint (their actuators' overspeed brakes), with v_max [rad/s or
+    // m/s], the index of their actuator_overspeed line in the ledger, and their v index
+    std::vector<int> speed_joints;
+    std::vector<double> speed_limits;
+    std::vector<int> speed_lines, speed_dofs;
     std::vector<std::vector<int>> supports;  // contact.ContactModel.supports: per joint, its supporting dofs
     ContactConstants constants;
   };

@@ -347,6 +347,10 @@ namespace multibody_sim
       throw std::invalid_argument("the contact scene disagrees with the model's sizes or the ledger");
     if (contact && method_.kind != Kind::timestepping)
       throw std::invalid_argument("a contact scene steps with the timestepping kind only");
+    if (contact)
+      for (int line : contact->speed_lines)
+        if (line < 0 || line >= n_ledger_ - 4)
+          throw std::invalid_argument("a velocity limit's ledger line is not one of the scene's smooth flows");
     contact_ = contact;
     flow_work_ = flow_work;
     for (auto & th : threads_)
@@ -384,7 +388,8 @@ namespace multibody_sim
     bool same_contact(const ContactScene & a, const ContactScene & b)
     {
       if (a.nv != b.nv || a.shapes.size() != b.shapes.size() || a.pairs != b.pairs
-          || a.limited_joints != b.limited_joints || a.friction_joints != b.friction_joints)
+          || a.limited_joints != b.limited_joints || a.friction_joints != b.friction_joints
+          || a.speed_joints != b.speed_joints || a.speed_lines != b.speed_lines)
         return false;
       for (size_t k = 0; k < a.shapes.size(); ++k)
         if (a.shapes[k].kind != b.shapes[k].kind || a.shapes[k].joint != b.shapes[k].joint

@@ -68,6 +68,7 @@ namespace multibody_sim
       std::vector<int64_t> extra;
     } saved;
     Vec vfree;
+    std::vector<std::pair<int, double>> speed_work;  // the contact step's (ledger line, work) per velocity-limit row
     Vec fx, pbuf, tau_control;
     Vec tact;                      // the actuators' joint torques (actuated())
     pinocchio::Model servo_model;  // a scene with servos: the model whose armature a step raises (set_actuators)
@@ -399,7 +400,8 @@ namespace multibody_sim
       bool problem = false;
       try  // a library's exception (coal, Boost, Eigen) leaves the servo model as it was, then fails the row
       {
-        problem = C->step(*cw, servos ? *SM : *M, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce);
+        problem = C->step(*cw, servos ? *SM : *M, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce,
+                          speed_work);
       }
       catch (...)
       {
@@ -415,12 +417,18 @@ namespace multibody_sim
         fn[j][i] = h * pbuf[i];
         smooth += e.flow_work_[static_cast<size_t>(i)] ? fn[j][i] : -fn[j][i];
       }
+      double held = 0.0;  // the velocity-limit rows' work, out of the contact's into their actuators' lines
+      for (const auto & [line, sw] : speed_work)
+      {
+        fn[j][line] -= sw;
+        held += sw;
+      }
       double kinetic, potential, kinetic_free, kinetic_next, kinetic_end, potential_end;
       energies(qj, vj, kinetic, potential);
       kinetic_free = kinetic_at_same_q(qj, vfree);
       kinetic_next = problem ? kinetic_at_same_q(qj, vn[j]) : kinetic_free;
       energies(qn[j], vn[j], kinetic_end, potential_end);
-      fn[j][m - 4] = correction + bounce - work;
+      fn[j][m - 4] = correction + bounce - (work - held);
       fn[j][m - 3] = correction;
       fn[j][m - 2] = bounce;
       fn[j][m - 1] = (kinetic_free - kinetic) + (kinetic_end - kinetic_next) + (potential_end - potential) - smooth;

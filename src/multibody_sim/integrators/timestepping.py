@@ -20,6 +20,8 @@ Energy ledger (each term from its own formula; energy_error then checks that the
   (``D = -λᵀ(u⁺ + b) + λᵀ b_spec + ½ λᵀ G λ``, each term ≥ 0);
 - ``penetration_correction`` (work): ``-λᵀ b_corr ≥ 0``, what pushing penetrations out puts back;
 - ``restitution`` (work): ``-λᵀ b_rest ≥ 0``, what a bounce gives back;
+- a velocity-limit row's work ``w = ½ λ J (v⁺ + v_free)`` (scenes/contact.py) is booked as dissipated (``-w``) in
+  its actuator's ``actuator_overspeed:<joint>`` line and comes out of ``contact``'s W;
 - ``timestep_error`` (work): the semi-implicit step's own O(h²) energy error per step,
   ``[T(q, v_free) - T(q, v)] + [T(q⁺, v⁺) - T(q, v⁺)] + [V(q⁺) - V(q)] - Σ smooth flows`` (in free fall
   -½ m g² h² per step, at rest +½ m g² h², which the contact takes out again).
@@ -194,20 +196,38 @@ class TimeStepping(Integrator):
                 solution = self._solve(contact.solver, problem, state) if problem is not None else None
             except Exception as exc:  # noqa: BLE001 - any library's error is the row's status and message
                 return failed("failed", f"{type(exc).__name__} raised in the contact step: {exc}", evaluations, state)
+            speed_work: list[tuple[int, float]] = []  # (ledger line, w) of each velocity-limit row
             if problem is None or solution is None:
                 v_next, impulses, work, correction, bounce = v_free, np.zeros(0), 0.0, 0.0, 0.0
                 new.impulses = {}
             else:
+                iterations = solution.iterations
+                while True:  # velocity limits the impulses carried joints past: their rows added, solved again
+                    # sums in index order from +0.0 (cone_solver.zsum), as the native kernel
+                    # (src/native/contact.cpp) forms them
+                    generalized = matvec(problem.jacobian.T, solution.impulses)
+                    v_next = v_free + contact.inverse_mass_times(generalized)
+                    added = contact.speeding(problem, v_next)
+                    if not added:
+                        break
+                    try:
+                        problem = contact.problem(q, v, v_free, h, state.landed, problem, added)
+                        guess = np.concatenate([solution.impulses, np.zeros(len(added))])
+                        solution = self._solve(contact.solver, problem, state, guess)
+                    except Exception as exc:  # noqa: BLE001 - as above
+                        message = f"{type(exc).__name__} raised in the contact step: {exc}"
+                        return failed("failed", message, evaluations, state)
+                    iterations += solution.iterations
                 impulses = solution.impulses
                 new.steps += 1
-                new.iterations += solution.iterations
+                new.iterations += iterations
                 new.unconverged += not solution.converged
                 new.fallbacks += solution.fallback
                 new.impulses = _split(impulses, problem.keys, problem.sizes)
-                # sums in index order from +0.0 (cone_solver.zsum), as the native kernel (src/native/contact.cpp)
-                # forms them
-                generalized = matvec(problem.jacobian.T, impulses)
-                v_next = v_free + contact.inverse_mass_times(generalized)
+                row = len(impulses) - len(problem.speeds)
+                for sign, iv, _, _, line, _ in problem.speeds:
+                    speed_work.append((line, 0.5 * ((sign * impulses[row]) * (v_next[iv] + v_free[iv]))))
+                    row += 1
                 work = 0.5 * float(zsum(generalized * (v_next + v_free)))  # ½ λᵀ J (v⁺ + v_free)
                 correction = -float(zsum(impulses * problem.correction))
                 bounce = -float(zsum(impulses * problem.restitution))
@@ -223,11 +243,15 @@ class TimeStepping(Integrator):
         smooth = 0.0
         for flow, (_, kind) in zip(flows[:-4], system.ledger_elements, strict=False):
             smooth += flow if kind == "work" else -flow
+        held = 0.0  # the velocity-limit rows' work, out of the contact's into their actuators' lines
+        for line, w in speed_work:
+            flows[line] -= w
+            held += w
         kinetic, potential = scene.unchecked_energies(q, v)
         kinetic_free = scene.unchecked_energies(q, v_free)[0]
         kinetic_next = scene.unchecked_energies(q, v_next)[0] if problem is not None else kinetic_free
         kinetic_end, potential_end = scene.unchecked_energies(q_next, v_next)
-        flows[-4] = correction + bounce - work
+        flows[-4] = correction + bounce - (work - held)
         flows[-3] = correction
         flows[-2] = bounce
         flows[-1] = (kinetic_free - kinetic) + (kinetic_end - kinetic_next) + (potential_end - potential) - smooth
@@ -236,15 +260,16 @@ class TimeStepping(Integrator):
             flows[-1] += (kinetic_next - kinetic_free) - work
         return Attempt(q_next, v_next, flows, None, new, evaluations + (problem is not None))
 
-    def _solve(self, solver_name: str, problem: Any, state: ContactState) -> Solution:
-        """The problem's impulses (cone_solver.solve), warm-started from the blocks seen last step."""
-        guess = np.zeros(len(problem.g))
-        start = 0
-        for key, size in zip(problem.keys, problem.sizes, strict=True):
-            previous = state.impulses.get(key)
-            if previous is not None and len(previous) == size:
-                guess[start : start + size] = previous
-            start += size
+    def _solve(self, solver_name: str, problem: Any, state: ContactState, guess: np.ndarray | None = None) -> Solution:
+        """The problem's impulses (cone_solver.solve), warm-started from `guess` or the blocks seen last step."""
+        if guess is None:
+            guess = np.zeros(len(problem.g))
+            start = 0
+            for key, size in zip(problem.keys, problem.sizes, strict=True):
+                previous = state.impulses.get(key)
+                if previous is not None and len(previous) == size:
+                    guess[start : start + size] = previous
+                start += size
         return solve(
             problem.delassus,
             problem.g,

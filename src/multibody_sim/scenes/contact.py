@@ -3,8 +3,9 @@
 A scene with contact keeps its collision shapes (coal shapes: the ground's half-space, the objects' shapes and the
 robot's collision geometry) and, at each step of the `timestepping` integrator, turns the pairs within the
 speculative margin into constraint rows (narrow_phase.py finds the points): a Coulomb cone per contact point (3
-rows: two tangential, then the normal), a row per position limit near its bound (``limits = "enforce"``) and a row
-per joint with dry friction (``friction = "exact"``). The problem handed to the cone solver (integrators/
+rows: two tangential, then the normal), a row per position limit near its bound (``limits = "enforce"``), a row
+per joint with dry friction (``friction = "exact"``) and a row per actuator velocity limit near its bound
+(``velocity_limits = "enforce"``, see below). The problem handed to the cone solver (integrators/
 cone_solver.py) is Coulomb's law on
 
     u = G λ + g,    G = J M⁻¹ Jᵀ (the Delassus matrix),   g = J v_free + b,
@@ -40,6 +41,18 @@ Bias b (normal rows only; documented choices, each booked in the energy ledger):
   one step after landing delays the bounce by at most a step but starts it from the surface, so apex heights
   are not biased by the gap at which the step found the pair. The energy a bounce gives back is the ledger's
   ``restitution`` (kind "work"): ``-λᵀ b_rest ≥ 0``; the landing took it out (in ``contact``) the step before.
+
+Velocity limits (the actuators' velocity limits as constraints, as PhysX's maximum joint velocity): every joint
+whose actuator has an overspeed brake (scenes/actuators.py) gets, in a step where its speed may reach its limit
+v_max, a row ``v⁺_j ≤ v_max`` (upper: J = −e_j, b = v_max, so u = v_max − v⁺_j ≥ 0) or ``v⁺_j ≥ −v_max`` (lower: J =
++e_j), its impulse λ ≥ 0 complementary to u: the joint ends the step at most at its limit whatever the impulses of
+the contacts do to it (an impact back-driving a leg). A selection row like a limit's: its Delassus entries are
+entries of M⁻¹. A row joins the problem when the joint's free velocity is within SPEED_BAND of its limit; after
+the solve, a joint that the other impulses carried past its limit gets its row and the problem is solved again
+(warm-started), until no joint is past its limit (speeding()): a step far from the limits costs one comparison per
+joint. Rows come last, after the friction rows, in the order they joined. The work of a row's impulse,
+``½ λ J (v⁺ + v_free)`` (≤ 0 when it holds a joint at its limit), is booked as dissipated in its actuator's
+``actuator_overspeed:<joint>`` line (the motor holding the speed), not in ``contact``.
 """
 
 from __future__ import annotations
@@ -70,6 +83,8 @@ MAX_CORRECTION_SPEED = 1.0
 # Position limits within this distance of q [rad or m] join the step's problem (speculatively): a joint faster than
 # LIMIT_MARGIN / dt (50 rad/s at 1 ms) may end a step past its limit, which the correction then undoes.
 LIMIT_MARGIN = 0.05
+# A velocity-limit row joins a step's problem when the joint's free velocity is beyond (1 - SPEED_BAND) v_max.
+SPEED_BAND = 0.02
 TOUCHING = 1e-6  # [m]: a gap below this is a touching contact (restitution applies)
 _WORLD = pin.Convention.WORLD
 # The shape kinds the native kernel renders (src/native/contact.hpp's ShapeKind); others stay on the Python kernel.
@@ -138,7 +153,8 @@ class ContactProblem:
 
     Attributes:
         points: the contact points, in row order (3 rows each, the normal last).
-        keys: one warm-start key per block: ("point", pair, feature), ("limit", joint, side), ("friction", joint).
+        keys: one warm-start key per block: ("point", pair, feature), ("limit", joint, side), ("friction", joint),
+            ("speed", joint, side) (side 0: the lower bound, 1: the upper).
         sizes: rows of each block.
         blocks: the blocks of the cone solver's set K.
         jacobian: J, shape (m, nv).
@@ -149,6 +165,7 @@ class ContactProblem:
         velocity_scale: the largest free constraint velocity |J v_free|, at least |g| h [m/s, rad/s].
         landings: pair index -> approach speed u⁻ (< 0) of the pairs that land this step (restitution).
         limit_rows, friction_rows: rows of the joint-limit and joint-friction blocks.
+        speeds: the velocity-limit rows, last, in order: (sign, v index, joint, v_max, ledger line, side) each.
     """
 
     points: list[ContactPoint]
@@ -164,6 +181,7 @@ class ContactProblem:
     landings: dict[int, float] = field(default_factory=dict)
     limit_rows: int = 0
     friction_rows: int = 0
+    speeds: list[tuple[float, int, int, float, int, int]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -212,6 +230,8 @@ class ContactModel:
         friction: "exact" or "regularized" (joint dry friction).
         limited_joints: joint ids whose position limits are enforced (limits = "enforce").
         friction_joints: (joint id, F [N·m or N]) of joints with exact dry friction.
+        speed_limits: (joint id, v_max [rad/s or m/s], ledger line) of joints whose velocity limit is a constraint
+            (the line: the index of its actuator_overspeed line in the scene's ledger).
         has_robot: the scene has a robot (describe() then says whether it has collision geometry).
         robot_geometry_note: why the robot has no collision geometry, if it has none (for describe()).
         robot_file: "URDF" or "MJCF": the file the robot's collision geometry comes from (for describe()).
@@ -232,6 +252,7 @@ class ContactModel:
         friction: str = "regularized",
         limited_joints: Sequence[int] = (),
         friction_joints: Sequence[tuple[int, float]] = (),
+        speed_limits: Sequence[tuple[int, float, int]] = (),
         has_robot: bool = False,
         robot_geometry_note: str = "",
         robot_file: str = "URDF",
@@ -272,6 +293,8 @@ class ContactModel:
         ]
         self.limited_joints = list(limited_joints)
         self.friction_joints = list(friction_joints)
+        self.speed_limits = [(int(j), float(vmax), int(line)) for j, vmax, line in speed_limits]
+        self._speeds = [(jid, model.joints[jid].idx_v, vmax, line) for jid, vmax, line in self.speed_limits]
         self.shapes = [_shape_data(g) for g in self.geometries]
         self.pair_kinds = [narrow.pair_kind(self.geometries[a].kind, self.geometries[b].kind) for a, b in self.pairs]
         # the dofs supporting each joint (its own and its ancestors'), ascending: where its Jacobian can be nonzero
@@ -288,8 +311,8 @@ class ContactModel:
     # ---- what it models ----------------------------------------------------------------------------
     @property
     def empty(self) -> bool:
-        """No pair, no enforced limit, no exact friction: nothing to solve, ever."""
-        return not self.pairs and not self.limited_joints and not self.friction_joints
+        """No pair, no enforced limit, no exact friction, no velocity limit: nothing to solve, ever."""
+        return not self.pairs and not self.limited_joints and not self.friction_joints and not self.speed_limits
 
     @property
     def body_names(self) -> list[str]:
@@ -333,6 +356,9 @@ class ContactModel:
             "limited_joints": [int(j) for j in self.limited_joints],
             "friction_joints": [int(j) for j, _ in self.friction_joints],
             "friction_force": force,
+            "speed_joints": [j for j, _, _ in self.speed_limits],
+            "speed_limits": [vmax for _, vmax, _ in self.speed_limits],
+            "speed_lines": [line for _, _, line in self.speed_limits],
             "constants": {
                 "speculative_margin": SPECULATIVE_MARGIN,
                 "penetration_correction": PENETRATION_CORRECTION,
@@ -340,6 +366,7 @@ class ContactModel:
                 "max_correction_speed": MAX_CORRECTION_SPEED,
                 "touching": TOUCHING,
                 "limit_margin": LIMIT_MARGIN,
+                "speed_band": SPEED_BAND,
                 "max_patch_points": MAX_PATCH_POINTS,
                 "min_patch_spacing": MIN_PATCH_SPACING,
                 "primitive_spacing": PRIMITIVE_SPACING,
@@ -423,6 +450,12 @@ class ContactModel:
             else "reported, not enforced"
         )
         lines.append(f"  position limits: {limits}")
+        if self.speed_limits:
+            n = len(self.speed_limits)
+            lines.append(
+                f"  velocity limits: enforced as unilateral constraints on {n} joint{'s' if n != 1 else ''} (their "
+                "actuators' overspeed brakes; velocity_limits = \"brake\" leaves the brakes alone)"
+            )
         if self.friction == "exact":
             lines.append(f"  joint dry friction: exact (a constraint: stiction), on {len(self.friction_joints)} joints")
         else:
@@ -498,10 +531,17 @@ class ContactModel:
         return narrow.coal_candidates(self.geometry_model, self.geometry_data, k)
 
     def problem(
-        self, q: np.ndarray, v: np.ndarray, v_free: np.ndarray, dt: float, landed: dict[int, float] | None = None
+        self,
+        q: np.ndarray,
+        v: np.ndarray,
+        v_free: np.ndarray,
+        dt: float,
+        landed: dict[int, float] | None = None,
+        previous: ContactProblem | None = None,
+        added: Sequence[tuple[float, int, int, float, int, int]] = (),
     ) -> ContactProblem | None:
         """The constraint problem of a step from (q, v) whose unconstrained end velocity is v_free, or None when
-        nothing is in contact, near a limit or under exact friction.
+        nothing is in contact, near a limit (of position, or of velocity within SPEED_BAND) or under exact friction.
 
         Args:
             q: configuration at the step's start, shape (nq,).
@@ -509,9 +549,11 @@ class ContactModel:
             v_free: v + dt · a(q, v, tau): the end velocity without constraint impulses, shape (nv,).
             dt: the step [s].
             landed: pair index -> approach speed of the pairs that landed on the previous step (restitution).
+            previous, added: the same step's problem solved already, and the velocity-limit rows to add to it
+                (speeding()): its points, limits and speed rows are kept, these appended.
         """
         model, data = self.model, self.data
-        points = self.detect(q)
+        points = self.detect(q) if previous is None else previous.points
         keys: list[tuple[Any, ...]] = [("point", *point.key) for point in points]
         sizes = [3] * len(points)
         # (sign, v index, joint, distance) of each limit within LIMIT_MARGIN of q: lower bounds push up, upper down
@@ -526,11 +568,23 @@ class ContactModel:
                 limits.append((-1.0, iv, jid, float(above)))
                 keys.append(("limit", jid, 1))
         keys += [("friction", jid) for jid, _ in self.friction_joints]
-        sizes += [1] * (len(limits) + len(self.friction_joints))
+        if previous is None:  # the velocity limits the free velocity comes within SPEED_BAND of
+            speeds = []
+            for jid, iv, vmax, line in self._speeds:
+                reach = (1.0 - SPEED_BAND) * vmax
+                if v_free[iv] < -reach:
+                    speeds.append((1.0, iv, jid, vmax, line, 0))
+                if v_free[iv] > reach:
+                    speeds.append((-1.0, iv, jid, vmax, line, 1))
+        else:
+            speeds = [*previous.speeds, *added]
+        keys += [("speed", jid, side) for _, _, jid, _, _, side in speeds]
+        sizes += [1] * (len(limits) + len(self.friction_joints) + len(speeds))
         if not keys:
             return None
         n_points, nv = len(points), model.nv
-        m = 3 * n_points + len(limits) + len(self.friction_joints)
+        n_speeds = len(speeds)
+        m = 3 * n_points + len(limits) + len(self.friction_joints) + n_speeds
         pin.crba(model, data, q, _WORLD)  # M (upper triangle) and the joint Jacobians data.J, world frame
         pin.cholesky.decompose(model, data)  # M = U D Uᵀ
         # ---- J, row by row on its support
@@ -544,6 +598,9 @@ class ContactModel:
             row += 1
         for jid, _ in self.friction_joints:
             J[row, model.joints[jid].idx_v] = 1.0
+            row += 1
+        for sign, iv, _, _, _, _ in speeds:
+            J[row, iv] = sign
             row += 1
         # ---- G = Zᵀ D⁻¹ Z, Z = U⁻¹ Jᵀ (the tree-sparse back substitution of Pinocchio's cholesky::Uiv)
         U = np.asarray(data.U)
@@ -590,9 +647,15 @@ class ContactModel:
             correction[row] = max(push, -MAX_CORRECTION_SPEED)
             g[row] += distance / dt if distance >= 0.0 else correction[row]
             row += 1
+        row += len(self.friction_joints)
+        for _, _, _, vmax, _, _ in speeds:  # u = v_max ± v⁺ ≥ 0
+            g[row] += vmax
+            row += 1
         kinds = [CONE] * n_points + [HALFLINE] * len(limits) + [INTERVAL] * len(self.friction_joints)
+        kinds += [HALFLINE] * n_speeds
         starts = [3 * c for c in range(n_points)] + list(range(3 * n_points, m))
         params = [p.friction for p in points] + [0.0] * len(limits) + [f * dt for _, f in self.friction_joints]
+        params += [0.0] * n_speeds
         blocks = Blocks(np.array(kinds, dtype=int), np.array(starts, dtype=int), np.array(params, dtype=float))
         scale = max(float(np.max(np.abs(free))), self.gravity * dt)
         return ContactProblem(
@@ -609,7 +672,22 @@ class ContactModel:
             landings=landings,
             limit_rows=len(limits),
             friction_rows=len(self.friction_joints),
+            speeds=speeds,
         )
+
+    def speeding(
+        self, problem: ContactProblem | None, v_next: np.ndarray
+    ) -> list[tuple[float, int, int, float, int, int]]:
+        """The velocity-limit rows a solved step still needs: (sign, v index, joint, v_max, ledger line, side) of each
+        joint past its limit at the step's end velocity v_next (nv,) without its row in `problem` (None: no rows)."""
+        present = {(jid, side) for _, _, jid, _, _, side in problem.speeds} if problem is not None else set()
+        out = []
+        for jid, iv, vmax, line in self._speeds:
+            if v_next[iv] < -vmax and (jid, 0) not in present:
+                out.append((1.0, iv, jid, vmax, line, 0))
+            if v_next[iv] > vmax and (jid, 1) not in present:
+                out.append((-1.0, iv, jid, vmax, line, 1))
+        return out
 
     def _point_rows(self, point: ContactPoint, jacobians: np.ndarray, nv: int) -> np.ndarray:
         """A contact point's 3 rows of J: the velocity of point 2 relative to point 1 in the contact frame, from the
@@ -643,9 +721,15 @@ class ContactModel:
         return np.array(pin.cholesky.solve(self.model, self.data, x), dtype=float)
 
 
-def build_contact(scene: Any, spec: Any, exact_friction: Sequence[tuple[int, float]]) -> ContactModel:
+def build_contact(
+    scene: Any,
+    spec: Any,
+    exact_friction: Sequence[tuple[int, float]],
+    speed_limits: Sequence[tuple[int, float, int]] = (),
+) -> ContactModel:
     """The ContactModel a scene declares: the ground, the objects' shapes, [[contact.geometry]] on the robot, the
-    pairs, the limits to enforce and the joints with exact dry friction.
+    pairs, the limits to enforce, the joints with exact dry friction and the velocity limits to enforce (joint,
+    v_max, ledger line: Scene._speed_limits).
 
     Raises:
         SceneError: an unknown frame or body name (the message lists the valid ones).
@@ -733,6 +817,7 @@ def build_contact(scene: Any, spec: Any, exact_friction: Sequence[tuple[int, flo
         friction=settings.friction if settings is not None else "regularized",
         limited_joints=limited,
         friction_joints=exact_friction,
+        speed_limits=speed_limits,
         has_robot=spec.robot is not None,
         robot_geometry_note=note,
         robot_file="MJCF" if scene.source.get("format") == "mjcf" else "URDF",

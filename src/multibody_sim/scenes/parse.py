@@ -41,6 +41,7 @@ from .spec import (
     CONTACT_INTEGRATOR,
     CONTACT_KEYS,
     CONTACT_LIMITS,
+    CONTACT_VELOCITY_LIMITS,
     CONTACT_PAIRS,
     CONTACT_SOLVERS,
     DEFAULT_FRICTION_VELOCITY,
@@ -692,6 +693,9 @@ class _Parser:
         return ContactSpec(
             pairs=pairs,
             limits=self.choice(table.get("limits", "report"), "contact.limits", CONTACT_LIMITS),
+            velocity_limits=self.choice(
+                table.get("velocity_limits", "enforce"), "contact.velocity_limits", CONTACT_VELOCITY_LIMITS
+            ),
             friction=self.choice(table.get("friction", "regularized"), "contact.friction", CONTACT_FRICTION),
             solver=self.choice(table.get("solver", "admm"), "contact.solver", CONTACT_SOLVERS),
             body_friction=self.positive(

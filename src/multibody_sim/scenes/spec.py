@@ -63,6 +63,7 @@ GROUND_KEYS = ("height", "friction", "restitution")
 CONTACT_KEYS = (
     "pairs",
     "limits",
+    "velocity_limits",
     "friction",
     "solver",
     "body_friction",
@@ -72,6 +73,7 @@ CONTACT_KEYS = (
 )
 CONTACT_PAIRS = ("ground", "all")
 CONTACT_LIMITS = ("enforce", "report")
+CONTACT_VELOCITY_LIMITS = ("enforce", "brake")
 CONTACT_FRICTION = ("exact", "regularized")
 CONTACT_SOLVERS = ("admm", "pgs")
 ROBOT_GEOMETRY = ("urdf", "declared")
@@ -395,6 +397,9 @@ class ContactSpec:
         pairs: "ground" (every collision geometry against the ground), "all" (also between bodies, adjacent
             links excluded) or explicit pairs of body names (links, objects or "ground").
         limits: "enforce" (URDF position limits as unilateral constraints) or "report" (counted only).
+        velocity_limits: "enforce" (the velocity limit of every actuator with an overspeed brake as unilateral
+            constraints of the step: joint speeds within their limits through impacts) or "brake" (the brakes
+            alone, which impacts can back-drive past the limit).
         friction: "exact" (joint dry friction as a constraint: exact stiction) or "regularized" (tanh).
         solver: "admm" (Pinocchio's ADMM) or "pgs" (projected Gauss–Seidel).
         body_friction: Coulomb μ of contacts between bodies (ground contacts take [ground] friction).
@@ -407,6 +412,7 @@ class ContactSpec:
 
     pairs: str | tuple[tuple[str, str], ...] = "ground"
     limits: str = "report"
+    velocity_limits: str = "enforce"
     friction: str = "regularized"
     solver: str = "admm"
     body_friction: float = DEFAULT_GROUND_FRICTION
