@@ -325,8 +325,9 @@ def main() -> None:
         "motion itself (the legs fold under the robot's weight: with the catalog's motors and brakes at joint speeds "
         "up to 16 rad/s, without a model up to 135 rad/s, without the brakes 46 rad/s, over 2 s at 1 ms), and with it "
         "the contact problems the steps solve: that ratio compares different motions, not an overhead. The "
-        "velocity-limit rows' row is the same motors with and without the rows, under the same zero commands (the "
-        "calves fold at up to their limit, so rows join some steps); where no joint comes within 2 % of its limit "
+        "velocity-limit rows' row is the same motors with and without the rows, under the same zero commands: the "
+        "calves fold at up to their limit, so rows join some steps and there hold the calves at it, which changes "
+        "the motion a little too; where no joint comes within 2 % of its limit "
         "the rows add no row and no solve (tests/test_velocity_limits.py: the same problems, solver iterations "
         "and samples bit for bit as without them).",
     ]
