@@ -725,11 +725,12 @@ def build_contact(
     scene: Any,
     spec: Any,
     exact_friction: Sequence[tuple[int, float]],
-    speed_limits: Sequence[tuple[int, float, int]] = (),
+    robot_lines: int = 0,
 ) -> ContactModel:
     """The ContactModel a scene declares: the ground, the objects' shapes, [[contact.geometry]] on the robot, the
-    pairs, the limits to enforce, the joints with exact dry friction and the velocity limits to enforce (joint,
-    v_max, ledger line: Scene._speed_limits).
+    pairs, the limits to enforce, the joints with exact dry friction and the velocity limits to enforce: those of
+    every actuator with an overspeed brake unless velocity_limits = "brake", each with its actuator_overspeed
+    line's index in the scene's ledger (the actuators' lines follow the robot's `robot_lines`).
 
     Raises:
         SceneError: an unknown frame or body name (the message lists the valid ones).
@@ -817,11 +818,23 @@ def build_contact(
         friction=settings.friction if settings is not None else "regularized",
         limited_joints=limited,
         friction_joints=exact_friction,
-        speed_limits=speed_limits,
+        speed_limits=_speed_limits(scene.actuators, model, robot_lines, settings),
         has_robot=spec.robot is not None,
         robot_geometry_note=note,
         robot_file="MJCF" if scene.source.get("format") == "mjcf" else "URDF",
     )
+
+
+def _speed_limits(actuators: Any, model: pin.Model, robot_lines: int, settings: Any) -> list[tuple[int, float, int]]:
+    """(joint id, v_max, ledger line) of each velocity limit the contact step enforces (build_contact)."""
+    if actuators is None or (settings is not None and settings.velocity_limits != "enforce"):
+        return []
+    names = [name for name, _ in actuators.ledger]
+    return [
+        (model.getJointId(a.joint), a.velocity_limit, robot_lines + names.index(f"actuator_overspeed:{a.joint}"))
+        for a in actuators.items
+        if a.overspeed == "brake"
+    ]
 
 
 def _urdf_geometries(scene: Any, skip_joints: set[int], where: str) -> list[Geometry]:

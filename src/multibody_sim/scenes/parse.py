@@ -41,7 +41,6 @@ from .spec import (
     CONTACT_INTEGRATOR,
     CONTACT_KEYS,
     CONTACT_LIMITS,
-    CONTACT_VELOCITY_LIMITS,
     CONTACT_PAIRS,
     CONTACT_SOLVERS,
     DEFAULT_FRICTION_VELOCITY,
@@ -69,6 +68,7 @@ from .spec import (
     SHAPES,
     SIMULATION_KEYS,
     SIMULATION_OPTIONS,
+    SPEED_CAPS,
     TARGET_KEYS,
     TOP_LEVEL_KEYS,
     ActuatorSpec,
@@ -693,9 +693,7 @@ class _Parser:
         return ContactSpec(
             pairs=pairs,
             limits=self.choice(table.get("limits", "report"), "contact.limits", CONTACT_LIMITS),
-            velocity_limits=self.choice(
-                table.get("velocity_limits", "enforce"), "contact.velocity_limits", CONTACT_VELOCITY_LIMITS
-            ),
+            velocity_limits=self.choice(table.get("velocity_limits", "enforce"), "contact.velocity_limits", SPEED_CAPS),
             friction=self.choice(table.get("friction", "regularized"), "contact.friction", CONTACT_FRICTION),
             solver=self.choice(table.get("solver", "admm"), "contact.solver", CONTACT_SOLVERS),
             body_friction=self.positive(

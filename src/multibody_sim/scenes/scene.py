@@ -268,8 +268,8 @@ class Scene(Robot):
                 )
             from .contact import PENETRATION_SLOP, build_contact
 
-            contact_spec = contact_values(spec, values)
-            self.contact = build_contact(self, contact_spec, exact_friction, self._speed_limits(contact_spec))
+            lines = len(super().ledger_elements)  # the robot's: the actuators' ledger lines follow them
+            self.contact = build_contact(self, contact_values(spec, values), exact_friction, lines)
             # An enforced limit holds to the penetration slop, by design: only an excursion beyond it is a violation.
             for jid in self.contact.limited_joints:
                 iq = model.joints[jid].idx_q
@@ -319,20 +319,6 @@ class Scene(Robot):
             self.randomizer = variant_of.randomizer
         elif spec.randomize is not None:
             self.randomizer = Randomizer(spec.randomize, self.nominal_parameters, where)
-
-    def _speed_limits(self, spec: SceneSpec) -> list[tuple[int, float, int]]:
-        """(joint id, v_max, ledger line) of the joints whose velocity limit the contact step enforces: every actuator
-        with an overspeed brake, unless [contact] velocity_limits = "brake"; the line is its actuator_overspeed
-        line's index in the ledger (the robot's lines come first, then the actuators')."""
-        if self.actuators is None or (spec.contact is not None and spec.contact.velocity_limits != "enforce"):
-            return []
-        start = len(super().ledger_elements)
-        names = [name for name, _ in self.actuators.ledger]
-        return [
-            (self.model.getJointId(a.joint), a.velocity_limit, start + names.index(f"actuator_overspeed:{a.joint}"))
-            for a in self.actuators.items
-            if a.overspeed == "brake"
-        ]
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, nq={self.nq}, nv={self.nv}, elements={len(self._flow_elements) - 1})"

@@ -73,7 +73,7 @@ CONTACT_KEYS = (
 )
 CONTACT_PAIRS = ("ground", "all")
 CONTACT_LIMITS = ("enforce", "report")
-CONTACT_VELOCITY_LIMITS = ("enforce", "brake")
+SPEED_CAPS = ("enforce", "brake")  # [contact] velocity_limits: the brakes' limits as constraints too, or brakes alone
 CONTACT_FRICTION = ("exact", "regularized")
 CONTACT_SOLVERS = ("admm", "pgs")
 ROBOT_GEOMETRY = ("urdf", "declared")
