@@ -30,7 +30,10 @@ needs_native = pytest.mark.skipif(
 )
 
 
-def rotor(load: float = LOAD, velocity_limits: str = "enforce", **actuator: object) -> ms.Scene:
+def rotor(
+    load: float = LOAD, velocity_limits: str = "enforce", solver: str = "admm", randomize: dict | None = None,
+    **actuator: object,
+) -> ms.Scene:
     """The shipped pendulum without gravity (a free rotor of inertia I_ROTOR) with a torque actuator (effort 10 N·m,
     velocity limit 3 rad/s, its overspeed brake by default) and a constant external torque `load` about its hinge;
     a ground far below makes it a contact scene (stepped by timestepping) that nothing touches."""
@@ -42,7 +45,8 @@ def rotor(load: float = LOAD, velocity_limits: str = "enforce", **actuator: obje
         actuator=[table],
         force=force,
         ground={"height": -10.0},
-        contact={"velocity_limits": velocity_limits},
+        contact={"velocity_limits": velocity_limits, "solver": solver},
+        **({"randomize": randomize} if randomize else {}),
     )
 
 
@@ -169,9 +173,9 @@ def test_go2_standing_far_from_its_limits_steps_as_without_the_rows() -> None:
 
 
 @needs_native
-@pytest.mark.parametrize("velocity_limits", ["enforce", "brake"])
-def test_the_native_kernel_renders_the_rows_bit_for_bit(velocity_limits, monkeypatch) -> None:
-    native_run, python_run = both(lambda: spin(rotor(velocity_limits=velocity_limits), 0.1), monkeypatch)
+@pytest.mark.parametrize(("velocity_limits", "solver"), [("enforce", "admm"), ("brake", "admm"), ("enforce", "pgs")])
+def test_the_native_kernel_renders_the_rows_bit_for_bit(velocity_limits, solver, monkeypatch) -> None:
+    native_run, python_run = both(lambda: spin(rotor(velocity_limits=velocity_limits, solver=solver), 0.1), monkeypatch)
     assert native_run.metadata["kernel"] == "native" and python_run.metadata["kernel"] != "native"
     assert_same_run(native_run, python_run, STATS)
 
@@ -183,3 +187,23 @@ def test_the_native_kernel_renders_a_falling_go2_bit_for_bit(monkeypatch) -> Non
         np.testing.assert_array_equal(getattr(native_run, name), getattr(python_run, name), err_msg=name)
     for name in native_run.ledger:
         np.testing.assert_array_equal(native_run.ledger[name].energy, python_run.ledger[name].energy, err_msg=name)
+
+
+@needs_native
+def test_rows_with_drawn_velocity_limits_hold_each_row_at_its_own(monkeypatch) -> None:
+    """[randomize] draws each row's velocity limit: each row ends held at its own drawn limit, natively as on Python
+    bit for bit (the engine's per-row contact scenes carry their limits)."""
+    drawn = {"name": "velocity_limit", "joints": "hinge", "distribution": "uniform", "scale": [0.5, 1.5]}
+    scene = rotor(randomize={"seed": 0, "parameter": [drawn]})
+
+    def run():
+        return ms.rollout(scene, np.zeros((4, 1)), np.zeros((4, 1)), duration=0.1, dt=DT, integrator="timestepping",
+                          progress=False)  # fmt: skip
+
+    native_run, python_run = both(run, monkeypatch)
+    assert native_run.metadata["kernel"] == "native"
+    limits = np.array([p["velocity_limit"]["hinge"] for p in native_run.metadata["parameters"]])
+    assert len(set(limits.tolist())) == 4
+    np.testing.assert_allclose(native_run.v[:, -1, 0], limits, rtol=0, atol=1e-8)
+    np.testing.assert_array_equal(native_run.v, python_run.v)
+    np.testing.assert_array_equal(native_run.energy_error, python_run.energy_error)
