@@ -786,7 +786,8 @@ def test_native_kinematic_sensors_taken_from_the_next_steps_aba_equal_the_python
     the tick's state (measure.hpp, kinematics_after_aba), and the last tick of each engine call from a pass of its
     own: the readings are still the Python kernel's bit for bit. ur5 under servos with rk4 and semi-implicit Euler
     (a built-in controller: many steps per engine call; sensors at 500 Hz: ticks every other step), a one-row
-    rollout of torques, and go2 standing on two threads under the time-stepper with its catalog motors."""
+    rollout of torques sampled at every tick or every fourth (the IMU 1 reading late), and go2 standing on two
+    threads under the time-stepper with its catalog motors."""
     _native_or_skip()
     import dataclasses
 
@@ -817,12 +818,16 @@ def test_native_kinematic_sensors_taken_from_the_next_steps_aba_equal_the_python
             assert np.abs(np.diff(native.sensors["imu"][:, :3], axis=0)).max() > 1e-3  # the arm moves
     bare = ms.make_scene(robot={"source": "ur5"}, sensor=sensors[:2])
     taus = np.tile(np.linspace(-2.0, 2.0, bare.nv), (1, 40, 1))
-    native, python = _both(
-        monkeypatch,
-        lambda: ms.rollout(bare, bare.q0[None], np.zeros((1, bare.nv)), duration=0.04, dt=1e-3, taus=taus),
-    )
-    for name in python.sensors:
-        np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=f"rollout {name}")
+    for output_dt in (None, 4e-3):  # a sample at every tick (velocities shared with its energies), or every 4th
+        native, python = _both(
+            monkeypatch,
+            lambda o=output_dt: ms.rollout(
+                bare, bare.q0[None], np.zeros((1, bare.nv)), duration=0.04, dt=1e-3, taus=taus, output_dt=o
+            ),
+        )
+        assert native.metadata["kernel"] == "native" and python.metadata["kernel"] != "native"
+        for name in python.sensors:
+            np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=f"rollout {name}")
     go2 = _with_sensors(
         ms.load_scene(_scene_file("go2_standing.toml")),
         [

@@ -1,6 +1,7 @@
 // sensors.Sensors.measure in C++: a scene's sensors' noiseless measurement at a tick, each operation in the Python
 // kernel's order (the same Pinocchio calls on the same arguments; the few sums Python writes itself, as ordered.py
-// orders them), so that both kernels give the same readings bit for bit. Included by methods.hpp and loop.hpp (engine.cpp) only.
+// orders them), so that both kernels give the same readings bit for bit. Included by methods.hpp and loop.hpp
+// (engine.cpp) only.
 #pragma once
 
 #include <cmath>
@@ -35,39 +36,45 @@ namespace multibody_sim
     // ABA's first pass left each joint's calc (jdata: M, v, S, c), liMi and oMi exactly as forwardKinematics' step
     // computes them (the same calls in the same order: pinocchio/algorithm/aba.hxx, kinematics.hxx), so only the
     // rest of that step is done here, in its arithmetic: the readings are kinematics()' bit for bit, at a fraction
-    // of its cost (no sin/cos, no placement products).
+    // of its cost (no sin/cos, no placement products). `velocities`: the step's data.v already holds them (a
+    // sample's energies computed them: Rows::settle, the same recursion).
     struct AfterAba : pinocchio::fusion::JointUnaryVisitorBase<AfterAba>
     {
       typedef boost::fusion::vector<const pinocchio::Model &, const pinocchio::Data &, pinocchio::Data &,
-                                    const Eigen::VectorXd &>
+                                    const Eigen::VectorXd &, bool>
         ArgsType;
 
       template<typename JointModel>
       static void algo(const pinocchio::JointModelBase<JointModel> & jmodel,
                        pinocchio::JointDataBase<typename JointModel::JointDataDerived> & jdata,
                        const pinocchio::Model & model, const pinocchio::Data & step, pinocchio::Data & data,
-                       const Eigen::VectorXd & a)
+                       const Eigen::VectorXd & a, bool velocities)
       {
         const pinocchio::JointIndex i = jmodel.id();
         const pinocchio::JointIndex parent = model.parents[i];
-        data.v[i] = jdata.v();
         data.liMi[i] = step.liMi[i];
         data.oMi[i] = step.oMi[i];
-        if (parent > 0)
-          data.v[i] += data.liMi[i].actInv(data.v[parent]);
+        if (velocities)
+          data.v[i] = step.v[i];
+        else
+        {
+          data.v[i] = jdata.v();
+          if (parent > 0)
+            data.v[i] += data.liMi[i].actInv(data.v[parent]);
+        }
         data.a[i] = jdata.S() * jmodel.JointMappedVelocitySelector(a) + jdata.c() + (data.v[i] ^ jdata.v());
         data.a[i] += data.liMi[i].actInv(data.a[parent]);
       }
     };
 
-    inline void kinematics_after_aba(
-      const pinocchio::Model & model, pinocchio::Data & step, SensorWork & w, const Eigen::VectorXd & a)
+    inline void kinematics_after_aba(const pinocchio::Model & model, pinocchio::Data & step, SensorWork & w,
+                                     const Eigen::VectorXd & a, bool velocities)
     {
       pinocchio::Data & data = w.data;
       data.v[0].setZero();
       data.a[0].setZero();
       for (pinocchio::JointIndex i : w.kinematic_joints)
-        AfterAba::run(model.joints[i], step.joints[i], AfterAba::ArgsType(model, step, data, a));
+        AfterAba::run(model.joints[i], step.joints[i], AfterAba::ArgsType(model, step, data, a, velocities));
     }
 
     // The sum of the contact impulses on `body` over h (Sensors._contact_force).

@@ -747,26 +747,30 @@ namespace multibody_sim
     // sampled state and computes the same joint placements (liMi, oMi: ABA's first pass does forwardKinematics'
     // arithmetic); only the velocity recursion is left, done here exactly as forwardKinematics does it. A sample
     // whose row takes no such step before advance() returns gets its energies by flush().
+    // A waiting sensor tick at this state (SensorWork::defer) is measured here too, with the same velocities (the
+    // sample's when it has one: the same arithmetic, so they are not computed twice).
     void settle(size_t j)
     {
+      const bool sample = pending[j] >= 0;
+      if (sample)
+      {
+        const pinocchio::Model & model = e.model_;
+        for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
+        {
+          const pinocchio::JointIndex parent = model.parents[i];
+          data.v[i] = data.joints[i].v();
+          if (parent > 0)
+            data.v[i] += data.liMi[i].actInv(data.v[parent]);
+        }
+        write_energies(*pending_store, pending[j], q[j], v[j]);
+        pending[j] = -1;
+      }
       if (sensw && sensw->waits(j))
       {
         SensorWork & sw_ = *sensw;
-        sensing::kinematics_after_aba(*M, data, sw_, sw_.pending_a[j]);
+        sensing::kinematics_after_aba(*M, data, sw_, sw_.pending_a[j], sample);
         measure_kinematic(j);
       }
-      if (pending[j] < 0)
-        return;
-      const pinocchio::Model & model = e.model_;
-      for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
-      {
-        const pinocchio::JointIndex parent = model.parents[i];
-        data.v[i] = data.joints[i].v();
-        if (parent > 0)
-          data.v[i] += data.liMi[i].actInv(data.v[parent]);
-      }
-      write_energies(*pending_store, pending[j], q[j], v[j]);
-      pending[j] = -1;
     }
 
     // Row j's waiting tick: its imu and frame_pose sensors from sensw->data's kinematics
