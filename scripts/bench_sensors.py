@@ -12,7 +12,10 @@ scene, then its median):
 - sensors: a typical set read at every step: ur5: an IMU at tool0 (noise, bias, latency), joint positions and
   velocities (noise) and torques; go2_standing: an IMU at the base (noise, latency), the four feet's contact forces
   (noise), joint positions and velocities (noise);
-- both.
+- both;
+- without a rate: the sensors without their noise, bias and latency (both scenes), and ur5's IMU alone, without
+  noise; and per scene the CPU time of its sensor set's noise draws per reading, timed beside the runs in each round
+  (numpy PCG64 standard_normal, as SensorStream draws them), as a fraction of the bare step.
 
 The workload is a rollout of one row on the native kernel, sampling every step at dt = 1 ms: ur5 with rk4,
 go2_standing with the time-stepper. A variant's time per step is a long run's CPU time minus a one-step run's (the
@@ -116,28 +119,77 @@ def variants(rate: float | None) -> dict[str, dict[str, Any]]:
         for label, chosen in (("sensors without noise, bias, latency", clean), ("the IMU alone, without noise", imu)):
             arm = ur5(False, chosen)
             out["ur5"][label] = runner(arm, "rk4", taus=arm.q0.copy())
+        quiet = [{k: v for k, v in s.items() if k not in ("noise", "bias", "latency")} for s in go2_sensors(None)]
+        legs = go2(False, quiet)
+        out["go2_standing"]["sensors without noise, bias, latency"] = runner(
+            legs, "timestepping", controller=legs.make_controller()
+        )
     return out
 
 
-def cpu(run: Any, steps: int) -> float:
+def draws_cost(scene: str, steps: int) -> float:
+    """CPU time of the noise draws the scene's sensor set makes in `steps` readings [µs per reading], drawn as
+    SensorStream draws them (numpy PCG64 standard_normal, (steps, width) per noisy sensor)."""
+    system = ur5(False, ur5_sensors(None)) if scene == "ur5" else go2(False, go2_sensors(None))
+    sensors = system.sensors
+    assert sensors is not None
+    noisy = [p.width for p in sensors.placed if np.any(p.noise)]
+    generators = [np.random.default_rng(k) for k in range(len(noisy))]
+    start = time.process_time()
+    for generator, width in zip(generators, noisy, strict=True):
+        generator.standard_normal((steps, width))
+    return (time.process_time() - start) / steps * 1e6
+
+
+ENGINE = [0.0]  # CPU time spent inside the engine's calls (NativeCore.advance), see timed_engine()
+
+
+def timed_engine() -> None:
+    """Instrumentation: add the CPU time of every NativeCore.advance (the engine's stepping, with the small Python
+    around each call) to ENGINE, so that a run's time splits into the engine's and the Python's around it."""
+    from multibody_sim.kernels.native import NativeCore
+
+    advance = NativeCore.advance
+
+    def timed(self: Any, *args: Any, **kwargs: Any) -> Any:
+        start = time.process_time()
+        try:
+            return advance(self, *args, **kwargs)
+        finally:
+            ENGINE[0] += time.process_time() - start
+
+    NativeCore.advance = timed  # type: ignore[method-assign]
+
+
+def cpu(run: Any, steps: int) -> tuple[float, float]:
+    """CPU time of run(steps) [s], and of its engine calls."""
+    ENGINE[0] = 0.0
     start = time.process_time()
     run(steps)
-    return time.process_time() - start
+    return time.process_time() - start, ENGINE[0]
 
 
-def measure(runs: dict[str, dict[str, Any]], rounds: int, steps: int) -> tuple[dict, dict]:
+def measure(runs: dict[str, dict[str, Any]], rounds: int, steps: int) -> tuple[dict, dict, dict]:
+    """Per variant, its µs per step in each round (and of them, inside the engine's calls); per scene (key (scene,
+    "noise draws")), the CPU time of its sensor set's noise draws per reading in each round; and which kernel ran
+    each variant."""
     kernels = {}
     for scene, table in runs.items():
         for label, run in table.items():
             batch = run(10)  # warm up, and say which kernel runs it
             kernels[(scene, label)] = batch.metadata["kernel"]
     times: dict[tuple[str, str], list[float]] = {key: [] for key in kernels}
+    engine: dict[tuple[str, str], list[float]] = {key: [] for key in kernels}
+    for scene in runs:
+        times[(scene, "noise draws")] = []
     for _ in range(rounds):
         for scene, table in runs.items():
             for label, run in table.items():
-                long, short = cpu(run, steps), cpu(run, 1)
+                (long, long_engine), (short, short_engine) = cpu(run, steps), cpu(run, 1)
                 times[(scene, label)].append((long - short) / (steps - 1) * 1e6)
-    return times, kernels
+                engine[(scene, label)].append((long_engine - short_engine) / (steps - 1) * 1e6)
+            times[(scene, "noise draws")].append(draws_cost(scene, steps))
+    return times, engine, kernels
 
 
 def main() -> None:
@@ -153,7 +205,8 @@ def main() -> None:
     if args.rate:
         for scene, table in variants(args.rate).items():
             runs[scene].update(table)
-    times, kernels = measure(runs, args.rounds, args.steps)
+    timed_engine()
+    times, engine, kernels = measure(runs, args.rounds, args.steps)
     command = f".venv/bin/python scripts/bench_sensors.py --rounds {args.rounds} --steps {args.steps}"
     command += f" --rate {args.rate:g}" if args.rate else ""
     lines = [
@@ -174,29 +227,50 @@ def main() -> None:
         "Sensors read at every step unless a rate is given (the readings' noise, bias and latency are made in "
         "Python once per call of the engine).",
         "",
-        "| scene | variant | kernel | µs per step (median) | ratio to bare (median of per-round ratios) |",
-        "|---|---|---|---:|---:|",
+        "| scene | variant | kernel | µs per step (median) | ratio to bare (median of per-round ratios) "
+        "| of the µs, in the engine's calls | of the ratio's excess, in the engine's calls |",
+        "|---|---|---|---:|---:|---:|---:|",
     ]
     for scene, table in runs.items():
         reference = times[(scene, "bare")]
         for label in table:
             ratios = [a / b for a, b in zip(times[(scene, label)], reference, strict=True)]
+            inside = [
+                (a - c) / b for a, b, c in zip(engine[(scene, label)], reference, engine[(scene, "bare")], strict=True)
+            ]
             lines.append(
                 f"| {scene} | {label} | {kernels[(scene, label)]} | {statistics.median(times[(scene, label)]):.2f} | "
-                f"{statistics.median(ratios):.3f} |"
+                f"{statistics.median(ratios):.3f} | {statistics.median(engine[(scene, label)]):.2f} | "
+                f"{statistics.median(inside):+.3f} |"
             )
+        draws = times[(scene, "noise draws")]
+        share = [a / b for a, b in zip(draws, reference, strict=True)]
+        lines.append(
+            f"| {scene} | its sensors' noise draws alone (timed beside the runs) | numpy | "
+            f"{statistics.median(draws):.2f} | +{statistics.median(share):.3f} | | |"
+        )
     lines += [
         "",
-        "Reading the table: an IMU's reading takes a second-order forward-kinematics pass (Pinocchio's per-joint "
-        "step, on the joints from the root to the IMU's only: go2's base IMU 1 joint of 13, ur5's tool0 all 6) and "
-        "the frame's placement, velocity and classical acceleration, in the engine; joint sensors copy numbers "
-        "(a joint_torque sensor with actuators evaluates their law at the tick); a contact_force sensor sums the "
-        "step's impulses on its body. The readings are made in Python once per call of the engine, vectorised: "
-        "their cost is mostly the noise draws (numpy PCG64 standard_normal, one per noisy component per reading, "
-        "~12 ns each here: the ur5 set draws 18 per step). ur5's bare step is ~5 µs (rk4 over 6 joints), so there the "
-        "IMU's kinematics pass alone is about a tenth of a step (its row above) and the targeted 10 % for actuators "
-        "and sensors together is not met; go2_standing's step is ~30 µs. A force-torque sensor (not in these sets) "
-        "adds an RNEA per reading.",
+        "Reading the table: the last two columns split each variant's time: the part inside the engine's calls "
+        "(NativeCore.advance, timed around each call: the stepping, the sensors' measurement and the samples' "
+        "state; a little Python around each call), and that part's excess over the bare scene's, as a fraction of "
+        "the bare step (the rest of the ratio's excess is Python after the engine: readings, recording, the "
+        "trajectory). The last row of each scene is not a run: it is the CPU time of the noise draws its sensor "
+        "set makes per reading (numpy PCG64 standard_normal, one per noisy component, as SensorStream draws them), "
+        "timed in the same rounds, as a fraction of the bare step. Where the rest goes (perf profiles, and timers "
+        "around the engine call apart from the Python around it): an IMU's "
+        "(or frame_pose's) kinematics come from the next step's first ABA at the tick's state, which leaves each "
+        "joint's calc, liMi and oMi as forwardKinematics computes them, so the engine adds only the velocity and "
+        "acceleration recursion on the joints from the root to the sensor (ur5's tool0: all 6; go2's base: 1 of "
+        "13) and the frame's quantities; a tick whose row takes no further step in the engine call, and every tick "
+        "of a scene with a force-torque sensor (which needs the whole pass and an RNEA), gets a pass of its own. "
+        "Joint sensors copy numbers (a joint_torque sensor with actuators evaluates their law at the tick); a "
+        "contact_force sensor sums the step's impulses on its body. The readings are made in Python once per "
+        "engine call, all sensors at once when they read at every tick: besides the noise, each component costs "
+        "its share of the copies into the samples and the trajectory (fresh memory: page faults included). "
+        "Actuators evaluate their law and limits once per stage for both the torque and the ledger, and add their "
+        "ledger lines (work, limits, brakes) to the integrated and recorded flows, the commands and the delivered "
+        "torque to every sample, and the catalog motors' armature (go2) to the kinetic energies.",
         "",
         "Actuators (ur5): position servos on every joint, kp = 1e3, kv = 30; (go2_standing): the catalog's motors.",
         "Sensors (ur5): " + ", ".join(f"{s['name']} ({s['kind']})" for s in ur5_sensors(None)) + ".",
