@@ -283,7 +283,7 @@ namespace multibody_sim
     // The mesh hulls from their archives, once a pair needs coal with one (most hulls only ever meet the ground,
     // whose pairs the narrow phase computes from their vertices): the geometry data rebuilt on them, placed where
     // the current kinematics put them.
-    void hulls(const pinocchio::Model & model, const ContactScene & scene)
+    void hulls(const pinocchio::Model & model, const pinocchio::Data & placed, const ContactScene & scene)
     {
       if (hulls_loaded)
         return;
@@ -296,7 +296,7 @@ namespace multibody_sim
         request.enable_contact = true;
         request.security_margin = scene.constants.speculative_margin;
       }
-      pinocchio::updateGeometryPlacements(model, data, gm, gd);
+      pinocchio::updateGeometryPlacements(model, placed, gm, gd);
       hulls_loaded = true;
     }
 
@@ -796,9 +796,9 @@ namespace multibody_sim
   }
 
   bool ContactScene::step(
-    ContactWork & w, const pinocchio::Model & model, const Vec & q, const Vec & v, const Vec & v_free, double h,
-    ContactRow & row, Vec & v_next, double & contact_work, double & correction, double & bounce,
-    std::vector<std::pair<int, double>> & speed_work) const
+    ContactWork & w, const pinocchio::Model & model, const pinocchio::Data & placed, const Vec & q, const Vec & v,
+    const Vec & v_free, double h, ContactRow & row, Vec & v_next, double & contact_work, double & correction,
+    double & bounce, std::vector<std::pair<int, double>> & speed_work) const
   {
     const ContactConstants & c = constants;
     pinocchio::Data & data = w.data;
@@ -807,7 +807,7 @@ namespace multibody_sim
     w.points.clear();
     if (!pairs.empty())
     {
-      pinocchio::updateGeometryPlacements(model, data, w.gm, w.gd, q);
+      pinocchio::updateGeometryPlacements(model, placed, w.gm, w.gd);  // forwardKinematics(q)'s placements
       for (size_t k = 0; k < pairs.size(); ++k)
       {
         const int a = pairs[k].first, b = pairs[k].second, kind = pair_kinds[k];
@@ -871,7 +871,7 @@ namespace multibody_sim
         else
         {  // narrow_phase.coal_candidates
           if (s1.kind == ShapeKind::mesh || s2.kind == ShapeKind::mesh)
-            w.hulls(model, *this);
+            w.hulls(model, placed, *this);
           if (!pinocchio::computeCollision(w.gm, w.gd, k))
             continue;
           pinocchio::computeContactPatch(w.gm, w.gd, k);

@@ -126,11 +126,13 @@ namespace multibody_sim
 
     /// The contact part of TimeStepping.attempt from (q, v) with end velocity v_free before impulses: v_next,
     /// the contact work ½ λᵀJ(v⁺ + v_free), -λᵀb_corr and -λᵀb_rest, and (ledger line, work ½ λ J (v⁺ + v_free))
-    /// of each velocity-limit row; `row` updated as the Python solver state is. Returns whether there was a
-    /// problem to solve (the Python step's evaluations: 2, else 1).
-    bool step(ContactWork & work, const pinocchio::Model & model, const Vec & q, const Vec & v, const Vec & v_free,
-              double h, ContactRow & row, Vec & v_next, double & contact_work, double & correction,
-              double & bounce, std::vector<std::pair<int, double>> & speed_work) const;
+    /// of each velocity-limit row; `row` updated as the Python solver state is. `placed` holds the joint placements
+    /// at q (oMi, as forwardKinematics(q) computes them: the step's ABA at q leaves them), which
+    /// ContactModel.detect computes in its own Data. Returns whether there was a problem to solve (the Python
+    /// step's evaluations: 2, else 1).
+    bool step(ContactWork & work, const pinocchio::Model & model, const pinocchio::Data & placed, const Vec & q,
+              const Vec & v, const Vec & v_free, double h, ContactRow & row, Vec & v_next, double & contact_work,
+              double & correction, double & bounce, std::vector<std::pair<int, double>> & speed_work) const;
 
     int nv = 0;
     std::vector<ContactShape> shapes;

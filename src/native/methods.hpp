@@ -400,7 +400,7 @@ namespace multibody_sim
       bool problem = false;
       try  // a library's exception (coal, Boost, Eigen) leaves the servo model as it was, then fails the row
       {
-        problem = C->step(*cw, servos ? *SM : *M, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce,
+        problem = C->step(*cw, servos ? *SM : *M, data, qj, vj, vfree, h, crow[j], vn[j], work, correction, bounce,
                           speed_work);
       }
       catch (...)
@@ -423,8 +423,13 @@ namespace multibody_sim
         fn[j][line] -= sw;
         held += sw;
       }
+      // T and V at qj from the joint placements the velocity update's ABA left in data (the contact step and the
+      // ledger's powers above only read them): forwardKinematics(qj, ·)'s arithmetic, its joint calc not redone
       double kinetic, potential, kinetic_free, kinetic_next, kinetic_end, potential_end;
-      energies(qj, vj, kinetic, potential);
+      kinetic = kinetic_at_same_q(qj, vj);
+      potential = potential_energy();
+      if (S && S->n_records())
+        potential = potential + S->spring_energy(qj, nullptr);
       kinetic_free = kinetic_at_same_q(qj, vfree);
       kinetic_next = problem ? kinetic_at_same_q(qj, vn[j]) : kinetic_free;
       energies(qn[j], vn[j], kinetic_end, potential_end);
@@ -446,9 +451,9 @@ namespace multibody_sim
       energies_from_data(qx, vx, nullptr, kinetic, potential);
     }
 
-    // T at (qx, vx) right after energies(qx, ·): forwardKinematics(qx, vx)'s velocities from the joint placements
-    // data holds, its arithmetic (each joint's velocity-only calc is its calc(q, v)'s velocity part for the joint
-    // kinds below; any other kind has forwardKinematics run in full)
+    // T at (qx, vx) where data holds the joint placements at qx (an ABA's or forwardKinematics' there):
+    // forwardKinematics(qx, vx)'s velocities from them, its arithmetic (each joint's velocity-only calc is its
+    // calc(q, v)'s velocity part for the joint kinds below; any other kind has forwardKinematics run in full)
     double kinetic_at_same_q(const Vec & qx, const Vec & vx)
     {
       const pinocchio::Model & model = *M;
