@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <vector>
 
 #include <Eigen/Core>
@@ -181,6 +182,29 @@ namespace multibody_sim
         }
       }
 
+      // affine(G, x, g) into out, the latest result reused when G and g are the same arrays of the same solve and
+      // x has the same bits (the solve's candidates repeat the natural map's x: its projection leaves an iterate
+      // inside K as it is). forget() ends a problem's reuse (solve(), and each block a sweep solves).
+      void affine_of(const Matrix & G, const Vector & x, const Vector & g, Vector & out)
+      {
+        const int m = static_cast<int>(x.size());
+        if (memo_valid_ && memo_G_ == G.data() && memo_g_ == g.data() && memo_x_.size() == m
+            && std::equal(x.data(), x.data() + m, memo_x_.data(),
+                          [](double a, double b) { return std::memcmp(&a, &b, sizeof(double)) == 0; }))
+        {
+          out = memo_u_;
+          return;
+        }
+        affine(G, x, g, out);
+        memo_valid_ = true;
+        memo_G_ = G.data();
+        memo_g_ = g.data();
+        memo_x_ = x;
+        memo_u_ = out;
+      }
+
+      void forget() { memo_valid_ = false; }
+
       double residual(const std::vector<Block> & blocks, const Vector & lam, const Vector & u, const Vector & scales)
       {
         const int m = static_cast<int>(lam.size());
@@ -289,7 +313,7 @@ namespace multibody_sim
         u.resize(m);
         y.resize(m);
         F.resize(m);
-        affine(G, lam, g, u);
+        affine_of(G, lam, g, u);
         add_de_saxce(blocks, u, t_);
         for (int i = 0; i < m; ++i)
           y[i] = lam[i] - t_[i] / scales[i];
@@ -403,7 +427,7 @@ namespace multibody_sim
         out = lam;
         project(blocks, out);
         uc_.resize(g.size());
-        affine(G, out, g, uc_);
+        affine_of(G, out, g, uc_);
         return residual(blocks, out, uc_, scales);
       }
 
@@ -487,6 +511,7 @@ namespace multibody_sim
             local_scales_ = scales.segment(s, 3);
             local_start_ = lam.segment(s, 3);
             local_blocks_.assign(1, Block{CONE, 0, b.param});
+            forget();  // local_G_ and q_ hold this block's problem now
             int taken = 0;
             newton(local_G_, q_, local_blocks_, local_scales_, local_start_, tolerance, settings.local_iterations,
                    local_best_, taken);
@@ -593,6 +618,7 @@ namespace multibody_sim
         int max_iterations, bool pgs, Vector & lam)
       {
         Solution out;
+        forget();
         const double tolerance = settings.tolerance * scale;
         block_scales(blocks, G, scales_);
         double r = candidate(G, g, blocks, scales_, guess, lam);
@@ -684,6 +710,9 @@ namespace multibody_sim
       Work work_[2];
       int depth_ = 0;
       Matrix A_, B_, H_, local_G_, chol_;
+      bool memo_valid_ = false;  // affine_of's latest (G, g, x) -> u
+      const double *memo_G_ = nullptr, *memo_g_ = nullptr;
+      Vector memo_x_, memo_u_;
       double mu_ = 0.0, rho_ = 0.0, factor_ = 0.0;
       Vector ax_, ay_, az_, ax_prev_, az_prev_, phi_, arhs_, ty_, sweep_lam_, iterate_;
       std::vector<bool> regularized_;
