@@ -752,6 +752,22 @@ VARIANT_SCENES = {
         },
         {"integrator": "timestepping"},
     ),
+    # the catalog's motors, their velocity limits drawn: the time-stepper's velocity-limit rows take the row's
+    "go2_motors": (
+        {
+            **shipped("go2_standing"),
+            "actuators": "catalog",
+            "randomize": {
+                "seed": 8,
+                "parameter": [
+                    uniform("mass", 0.9, 1.1, scale=True),
+                    uniform("velocity_limit", 0.05, 0.2, scale=True),
+                    uniform("effort_limit", 0.8, 1.0, scale=True),
+                ],
+            },
+        },
+        {"integrator": "timestepping"},
+    ),
     # a locked joint, a payload, a sensor, a free object on the ground, exact joint friction, body coefficients
     "locked": (
         {
@@ -949,3 +965,31 @@ def test_a_vector_env_s_rows_keep_their_physics_through_other_rows_resets() -> N
         assert vector.stepper._core.kernel.__class__.__name__ == "NativeKernel"
         for i, env in enumerate(singles):
             np.testing.assert_array_equal(env.step(actions[i])[0], observed[i], err_msg=f"step {k}, row {i}")
+
+
+@needs_native
+def test_randomised_velocity_limits_are_the_same_on_both_kernels(monkeypatch: pytest.MonkeyPatch) -> None:
+    """go2 with the catalog's motors under random torques, their velocity limits (rows of the time-stepper's contact
+    problem) and effort limits drawn per row far below the declared ones: the native rows equal the Python kernel's
+    bit for bit, and the joints keep to each row's own limits."""
+    tables, _ = VARIANT_SCENES["go2_motors"]
+    scene = ms.make_scene(**tables)
+    B, n = 3, 40
+    taus = np.zeros((B, n, scene.nv))
+    taus[:, :, 6:] = np.random.default_rng(3).uniform(-20.0, 20.0, (B, n, scene.nv - 6))
+    settings = {"duration": n * 1e-3, "dt": 1e-3, "integrator": "timestepping", "taus": taus}
+
+    def run() -> Any:
+        return ms.rollout(scene, np.tile(scene.q0, (B, 1)), np.zeros((B, scene.nv)), num_threads=2, **settings)
+
+    nat, py = both(run, monkeypatch)
+    assert nat.metadata["kernel"] == "native" and py.metadata["kernel"] == "python (row)"
+    for b in range(B):
+        assert_same_run(nat.element(b), py.element(b))
+        row = scene.with_parameters(nat.metadata["parameters"][b])
+        assert row.contact is not None and row.contact.speed_limits
+        for jid, vmax, _ in row.contact.speed_limits:
+            v = nat.element(b).v[:, row.model.joints[jid].idx_v]
+            assert np.abs(v).max() <= vmax * (1 + 1e-6) + 1e-9, row.model.names[jid]
+        assert any(np.abs(nat.element(b).v[:, row.model.joints[jid].idx_v]).max() > 0.5 * vmax
+                   for jid, vmax, _ in row.contact.speed_limits)  # the limits bind
