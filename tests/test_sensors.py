@@ -676,16 +676,22 @@ def test_native_readings_equal_the_python_kernels(monkeypatch: pytest.MonkeyPatc
         {"name": "calf", "kind": "force_torque", "frame": "FL_calf"},
     ]
     go2 = _with_sensors(go2, sensors)
-    Q0 = np.array([go2.q0, go2.q0, go2.q0])
-    V0 = np.zeros((3, go2.nv))
+    native = _go2_rollouts_read_alike(monkeypatch, go2, rows=3, duration=0.1)
+    assert np.abs(native.sensors["FL"][:, -1, 2]).min() > 10.0  # the feet carry the robot
+
+
+def _go2_rollouts_read_alike(monkeypatch: pytest.MonkeyPatch, go2: ms.Scene, rows: int, duration: float) -> Any:
+    """go2 standing under its controller on two threads of a rollout (row 1 with its joints moving): the native
+    kernel's readings are the Python kernel's bit for bit; returns the native run."""
+    V0 = np.zeros((rows, go2.nv))
     V0[1, 6:] = 0.1
     native, python = _both(
         monkeypatch,
         lambda: ms.rollout(
             go2,
-            Q0,
+            np.tile(go2.q0, (rows, 1)),
             V0,
-            duration=0.1,
+            duration=duration,
             dt=1e-3,
             integrator="timestepping",
             controller=go2.make_controller(),
@@ -694,8 +700,8 @@ def test_native_readings_equal_the_python_kernels(monkeypatch: pytest.MonkeyPatc
     )
     assert native.metadata["kernel"] == "native" and python.metadata["kernel"] != "native"
     for name in python.sensors:
-        np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=name)
-    assert np.abs(native.sensors["FL"][:, -1, 2]).min() > 10.0  # the feet carry the robot
+        np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=f"go2 {name}")
+    return native
 
 
 def test_native_steppers_read_what_the_python_kernel_reads(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -837,21 +843,4 @@ def test_native_kinematic_sensors_taken_from_the_next_steps_aba_equal_the_python
         ],
     )
     go2 = ms.Scene(dataclasses.replace(go2.spec, actuator_defaults="catalog"))
-    V0 = np.zeros((2, go2.nv))
-    V0[1, 6:] = 0.1
-    native, python = _both(
-        monkeypatch,
-        lambda: ms.rollout(
-            go2,
-            np.array([go2.q0, go2.q0]),
-            V0,
-            duration=0.05,
-            dt=1e-3,
-            integrator="timestepping",
-            controller=go2.make_controller(),
-            num_threads=2,
-        ),
-    )
-    assert native.metadata["kernel"] == "native" and python.metadata["kernel"] != "native"
-    for name in python.sensors:
-        np.testing.assert_array_equal(native.sensors[name], python.sensors[name], err_msg=f"go2 {name}")
+    _go2_rollouts_read_alike(monkeypatch, go2, rows=2, duration=0.05)

@@ -394,33 +394,15 @@ namespace multibody_sim
 
   void SceneActuators::powers(const Vec & q, const Vec & v, const Vec & u, double * out) const
   {
-    const size_t n = terms.size();
-    size_t m = n, b = n + static_cast<size_t>(n_limited);
-    double low, high;
-    for (size_t k = 0; k < n; ++k)
-    {
-      const ActuatorTerm & a = terms[k];
-      const double c = law(a, q, v, u);
-      const double w = v[a.dof];
-      limits(a, w, low, high);
-      const double limited = np_minimum(np_maximum(c, low), high);
-      out[k] = c * w;
-      if (a.limited)
-        out[m++] = (c - limited) * w;
-      if (a.brake_gain > 0.0)
-      {
-        if (!(std::abs(w) < a.brake_from))
-          within_brake(*this, a, w, low, high);
-        out[b++] = (limited - np_minimum(np_maximum(c, low), high)) * w;
-      }
-    }
+    torques_and_powers(q, v, u, nullptr, out);
   }
 
   void SceneActuators::torques_and_powers(const Vec & q, const Vec & v, const Vec & u, double * torques,
                                          double * flows) const
   {
-    for (int i = 0; i < nv; ++i)
-      torques[i] = u[i];
+    if (torques)
+      for (int i = 0; i < nv; ++i)
+        torques[i] = u[i];
     const size_t n = terms.size();
     size_t m = n, b = n + static_cast<size_t>(n_limited);
     double low, high;
@@ -442,7 +424,8 @@ namespace multibody_sim
         tau = np_minimum(np_maximum(c, low), high);
         flows[b++] = (limited - tau) * w;
       }
-      torques[a.dof] = tau;
+      if (torques)
+        torques[a.dof] = tau;
     }
   }
 

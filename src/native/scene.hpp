@@ -246,8 +246,9 @@ namespace multibody_sim
     void joint_torques(const Vec & q, const Vec & v, const Vec & u, const ServoStep * step, double * out) const;
     // Actuators.powers into out (n_flows())
     void powers(const Vec & q, const Vec & v, const Vec & u, double * out) const;
-    // joint_torques (no step held) and powers at the same (q, v, u) in one pass, each actuator's law and limits
-    // computed once (an explicit method's stage needs both): the same numbers as the two calls
+    // joint_torques (no step held; torques may be null) and powers at the same (q, v, u) in one pass, each
+    // actuator's law and limits computed once (an explicit method's stage needs both): the same numbers as the two
+    // calls (powers is this without the torques)
     void torques_and_powers(const Vec & q, const Vec & v, const Vec & u, double * torques, double * flows) const;
     ServoStep workspace() const;
     // Actuators.begin_implicit / revise / end_implicit on `armature`, the model copy's that the step's ABA uses
