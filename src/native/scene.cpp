@@ -441,6 +441,11 @@ namespace multibody_sim
     step.side.assign(n, 1);
     step.free.assign(n, 0);
     step.braking.assign(n, 0);
+    for (auto * x : {&step.law_next, &step.low, &step.high})
+      x->assign(n, 0.0);
+    for (auto * x : {&step.ok, &step.within, &step.brake, &step.beyond})
+      x->assign(n, 0);
+    step.side_next.assign(n, 1);
     return step;
   }
 
@@ -487,14 +492,9 @@ namespace multibody_sim
     const size_t n = terms.size();
     const double h = step.h;
     bool consistent = true;
-    thread_local std::vector<double> law_next, low, high;
-    thread_local std::vector<char> ok, within, brake, beyond;
-    thread_local std::vector<int> side;
-    for (auto * x : {&law_next, &low, &high})
-      x->resize(n);
-    for (auto * x : {&ok, &within, &brake, &beyond})
-      x->resize(n);
-    side.resize(n);
+    std::vector<double> &law_next = step.law_next, &low = step.low, &high = step.high;
+    std::vector<char> &ok = step.ok, &within = step.within, &brake = step.brake, &beyond = step.beyond;
+    std::vector<int> & side = step.side_next;
     for (size_t k = 0; k < n; ++k)
     {
       const ActuatorTerm & a = terms[k];

@@ -208,6 +208,10 @@ namespace multibody_sim
     std::vector<double> law, w, held, clipped, saved;
     std::vector<int> side;
     std::vector<char> free, braking;
+    // revise()'s scratch, per actuator (sized by workspace(); no allocation or thread-local lookup per step)
+    std::vector<double> law_next, low, high;
+    std::vector<char> ok, within, brake, beyond;
+    std::vector<int> side_next;
     double h = 0.0;
     int iterations = 0;
     bool active = false;
