@@ -425,7 +425,7 @@ def _mimic_case(name: str, write_urdf: Callable[..., Path]) -> tuple[ms.Robot, S
 MIMIC_CRBA_BUG = (
     "bug: pin 4.1's crba on a model whose mimic joint has child joints accumulates into Data.Fcrb across calls: "
     "every call on the same Data adds the leader/grandchild coupling again (M[j1, j3] grows 1x, 2x, 3x); Scene "
-    "reuses self.data in mass_matrix, _crba_forward_dynamics and _mimic_energies"
+    "reuses self.data in mass_matrix, mimic.crba_forward_dynamics and mimic.energies"
 )
 
 

@@ -24,6 +24,7 @@ from ..integrators.cone_solver import TOLERANCE
 from ..robot import Robot
 from ..text import safe_name
 from ..trajectory import Trajectory
+from . import mimic
 from .frames import frame_id
 from .randomize import (
     Nominals,
@@ -160,7 +161,7 @@ class Scene(Robot):
                     "(drop the lock or robot.mimic)"
                 )
             if robot_spec.damping:  # the URDF's <dynamics> of the followers act on their leaders
-                _fold_mimic_dissipation(model, robot.model, damping, friction)
+                mimic.fold_dissipation(model, robot.model, damping, friction)
         model.damping = damping
         model.friction = friction
         built = model  # before locking: the dof indices the per-joint arrays above use
@@ -207,7 +208,7 @@ class Scene(Robot):
         self.robot_nq, self.robot_nv = robot_nq, robot_nv
         self.object_joints = object_joints
         self.mimic = robot_spec.mimic
-        self._clear_crba = self.mimic and _mimic_has_children(model)
+        self._clear_crba = self.mimic and mimic.has_children(model)
         # Per-dof element parameters on the reduced model, read back by joint name (locking renumbers dofs).
         kept_stiffness, kept_friction = np.zeros(self.nv), np.array(model.friction, dtype=float)
         rest = pin.neutral(model)
@@ -462,7 +463,7 @@ class Scene(Robot):
         if self.constraints is not None:
             return self.constraints.forward_dynamics(q, v, applied)
         if self.mimic:
-            return _crba_forward_dynamics(self.model, self.data, q, v, applied, self._clear_crba)
+            return mimic.crba_forward_dynamics(self.model, self.data, q, v, applied, self._clear_crba)
         return pin.aba(self.model, self.data, q, v, applied, _WORLD)
 
     def unchecked_dynamics_derivatives(
@@ -530,7 +531,7 @@ class Scene(Robot):
     def mass_matrix(self, q: Any) -> np.ndarray:
         """Joint-space inertia matrix M(q) of the scene's model (armature and payloads included), (nv, nv)."""
         if self.mimic:
-            return _mimic_mass_matrix(self.model, self.data, self.check_q(q), self._clear_crba)
+            return mimic.mass_matrix(self.model, self.data, self.check_q(q), self._clear_crba)
         return super().mass_matrix(q)
 
     def kinetic_energy(self, q: Any, v: Any) -> float:
@@ -545,7 +546,7 @@ class Scene(Robot):
     def unchecked_energies(self, q: np.ndarray, v: np.ndarray) -> tuple[float, float]:
         """(T, V) [J]: V includes the springs' stored energy."""
         if self.mimic:
-            kinetic, potential = _mimic_energies(self.model, self.data, q, v, self._clear_crba)
+            kinetic, potential = mimic.energies(self.model, self.data, q, v, self._clear_crba)
         else:
             kinetic, potential = super().unchecked_energies(q, v)
         if self.elements is not None and self.elements.potentials:
@@ -638,8 +639,8 @@ class Scene(Robot):
                 continue
             kept = model.joints[model.getJointId(name)]
             if kept.shortname() == "JointModelMimic":  # shares its leader's coordinate
-                mimic = kept.extract()
-                out[i] = mimic.scaling * q[kept.idx_q] + mimic.offset
+                follower = kept.extract()
+                out[i] = follower.scaling * q[kept.idx_q] + follower.offset
             else:
                 out[i : i + n] = q[kept.idx_q : kept.idx_q + n]
         return out
@@ -920,76 +921,6 @@ def _place_objects(model: pin.Model, spec: SceneSpec, q: np.ndarray, v: np.ndarr
             linear, angular = np.array(item.velocity[:3]), np.array(item.velocity[3:])
             v[joint.idx_v : joint.idx_v + 3] = rotation.T @ linear
             v[joint.idx_v + 3 : joint.idx_v + 6] = rotation.T @ angular
-
-
-def _mimic_has_children(model: pin.Model) -> bool:
-    """Whether a mimic joint of the model has joints below it (where Pinocchio 4.1's CRBA accumulates)."""
-    return any(
-        model.joints[j].shortname() == "JointModelMimic" and len(model.subtrees[j]) > 1 for j in range(1, model.njoints)
-    )
-
-
-def _mimic_mass_matrix(model: pin.Model, data: pin.Data, q: np.ndarray, clear: bool = True) -> np.ndarray:
-    """M(q) by CRBA on a model with mimic joints, symmetric.
-
-    Pinocchio 4.1's CRBA accumulates into data.Fcrb on such models (a mimic joint with children gets its coupling
-    added again at every call), so the workspace is cleared first when `clear` (_mimic_has_children(model)).
-    """
-    M = _mimic_crba(model, data, q, clear)
-    return np.triu(M) + np.triu(M, 1).T
-
-
-def _mimic_crba(model: pin.Model, data: pin.Data, q: np.ndarray, clear: bool) -> np.ndarray:
-    """CRBA's upper triangle of M(q), its workspace cleared first when `clear` (see _mimic_mass_matrix)."""
-    if clear:
-        zero = np.zeros((6, model.nv))
-        for i in range(len(data.Fcrb)):
-            data.Fcrb[i] = zero
-    return pin.crba(model, data, q)
-
-
-def _crba_forward_dynamics(
-    model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray, tau: np.ndarray, clear: bool = True
-) -> np.ndarray:
-    """v' = M⁻¹ (tau - C v - g) by CRBA and RNEA (for models ABA does not support: mimic joints).
-
-    A Cholesky solve on the upper triangle CRBA fills (LAPACK dposv), with no symmetrized copy.
-    """
-    from scipy.linalg.lapack import dposv
-
-    M = _mimic_crba(model, data, q, clear)
-    _, a, info = dposv(M, tau - pin.nonLinearEffects(model, data, q, v), lower=0)
-    if info != 0:  # not positive definite: a NaN state, which the stepping loop reports as divergence
-        return np.full(model.nv, np.nan)
-    return a
-
-
-def _fold_mimic_dissipation(model: pin.Model, plain: pin.Model, damping: np.ndarray, friction: np.ndarray) -> None:
-    """A follower's damper and friction act on its leader's dof: damping s² D_f (exact, GᵀDG), friction |s| F_f
-    (exact where |v| ≫ friction_velocity)."""
-    for jid in range(1, model.njoints):
-        joint = model.joints[jid]
-        if joint.shortname() != "JointModelMimic":
-            continue
-        scaling = joint.extract().scaling
-        follower = plain.joints[plain.getJointId(model.names[jid])].idx_v
-        damping[joint.idx_v] += scaling**2 * plain.damping[follower]
-        friction[joint.idx_v] += abs(scaling) * plain.friction[follower]
-
-
-def _mimic_energies(
-    model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray, clear: bool = True
-) -> tuple[float, float]:
-    """(T, V) [J] for a model with mimic joints, which Pinocchio's energy algorithms refuse: T = ½ vᵀ M v by CRBA,
-    V = -Σ m_i gᵀ c_i over the moving bodies (what computePotentialEnergy sums)."""
-    kinetic = 0.5 * float(v @ _mimic_mass_matrix(model, data, q, clear) @ v)
-    pin.forwardKinematics(model, data, q)
-    gravity = model.gravity.linear
-    potential = 0.0
-    for jid in range(1, model.njoints):
-        body = model.inertias[jid]
-        potential -= body.mass * float(gravity @ data.oMi[jid].act(body.lever))
-    return kinetic, potential
 
 
 def _scene_name(spec: SceneSpec, robot: Robot) -> str:
