@@ -144,6 +144,27 @@ def test_contact_work_of_a_step_is_the_kinetic_energy_the_impulses_change():
     )
 
 
+@pytest.mark.parametrize("name", ["talos_standing", "go2_standing", "box_stack"])
+def test_the_ledgers_kinetic_energy_from_crbas_mass_matrix_is_pinocchios_kinetic_energy(name):
+    """The ledger's T at the step's start, ½ vᵀ M v from the contact problem's CRBA (ContactModel.kinetic_energy),
+    equals computeKineticEnergy's sum over the bodies after forwardKinematics (another Pinocchio algorithm) on
+    random states, with and without armature."""
+    scene = load_scene(name)
+    contact, model = scene.contact, scene.contact.model
+    reference = model.createData()
+    rng = np.random.default_rng(7)
+    for armature in (False, True):
+        if armature:
+            model.armature = rng.uniform(0.0, 0.5, model.nv)
+        for _ in range(5):
+            q = pin.randomConfiguration(model, -np.ones(model.nq), np.ones(model.nq))
+            v = rng.normal(0.0, 2.0, model.nv)
+            pin.crba(model, contact.data, q, pin.Convention.WORLD)  # as ContactModel.problem does
+            expected = pin.computeKineticEnergy(model, reference, q, v)
+            assert expected > 0.0
+            assert contact.kinetic_energy(v) == pytest.approx(expected, rel=1e-14)
+
+
 def test_no_other_ledger_element_is_named_contact():
     scene = load_scene("box_stack")
     names = [name for name, _ in scene.ledger_elements]

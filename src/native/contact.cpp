@@ -174,6 +174,7 @@ namespace multibody_sim
     Matrix J, G;
     Matrix Z, W;  // nv x m
     Eigen::VectorXd g, free, correction, restitution, guess, impulses, generalized, minv, Dinv, acc;
+    Eigen::VectorXd mass_v;  // M v (ContactScene::kinetic_energy)
     std::vector<std::pair<int, double>> landings;
     std::vector<int> union_, last;
     // the contact frame of the normal +z (the ground's), as every other normal's is computed
@@ -788,6 +789,27 @@ namespace multibody_sim
   }
 
   ContactScene::~ContactScene() = default;
+
+  // ContactModel.kinetic_energy: M (crba's upper triangle, armature included) times v, each row's products in
+  // column order from +0.0 (cone_solver.matvec; column by column here, each row's sum in that order), then vᵀ (M v)
+  // in index order from +0.0 (zsum), halved
+  double ContactScene::kinetic_energy(ContactWork & w, const Vec & v) const
+  {
+    const auto & M = w.data.M;
+    w.mass_v.setZero(nv);
+    for (int c = 0; c < nv; ++c)
+    {
+      const double x = v[c];
+      for (int r = 0; r <= c; ++r)  // column c's upper part
+        w.mass_v[r] += M(r, c) * x;
+      for (int r = c + 1; r < nv; ++r)  // below the diagonal: row c's upper part, by symmetry
+        w.mass_v[r] += M(c, r) * x;
+    }
+    double sum = 0.0;
+    for (int r = 0; r < nv; ++r)
+      sum += v[r] * w.mass_v[r];
+    return sum * .5;
+  }
 
   std::unique_ptr<ContactWork, void (*)(ContactWork *)> ContactScene::workspace(const pinocchio::Model & model) const
   {

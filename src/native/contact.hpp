@@ -134,6 +134,9 @@ namespace multibody_sim
               const Vec & v, const Vec & v_free, double h, ContactRow & row, Vec & v_next, double & contact_work,
               double & correction, double & bounce, std::vector<std::pair<int, double>> & speed_work) const;
 
+    /// ContactModel.kinetic_energy: T = ½ vᵀ M v [J] at the latest step's q, from its M (work's Data)
+    double kinetic_energy(ContactWork & work, const Vec & v) const;
+
     int nv = 0;
     std::vector<ContactShape> shapes;
     std::vector<std::pair<int, int>> pairs;

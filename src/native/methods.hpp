@@ -423,15 +423,25 @@ namespace multibody_sim
         fn[j][line] -= sw;
         held += sw;
       }
-      // T and V at qj from the joint placements the velocity update's ABA left in data (the contact step and the
-      // ledger's powers above only read them): forwardKinematics(qj, ·)'s arithmetic, its joint calc not redone
+      // V at qj (and T there, without the contact step's M) from the joint placements the velocity update's ABA left
+      // in data (the contact step and the ledger's powers above only read them): forwardKinematics(qj, ·)'s
+      // arithmetic, its joint calc not redone
       double kinetic, potential, kinetic_free, kinetic_next, kinetic_end, potential_end;
-      kinetic = kinetic_at_same_q(qj, vj);
+      if (problem && !servos)  // T at qj from the contact step's M there (not under the servos' raised armature)
+      {
+        kinetic = C->kinetic_energy(*cw, vj);
+        kinetic_free = C->kinetic_energy(*cw, vfree);
+        kinetic_next = C->kinetic_energy(*cw, vn[j]);
+      }
+      else
+      {
+        kinetic = kinetic_at_same_q(qj, vj);
+        kinetic_free = kinetic_at_same_q(qj, vfree);
+        kinetic_next = problem ? kinetic_at_same_q(qj, vn[j]) : kinetic_free;
+      }
       potential = potential_energy();
       if (S && S->n_records())
         potential = potential + S->spring_energy(qj, nullptr);
-      kinetic_free = kinetic_at_same_q(qj, vfree);
-      kinetic_next = problem ? kinetic_at_same_q(qj, vn[j]) : kinetic_free;
       energies(qn[j], vn[j], kinetic_end, potential_end);
       fn[j][m - 4] = correction + bounce - (work - held);
       fn[j][m - 3] = correction;

@@ -248,8 +248,12 @@ class TimeStepping(Integrator):
             flows[line] -= w
             held += w
         kinetic, potential = scene.unchecked_energies(q, v)
-        kinetic_free = scene.unchecked_energies(q, v_free)[0]
-        kinetic_next = scene.unchecked_energies(q, v_next)[0] if problem is not None else kinetic_free
+        if problem is not None and servos is None:
+            # T at q from the problem's M there (½ vᵀ M v): the native kernel's kinematic passes saved
+            kinetic, kinetic_free, kinetic_next = (contact.kinetic_energy(x) for x in (v, v_free, v_next))
+        else:
+            kinetic_free = scene.unchecked_energies(q, v_free)[0]
+            kinetic_next = scene.unchecked_energies(q, v_next)[0] if problem is not None else kinetic_free
         kinetic_end, potential_end = scene.unchecked_energies(q_next, v_next)
         flows[-4] = correction + bounce - (work - held)
         flows[-3] = correction

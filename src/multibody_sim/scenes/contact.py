@@ -720,6 +720,14 @@ class ContactModel:
         """M⁻¹ x at the latest problem's q (its Cholesky factors, in the contact's Data)."""
         return np.array(pin.cholesky.solve(self.model, self.data, x), dtype=float)
 
+    def kinetic_energy(self, v: np.ndarray) -> float:
+        """T = ½ vᵀ M v [J] at the latest problem's q, from its M (CRBA's upper triangle, armature included): M v
+        each row's products in column order from +0.0 (matvec), then vᵀ (M v) in index order (zsum), halved, as the
+        native kernel (src/native/methods.hpp, kinetic_from_mass) forms it."""
+        M = np.asarray(self.data.M)
+        full = np.where(np.triu(np.ones(M.shape, dtype=bool)), M, M.T)
+        return 0.5 * float(zsum(v * matvec(full, v)))
+
 
 def build_contact(
     scene: Any,
