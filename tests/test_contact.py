@@ -656,3 +656,42 @@ def test_a_misspelt_body_in_contact_pairs_gets_a_did_you_mean() -> None:
     message = str(caught.value)
     assert message.endswith("contact.pairs[0][1]: unknown body 'base_lnk' (did you mean 'base_link'?)"), message
     assert "FL_FOOT" not in message  # solo12's other bodies are not listed
+
+
+def test_contact_chunks_read_as_the_last_write_of_each_sample() -> None:
+    """recording's contact chunks (an engine call's samples at once) against a plain dict of samples: a sample written
+    again (with or without contacts) holds its last write, truncation keeps samples below n, and the record lists
+    the samples in order with each sample's rows as written."""
+    from multibody_sim.recording import SampleStore, contacts_at, kept_contacts
+
+    rng = np.random.default_rng(7)
+    store = SampleStore(1, 1, 1, 0, 0, 4)
+    expected: dict[int, np.ndarray] = {}
+    for _ in range(60):
+        samples = rng.choice(25, size=rng.integers(1, 5), replace=False)
+        parts = [rng.normal(size=(rng.integers(0, 3), 11)) for _ in samples]
+        if rng.random() < 0.5:  # one chunk for several samples, as the native engine appends them
+            sample = np.concatenate([np.full(len(p), s) for s, p in zip(samples, parts)]).astype(np.int64)
+            rows = np.concatenate(parts).reshape(-1, 11)
+            store.contacts.setdefault(0, []).append((samples.astype(np.int64), sample, rows))
+        else:  # one sample at a time, as the Python kernel writes them
+            for s, p in zip(samples, parts):
+                store.write_contacts(int(s), 0, p)
+        for s, p in zip(samples, parts):
+            expected[int(s)] = p
+        if rng.random() < 0.1:
+            n = int(rng.integers(5, 25))
+            store.truncate(0, n)
+            expected = {s: p for s, p in expected.items() if s < n}
+    for n in (0, 7, 25):
+        sample, rows = kept_contacts(store.contacts[0], n)
+        keys = sorted(s for s, p in expected.items() if s < n and len(p))
+        want = np.concatenate([expected[s] for s in keys]).reshape(-1, 11) if keys else np.zeros((0, 11))
+        np.testing.assert_array_equal(rows, want)
+        np.testing.assert_array_equal(sample, np.repeat(keys, [len(expected[s]) for s in keys]).astype(np.int64))
+    for s in range(30):
+        held = contacts_at(store.contacts[0], s)
+        if s in expected and len(expected[s]):
+            np.testing.assert_array_equal(held, expected[s])
+        else:
+            assert held is None

@@ -22,7 +22,7 @@ from .kernels.native import NativeCore, NativeKernel, why_not_native
 from .kernels.row import RowKernel
 from .metadata import run_metadata
 from .monitor import Monitor
-from .recording import COUNTERS, SampleStore, check_memory, file_bytes, samples_needed, sensor_width
+from .recording import COUNTERS, SampleStore, check_memory, contacts_at, file_bytes, samples_needed, sensor_width
 from .safety import check_file_size
 from .sensors import Sensing, run_sensing
 from .step_control import SLIVER, ConstantStep, PIController
@@ -491,7 +491,7 @@ class Run:
                 q, v = store.Q[i, b], store.V[i, b]
                 try:
                     if contacts is not None:
-                        contacts(store.contacts.get(b, {}).get(i), self.settings.dt)
+                        contacts(contacts_at(store.contacts.get(b, []), i), self.settings.dt)
                     self.on_sample(float(store.T[i, b]), q, v)
                 except Exception as exc:  # user code: the run stops with what it has
                     if len(self.core.rows):

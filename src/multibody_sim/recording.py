@@ -21,6 +21,38 @@ COUNTERS = ("steps", "rejected_steps", "evaluations")
 # The store's arrays (SampleStore's attributes of these names), in the order the native kernel takes them.
 STORE_ARRAYS = ("T", "Q", "V", "TAU", "ENERGY", "FLOWS", "COUNTS", "EXTRA")
 
+# A row's contacts as written at once (one sample by the Python kernel, an engine call's samples by the native one):
+# the sample indices written (w,) [int64] (a written sample without contacts has none), each contact row's sample
+# (k,) [int64] and the rows (k, 11) of pair (2), point (3), normal (3), impulse (3). A later chunk that writes a
+# sample again replaces what earlier chunks held for it.
+ContactChunk = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def contacts_at(chunks: list[ContactChunk], i: int) -> np.ndarray | None:
+    """Sample i's contact rows (k, 11) from a row's chunks (the last chunk that wrote i), None without contacts."""
+    for written, sample, rows in reversed(chunks):
+        if np.any(written == i):
+            held = rows[sample == i]
+            return held if len(held) else None
+    return None
+
+
+def kept_contacts(chunks: list[ContactChunk], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The contact rows of samples 0..n-1 from a row's chunks, in sample order (each sample's rows as written by the
+    last chunk that wrote it): (sample (k,) [int64], rows (k, 11))."""
+    if not chunks:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 11))
+    last = np.full(n, -1, dtype=np.int64)  # per sample, the last chunk that wrote it
+    for c, (written, _, _) in enumerate(chunks):
+        last[written[written < n]] = c
+    sample = np.concatenate([s for _, s, _ in chunks]).astype(np.int64, copy=False)
+    origin = np.repeat(np.arange(len(chunks)), [len(s) for _, s, _ in chunks])
+    rows = np.concatenate([r for _, _, r in chunks]).reshape(-1, 11)
+    keep = sample < n
+    keep[keep] = last[sample[keep]] == origin[keep]
+    order = np.argsort(sample[keep], kind="stable")
+    return sample[keep][order], rows[keep][order]
+
 
 class SampleStore:
     """Growable per-sample arrays for B rows.
@@ -51,8 +83,8 @@ class SampleStore:
         self.running = np.ones(B, dtype=bool)
         self.soft_capacity: float = capacity
         self.full = False
-        # A contact run's active contacts: row b -> {sample index: rows (k, 11) of pair, point, normal, impulse}.
-        self.contacts: dict[int, dict[int, np.ndarray]] = {}
+        # A contact run's active contacts: row b -> its ContactChunks in the order written (contacts_at, kept_contacts).
+        self.contacts: dict[int, list[ContactChunk]] = {}
         self._allocate(capacity)
 
     def _allocate(self, capacity: int) -> None:
@@ -149,15 +181,12 @@ class SampleStore:
         self.sensed[b] = min(int(self.sensed[b]), n)
         held = self.contacts.get(b)
         if held:
-            self.contacts[b] = {i: rows for i, rows in held.items() if i < n}
+            self.contacts[b] = [(w[w < n], s[s < n], r[s < n]) for w, s, r in held]
 
     def write_contacts(self, i: int, b: int, rows: np.ndarray | None) -> None:
         """Row b's active contacts at sample i: (k, 11) rows of pair (2), point (3), normal (3), impulse (3)."""
-        held = self.contacts.setdefault(b, {})
-        if rows is None or not len(rows):
-            held.pop(i, None)
-        else:
-            held[i] = rows
+        rows = np.empty((0, 11)) if rows is None else rows
+        self.contacts.setdefault(b, []).append((np.array([i]), np.full(len(rows), i), rows))
 
     def trajectory(
         self,
@@ -222,12 +251,9 @@ class SampleStore:
         contact = getattr(system, "contact", None)
         if contact is None:
             return None
-        held = self.contacts.get(b, {})
-        keys = sorted(i for i in held if i < n)
-        if not keys:
+        sample, rows = kept_contacts(self.contacts.get(b, []), n)
+        if not len(sample):
             return Contacts.empty(contact.body_names)
-        rows = np.vstack([held[i] for i in keys])
-        sample = np.repeat(np.array(keys, dtype=np.int64), [len(held[i]) for i in keys])
         return Contacts(
             list(contact.body_names),
             sample,

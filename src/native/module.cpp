@@ -9,6 +9,8 @@
 #include <sstream>
 #include <stdexcept>
 #include <string>
+#include <unordered_map>
+#include <utility>
 
 #include <boost/archive/binary_iarchive.hpp>
 #include <boost/iostreams/device/array.hpp>
@@ -177,29 +179,51 @@ namespace
     return s;
   }
 
-  // recording.SampleStore.write_contacts for the samples the engine wrote, on the store's `contacts` dict itself
-  // (row b -> {sample index: rows (k, 11)}): dict operations run no Python code, so a signal handler (Ctrl-C)
-  // never sees the samples counted without their contacts.
+  // The samples the engine wrote, as one recording.ContactChunk per row appended to the store's `contacts` dict
+  // (row b -> [chunk, ...]): (samples written (w,), each contact row's sample (k,), rows (k, 11)). Dict and list
+  // operations run no Python code, so a signal handler (Ctrl-C) never sees the samples counted without their
+  // contacts; one chunk per row and call, not one array per sample (made here under the GIL, after the threads).
   void write_contacts(nb::dict contacts, std::vector<multibody_sim::ContactRecord> & records)
   {
-    for (multibody_sim::ContactRecord & r : records)
+    std::vector<int64_t> order;  // the rows in the order first written
+    std::unordered_map<int64_t, std::pair<size_t, size_t>> sizes;  // row -> (samples written, contact rows)
+    for (const multibody_sim::ContactRecord & r : records)
     {
-      nb::int_ b(r.b), i(r.i);
-      if (!contacts.contains(b))
-        contacts[b] = nb::dict();
-      nb::dict held = nb::borrow<nb::dict>(contacts[b]);
-      if (r.rows.empty())
+      auto [it, added] = sizes.try_emplace(r.b, 0, 0);
+      if (added)
+        order.push_back(r.b);
+      it->second.first += 1;
+      it->second.second += r.rows.size();
+    }
+    auto owned = [](auto * buffer) {
+      return nb::capsule(buffer, [](void * p) noexcept { delete[] static_cast<decltype(buffer)>(p); });
+    };
+    for (int64_t b : order)
+    {
+      const auto [w, k] = sizes[b];
+      int64_t * written = new int64_t[w];
+      int64_t * sample = new int64_t[k];
+      double * rows = new double[k * 11];
+      size_t a = 0, c = 0;
+      for (const multibody_sim::ContactRecord & r : records)
       {
-        if (held.contains(i))
-          nb::del(held[i]);
-        continue;
+        if (r.b != b)
+          continue;
+        written[a++] = r.i;
+        for (const auto & row : r.rows)
+        {
+          sample[c] = r.i;
+          std::copy(row.begin(), row.end(), rows + 11 * c);
+          ++c;
+        }
       }
-      const size_t k = r.rows.size();
-      double * buffer = new double[k * 11];
-      for (size_t c = 0; c < k; ++c)
-        std::copy(r.rows[c].begin(), r.rows[c].end(), buffer + 11 * c);
-      nb::capsule owner(buffer, [](void * p) noexcept { delete[] static_cast<double *>(p); });
-      held[i] = nb::cast(nb::ndarray<nb::numpy, double, nb::ndim<2>>(buffer, {k, 11}, owner));
+      nb::int_ key(b);
+      if (!contacts.contains(key))
+        contacts[key] = nb::list();
+      nb::list held = nb::borrow<nb::list>(contacts[key]);
+      held.append(nb::make_tuple(nb::ndarray<nb::numpy, int64_t, nb::ndim<1>>(written, {w}, owned(written)),
+                                 nb::ndarray<nb::numpy, int64_t, nb::ndim<1>>(sample, {k}, owned(sample)),
+                                 nb::ndarray<nb::numpy, double, nb::ndim<2>>(rows, {k, 11}, owned(rows))));
     }
     records.clear();
   }
@@ -538,7 +562,7 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
       nb::arg("io"),
       "Core.advance towards t_stop, at most `limit` accepted steps, with the landing `tolerance`: advances `state` "
       "(a LoopState) in place, appends the rows that stop to `io.stops` (StopEvent), their contacts to "
-      "`io.contacts` (the store's dict) and the evaluations beyond the core's count of the running `io.rows` to "
+      "`io.contacts` (the store's dict of ContactChunks) and the evaluations beyond the core's count of the running `io.rows` to "
       "`io.extra_evaluations` (an AdvanceIO).")
     .def(
       "write_rows",
@@ -553,7 +577,7 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
         write_contacts(contacts, records);
       },
       nb::arg("i"), nb::arg("rows"), nb::kw_only(), nb::arg("store"), nb::arg("contacts"),
-      "Write run rows `rows` as sample i of the store, their contacts into `contacts` (the store's dict).")
+      "Write run rows `rows` as sample i of the store, their contacts into `contacts` (the store's dict of ContactChunks).")
     .def(
       "set_contact",
       [](Engine & self, std::shared_ptr<ContactScene> contact, std::vector<bool> flow_work) {
