@@ -695,3 +695,25 @@ def test_contact_chunks_read_as_the_last_write_of_each_sample() -> None:
             np.testing.assert_array_equal(held, expected[s])
         else:
             assert held is None
+
+
+def test_contact_chunks_in_order_read_as_written() -> None:
+    """Chunks in sample order with no sample written twice (a native run's) read as their rows concatenated, and a
+    truncation below their end drops the later samples' rows."""
+    from multibody_sim.recording import kept_contacts
+
+    rng = np.random.default_rng(8)
+    chunks, parts = [], []
+    for first in (0, 3, 9):
+        written = np.arange(first, first + 3, dtype=np.int64)
+        counts = rng.integers(0, 4, size=3)
+        rows = rng.normal(size=(int(counts.sum()), 11))
+        chunks.append((written, np.repeat(written, counts), rows))
+        parts.append((np.repeat(written, counts), rows))
+    sample, rows = kept_contacts(chunks, 12)
+    np.testing.assert_array_equal(sample, np.concatenate([s for s, _ in parts]))
+    np.testing.assert_array_equal(rows, np.concatenate([r for _, r in parts]))
+    sample, rows = kept_contacts(chunks, 4)
+    everything = np.concatenate([s for s, _ in parts])
+    np.testing.assert_array_equal(sample, everything[everything < 4])
+    np.testing.assert_array_equal(rows, np.concatenate([r for _, r in parts])[everything < 4])
