@@ -10,7 +10,6 @@
 #include <stdexcept>
 #include <string>
 #include <unordered_map>
-#include <utility>
 
 #include <boost/archive/binary_iarchive.hpp>
 #include <boost/iostreams/device/array.hpp>
@@ -185,45 +184,53 @@ namespace
   // contacts; one chunk per row and call, not one array per sample (made here under the GIL, after the threads).
   void write_contacts(nb::dict contacts, std::vector<multibody_sim::ContactRecord> & records)
   {
-    std::vector<int64_t> order;  // the rows in the order first written
-    std::unordered_map<int64_t, std::pair<size_t, size_t>> sizes;  // row -> (samples written, contact rows)
+    struct Chunk  // one row's records: sizes counted first, then filled in one pass over the records
+    {
+      int64_t b = 0;
+      size_t w = 0, k = 0;  // samples written, contact rows
+      int64_t *written = nullptr, *sample = nullptr;
+      double * rows = nullptr;
+    };
+    std::vector<Chunk> chunks;  // the rows in the order first written
+    std::unordered_map<int64_t, size_t> index;  // row -> its chunk
     for (const multibody_sim::ContactRecord & r : records)
     {
-      auto [it, added] = sizes.try_emplace(r.b, 0, 0);
+      auto [it, added] = index.try_emplace(r.b, chunks.size());
       if (added)
-        order.push_back(r.b);
-      it->second.first += 1;
-      it->second.second += r.rows.size();
+        chunks.push_back(Chunk{r.b});
+      chunks[it->second].w += 1;
+      chunks[it->second].k += r.rows.size();
+    }
+    for (Chunk & ch : chunks)
+    {
+      ch.written = new int64_t[ch.w];
+      ch.sample = new int64_t[ch.k];
+      ch.rows = new double[ch.k * 11];
+      ch.w = ch.k = 0;  // counted again as filled
+    }
+    for (const multibody_sim::ContactRecord & r : records)
+    {
+      Chunk & ch = chunks[index[r.b]];
+      ch.written[ch.w++] = r.i;
+      for (const auto & row : r.rows)
+      {
+        ch.sample[ch.k] = r.i;
+        std::copy(row.begin(), row.end(), ch.rows + 11 * ch.k);
+        ++ch.k;
+      }
     }
     auto owned = [](auto * buffer) {
       return nb::capsule(buffer, [](void * p) noexcept { delete[] static_cast<decltype(buffer)>(p); });
     };
-    for (int64_t b : order)
+    for (const Chunk & ch : chunks)
     {
-      const auto [w, k] = sizes[b];
-      int64_t * written = new int64_t[w];
-      int64_t * sample = new int64_t[k];
-      double * rows = new double[k * 11];
-      size_t a = 0, c = 0;
-      for (const multibody_sim::ContactRecord & r : records)
-      {
-        if (r.b != b)
-          continue;
-        written[a++] = r.i;
-        for (const auto & row : r.rows)
-        {
-          sample[c] = r.i;
-          std::copy(row.begin(), row.end(), rows + 11 * c);
-          ++c;
-        }
-      }
-      nb::int_ key(b);
+      nb::int_ key(ch.b);
       if (!contacts.contains(key))
         contacts[key] = nb::list();
       nb::list held = nb::borrow<nb::list>(contacts[key]);
-      held.append(nb::make_tuple(nb::ndarray<nb::numpy, int64_t, nb::ndim<1>>(written, {w}, owned(written)),
-                                 nb::ndarray<nb::numpy, int64_t, nb::ndim<1>>(sample, {k}, owned(sample)),
-                                 nb::ndarray<nb::numpy, double, nb::ndim<2>>(rows, {k, 11}, owned(rows))));
+      held.append(nb::make_tuple(nb::ndarray<nb::numpy, int64_t, nb::ndim<1>>(ch.written, {ch.w}, owned(ch.written)),
+                                 nb::ndarray<nb::numpy, int64_t, nb::ndim<1>>(ch.sample, {ch.k}, owned(ch.sample)),
+                                 nb::ndarray<nb::numpy, double, nb::ndim<2>>(ch.rows, {ch.k, 11}, owned(ch.rows))));
     }
     records.clear();
   }
