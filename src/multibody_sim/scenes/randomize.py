@@ -61,10 +61,6 @@ class Nominals:
             return float(given[target])
         return nominal
 
-    def gives(self, name: str) -> bool:
-        """Whether a value of `name` is given (on any target)."""
-        return name in self.given
-
 
 def matching(patterns: Sequence[str], candidates: Sequence[str]) -> list[str]:
     """The candidates any of the glob patterns matches, in the candidates' order."""
@@ -98,7 +94,6 @@ class Randomizer:
     """
 
     def __init__(self, spec: RandomizeSpec, nominal: Mapping[str, Any], where: str):
-        self.spec = spec
         self.seed = spec.seed
         self.tables: list[tuple[ParameterSpec, list[str | None], list[float]]] = []
         for i, table in enumerate(spec.parameters):

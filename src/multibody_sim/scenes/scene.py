@@ -787,12 +787,9 @@ def _joint_id(model: pin.Model, name: str, key: str, floating: bool) -> int:
     """The id of a 1-dof joint by name, or SceneError naming the valid ones."""
     if model.existJointName(name) and model.joints[model.getJointId(name)].nv == 1:
         return model.getJointId(name)
-    valid = _one_dof_joints(model)
-    if name not in valid:
-        if floating and model.existJointName(name) and model.joints[model.getJointId(name)].nv == 6:
-            raise SceneError(f"{key}: '{name}' is the floating base: it cannot be locked or given joint settings")
-        raise SceneError(f"{key}: unknown joint '{name}' (valid: {', '.join(valid)})")
-    return model.getJointId(name)
+    if floating and model.existJointName(name) and model.joints[model.getJointId(name)].nv == 6:
+        raise SceneError(f"{key}: '{name}' is the floating base: it cannot be locked or given joint settings")
+    raise SceneError(f"{key}: unknown joint '{name}' (valid: {', '.join(_one_dof_joints(model))})")
 
 
 def _sensors(scene: Scene, spec: SceneSpec, declared: list[PayloadSpec]) -> Any:
