@@ -585,8 +585,9 @@ class ContactModel:
         n_points, nv = len(points), model.nv
         n_speeds = len(speeds)
         m = 3 * n_points + len(limits) + len(self.friction_joints) + n_speeds
-        pin.crba(model, data, q, _WORLD)  # M (upper triangle) and the joint Jacobians data.J, world frame
-        pin.cholesky.decompose(model, data)  # M = U D Uᵀ
+        if previous is None:  # (a velocity-limit re-solve is at the same q: its factors and data.J stand)
+            pin.crba(model, data, q, _WORLD)  # M (upper triangle) and the joint Jacobians data.J, world frame
+            pin.cholesky.decompose(model, data)  # M = U D Uᵀ
         # ---- J, row by row on its support
         J = np.zeros((m, nv))
         joint_jacobians = np.asarray(data.J)
@@ -723,7 +724,7 @@ class ContactModel:
     def kinetic_energy(self, v: np.ndarray) -> float:
         """T = ½ vᵀ M v [J] at the latest problem's q, from its M (CRBA's upper triangle, armature included): M v
         each row's products in column order from +0.0 (matvec), then vᵀ (M v) in index order (zsum), halved, as the
-        native kernel (src/native/methods.hpp, kinetic_from_mass) forms it."""
+        native kernel (src/native/contact.cpp, ContactScene::kinetic_energy) forms it."""
         M = np.asarray(self.data.M)
         full = np.where(np.triu(np.ones(M.shape, dtype=bool)), M, M.T)
         return 0.5 * float(zsum(v * matvec(full, v)))
