@@ -793,7 +793,7 @@ namespace multibody_sim
     {
       SensorWork & w = *sensw;
       const Vec & a = w.pending_a[j];
-      measure_sensors(*e.sensors_, *M, w, q[j], v[j], a, a, nullptr, 1.0,
+      measure_sensors(*SS, *M, w, q[j], v[j], a, a, nullptr, 1.0,
                       w.values.data() + w.pending[j], SensorPart::kinematic);
       w.pending[j] = -1;
     }
