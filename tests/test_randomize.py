@@ -629,6 +629,33 @@ def test_an_adaptive_randomised_rollout_runs_each_row_on_its_own_values() -> Non
         assert_same_run(batch.element(b), rerun(batch, scene, b, **settings))
 
 
+@pytest.mark.parametrize(
+    "method",
+    [{"integrator": "rk4"}, {"integrator": "dp54", "rtol": 1e-8, "atol": 1e-10}],  # one run over all rows; one per row
+)
+def test_an_interrupted_randomised_rollout_keeps_every_row_s_parameters(method: dict[str, Any]) -> None:
+    # A Ctrl-C keeps each element's drawn values, as a finished rollout does: element b's are its own, not row 0's.
+    scene = ms.make_scene(
+        robot={"source": "double_pendulum"}, randomize={"parameter": [uniform("mass", 0.5, 2.0, scale=True)]}
+    )
+    Q, V = np.tile([0.3, -0.2], (3, 1)), np.zeros((3, 2))
+    settings = {"duration": 0.05, "dt": 1e-3, **method}
+    drawn = ms.rollout(scene, Q, V, **settings).metadata["parameters"]
+    assert len(drawn) == 3 and drawn[0] != drawn[1] != drawn[2]
+
+    def interrupting(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        if t >= 0.0095:
+            raise KeyboardInterrupt
+        return np.zeros(2)
+
+    with pytest.raises(ms.SimulationInterrupted) as caught:
+        ms.rollout(scene, Q, V, controller=interrupting, **settings)
+    batch = caught.value.trajectory
+    assert batch.metadata["parameters"] == drawn
+    for b in range(3):
+        assert batch.element(b).metadata["parameters"] == drawn[b]
+
+
 # ---- per gym reset -----------------------------------------------------------------------------------------------
 def test_each_gym_episode_draws_its_own_scene() -> None:
     gym = pytest.importorskip("multibody_sim.gym")

@@ -439,7 +439,7 @@ def _row_by_row(job: _Job, *, bar: ProgressBar, start: float) -> BatchTrajectory
                 trajectories.append(_initial_only(system, Q0[rest], V0[rest]))
                 messages.append("interrupted before it started")
             batch = _stack(trajectories, messages, Q0, V0, time.perf_counter() - start)
-            batch.metadata = {**run.metadata(), "backend": "local"}
+            batch.metadata = _batch_metadata(run.metadata(), job, backend="local")
             raise SimulationInterrupted(
                 f"interrupted in element {b} of {len(Q0)}; {messages[b]}",
                 trajectory=batch,  # type: ignore[arg-type]
@@ -449,10 +449,17 @@ def _row_by_row(job: _Job, *, bar: ProgressBar, start: float) -> BatchTrajectory
         metadata = run.metadata()
         bar.update(1)
     batch = _stack(trajectories, messages, Q0, V0, time.perf_counter() - start)
-    batch.metadata = {**metadata, "backend": "local"}
-    if job.parameters is not None:
-        batch.metadata["parameters"] = job.parameters
+    batch.metadata = _batch_metadata(metadata, job, backend="local")
     return batch
+
+
+def _batch_metadata(metadata: dict[str, Any], job: _Job, **more: Any) -> dict[str, Any]:
+    """A batch's metadata: a run's (over some of its elements), what `more` adds (the backend, ...) and, randomised,
+    every element's parameter values in place of that run's."""
+    metadata = {**metadata, **more}
+    if job.parameters is not None:
+        metadata["parameters"] = job.parameters
+    return metadata
 
 
 def check_batch(
@@ -772,10 +779,7 @@ def _ray_rollout(job: _Job, *, progress: bool | None, chunk_size: int | None) ->
     finally:
         bar.close()
     batch = _concatenate([r for r in results if r is not None], wall_time=time.perf_counter() - start)
-    batch.metadata["backend"] = "ray"
-    batch.metadata["chunks"] = len(bounds)
-    if job.parameters is not None:
-        batch.metadata["parameters"] = job.parameters
+    batch.metadata = _batch_metadata(batch.metadata, job, backend="ray", chunks=len(bounds))
     return batch
 
 
