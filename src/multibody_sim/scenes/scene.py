@@ -351,10 +351,9 @@ class Scene(Robot):
                 outside its quantity's range.
         """
         if parameters is not None:
-            nominal = (
-                self.nominal_parameters
-                or Scene(dataclasses.replace(self.spec, parameters={}), robot=self.full_robot).nominal_parameters
-            )
+            nominal = self.nominal_parameters
+            if not nominal:  # none noted (nothing randomised or given): this scene's variant notes them as it builds
+                nominal = Scene(dataclasses.replace(self.spec, parameters={}), variant_of=self).nominal_parameters
             parameters = check_parameters(parameters, nominal)
         return Scene(dataclasses.replace(self.spec, parameters=parameters), robot=self.full_robot, variant_of=self)
 
