@@ -60,6 +60,7 @@ class Robot:
         name: str,
         floating_base: bool,
         damping: bool = True,
+        always_damped: bool = False,
         source: dict[str, Any] | None = None,
         poses: dict[str, np.ndarray] | None = None,
         default_pose: str | None = None,
@@ -79,7 +80,9 @@ class Robot:
         self.damping = np.array(model.damping, dtype=float) if damping else np.zeros(self.nv)
         if floating_base:
             self.damping[:6] = 0.0
-        self._damped = bool(np.any(self.damping))
+        # The term -D v and its ledger line joint_damping: where D has a nonzero entry, or always (always_damped: a
+        # scene whose [randomize] draws damping has that line in every row, D = 0 or not).
+        self._damped = always_damped or bool(np.any(self.damping))
         self.effort_limit = _effort_limits(model, floating_base)
         self.velocity_limit = _effort_limits(model, floating_base, "velocityLimit")
         self.lower_limit, self.upper_limit = _position_limits(model)

@@ -186,6 +186,8 @@ class Scene(Robot):
             name=_scene_name(spec, robot),
             floating_base=robot.floating_base,
             damping=True,
+            # every row the same ledger: the damping line where [randomize] draws damping, D = 0 or not
+            always_damped=bool(randomized(spec.randomize, "damping", _one_dof_joints(model))),
             source={**robot.source, "scene": _scene_source(spec)},
             # The robot's named poses on the scene's model (locked joints and mimic followers dropped; objects
             # where the scene puts them).
@@ -195,8 +197,6 @@ class Scene(Robot):
         )
         if variant_of is None:
             _check_scene_model(self, where, robot_nv, len(object_joints))
-        if randomized(spec.randomize, "damping", _one_dof_joints(model)):  # the same ledger in every row, 0 or not
-            self._damped = True
         self.actuated = slice(self.actuated.start, robot_nv)  # free objects are unactuated
         self.actuators = None
         if actuators:
@@ -451,7 +451,7 @@ class Scene(Robot):
             tau = self.actuators.joint_torques(q, v, tau)
         if self.elements is not None:
             tau = tau + self.elements.evaluate(q, v, t)
-        if self._damped:
+        if self.damped:
             tau = tau - self.damping * v
         return tau
 
@@ -476,7 +476,7 @@ class Scene(Robot):
         applied = self._applied(q, v, tau, t)
         da_dq, da_dv, da_dtau = pin.computeABADerivatives(self.model, self.data, q, v, applied)
         da_dq, da_dv, da_dtau = da_dq.copy(), da_dv.copy(), da_dtau.copy()
-        if self._damped:
+        if self.damped:
             da_dv -= da_dtau * self.damping
         if self.elements is not None:
             df_dq, df_dv = self.elements.jacobians(q, v, t)
