@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import os
 import signal
 from collections.abc import Callable
 from pathlib import Path
@@ -11,12 +12,33 @@ from typing import Any
 import pytest
 
 import multibody_sim as ms
+from multibody_sim import native
+from multibody_sim.scenes import shipped_scenes
+from multibody_sim.scenes.parse import parse_toml
 
 # The tests stand for a user at a terminal, where Ctrl-C interrupts. A suite started in the background by a
 # non-interactive shell (`cmd &`) inherits SIGINT ignored, which Python then keeps (no KeyboardInterrupt, and the
 # children it starts ignore SIGINT too): give it back its default handler, which children reset to SIG_DFL.
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+# A test of the native kernel: skipped where the extension is not built, but not in CI, which builds it (its absence
+# fails there).
+needs_native = pytest.mark.skipif(
+    not native.available and os.environ.get("CI") != "true",
+    reason=f"the native kernel is not available here: {native.why_unavailable}",
+)
+
+
+def shipped(name: str, *, drop: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A shipped scene's tables (to add or change some), without the tables `drop` names (e.g. its "controller" and
+    its "simulation" settings)."""
+    path = shipped_scenes()[name]
+    tables = parse_toml(path.read_text(encoding="utf-8"), str(path))
+    for table in drop:
+        tables.pop(table, None)
+    return tables
 
 
 @functools.cache

@@ -9,18 +9,16 @@ the ledger's closure (energy_error) converging with dt or exact by construction 
 from __future__ import annotations
 
 import math
-import os
 import re
 
 import numpy as np
 import pytest
-from conftest import assert_same_run, assert_same_stepper, both
+from conftest import assert_same_run, assert_same_stepper, both, needs_native, shipped
 
 import multibody_sim as ms
 from multibody_sim.exceptions import SceneError
 from multibody_sim.integrators import INTEGRATORS
-from multibody_sim.scenes import make_scene, shipped_scenes
-from multibody_sim.scenes.parse import parse_toml
+from multibody_sim.scenes import make_scene
 from multibody_sim.torques import command_bounds
 
 I_ROTOR = 1.0 + 0.001  # the pendulum's inertia about its hinge: the 1 kg bob 1 m out plus its own [kg·m²]
@@ -423,9 +421,8 @@ def test_energy_error_closes_and_converges_with_limits() -> None:
 def test_the_time_stepper_ledger_closes_with_implicit_servos() -> None:
     """go2 standing on its feet under position servos at 2 ms: every step raises the armature for the velocity update
     and the contact problem; the ledger still closes to round-off (the time-stepper's books are exact)."""
-    tables = parse_toml(shipped_scenes()["go2_standing"].read_text(), "go2_standing")
-    q_ref = tables["controller"]["q_ref"][7:]
-    tables.pop("controller")
+    tables = shipped("go2_standing")
+    q_ref = tables.pop("controller")["q_ref"][7:]
     scene = make_scene(**tables, actuators="catalog", actuator=[{"joints": "*", "kind": "position", "kp": 60, "kv": 2}])
     u = np.zeros(scene.nv)
     u[6:] = q_ref
@@ -501,16 +498,10 @@ def test_linearize_refuses_semi_implicit_servos_in_one_line() -> None:
 
 
 # ---- the native kernel: its rendering (src/native/scene.cpp, the engine's steps) bit for bit ------------------------
-needs_native = pytest.mark.skipif(
-    not ms.native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
-    reason=f"the native kernel is not available here: {ms.native.why_unavailable}",
-)
 
 
 def go2_on_ground(**actuator: object) -> ms.Scene:
-    tables = parse_toml(shipped_scenes()["go2_standing"].read_text(), "go2_standing")
-    tables.pop("controller")
-    tables.pop("simulation", None)
+    tables = shipped("go2_standing", drop=("controller", "simulation"))
     return make_scene(**tables, actuators="catalog", actuator=[{"joints": "*", **actuator}] if actuator else [])
 
 

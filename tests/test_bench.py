@@ -6,7 +6,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import re
 import signal
 import subprocess
@@ -19,7 +18,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import joint, link, urdf
+from conftest import joint, link, needs_native, urdf
 from PIL import Image
 from scipy.integrate import solve_ivp
 
@@ -480,10 +479,7 @@ def test_pilot_cache_is_read_and_a_corrupt_entry_is_rebuilt(
     assert not other.cached and other.cache_path != first.cache_path
 
 
-@pytest.mark.skipif(
-    not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
-    reason=f"the native kernel is not available here: {native.why_unavailable}",
-)
+@needs_native
 def test_the_pilot_measures_on_the_kernel_the_run_takes_and_caches_each_apart(
     tmp_path: Path, robot: Callable, monkeypatch: pytest.MonkeyPatch
 ) -> None:

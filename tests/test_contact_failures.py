@@ -9,14 +9,13 @@ step)."""
 
 from __future__ import annotations
 
-import os
 
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import needs_native
 
 import multibody_sim as ms
-from multibody_sim import native
 from multibody_sim.kernels import native as native_kernel
 from multibody_sim.scenes import make_scene
 
@@ -110,10 +109,6 @@ def test_stepper_raises_failed_and_stays_where_it_was(python_library_error):
 
 
 # ---- the native kernel ----------------------------------------------------------------------------------------------
-native_only = pytest.mark.skipif(
-    not native.available and os.environ.get("CI") != "true",
-    reason=f"the native kernel is not available here: {native.why_unavailable}",
-)
 
 
 def box_on_solo12() -> ms.Scene:
@@ -150,7 +145,7 @@ def damaged_archive(monkeypatch):
     monkeypatch.setattr(native_kernel, "contact_data", damaged)
 
 
-@native_only
+@needs_native
 def test_a_library_exception_in_the_native_step_fails_that_row_alone(damaged_archive, tmp_path):
     """Row 0's box rests on the base (its pair needs coal and the damaged hull): it fails with Boost's message; row
     1's box is 0.7 m above it (its pair's bounding spheres apart: the hulls are never read) and completes. The same in
@@ -182,7 +177,7 @@ def test_a_library_exception_in_the_native_step_fails_that_row_alone(damaged_arc
     assert list(failures) == [0] and failures[0][0] == "failed"
 
 
-@native_only
+@needs_native
 def test_the_gym_envs_carry_a_native_library_exception_as_the_rows_failure(damaged_archive):
     """The single env ends its episode with info["failure"] and info["message"]; the vector env fails row 0 alone."""
     pytest.importorskip("gymnasium")

@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import ast
 import inspect
-import os
 import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from conftest import needs_native
 
 import multibody_sim as ms
 from multibody_sim import native
@@ -139,10 +139,6 @@ def test_the_vector_environment_on_a_floating_base_equals_single_environments(ke
 
 
 # ---- the native boundary: named data -------------------------------------------------------------------------------
-needs_native = pytest.mark.skipif(
-    not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
-    reason=f"the native kernel is not available: {native.why_unavailable}",
-)
 NATIVE_SOURCES = Path(__file__).resolve().parents[1] / "src" / "native"
 
 

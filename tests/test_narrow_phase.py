@@ -5,16 +5,14 @@ edges)."""
 
 from __future__ import annotations
 
-import os
 
 import coal
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import assert_same_run, both
+from conftest import assert_same_run, both, needs_native
 
 import multibody_sim as ms
-from multibody_sim import native
 from multibody_sim.integrators.cone_solver import TOLERANCE
 from multibody_sim.integrators.timestepping import TimeStepping
 from multibody_sim.scenes import make_scene
@@ -231,10 +229,7 @@ def tumbling_boxes() -> ms.Scene:
     return make_scene(ground={"friction": 0.6}, contact=contact, object=[cube, slab, ridge, valley])
 
 
-@pytest.mark.skipif(
-    not native.available and os.environ.get("CI") != "true",
-    reason=f"the native kernel is not available here: {native.why_unavailable}",
-)
+@needs_native
 def test_boxes_tumbling_onto_boxes_run_natively_bit_for_bit(monkeypatch):
     scene = tumbling_boxes()
     run = lambda: ms.simulate(  # noqa: E731

@@ -17,17 +17,13 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import needs_native
 
 from multibody_sim import native
 
 REPO = Path(__file__).resolve().parents[1]
 ROBOTS = ["double_pendulum", "ur5", "panda", "solo12", "talos"]
 BUILT = importlib.util.find_spec("multibody_sim._native") is not None
-
-needs_native = pytest.mark.skipif(
-    not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
-    reason=f"the native kernel is not available here: {native.why_unavailable}",
-)
 
 
 def state(robot, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

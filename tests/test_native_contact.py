@@ -15,10 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import FIELDS, assert_same_run, assert_same_stepper, both, on_kernel
+from conftest import FIELDS, assert_same_run, assert_same_stepper, both, needs_native, on_kernel
 
 import multibody_sim as ms
-from multibody_sim import native
 from multibody_sim.controllers import PDGravity
 from multibody_sim.integrators import INTEGRATORS
 from multibody_sim.integrators.timestepping import TimeStepping
@@ -27,10 +26,7 @@ from multibody_sim.kernels.native import BUDGET_SECONDS, next_budget, why_not_na
 from multibody_sim.scenes import contact as contact_module
 from multibody_sim.scenes import make_scene
 
-pytestmark = pytest.mark.skipif(
-    not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
-    reason=f"the native kernel is not available here: {native.why_unavailable}",
-)
+pytestmark = needs_native
 
 SCENES = sorted(p.stem for p in (Path(__file__).parents[1] / "models" / "scenes").glob("*.toml"))
 CONTACT_SCENES = [name for name in SCENES if ms.load_scene(name).contact is not None]

@@ -12,18 +12,14 @@ import time
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import FIELDS, assert_same_run, on_kernel
+from conftest import FIELDS, assert_same_run, needs_native, on_kernel
 
 import multibody_sim as ms
-from multibody_sim import native
 from multibody_sim.driver import choose_kernel
 from multibody_sim.integrators.explicit_rk import ExplicitRungeKutta
 from multibody_sim.kernels.native import NativeKernel, why_not_native
 
-pytestmark = pytest.mark.skipif(
-    not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
-    reason=f"the native kernel is not available here: {native.why_unavailable}",
-)
+pytestmark = needs_native
 
 ROBOTS = ["double_pendulum", "ur5", "panda", "solo12", "talos"]
 FIXED = ["euler", "semi_implicit_euler", "midpoint", "rk4"]

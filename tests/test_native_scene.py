@@ -6,25 +6,20 @@ into Python per control instant; the scenes that stay on Python say why."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_same_run, assert_same_stepper, both, on_kernel
+from conftest import assert_same_run, assert_same_stepper, both, needs_native, on_kernel
 
 import multibody_sim as ms
-from multibody_sim import native
 from multibody_sim.controllers import PD, GravityCompensation, PDGravity
 from multibody_sim.integrators import INTEGRATORS
 from multibody_sim.kernels import native as native_core
 from multibody_sim.kernels.native import why_not_native
 from multibody_sim.scenes.elements import ForceElements
 
-pytestmark = pytest.mark.skipif(
-    not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
-    reason=f"the native kernel is not available here: {native.why_unavailable}",
-)
+pytestmark = needs_native
 
 SCENES = sorted(p.stem for p in (Path(__file__).parents[1] / "models" / "scenes").glob("*.toml"))
 RK4 = INTEGRATORS["rk4"]

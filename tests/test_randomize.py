@@ -5,31 +5,16 @@ values declared in a scene, and each row re-run alone bit for bit on both kernel
 from __future__ import annotations
 
 import math
-import os
 from typing import Any
 
 import numpy as np
 import pytest
-from conftest import assert_same_run, both, on_kernel
+from conftest import assert_same_run, both, needs_native, on_kernel, shipped
 from scipy import stats
 
 import multibody_sim as ms
-from multibody_sim import native
 from multibody_sim.exceptions import InvalidArgumentError, SceneError
-from multibody_sim.scenes import shipped_scenes
-from multibody_sim.scenes.parse import parse_toml
 from multibody_sim.trajectory import Trajectory
-
-needs_native = pytest.mark.skipif(
-    not native.available and os.environ.get("CI") != "true",  # CI builds the extension: its absence fails there
-    reason=f"the native kernel is not available here: {native.why_unavailable}",
-)
-
-
-def shipped(name: str) -> dict[str, Any]:
-    """A shipped scene's tables (to add or change some)."""
-    path = shipped_scenes()[name]
-    return parse_toml(path.read_text(encoding="utf-8"), str(path))
 
 
 def uniform(name: str, low: float, high: float, *, scale: bool = False, **targets: Any) -> dict[str, Any]:

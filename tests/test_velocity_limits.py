@@ -6,28 +6,21 @@ solves as without the rows), and the native kernel against the Python one bit fo
 
 from __future__ import annotations
 
-import os
 
 import numpy as np
 import pytest
-from conftest import assert_same_run, both
+from conftest import assert_same_run, both, needs_native, shipped
 
 import multibody_sim as ms
-from multibody_sim import native
 from multibody_sim.exceptions import SceneError
 from multibody_sim.integrators import INTEGRATORS
 from multibody_sim.integrators.cone_solver import TOLERANCE
-from multibody_sim.scenes import make_scene, shipped_scenes
-from multibody_sim.scenes.parse import parse_toml
+from multibody_sim.scenes import make_scene
 
 EFFORT, V_MAX, LOAD = 10.0, 3.0, 100.0  # the load is 10 times what the motor can hold
 I_ROTOR = 1.0 + 0.001  # the pendulum's inertia about its hinge [kg·m²] (tests/test_actuators.py)
 DT = 1e-3
 STATS = ("steps", "evaluations", "solver_steps", "solver_unconverged", "solver_iterations")
-needs_native = pytest.mark.skipif(
-    not native.available and os.environ.get("CI") != "true",
-    reason=f"the native kernel is not available here: {native.why_unavailable}",
-)
 
 
 def rotor(
@@ -111,9 +104,7 @@ def test_a_joint_below_its_band_gets_no_row() -> None:
 def falling_go2(velocity_limits: str, episodes: int = 4) -> ms.BatchTrajectory:
     """go2_standing with its catalog motors dropped from 0.2 m above its standing height under random torques within
     the effort limits (new every 2 ms), 0.4 s: the feet hit the ground."""
-    tables = parse_toml(shipped_scenes()["go2_standing"].read_text(), "go2_standing")
-    tables.pop("controller")
-    tables.pop("simulation", None)
+    tables = shipped("go2_standing", drop=("controller", "simulation"))
     tables["actuators"] = "catalog"
     tables["contact"] = {**tables.get("contact", {}), "velocity_limits": velocity_limits}
     scene = make_scene(**tables)
@@ -161,8 +152,7 @@ def test_go2_standing_far_from_its_limits_steps_as_without_the_rows() -> None:
     problems, solver iterations and samples bit for bit with the rows on and off."""
     runs = []
     for choice in ("enforce", "brake"):
-        tables = parse_toml(shipped_scenes()["go2_standing"].read_text(), "go2_standing")
-        tables.pop("simulation", None)
+        tables = shipped("go2_standing", drop=("simulation",))
         tables["actuators"] = "catalog"
         tables["contact"] = {**tables.get("contact", {}), "velocity_limits": choice}
         scene = make_scene(**tables)
