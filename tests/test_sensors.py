@@ -325,12 +325,10 @@ def test_readings_in_one_call_or_many_are_the_same() -> None:
     np.testing.assert_array_equal(values, whole[0][0][1])
 
 
-def test_readings_made_at_once_at_every_tick_equal_those_made_sensor_by_sensor() -> None:
-    """When every sensor reads at every tick, SensorStream makes all their readings in one array: the same numbers,
-    bit for bit, as the sensor-by-sensor path that rates need (bias, latency, per-component noise, two rows, a run
-    cut into pieces), and the same latest readings."""
-    from multibody_sim.sensors import SensorStream
-
+def test_readings_written_into_a_given_array_equal_those_made_apart() -> None:
+    """SensorStream.push with `into` (a run's samples at its ticks: the every-tick sensors' readings go straight into
+    the store's rows) makes the same numbers, bit for bit, as without (new arrays): bias, latency, per-component
+    noise, a sensor at a rate, two rows, a run cut into pieces; and the same latest readings."""
     scene = ms.make_scene(
         robot={"source": "ur5"},
         sensor=[
@@ -344,29 +342,34 @@ def test_readings_made_at_once_at_every_tick_equal_those_made_sensor_by_sensor()
             },
             {"name": "enc", "kind": "joint_position", "bias": 0.001, "latency": 1},
             {"name": "gyro", "kind": "joint_velocity", "noise": [1e-3, 2e-3, 0, 0, 1e-3, 1.0]},
-            {"name": "tq", "kind": "joint_torque"},
+            {"name": "tq", "kind": "joint_torque", "noise": 0.5, "latency": 3},  # every 3rd tick
         ],
     )
     sensors = scene.sensors
     rng = np.random.default_rng(3)
     Z = rng.normal(size=(60, sensors.width))
-    fast = SensorStream(sensors, [1] * len(sensors), np.array([4, 9]))
-    slow = SensorStream(sensors, [1] * len(sensors), np.array([4, 9]))
-    slow.every_tick = False
-    assert fast.every_tick
+    strides = [1, 1, 1, 3]
+    direct = SensorStream(sensors, strides, np.array([4, 9]))
+    apart = SensorStream(sensors, strides, np.array([4, 9]))
+    store = np.full((2, 60, sensors.width), np.nan)
+    every = [c for k in range(3) for c in range(sensors.width)[sensors.columns(k)]]
     for a, b in ((0, 1), (1, 17), (17, 60)):
         times = np.repeat(np.arange(a, b) * 1e-3, 2)
         rows = np.tile([0, 1], b - a)
         values = np.repeat(Z[a:b], 2, axis=0)
         values[1::2] *= 2.0
-        got, expected = fast.push(times, rows, values), slow.push(times, rows, values)
+        got = direct.push(times, rows, values, into=lambda row, t, a=a, b=b: store[row, a:b])
+        expected = apart.push(times, rows, values)
         assert got.keys() == expected.keys() == {0, 1}
         for row in (0, 1):
-            for (t1, r1), (t2, r2) in zip(got[row], expected[row], strict=True):
+            for k, ((t1, r1), (t2, r2)) in enumerate(zip(got[row], expected[row], strict=True)):
                 np.testing.assert_array_equal(t1, t2)
                 np.testing.assert_array_equal(r1, r2)
-        np.testing.assert_array_equal(fast.latest, slow.latest)
-    assert np.abs(fast.latest[0] - Z[-1]).max() > 0.0  # spoiled: not the measurement
+                if strides[k] == 1:
+                    np.testing.assert_array_equal(store[row, a:b, sensors.columns(k)], r2)
+        np.testing.assert_array_equal(direct.latest, apart.latest)
+    assert not np.isnan(store[:, :, every]).any()
+    assert np.abs(direct.latest[0] - Z[-1]).max() > 0.0  # spoiled: not the measurement
 
 
 def test_latency_is_exact_in_readings_and_rate_holds_them_between(kernel: str) -> None:
@@ -390,6 +393,64 @@ def test_latency_is_exact_in_readings_and_rate_holds_them_between(kernel: str) -
         np.testing.assert_array_equal(now[i], traj.v[(i // 4) * 4])
     np.testing.assert_array_equal(late[12:], now[:-12])
     np.testing.assert_array_equal(late[:12], np.tile(traj.v[0], (12, 1)))
+
+
+def test_readings_are_late_biased_noisy_measurements_on_every_path(kernel: str, tmp_path: Path) -> None:
+    """A joint_velocity sensor's readings, rebuilt from the velocity itself and the declared generator: reading j
+    (at its j-th tick) is v at tick j − latency (the first tick's before that) + bias + noise · d_j, with d the
+    draws of numpy's default_rng(seed + row), (readings, components) in order; each sample holds the latest reading
+    at or before it. Sensors at every step and at 250 Hz, sampled every step, every 2 and every 3 steps, in one
+    piece and in chunks (simulate), in rows (rollout), and step by step (Stepper)."""
+    spoil = {"kind": "joint_velocity", "noise": [0.01, 0.5], "bias": [0.25, -1.0], "latency": 3}
+    scene = ms.make_scene(
+        robot={"source": "double_pendulum"},
+        sensor=[
+            {"name": "fast", **spoil, "seed": 11},
+            {"name": "slow", **spoil, "seed": 40, "rate": 250.0},
+            {"name": "late", "kind": "joint_velocity", "latency": 5, "seed": 7},  # no noise
+        ],
+    )
+    q0, dt, steps = np.array([2.5, 0.3]), 1e-3, 60
+    truth = on_kernel(ms.simulate(scene, q0, np.zeros(2), duration=steps * dt, dt=dt), kernel)
+    V = truth.v  # the velocity at every step (tick)
+    assert len(V) == steps + 1
+
+    def expected(seed: int, stride: int, noise: Any, bias: Any, latency: int) -> np.ndarray:
+        """Per step: the reading held there."""
+        ticks = np.arange(0, steps + 1, stride)
+        late = np.maximum(np.arange(len(ticks)) - latency, 0)
+        draws = np.random.default_rng(seed).standard_normal((len(ticks), 2))
+        readings = V[ticks[late]] + np.asarray(bias, dtype=float) + np.asarray(noise, dtype=float) * draws
+        return readings[np.arange(steps + 1) // stride]
+
+    def check(sensors: dict[str, np.ndarray], every: int, row: int = 0) -> None:
+        picked = np.arange(0, steps + 1, every)
+        for name, seed, stride, noise, bias, latency in (
+            ("fast", 11, 1, spoil["noise"], spoil["bias"], 3),
+            ("slow", 40, 4, spoil["noise"], spoil["bias"], 3),
+            ("late", 7, 1, 0.0, 0.0, 5),
+        ):
+            want = expected(seed + row, stride, noise, bias, latency)[picked]
+            np.testing.assert_array_equal(sensors[name], want, err_msg=f"{name}, every {every} steps, row {row}")
+
+    check(truth.sensors, 1)
+    for every in (2, 3):
+        traj = ms.simulate(scene, q0, np.zeros(2), duration=steps * dt, dt=dt, output_dt=every * dt)
+        check(on_kernel(traj, kernel).sensors, every)
+    chunked = ms.simulate(scene, q0, np.zeros(2), duration=steps * dt, dt=dt, out=tmp_path / "x.npz", chunk=7)
+    check(on_kernel(chunked, kernel).sensors, 1)
+    for every in (1, 3):
+        Q0, V0 = np.array([q0, q0]), np.zeros((2, 2))
+        batch = ms.rollout(scene, Q0, V0, duration=steps * dt, dt=dt, output_dt=every * dt)
+        on_kernel(batch, kernel)
+        for row in (0, 1):  # row 1's velocity is row 0's (the same start), its noise seed + 1's
+            check({name: r[row] for name, r in batch.sensors.items()}, every, row)
+    stepper = ms.Stepper(scene, dt=dt, q0=q0)
+    seen = [stepper.readings]
+    for _ in range(steps):
+        stepper.step(np.zeros(2))
+        seen.append(stepper.readings)
+    check({name: np.array([r[name] for r in seen]) for name in seen[0]}, 1)
 
 
 def test_noise_is_seeded_per_sensor_and_per_rollout_row() -> None:

@@ -245,7 +245,7 @@ class SampleStore:
             status=status,
             metadata=metadata,
             contacts=self.contacts_record(b, n, system),
-            sensors=sensor_arrays(system, self.SENSORS[:n, b]),
+            sensors=sensor_arrays(system, self.SENSORS[:n, b], copy=copy),
         )
 
     def contacts_record(self, b: int, n: int, system: Any) -> Contacts | None:
@@ -300,13 +300,14 @@ def sensor_width(system: Any) -> int:
     return 0 if sensors is None else sensors.width
 
 
-def sensor_arrays(system: Any, readings: np.ndarray) -> dict[str, np.ndarray]:
-    """A system's sensor readings (the last axis of `readings`, shape (..., width)) by sensor name (copies), or {}
-    for a system without sensors."""
+def sensor_arrays(system: Any, readings: np.ndarray, *, copy: bool = True) -> dict[str, np.ndarray]:
+    """A system's sensor readings (the last axis of `readings`, shape (..., width)) by sensor name (copies; copy=False:
+    views of `readings`), or {} for a system without sensors."""
     sensors = getattr(system, "sensors", None)
     if sensors is None:
         return {}
-    return {name: readings[..., sensors.columns(k)].copy() for k, name in enumerate(sensors.names)}
+    views = {name: readings[..., sensors.columns(k)] for k, name in enumerate(sensors.names)}
+    return {name: view.copy() for name, view in views.items()} if copy else views
 
 
 def find_limit_violations(system: Any, t: np.ndarray, Q: np.ndarray) -> LimitViolations:

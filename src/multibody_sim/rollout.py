@@ -396,7 +396,7 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
         records["ctrl"] = ctrl
     if run.sensing is not None:
         run.sensing.update(store)
-    sensors = sensor_arrays(system, store.batch_major("SENSORS")[:, :N])  # (copies)
+    sensors = sensor_arrays(system, batch_major("SENSORS"), copy=False)  # (views of the store's memory)
     _pad({**arrays, **records, **{f"sensor {name}": r for name, r in sensors.items()}}, ledger, n, run.Q0, run.V0)
     stats: dict[str, Any] = run.count_arrays()
     if run.core.solver_stats:  # a contact method's counts, per element

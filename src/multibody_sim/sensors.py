@@ -623,10 +623,9 @@ class SensorStream:
         self.count = np.zeros(B, dtype=np.int64)  # ticks each row took
         self.history: list[list[np.ndarray | None]] = [[None] * len(sensors) for _ in range(B)]
         self._spoiled = [bool(np.any(p.noise)) for p in sensors.placed]
-        # Every sensor reads at every tick (the common case): a push makes one (ticks, width) array of readings
-        self.every_tick = all(stride == 1 for stride in strides)
+        self.every_tick = all(stride == 1 for stride in strides)  # every sensor reads at every tick (the default)
         self._bias = np.concatenate([p.bias for p in sensors.placed]) if sensors.placed else np.zeros(0)
-        self.whole: dict[int, np.ndarray] = {}  # per row that read in the last push: its readings (ticks, width)
+        self._scratch = np.zeros(0)  # the noise's draws (_draws)
 
     def _generators(self, b: int, entropy: int | None = None) -> list[np.random.Generator]:
         """Row b's generators: seeded with each sensor's seed + b, or with (its seed, entropy)."""
@@ -647,89 +646,101 @@ class SensorStream:
                 self.generators[b] = self._generators(b, int(e))
 
     def push(
-        self, times: np.ndarray, rows: np.ndarray, values: np.ndarray
+        self,
+        times: np.ndarray,
+        rows: np.ndarray,
+        values: np.ndarray,
+        into: Callable[[int, np.ndarray], np.ndarray | None] | None = None,
     ) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
         """Turn ticks (as Ticks.take gives them: times (n,), rows (n,), measurements (n, width), in time order)
         into readings; returns, per row that read, per sensor: the times of its new readings and the readings (for
-        the samples in between)."""
+        the samples in between).
+
+        Args:
+            into: ``into(b, times)``: where row b's readings at its ticks at `times` go, shape (len(times), width)
+                (the sensors that read at every tick write their columns there), or None: a new array.
+        """
         out: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
-        self.whole = {}
         if not len(times):
             return out
         if rows[0] == rows[-1] and (rows == rows[0]).all():  # one row (simulate, Stepper)
-            out[int(rows[0])] = self._read(int(rows[0]), times, values)
+            b = int(rows[0])
+            out[b] = self._read(b, times, values, into(b, times) if into is not None else None)
             return out
         order = np.argsort(rows, kind="stable")  # each row's ticks, in time order
         rows, starts = np.unique(rows[order], return_index=True)
         stops = [*starts[1:].tolist(), len(order)]
         for b, start, stop in zip(rows.tolist(), starts.tolist(), stops, strict=True):
             picked = order[start:stop]
-            out[b] = self._read(b, times[picked], values[picked])
+            row_times = times[picked]
+            out[b] = self._read(b, row_times, values[picked], into(b, row_times) if into is not None else None)
         return out
 
-    def _read(self, b: int, times: np.ndarray, Z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Row b's new readings from its ticks at `times` with measurements Z (m, width)."""
-        if self.every_tick:
-            return self._read_every_tick(b, times, Z)
+    def _read(
+        self, b: int, times: np.ndarray, Z: np.ndarray, out: np.ndarray | None = None
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Row b's new readings from its ticks at `times` with measurements Z (m, width): the sensors that read at
+        every tick into their columns of `out` (m, width) (default a new array; their readings are views of it),
+        the others into arrays of their own."""
         sensors = self.sensors
-        ticks = self.count[b] + np.arange(len(times))
-        self.count[b] += len(times)
+        m = len(times)
+        ticks = self.count[b] + np.arange(m) if not self.every_tick else None
+        self.count[b] += m
+        whole = np.empty_like(Z) if out is None else out
+        np.add(Z, self._bias, out=whole)  # z + bias of every component at once (strided columns cost more)
         result = []
         for k, p in enumerate(sensors.placed):
             columns = sensors.columns(k)
             stride = self.strides[k]
             if stride == 1:  # every tick (the common case): slices, no masks
-                due_times, z = times, Z[:, columns]
+                due_times, z, readings = times, Z[:, columns], whole[:, columns]
             else:
+                assert ticks is not None
                 due = ticks % stride == 0
                 if not due.any():
                     result.append((np.zeros(0), np.zeros((0, p.width))))
                     continue
                 due_times, z = times[due], Z[due, columns]
-            latency = p.spec.latency
-            if latency:
-                held = self.history[b][k]
-                if held is None:
-                    held = np.repeat(z[:1], latency, axis=0)
-                sequence = np.concatenate([held, z])
-                self.history[b][k] = sequence[-latency:]
-                z = sequence[: len(z)]
-            assert p.bias is not None and p.noise is not None
-            readings = z + p.bias
-            if self._spoiled[k]:  # (z + bias) + noise · draw, each array made once
-                draws = self.generators[b][k].standard_normal(z.shape)
-                draws *= p.noise
-                readings += draws
+                readings = z  # a copy of its own: made in place
+            self._spoil(b, k, z, readings, biased=stride == 1)
             self.latest[b, columns] = readings[-1]
             result.append((due_times, readings))
         return result
 
-    def _read_every_tick(self, b: int, times: np.ndarray, Z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """_read when every sensor reads at every tick: the same arithmetic, element by element ((z + bias) +
-        noise · draw, the draws in the same order), on one (m, width) array; each sensor's readings are a view of
-        its columns (Sensing.update copies the whole array at once)."""
-        sensors = self.sensors
-        self.count[b] += len(times)
-        readings = Z + self._bias
-        for k, p in enumerate(sensors.placed):
-            assert p.bias is not None and p.noise is not None
-            latency = p.spec.latency
-            columns = sensors.columns(k)
-            if latency:
-                z = Z[:, columns]
-                held = self.history[b][k]
-                if held is None:
-                    held = np.repeat(z[:1], latency, axis=0)
+    def _spoil(self, b: int, k: int, z: np.ndarray, readings: np.ndarray, *, biased: bool) -> None:
+        """Sensor k's readings from row b's new measurements z (m, its width), into `readings` (the same shape; it
+        may be z itself; `biased`: it holds z + bias already): reading i is measurement i − latency (the first
+        one before that) plus the bias, plus the noise's std times a draw of the sensor's generator, ((z + bias) +
+        noise · draw) element by element, the draws (m, width) in order. The one place readings are made."""
+        p = self.sensors.placed[k]
+        assert p.bias is not None and p.noise is not None
+        latency = p.spec.latency
+        m = len(z)
+        if latency:
+            held = self.history[b][k]
+            if held is None:
+                held = np.repeat(z[:1], latency, axis=0)
+            if m >= latency:  # readings: the held measurements, then z's first m - latency
+                self.history[b][k] = z[m - latency :].copy()
+                np.add(z[: m - latency], p.bias, out=readings[latency:])  # (first: readings may be z)
+                np.add(held, p.bias, out=readings[:latency])
+            else:
                 sequence = np.concatenate([held, z])
-                self.history[b][k] = sequence[-latency:]
-                readings[:, columns] = sequence[: len(z)] + p.bias
-            if self._spoiled[k]:
-                draws = self.generators[b][k].standard_normal((len(Z), p.width))
-                draws *= p.noise
-                readings[:, columns] += draws
-        self.latest[b] = readings[-1]
-        self.whole[b] = readings
-        return [(times, readings[:, sensors.columns(k)]) for k in range(len(sensors.placed))]
+                self.history[b][k] = sequence[m:]
+                np.add(sequence[:m], p.bias, out=readings)
+        elif not biased:
+            np.add(z, p.bias, out=readings)
+        if self._spoiled[k]:
+            draws = self._draws(m * p.width).reshape(m, p.width)
+            self.generators[b][k].standard_normal(out=draws)
+            draws *= p.noise
+            readings += draws
+
+    def _draws(self, n: int) -> np.ndarray:
+        """A scratch array of n numbers for the noise's draws (reused: no new memory per reading)."""
+        if len(self._scratch) < n:
+            self._scratch = np.empty(max(n, 2 * len(self._scratch)))
+        return self._scratch[:n]
 
     def readings(self, b: int) -> dict[str, np.ndarray]:
         """Row b's current readings by sensor name (copies)."""
@@ -827,10 +838,23 @@ class Sensing:
         if store is None:
             self.stream.push(*self.ticks.take())
             return
-        before = self.stream.latest.copy()
-        fresh = self.stream.push(*self.ticks.take())
-        sensors = self.sensors
+        stream, sensors = self.stream, self.sensors
+        before = stream.latest.copy()
         readings = store.batch_major("SENSORS")
+        direct: dict[int, int] = {}  # per row whose ticks are its latest samples: where they start
+
+        def into(b: int, times: np.ndarray) -> np.ndarray | None:
+            """Row b's ticks at `times` are its last len(times) new samples (sampling at every tick, the default):
+            their readings go straight into the store."""
+            lo, hi = int(store.sensed[b]), store.samples_of(b)
+            start = hi - len(times)
+            T = store.T[:, b]
+            if start < lo or not np.array_equal(T[start:hi], times) or (start > lo and T[start - 1] >= times[0]):
+                return None
+            direct[b] = start
+            return readings[b, start:hi]
+
+        fresh = stream.push(*self.ticks.take(), into=into)
         for b in range(store.B):
             lo, hi = int(store.sensed[b]), store.samples_of(b)
             if hi <= lo:
@@ -839,23 +863,20 @@ class Sensing:
             new = fresh.get(b)
             if new is None:
                 block[:] = before[b]
-            else:
-                T = store.T[lo:hi, b]
-                whole = self.stream.whole.get(b)  # every sensor's new readings in one array (every_tick)
-                if whole is not None and len(whole) == len(T) and np.array_equal(new[0][0], T):
-                    block[:] = whole  # a reading at every sample (the default): the sensors' columns at once
-                    store.sensed[b] = hi
+                store.sensed[b] = hi
+                continue
+            T = store.T[lo:hi, b]
+            start = direct.get(b, hi) - lo  # the samples from here on hold the every-tick sensors' readings
+            for k, (times, values) in enumerate(new):
+                columns = sensors.columns(k)
+                if start < len(T) and stream.strides[k] == 1:
+                    block[:start, columns] = before[b, columns]  # the samples before this call's first reading
                     continue
-                for k, (times, values) in enumerate(new):
-                    columns = sensors.columns(k)
-                    if len(times) == len(T) and np.array_equal(times, T):  # a reading at every sample (the default)
-                        block[:, columns] = values
-                        continue
-                    # the latest reading at or before each sample (times ascend, so index does too)
-                    index = np.searchsorted(times, T, side="right") - 1
-                    held = int(np.searchsorted(index, 0))  # the samples before this call's first reading
-                    block[:held, columns] = before[b, columns]
-                    block[held:, columns] = values[index[held:]]
+                # the latest reading at or before each sample (times ascend, so index does too)
+                index = np.searchsorted(times, T, side="right") - 1
+                held = int(np.searchsorted(index, 0))  # the samples before this call's first reading
+                block[:held, columns] = before[b, columns]
+                block[held:, columns] = values[index[held:]]
             store.sensed[b] = hi
 
 
