@@ -41,6 +41,19 @@ def shipped(name: str, *, drop: tuple[str, ...] = ()) -> dict[str, Any]:
     return tables
 
 
+def ctrl_c_at(t_stop: float, nv: int) -> Callable[..., Any]:
+    """A controller of zero torques, shape (nv,), that raises KeyboardInterrupt (a user's Ctrl-C) from time t_stop [s]
+    on (put t_stop between two control instants: round-off cannot move the stop then)."""
+    import numpy as np
+
+    def controller(t: float, q: Any, v: Any) -> Any:
+        if t >= t_stop:
+            raise KeyboardInterrupt
+        return np.zeros(nv)
+
+    return controller
+
+
 @functools.cache
 def _cached_robot(name: str, floating_base: bool | None, damping: bool) -> ms.Robot:
     return ms.load_robot(name, floating_base=floating_base, damping=damping)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import ctrl_c_at
 
 import multibody_sim as ms
 
@@ -79,12 +80,7 @@ def test_out_without_chunks_is_written_however_the_run_ends(robot, tmp_path: Pat
     pendulum = robot("pendulum")
     done = ms.simulate(pendulum, [1.0], [0.0], duration=0.2, dt=1e-2, out=tmp_path / "done.npz")
     same(done, ms.Trajectory.load(tmp_path / "done.npz"))
-
-    def stop(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        if t > 0.095:
-            raise KeyboardInterrupt
-        return np.zeros(1)
-
+    stop = ctrl_c_at(0.095, 1)
     with pytest.raises(ms.SimulationInterrupted) as info:
         ms.simulate(pendulum, [1.0], [0.0], duration=0.2, dt=1e-2, controller=stop, out=tmp_path / "stop.npz")
     same(info.value.trajectory, ms.Trajectory.load(tmp_path / "stop.npz"))
@@ -94,12 +90,7 @@ def test_out_without_chunks_is_written_however_the_run_ends(robot, tmp_path: Pat
 @pytest.mark.parametrize("chunk", [3, 1000])
 def test_an_interrupted_chunked_run_keeps_every_sample(robot, tmp_path: Path, chunk: int) -> None:
     pendulum = robot("pendulum")
-
-    def stop(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        if t > 0.2995:
-            raise KeyboardInterrupt
-        return np.zeros(1)
-
+    stop = ctrl_c_at(0.2995, 1)
     with pytest.raises(ms.SimulationInterrupted) as memory:
         ms.simulate(pendulum, [1.0], [0.0], duration=1.0, dt=1e-3, output_dt=1e-2, controller=stop)
     with pytest.raises(ms.SimulationInterrupted) as streamed:

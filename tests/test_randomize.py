@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import assert_same_run, both, needs_native, on_kernel, shipped
+from conftest import assert_same_run, both, ctrl_c_at, needs_native, on_kernel, shipped
 from scipy import stats
 
 import multibody_sim as ms
@@ -628,13 +628,8 @@ def test_an_interrupted_randomised_rollout_keeps_every_row_s_parameters(method: 
     drawn = ms.rollout(scene, Q, V, **settings).metadata["parameters"]
     assert len(drawn) == 3 and drawn[0] != drawn[1] != drawn[2]
 
-    def interrupting(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        if t >= 0.0095:
-            raise KeyboardInterrupt
-        return np.zeros(2)
-
     with pytest.raises(ms.SimulationInterrupted) as caught:
-        ms.rollout(scene, Q, V, controller=interrupting, **settings)
+        ms.rollout(scene, Q, V, controller=ctrl_c_at(0.0095, 2), **settings)
     batch = caught.value.trajectory
     assert batch.metadata["parameters"] == drawn
     for b in range(3):

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import joint, link, urdf
+from conftest import ctrl_c_at, joint, link, urdf
 
 import multibody_sim as ms
 from multibody_sim.integrators.explicit_rk import ExplicitRungeKutta
@@ -302,12 +302,7 @@ def test_adaptive_and_implicit_methods_run_element_by_element_through_simulate(r
 def test_ctrl_c_keeps_every_element_so_far(robot) -> None:
     ur5 = robot("ur5")
     Q0, V0 = random_states(ur5, 3, seed=8)
-
-    def interrupting(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        if t >= 0.0095:
-            raise KeyboardInterrupt
-        return np.zeros(6)
-
+    interrupting = ctrl_c_at(0.0095, 6)
     with pytest.raises(ms.SimulationInterrupted) as caught:
         ms.rollout(ur5, Q0, V0, duration=0.05, dt=1e-3, output_dt=4e-3, controller=interrupting)
     batch = caught.value.trajectory
@@ -346,12 +341,7 @@ def test_scene_records_are_kept_per_element_also_on_ctrl_c() -> None:
             assert not batch.constraints and any(entry.kind == "potential" for entry in batch.ledger.values())
 
     for scene in (four_bar, springs):
-
-        def interrupting(t: float, q: np.ndarray, v: np.ndarray, nv: int = scene.nv) -> np.ndarray:
-            if t >= 0.0095:
-                raise KeyboardInterrupt
-            return np.zeros(nv)
-
+        interrupting = ctrl_c_at(0.0095, scene.nv)
         Q0, V0 = np.array([scene.q0] * 3), np.array([scene.v0] * 3)
         with pytest.raises(ms.SimulationInterrupted) as caught:
             ms.rollout(scene, Q0, V0, duration=0.05, dt=1e-3, controller=interrupting)

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import joint, link, urdf
+from conftest import ctrl_c_at, joint, link, urdf
 
 import multibody_sim as ms
 
@@ -429,14 +429,8 @@ def test_a_partial_trajectory_from_a_failed_run_saves_and_loads(robot, tmp_path)
 
 def test_an_interrupted_trajectory_saves_and_loads(robot, tmp_path):
     pendulum = robot("pendulum")
-
-    def controller(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        if t > 0.095:
-            raise KeyboardInterrupt
-        return np.zeros(1)
-
     with pytest.raises(ms.SimulationInterrupted) as info:
-        ms.simulate(pendulum, [0.3], [0.0], duration=1.0, dt=0.01, controller=controller)
+        ms.simulate(pendulum, [0.3], [0.0], duration=1.0, dt=0.01, controller=ctrl_c_at(0.095, 1))
     partial = info.value.trajectory
     loaded = ms.Trajectory.load(partial.save(tmp_path / "partial.npz"))
     assert_same(loaded, partial)
