@@ -626,7 +626,7 @@ def test_an_interrupted_randomised_rollout_keeps_every_row_s_parameters(method: 
     Q, V = np.tile([0.3, -0.2], (3, 1)), np.zeros((3, 2))
     settings = {"duration": 0.05, "dt": 1e-3, **method}
     drawn = ms.rollout(scene, Q, V, **settings).metadata["parameters"]
-    assert len(drawn) == 3 and drawn[0] != drawn[1] != drawn[2]
+    assert drawn == [scene.draw_parameters(b) for b in range(3)] and drawn[0] != drawn[1] != drawn[2]
 
     with pytest.raises(ms.SimulationInterrupted) as caught:
         ms.rollout(scene, Q, V, controller=ctrl_c_at(0.0095, 2), **settings)
