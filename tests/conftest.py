@@ -5,7 +5,7 @@ from __future__ import annotations
 import functools
 import os
 import signal
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +52,22 @@ def ctrl_c_at(t_stop: float, nv: int) -> Callable[..., Any]:
         return np.zeros(nv)
 
     return controller
+
+
+def contact_steps(scene: ms.Scene, steps: int, dt: float) -> Iterator[tuple[Any, Any, Any]]:
+    """The Python time-stepper's first `steps` steps of `dt` [s] from the scene's initial state under zero torques:
+    after each, its active contact problem, the problem's impulses and the velocity v [nv]."""
+    import numpy as np
+
+    from multibody_sim.integrators.timestepping import TimeStepping
+
+    method = TimeStepping()
+    q, v, state = scene.q0, scene.v0, method.init(scene, scene.q0, scene.v0)
+    for _ in range(steps):
+        attempt = method.attempt(scene, q, v, np.zeros(scene.nv), dt, 0.0, state)
+        q, v, state = attempt.q, attempt.v, attempt.state
+        problem, impulses = state.active
+        yield problem, impulses, v
 
 
 @functools.cache

@@ -10,11 +10,10 @@ import coal
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import assert_same_run, both, needs_native
+from conftest import assert_same_run, both, contact_steps, needs_native
 
 import multibody_sim as ms
 from multibody_sim.integrators.cone_solver import TOLERANCE
-from multibody_sim.integrators.timestepping import TimeStepping
 from multibody_sim.scenes import make_scene
 from multibody_sim.scenes import narrow_phase as narrow
 
@@ -193,14 +192,9 @@ def test_the_stack_rests_on_exactly_vertical_normals_each_box_carrying_what_is_a
     minus those from above are its weight × dt to the solver's tolerance (statics: a box's momentum may change by
     TOLERANCE of g dt on either side of a step; the split among a patch's corners is free, the sums are fixed)."""
     scene = ms.load_scene("box_stack")
-    method = TimeStepping()
-    q, v, state = scene.q0, scene.v0, method.init(scene, scene.q0, scene.v0)
     dt = 1e-3
     mass = {o.name: o.mass for o in scene.spec.objects}
-    for _ in range(20):
-        attempt = method.attempt(scene, q, v, np.zeros(scene.nv), dt, 0.0, state)
-        q, v, state = attempt.q, attempt.v, attempt.state
-        problem, impulses = state.active
+    for problem, impulses, v in contact_steps(scene, 20, dt):
         net = dict.fromkeys(mass, 0.0)
         for c, point in enumerate(problem.points):
             np.testing.assert_allclose(np.abs(point.normal), [0.0, 0.0, 1.0], rtol=0.0, atol=1e-15)  # the faces' own
