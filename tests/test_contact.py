@@ -161,6 +161,30 @@ def test_the_ledgers_kinetic_energy_from_crbas_mass_matrix_is_pinocchios_kinetic
             assert contact.kinetic_energy(v) == pytest.approx(expected, rel=1e-14)
 
 
+@pytest.mark.parametrize("name", ["talos_standing", "go2_standing"])
+def test_the_ledgers_kinetic_energy_under_a_raised_armature_is_the_models_own(name):
+    """Under servos the problem's M has their terms on its diagonal (the armature raised for the step);
+    ContactModel.kinetic_energy(v, raised) is still computeKineticEnergy on the model's own armature (forwardKinematics'
+    sum over the bodies), on random states and raises of a servo's size and far above it."""
+    scene = load_scene(name)
+    contact, model = scene.contact, scene.contact.model
+    reference = model.createData()
+    rng = np.random.default_rng(11)
+    own = rng.uniform(0.0, 0.05, model.nv)
+    for scale in (1e-3, 1.0, 100.0):
+        raised = np.zeros(model.nv)
+        raised[6:] = scale * rng.uniform(0.0, 1.0, model.nv - 6)  # the actuated joints, not the free flyer
+        for _ in range(5):
+            q = pin.randomConfiguration(model, -np.ones(model.nq), np.ones(model.nq))
+            v = rng.normal(0.0, 2.0, model.nv)
+            model.armature = own + raised
+            pin.crba(model, contact.data, q, pin.Convention.WORLD)  # the problem's M, under the raised armature
+            model.armature = own
+            expected = pin.computeKineticEnergy(model, reference, q, v)
+            assert expected > 0.0
+            assert contact.kinetic_energy(v, raised) == pytest.approx(expected, rel=1e-14 * (1.0 + scale))
+
+
 def test_no_other_ledger_element_is_named_contact():
     scene = load_scene("box_stack")
     names = [name for name, _ in scene.ledger_elements]

@@ -792,8 +792,9 @@ namespace multibody_sim
 
   // ContactModel.kinetic_energy: M (crba's upper triangle, armature included) times v, each row's products in
   // column order from +0.0 (cone_solver.matvec; column by column here, each row's sum in that order), then vᵀ (M v)
-  // in index order from +0.0 (zsum), halved
-  double ContactScene::kinetic_energy(ContactWork & w, const Vec & v) const
+  // in index order from +0.0 (zsum), halved. With `raised`, each row of M v less raised · v (rounded, then
+  // subtracted) before that sum: T under the model's own armature where M has a step's servo terms on its diagonal.
+  double ContactScene::kinetic_energy(ContactWork & w, const Vec & v, const Vec * raised) const
   {
     const auto & M = w.data.M;
     w.mass_v.setZero(nv);
@@ -805,6 +806,9 @@ namespace multibody_sim
       for (int r = c + 1; r < nv; ++r)  // below the diagonal: row c's upper part, by symmetry
         w.mass_v[r] += M(c, r) * x;
     }
+    if (raised)
+      for (int r = 0; r < nv; ++r)
+        w.mass_v[r] -= (*raised)[r] * v[r];
     double sum = 0.0;
     for (int r = 0; r < nv; ++r)
       sum += v[r] * w.mass_v[r];

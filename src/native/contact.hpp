@@ -134,8 +134,9 @@ namespace multibody_sim
               const Vec & v, const Vec & v_free, double h, ContactRow & row, Vec & v_next, double & contact_work,
               double & correction, double & bounce, std::vector<std::pair<int, double>> & speed_work) const;
 
-    /// ContactModel.kinetic_energy: T = ½ vᵀ M v [J] at the latest step's q, from its M (work's Data)
-    double kinetic_energy(ContactWork & work, const Vec & v) const;
+    /// ContactModel.kinetic_energy: T = ½ vᵀ M v [J] at the latest step's q, from its M (work's Data); given
+    /// `raised` (nv,: what a step's servos added to the armature M was built with), ½ vᵀ (M − diag(raised)) v
+    double kinetic_energy(ContactWork & work, const Vec & v, const Vec * raised = nullptr) const;
 
     int nv = 0;
     std::vector<ContactShape> shapes;

@@ -68,6 +68,7 @@ namespace multibody_sim
       std::vector<int64_t> extra;
     } saved;
     Vec vfree;
+    Vec raised;  // a contact step's servos: what they added to each dof's armature (Actuators.raised_armature)
     std::vector<std::pair<int, double>> speed_work;  // the contact step's (ledger line, work) per velocity-limit row
     Vec fx, pbuf, tau_control;
     Vec tact;                      // the actuators' joint torques (actuated())
@@ -127,7 +128,7 @@ namespace multibody_sim
       size = Vec::Zero(2 * nv);
       H = RowMatrix::Zero(6, 6);
       F = RowMatrix::Zero(7, w);
-      fx = tau_control = vfree = Vec::Zero(nv);
+      fx = tau_control = vfree = raised = Vec::Zero(nv);
       pbuf = Vec::Zero(std::max(m, 1));
       select(0);
     }
@@ -408,6 +409,9 @@ namespace multibody_sim
         end_servos();
         throw;
       }
+      if (servos)  // Actuators.raised_armature: what the servos added to the armature the problem's M has
+        for (int i = 0; i < nv; ++i)
+          raised[i] = SM->armature[i] - M->armature[i];
       end_servos();
       move_along_new_velocity(j, h, t);
       const int smooth_n = m - 4;  // the contact's elements come last: contact, penetration_correction,
@@ -423,21 +427,22 @@ namespace multibody_sim
         fn[j][line] -= sw;
         held += sw;
       }
-      // V at qj (and T there, without the contact step's M) from the joint placements the velocity update's ABA left
+      // V at qj (and T there, without a contact step's M) from the joint placements the velocity update's ABA left
       // in data (the contact step and the ledger's powers above only read them): forwardKinematics(qj, ·)'s
       // arithmetic, its joint calc not redone
       double kinetic, potential, kinetic_free, kinetic_next, kinetic_end, potential_end;
-      if (problem && !servos)  // T at qj from the contact step's M there (not under the servos' raised armature)
+      if (problem)  // T at qj from the contact step's M there (less the servos' raised armature)
       {
-        kinetic = C->kinetic_energy(*cw, vj);
-        kinetic_free = C->kinetic_energy(*cw, vfree);
-        kinetic_next = C->kinetic_energy(*cw, vn[j]);
+        const Vec * less = servos ? &raised : nullptr;
+        kinetic = C->kinetic_energy(*cw, vj, less);
+        kinetic_free = C->kinetic_energy(*cw, vfree, less);
+        kinetic_next = C->kinetic_energy(*cw, vn[j], less);
       }
       else
       {
         kinetic = kinetic_at_same_q(qj, vj);
         kinetic_free = kinetic_at_same_q(qj, vfree);
-        kinetic_next = problem ? kinetic_at_same_q(qj, vn[j]) : kinetic_free;
+        kinetic_next = kinetic_free;  // (no problem: v⁺ = v_free)
       }
       potential = potential_energy();
       if (S && S->n_records())

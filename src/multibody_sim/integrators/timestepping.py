@@ -197,6 +197,8 @@ class TimeStepping(Integrator):
             except Exception as exc:  # noqa: BLE001 - any library's error is the row's status and message
                 return failed("failed", f"{type(exc).__name__} raised in the contact step: {exc}", evaluations, state)
             speed_work: list[tuple[int, float]] = []  # (ledger line, w) of each velocity-limit row
+            # what the servos added to the armature the problem's M has (taken off its kinetic energies below)
+            raised = servos.raised_armature() if servos is not None else None
             if problem is None or solution is None:
                 v_next, impulses, work, correction, bounce = v_free, np.zeros(0), 0.0, 0.0, 0.0
                 new.impulses = {}
@@ -248,12 +250,13 @@ class TimeStepping(Integrator):
             flows[line] -= w
             held += w
         kinetic, potential = scene.unchecked_energies(q, v)
-        if problem is not None and servos is None:
-            # T at q from the problem's M there (½ vᵀ M v): the native kernel's kinematic passes saved
-            kinetic, kinetic_free, kinetic_next = (contact.kinetic_energy(x) for x in (v, v_free, v_next))
+        if problem is not None:
+            # T at q from the problem's M there (½ vᵀ (M − diag(raised)) v under servos): the native kernel's
+            # kinematic passes saved
+            kinetic, kinetic_free, kinetic_next = (contact.kinetic_energy(x, raised) for x in (v, v_free, v_next))
         else:
             kinetic_free = scene.unchecked_energies(q, v_free)[0]
-            kinetic_next = scene.unchecked_energies(q, v_next)[0] if problem is not None else kinetic_free
+            kinetic_next = kinetic_free  # (no problem: v⁺ = v_free)
         kinetic_end, potential_end = scene.unchecked_energies(q_next, v_next)
         flows[-4] = correction + bounce - (work - held)
         flows[-3] = correction

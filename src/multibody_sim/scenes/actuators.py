@@ -519,6 +519,13 @@ class Actuators:
         self._hold(free, braking, clipped, side)
         return True
 
+    def raised_armature(self) -> np.ndarray:
+        """While a step takes the servos implicitly: what begin_implicit added to each dof's armature, shape (nv,)
+        (the model's armature now less its own; 0 elsewhere)."""
+        raised = np.zeros(self.nv)
+        raised[self.dofs] = self._model.armature[self.dofs] - self._saved_armature
+        return raised
+
     def end_implicit(self) -> None:
         """Undo begin_implicit(): the model's armature as it was, the torques following the state again."""
         if self._held is not None:

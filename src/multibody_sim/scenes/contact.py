@@ -721,13 +721,18 @@ class ContactModel:
         """M⁻¹ x at the latest problem's q (its Cholesky factors, in the contact's Data)."""
         return np.array(pin.cholesky.solve(self.model, self.data, x), dtype=float)
 
-    def kinetic_energy(self, v: np.ndarray) -> float:
+    def kinetic_energy(self, v: np.ndarray, raised: np.ndarray | None = None) -> float:
         """T = ½ vᵀ M v [J] at the latest problem's q, from its M (CRBA's upper triangle, armature included): M v
         each row's products in column order from +0.0 (matvec), then vᵀ (M v) in index order (zsum), halved, as the
-        native kernel (src/native/contact.cpp, ContactScene::kinetic_energy) forms it."""
+        native kernel (src/native/contact.cpp, ContactScene::kinetic_energy) forms it. `raised` (nv,): what a
+        step's servos added to the armature M was built with (Actuators.raised_armature); each row of M v then has
+        raised · v taken off before the sum: T under the model's own armature."""
         M = np.asarray(self.data.M)
         full = np.where(np.triu(np.ones(M.shape, dtype=bool)), M, M.T)
-        return 0.5 * float(zsum(v * matvec(full, v)))
+        mass_v = matvec(full, v)
+        if raised is not None:
+            mass_v = mass_v - raised * v
+        return 0.5 * float(zsum(v * mass_v))
 
 
 def build_contact(
