@@ -233,6 +233,18 @@ def _separation(d: list[float], a: list[np.ndarray], half1: Any, b: list[np.ndar
     return abs(_dot(d, n)) - (r1 + r2)
 
 
+def _face_axis(
+    d: list[float], a: list[np.ndarray], half1: Any, b: list[np.ndarray], half2: Any, faces: list[np.ndarray]
+) -> tuple[float, int]:
+    """Of one box's face normals `faces` (a or b), the largest separation [m] and its axis (the first on a tie)."""
+    best, axis = -np.inf, 0
+    for i in range(3):
+        sep = _separation(d, a, half1, b, half2, faces[i])
+        if sep > best:
+            best, axis = sep, i
+    return best, axis
+
+
 # Box–box features: a face contact's point is ((reference face, incident face) code) * FACE_POINTS + 8 * (label of
 # the polygon edge into it) + (label of the edge out of it), labels 0..3 the incident face's edges, 4..7 the
 # reference face's sides; an edge contact's is EDGE_FEATURES + 12 * (edge of box 1) + (edge of box 2), an edge
@@ -250,18 +262,11 @@ def box_box(
     d = [t2[0] - t1[0], t2[1] - t1[1], t2[2] - t1[2]]
     a = [R1[:, i] for i in range(3)]
     b = [R2[:, j] for j in range(3)]
-    best, axis, on2 = -np.inf, 0, False
-    for i in range(3):
-        sep = _separation(d, a, half1, b, half2, a[i])
-        if sep > best:
-            best, axis = sep, i
-    best2, axis2 = -np.inf, 0
-    for j in range(3):
-        sep = _separation(d, a, half1, b, half2, b[j])
-        if sep > best2:
-            best2, axis2 = sep, j
-    if best2 > best + AXIS_TOLERANCE:
-        best, axis, on2 = best2, axis2, True
+    best, axis = _face_axis(d, a, half1, b, half2, a)
+    best2, axis2 = _face_axis(d, a, half1, b, half2, b)
+    on2 = best2 > best + AXIS_TOLERANCE
+    if on2:
+        best, axis = best2, axis2
     edge, edge_best, edge_n = None, -np.inf, None
     for i in range(3):
         for j in range(3):
