@@ -707,6 +707,13 @@ namespace multibody_sim
       return floor > scale ? floor : scale;
     }
 
+    // contact._penetration_correction: the bias b_corr ≤ 0 of a gap over a step h
+    inline double penetration_correction(double gap, double h, const ContactConstants & c)
+    {
+      const double push = c.penetration_correction * std::min(gap + c.penetration_slop, 0.0) / h;
+      return std::max(push, -c.max_correction_speed);
+    }
+
     // narrow_phase._plane_distance2
     inline double plane_distance2(const Vector3 & a, const Vector3 & p, const Vector3 & n)
     {
@@ -1209,9 +1216,7 @@ namespace multibody_sim
         double bias;
         if (p.gap < 0.0)
         {
-          const double push = c.penetration_correction * std::min(p.gap + c.penetration_slop, 0.0) / h;
-          w.correction[r] = std::max(push, -c.max_correction_speed);
-          bias = w.correction[r];
+          bias = w.correction[r] = penetration_correction(p.gap, h, c);
         }
         else
           bias = p.gap / h;
@@ -1248,8 +1253,7 @@ namespace multibody_sim
     r0 = 3 * n_points;
     for (const auto & L : w.limits)  // the distance to the limit as a contact's gap
     {
-      const double push = c.penetration_correction * std::min(L.distance + c.penetration_slop, 0.0) / h;
-      w.correction[r0] = std::max(push, -c.max_correction_speed);
+      w.correction[r0] = penetration_correction(L.distance, h, c);
       w.g[r0] += L.distance >= 0.0 ? L.distance / h : w.correction[r0];
       ++r0;
     }

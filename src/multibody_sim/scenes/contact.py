@@ -196,6 +196,13 @@ class ShapeData:
     radius: float
 
 
+def _penetration_correction(gap: float, dt: float) -> float:
+    """The penetration-correction bias b_corr ≤ 0 [m/s or rad/s] of a gap [m or rad] over a step dt [s]: the
+    fraction PENETRATION_CORRECTION of the penetration beyond PENETRATION_SLOP per step, at most
+    MAX_CORRECTION_SPEED (0 for a gap ≥ -PENETRATION_SLOP)."""
+    return max(PENETRATION_CORRECTION * min(gap + PENETRATION_SLOP, 0.0) / dt, -MAX_CORRECTION_SPEED)
+
+
 def make_shape(kind: str, dimensions: Sequence[float]) -> Any:
     """The coal shape of a declared shape: box (full extents x, y, z), sphere (radius), cylinder (radius, length)."""
     if kind == "box":
@@ -628,9 +635,7 @@ class ContactModel:
             for c, point in enumerate(points):
                 row, pair = 3 * c + 2, point.key[0]
                 if point.gap < 0.0:
-                    push = PENETRATION_CORRECTION * min(point.gap + PENETRATION_SLOP, 0.0) / dt
-                    correction[row] = max(push, -MAX_CORRECTION_SPEED)
-                    bias = correction[row]
+                    correction[row] = bias = _penetration_correction(point.gap, dt)
                 else:
                     bias = point.gap / dt
                 if point.restitution > 0.0:
@@ -644,8 +649,7 @@ class ContactModel:
                 g[row] += bias
         row = 3 * n_points
         for _, _, _, distance in limits:  # the distance to the limit as a contact's gap
-            push = PENETRATION_CORRECTION * min(distance + PENETRATION_SLOP, 0.0) / dt
-            correction[row] = max(push, -MAX_CORRECTION_SPEED)
+            correction[row] = _penetration_correction(distance, dt)
             g[row] += distance / dt if distance >= 0.0 else correction[row]
             row += 1
         row += len(self.friction_joints)
