@@ -372,6 +372,28 @@ def test_readings_written_into_a_given_array_equal_those_made_apart() -> None:
     assert np.abs(direct.latest[0] - Z[-1]).max() > 0.0  # spoiled: not the measurement
 
 
+def test_ticks_keep_what_the_engines_buffer_held_before_it_is_reused() -> None:
+    """The native engine hands its ticks' measurements over in a buffer its next call reuses: ticks still held when
+    it is called again (a tick measured in Python in between) keep their own numbers."""
+    from multibody_sim.sensors import Ticks
+
+    buffer = np.zeros((4, 1))
+    calls: list[int] = []
+
+    def source(into: Any = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = len(calls) + 1
+        calls.append(n)
+        buffer[:n] = n
+        return np.arange(n, dtype=float), np.zeros(n, dtype=np.int64), buffer[:n]
+
+    ticks = Ticks(1, 1)
+    ticks.source = source
+    ticks._keep(5.0, np.array([0]), np.array([[9.0]]))  # the source's first tick (1), then this one (9)
+    times, rows, values = ticks.take()  # the source's next two (2, 2), in its buffer again
+    assert values[:, 0].tolist() == [1.0, 9.0, 2.0, 2.0]
+    assert times.tolist() == [0.0, 5.0, 0.0, 1.0]
+
+
 def test_latency_is_exact_in_readings_and_rate_holds_them_between(kernel: str) -> None:
     """The double pendulum swinging: a sensor 3 readings late at 250 Hz (every 4 steps of 1 ms) reads exactly what
     its on-time twin read 3 readings (12 ms) before (its first reading before that), and holds each reading for 4

@@ -550,7 +550,7 @@ class Ticks:
         every: steps between ticks.
         done: per row (its index in the run), steps it took before the core started, shape (B,).
         source: the native engine's take_ticks (its ticks since the last call: times (n,), rows (n,), values (n,
-            width)), or None.
+            width), the values where take()'s `into` puts them, else in a buffer its next call reuses), or None.
     """
 
     def __init__(self, every: int, B: int):
@@ -558,6 +558,7 @@ class Ticks:
         self.done = np.zeros(B, dtype=np.int64)
         self.source: Any = None
         self._taken: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._borrowed = -1  # the entry of _taken whose values are the source's buffer (-1: none)
 
     def after_step(self, core: Any, h: float, t: float) -> None:
         """The core accepted a step of h landing at t: measure the running rows whose tick it is."""
@@ -580,16 +581,24 @@ class Ticks:
         self._collect()  # the engine's ticks (before this one)
         self._taken.append((np.full(len(rows), t), np.array(rows, dtype=np.int64), values))
 
-    def _collect(self) -> None:
+    def _collect(self, into: Any = None) -> None:
         if self.source is not None:
-            times, rows, values = self.source()
+            if self._borrowed >= 0:  # the source's next call reuses its buffer: keep a copy of what it holds
+                times, rows, values = self._taken[self._borrowed]
+                self._taken[self._borrowed] = (times, rows, values.copy())
+                self._borrowed = -1
+            times, rows, values = self.source(into)
             if len(times):
-                self._taken.append((np.asarray(times), np.asarray(rows, dtype=np.int64), np.asarray(values)))
+                self._taken.append((np.asarray(times), np.asarray(rows, dtype=np.int64), values))
+                self._borrowed = len(self._taken) - 1
 
-    def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The ticks since the last call, in time order: times (n,), rows (n,), measurements (n, width)."""
-        self._collect()
+    def take(self, into: Any = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The ticks since the last call, in time order: times (n,), rows (n,), measurements (n, width) (valid until
+        the core steps again: they may be the native engine's buffer). `into(n)`: where the native engine may write
+        its n ticks' measurements (an (n, width) array), or None."""
+        self._collect(into)
         taken, self._taken = self._taken, []
+        self._borrowed = -1
         if len(taken) == 1:
             return taken[0]
         if not taken:
@@ -680,61 +689,58 @@ class SensorStream:
         self, b: int, times: np.ndarray, Z: np.ndarray, out: np.ndarray | None = None
     ) -> list[tuple[np.ndarray, np.ndarray]]:
         """Row b's new readings from its ticks at `times` with measurements Z (m, width): the sensors that read at
-        every tick into their columns of `out` (m, width) (default a new array; their readings are views of it),
-        the others into arrays of their own."""
+        every tick into their columns of `out` (m, width; default a new array; it may be Z itself), their readings
+        views of it, the others into arrays of their own. Each reading is ((z + bias) + noise · draw) element by
+        element, z the measurement `latency` readings before (the first one before that), the draws (readings,
+        width) of the sensor's generator in order: the one place readings are made."""
         sensors = self.sensors
         m = len(times)
         ticks = self.count[b] + np.arange(m) if not self.every_tick else None
         self.count[b] += m
+        apart = {}  # the sensors at a rate or late: their readings' times and measurements (taken before Z is written)
+        for k, p in enumerate(sensors.placed):
+            stride = self.strides[k]
+            if stride == 1 and not p.spec.latency:
+                continue
+            due_times, z = times, Z[:, sensors.columns(k)]
+            if stride != 1:
+                assert ticks is not None
+                due = ticks % stride == 0
+                due_times, z = times[due], Z[due, sensors.columns(k)]
+            apart[k] = (due_times, self._delayed(b, k, z) if p.spec.latency and len(z) else z)
         whole = np.empty_like(Z) if out is None else out
         np.add(Z, self._bias, out=whole)  # z + bias of every component at once (strided columns cost more)
         result = []
         for k, p in enumerate(sensors.placed):
+            assert p.bias is not None and p.noise is not None
             columns = sensors.columns(k)
-            stride = self.strides[k]
-            if stride == 1:  # every tick (the common case): slices, no masks
-                due_times, z, readings = times, Z[:, columns], whole[:, columns]
-            else:
-                assert ticks is not None
-                due = ticks % stride == 0
-                if not due.any():
+            if k in apart:
+                due_times, z = apart[k]
+                if not len(z):
                     result.append((np.zeros(0), np.zeros((0, p.width))))
                     continue
-                due_times, z = times[due], Z[due, columns]
-                readings = z  # a copy of its own: made in place
-            self._spoil(b, k, z, readings, biased=stride == 1)
+                readings = whole[:, columns] if self.strides[k] == 1 else z  # (z: a copy of its own)
+                np.add(z, p.bias, out=readings)
+            else:
+                due_times, readings = times, whole[:, columns]
+            if self._spoiled[k]:
+                draws = self._draws(readings.size).reshape(readings.shape)
+                self.generators[b][k].standard_normal(out=draws)
+                draws *= p.noise
+                readings += draws
             self.latest[b, columns] = readings[-1]
             result.append((due_times, readings))
         return result
 
-    def _spoil(self, b: int, k: int, z: np.ndarray, readings: np.ndarray, *, biased: bool) -> None:
-        """Sensor k's readings from row b's new measurements z (m, its width), into `readings` (the same shape; it
-        may be z itself; `biased`: it holds z + bias already): reading i is measurement i − latency (the first
-        one before that) plus the bias, plus the noise's std times a draw of the sensor's generator, ((z + bias) +
-        noise · draw) element by element, the draws (m, width) in order. The one place readings are made."""
-        p = self.sensors.placed[k]
-        assert p.bias is not None and p.noise is not None
-        latency = p.spec.latency
-        m = len(z)
-        if latency:
-            held = self.history[b][k]
-            if held is None:
-                held = np.repeat(z[:1], latency, axis=0)
-            if m >= latency:  # readings: the held measurements, then z's first m - latency
-                self.history[b][k] = z[m - latency :].copy()
-                np.add(z[: m - latency], p.bias, out=readings[latency:])  # (first: readings may be z)
-                np.add(held, p.bias, out=readings[:latency])
-            else:
-                sequence = np.concatenate([held, z])
-                self.history[b][k] = sequence[m:]
-                np.add(sequence[:m], p.bias, out=readings)
-        elif not biased:
-            np.add(z, p.bias, out=readings)
-        if self._spoiled[k]:
-            draws = self._draws(m * p.width).reshape(m, p.width)
-            self.generators[b][k].standard_normal(out=draws)
-            draws *= p.noise
-            readings += draws
+    def _delayed(self, b: int, k: int, z: np.ndarray) -> np.ndarray:
+        """Sensor k's measurements `latency` readings before row b's new ones z (m, its width), the first one before
+        that (a new array); keeps the last `latency` for the next call."""
+        held = self.history[b][k]
+        if held is None:
+            held = np.repeat(z[:1], self.sensors.placed[k].spec.latency, axis=0)
+        sequence = np.concatenate([held, z])
+        self.history[b][k] = sequence[len(z) :]
+        return sequence[: len(z)]
 
     def _draws(self, n: int) -> np.ndarray:
         """A scratch array of n numbers for the noise's draws (reused: no new memory per reading)."""
@@ -854,7 +860,13 @@ class Sensing:
             direct[b] = start
             return readings[b, start:hi]
 
-        fresh = stream.push(*self.ticks.take(), into=into)
+        def spare(n: int) -> np.ndarray | None:
+            """Where the native engine may write its n ticks' measurements: a lone row's last n new samples (its
+            readings go there when it samples at its ticks, else they are written over)."""
+            lo, hi = int(store.sensed[0]), store.samples_of(0)
+            return readings[0, hi - n : hi] if store.B == 1 and n and hi - n >= lo else None
+
+        fresh = stream.push(*self.ticks.take(spare), into=into)
         for b in range(store.B):
             lo, hi = int(store.sensed[b]), store.samples_of(b)
             if hi <= lo:

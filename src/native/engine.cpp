@@ -259,16 +259,23 @@ namespace multibody_sim
       th->sensw = sensors ? std::make_unique<SensorWork>(model_, *sensors) : nullptr;
   }
 
-  std::tuple<Vec, Eigen::Matrix<int64_t, Eigen::Dynamic, 1>, RowMatrix> Engine::take_ticks()
+  int64_t Engine::tick_count() const
   {
     size_t n = 0;
-    for (auto & th : threads_)
+    for (const auto & th : threads_)
       if (th->sensw)
         n += th->sensw->times.size();
-    const int width = sensors_ ? sensors_->width : 0;
+    return static_cast<int64_t>(n);
+  }
+
+  std::tuple<Vec, Eigen::Matrix<int64_t, Eigen::Dynamic, 1>> Engine::take_ticks(double * out, int64_t room,
+                                                                                int64_t width)
+  {
+    const int64_t n = tick_count();
+    if (width != (sensors_ ? sensors_->width : 0) || n > room)
+      throw std::invalid_argument("take_ticks: `out` must have shape (room >= tick_count(), the sensors' width)");
     Vec times(static_cast<Eigen::Index>(n));
     Eigen::Matrix<int64_t, Eigen::Dynamic, 1> rows(static_cast<Eigen::Index>(n));  // an array, not a list of ints
-    RowMatrix values(static_cast<Eigen::Index>(n), width);
     Eigen::Index k = 0;
     for (auto & th : threads_)
     {
@@ -278,13 +285,13 @@ namespace multibody_sim
       const size_t count = w.times.size();
       std::copy(w.times.begin(), w.times.end(), times.data() + k);
       std::copy(w.rows.begin(), w.rows.end(), rows.data() + k);
-      std::copy(w.values.begin(), w.values.end(), values.data() + k * width);  // row-major: the ticks' rows in order
+      std::copy(w.values.begin(), w.values.end(), out + k * width);  // row-major: the ticks' rows in order
       k += static_cast<Eigen::Index>(count);
       w.times.clear();
       w.rows.clear();
       w.values.clear();
     }
-    return {std::move(times), std::move(rows), std::move(values)};
+    return {std::move(times), std::move(rows)};
   }
 
   AdvanceResult Engine::advance(

@@ -294,8 +294,11 @@ namespace multibody_sim
     // the steps each run row took before this engine, shape (B,)); each tick's measurement is kept until
     // take_ticks() (sensors.Ticks.source).
     void set_sensors(std::shared_ptr<const Sensors> sensors, int64_t every, const std::vector<int64_t> & done);
-    // The ticks since the last call: times (n,), run rows (n,), measurements (n, width), each row's in time order.
-    std::tuple<Vec, Eigen::Matrix<int64_t, Eigen::Dynamic, 1>, RowMatrix> take_ticks();
+    // The ticks since the last take_ticks: how many.
+    int64_t tick_count() const;
+    // Those ticks: times (n,) and run rows (n,), each row's in time order, their measurements copied row-major into
+    // `out`, shape (room >= n, width: the sensors'), a buffer the caller reuses (no fresh memory written per call).
+    std::tuple<Vec, Eigen::Matrix<int64_t, Eigen::Dynamic, 1>> take_ticks(double * out, int64_t room, int64_t width);
     // Each run row's own physics (after set_actuators, set_scene and set_contact, before the first advance()): rows
     // step on their own model, damping, elements, contact coefficients and actuators, and measure with their own
     // sensors (set_sensors may come before or after). Throws invalid_argument naming what disagrees with the

@@ -620,8 +620,18 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
       nb::arg("sensors"), nb::arg("every"), nb::arg("done"),
       "A scene's sensors (_native.Sensors) tick at the end of every `every`-th step of a row, counted from its "
       "start (`done`: the steps each row took before, (B,)); take_ticks() collects their measurements.")
-    .def("take_ticks", &Engine::take_ticks,
-         "The ticks since the last call: times (n,), rows (n,), measurements (n, width).")
+    .def("tick_count", &Engine::tick_count, "The ticks since the last take_ticks: how many.")
+    .def(
+      "take_ticks",
+      [](Engine & self, Doubles out)
+      {
+        if (out.ndim() != 2)
+          throw std::invalid_argument("take_ticks: `out` must have shape (room >= tick_count(), the sensors' width)");
+        return self.take_ticks(out.data(), static_cast<int64_t>(out.shape(0)), static_cast<int64_t>(out.shape(1)));
+      },
+      nb::arg("out"),
+      "The ticks since the last call: times (n,), rows (n,); their measurements into out[:n] (out: (room >= n, "
+      "width), C-ordered; see tick_count).")
     .def("contact_row", &Engine::contact_row)
     .def(
       "set_actuators", [](Engine & self, std::shared_ptr<SceneActuators> actuators) { self.set_actuators(actuators); },

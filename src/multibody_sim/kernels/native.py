@@ -363,11 +363,20 @@ class NativeKernel:
         """The scene's sensors tick in the engine at the end of every `every`-th step of a row (done: the steps each
         row took before, (B,)); take_ticks() collects their measurements."""
         self.engine.set_sensors(_sensors(sensors), int(every), [int(d) for d in done])
+        self._ticks = np.zeros((0, sensors.width))
 
-    def take_ticks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The engine's ticks since the last call: times (n,), rows (n,), measurements (n, width)."""
-        times, rows, values = self.engine.take_ticks()
-        return np.asarray(times), np.asarray(rows, dtype=np.int64), np.asarray(values)
+    def take_ticks(self, into: Any = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The engine's ticks since the last call: times (n,), rows (n,), measurements (n, width), written into
+        ``into(n)`` (a C-ordered (n, width) array, e.g. the samples the readings go to) or where it gives None, into
+        a buffer the next call reuses (no fresh memory per call)."""
+        n = self.engine.tick_count()
+        values = into(n) if into is not None else None
+        if values is None:
+            if len(self._ticks) < n:
+                self._ticks = np.empty((max(n, 2 * len(self._ticks)), self._ticks.shape[1]))
+            values = self._ticks[:n]
+        times, rows = self.engine.take_ticks(values)
+        return np.asarray(times), np.asarray(rows, dtype=np.int64), values
 
     def measure_start(self, js: np.ndarray, h: float) -> np.ndarray:
         """The first measurements of the running rows at positions js (RowKernel.measure_start on their states: the
