@@ -181,6 +181,28 @@ namespace multibody_sim
     const Eigen::Matrix3d up =
       Eigen::Quaterniond::FromTwoVectors(Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ()).toRotationMatrix();
 
+    // ContactModel.speeding: the velocity-limit rows of each joint whose velocity is beyond (1 - band) v_max, in
+    // joint order, lower side first, but for those selected already; appended to `speeds` (and their keys). Returns
+    // how many were added.
+    size_t select_speeds(const ContactScene & scene, const Vec & velocity, double band)
+    {
+      const size_t selected = speeds.size();
+      for (size_t k = 0; k < scene.speed_joints.size(); ++k)
+      {
+        const int jid = scene.speed_joints[k], iv = scene.speed_dofs[k];
+        const double vmax = scene.speed_limits[k], reach = (1.0 - band) * vmax;
+        bool lower = false, upper = false;
+        for (size_t o = 0; o < selected; ++o)
+          if (speeds[o].joint == jid)
+            (speeds[o].side ? upper : lower) = true;
+        if (velocity[iv] < -reach && !lower)
+          add_speed({1.0, iv, jid, vmax, scene.speed_lines[k], 0});
+        if (velocity[iv] > reach && !upper)
+          add_speed({-1.0, iv, jid, vmax, scene.speed_lines[k], 1});
+      }
+      return speeds.size() - selected;
+    }
+
     void add_speed(const Speed & sp)  // a velocity-limit row with its warm-start key ("speed", joint, side)
     {
       speeds.push_back(sp);
@@ -1042,15 +1064,7 @@ namespace multibody_sim
       w.sizes.push_back(1);
     }
     w.speeds.clear();  // the velocity limits the free velocity comes within the band of (appended after assembly)
-    for (size_t k = 0; k < speed_joints.size(); ++k)
-    {
-      const int iv = speed_dofs[k];
-      const double vmax = speed_limits[k], reach = (1.0 - c.speed_band) * vmax;
-      if (v_free[iv] < -reach)
-        w.add_speed({1.0, iv, speed_joints[k], vmax, speed_lines[k], 0});
-      if (v_free[iv] > reach)
-        w.add_speed({-1.0, iv, speed_joints[k], vmax, speed_lines[k], 1});
-    }
+    w.select_speeds(*this, v_free, c.speed_band);
     speed_work.clear();
     if (w.keys.empty())  // nothing to solve: TimeStepping.attempt's `problem is None`
     {
@@ -1305,20 +1319,7 @@ namespace multibody_sim
     for (;;)
     {
       const size_t selected = w.speeds.size();
-      for (size_t k = 0; k < speed_joints.size(); ++k)
-      {
-        const int jid = speed_joints[k], iv = speed_dofs[k];
-        const double vmax = speed_limits[k];
-        bool lower = false, upper = false;
-        for (size_t o = 0; o < selected; ++o)
-          if (w.speeds[o].joint == jid)
-            (w.speeds[o].side ? upper : lower) = true;
-        if (v_next[iv] < -vmax && !lower)
-          w.add_speed({1.0, iv, jid, vmax, speed_lines[k], 0});
-        if (v_next[iv] > vmax && !upper)
-          w.add_speed({-1.0, iv, jid, vmax, speed_lines[k], 1});
-      }
-      if (w.speeds.size() == selected)
+      if (w.select_speeds(*this, v_next, 0.0) == 0)
         break;
       m = w.append_speed_rows(selected, supports, v_free);
       scale = velocity_scale(w.free, c.gravity * h);

@@ -209,7 +209,7 @@ class TimeStepping(Integrator):
                     # (src/native/contact.cpp) forms them
                     generalized = matvec(problem.jacobian.T, solution.impulses)
                     v_next = v_free + contact.inverse_mass_times(generalized)
-                    added = contact.speeding(problem, v_next)
+                    added = contact.speeding(v_next, problem)
                     if not added:
                         break
                     try:

@@ -576,13 +576,7 @@ class ContactModel:
                 keys.append(("limit", jid, 1))
         keys += [("friction", jid) for jid, _ in self.friction_joints]
         if previous is None:  # the velocity limits the free velocity comes within SPEED_BAND of
-            speeds = []
-            for jid, iv, vmax, line in self._speeds:
-                reach = (1.0 - SPEED_BAND) * vmax
-                if v_free[iv] < -reach:
-                    speeds.append((1.0, iv, jid, vmax, line, 0))
-                if v_free[iv] > reach:
-                    speeds.append((-1.0, iv, jid, vmax, line, 1))
+            speeds = self.speeding(v_free, band=SPEED_BAND)
         else:
             speeds = [*previous.speeds, *added]
         keys += [("speed", jid, side) for _, _, jid, _, _, side in speeds]
@@ -681,16 +675,19 @@ class ContactModel:
         )
 
     def speeding(
-        self, problem: ContactProblem | None, v_next: np.ndarray
+        self, v: np.ndarray, problem: ContactProblem | None = None, band: float = 0.0
     ) -> list[tuple[float, int, int, float, int, int]]:
-        """The velocity-limit rows a solved step still needs: (sign, v index, joint, v_max, ledger line, side) of each
-        joint past its limit at the step's end velocity v_next (nv,) without its row in `problem` (None: no rows)."""
+        """The velocity-limit rows a step needs: (sign, v index, joint, v_max, ledger line, side) of each joint whose
+        velocity in v (nv,) is beyond (1 - band) v_max, in joint order, lower side first, but for the rows `problem`
+        has already. A step's first selection is its free velocity's within SPEED_BAND; after a solve, the joints
+        past their limit at its end velocity (band 0)."""
         present = {(jid, side) for _, _, jid, _, _, side in problem.speeds} if problem is not None else set()
         out = []
         for jid, iv, vmax, line in self._speeds:
-            if v_next[iv] < -vmax and (jid, 0) not in present:
+            reach = (1.0 - band) * vmax
+            if v[iv] < -reach and (jid, 0) not in present:
                 out.append((1.0, iv, jid, vmax, line, 0))
-            if v_next[iv] > vmax and (jid, 1) not in present:
+            if v[iv] > reach and (jid, 1) not in present:
                 out.append((-1.0, iv, jid, vmax, line, 1))
         return out
 
