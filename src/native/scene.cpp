@@ -330,11 +330,9 @@ namespace multibody_sim
 
   namespace
   {
-    // Actuators._interval's second half: the limits (low, high) at speed w within the brake's bounds
-    void within_brake(const SceneActuators & actuators, const ActuatorTerm & a, double w, double & low, double & high)
+    // Actuators._interval's second half: the limits (low, high) within the brake's bounds (upper, lower)
+    void within_brake(const ActuatorTerm & a, double upper, double lower, double & low, double & high)
     {
-      double upper, lower;
-      actuators.brakes(a, w, upper, lower);
       high = np_maximum(-a.effort, np_minimum(high, upper));
       low = np_minimum(a.effort, np_maximum(low, lower));
     }
@@ -344,37 +342,38 @@ namespace multibody_sim
   {
     limits(a, w, low, high);
     if (a.brake_gain > 0.0 && !(std::abs(w) < a.brake_from))
-      within_brake(*this, a, w, low, high);
-  }
-
-  // Actuators._select for one actuator; brake: clipped at its brake's bound, within ± the effort limit or beyond it
-  // (`saturated` tells which)
-  void SceneActuators::select(const ActuatorTerm & a, double law, double w, bool & within, bool & brake, int & side,
-                              double & low, double & high) const
-  {
-    interval(a, w, low, high);
-    within = law >= low && law <= high;
-    side = law > high ? 1 : -1;
-    brake = false;
-    if (a.brake_gain > 0.0 && !within)
-    {
-      double limit_low, limit_high, upper, lower;
-      limits(a, w, limit_low, limit_high);
-      brakes(a, w, upper, lower);
-      brake = side > 0 ? upper < limit_high : lower > limit_low;
-    }
-  }
-
-  namespace
-  {
-    // whether an actuator's brake's bound on `side` at speed w is beyond its effort limit
-    bool saturated(const SceneActuators & actuators, const ActuatorTerm & a, double w, int side)
     {
       double upper, lower;
-      actuators.brakes(a, w, upper, lower);
-      return side > 0 ? !(upper > -a.effort) : !(lower < a.effort);
+      brakes(a, w, upper, lower);
+      within_brake(a, upper, lower, low, high);
     }
-  } // namespace
+  }
+
+  // Actuators._select for one actuator: its limits and its brake's bounds evaluated once; brake: clipped at its
+  // brake's bound within ± the effort limit, saturated: clipped at its brake's bound beyond it
+  void SceneActuators::select(const ActuatorTerm & a, double law, double w, bool & within, bool & brake,
+                              bool & saturated, int & side, double & low, double & high) const
+  {
+    limits(a, w, low, high);
+    const double limit_low = low, limit_high = high;
+    double upper = 0.0, lower = 0.0;
+    const bool braked = a.brake_gain > 0.0;
+    if (braked)
+    {
+      brakes(a, w, upper, lower);
+      if (!(std::abs(w) < a.brake_from))  // as interval()
+        within_brake(a, upper, lower, low, high);
+    }
+    within = law >= low && law <= high;
+    side = law > high ? 1 : -1;
+    brake = saturated = false;
+    if (braked && !within && (side > 0 ? upper < limit_high : lower > limit_low))
+    {
+      const bool inside = side > 0 ? upper > -a.effort : lower < a.effort;
+      brake = inside;
+      saturated = !inside;
+    }
+  }
 
   void SceneActuators::joint_torques(const Vec & q, const Vec & v, const Vec & u, const ServoStep * step,
                                      double * out) const
@@ -420,7 +419,11 @@ namespace multibody_sim
       if (a.brake_gain > 0.0)  // evaluate's interval: the limits within the brake's bounds from brake_from on
       {
         if (!(std::abs(w) < a.brake_from))
-          within_brake(*this, a, w, low, high);
+        {
+          double upper, lower;
+          brakes(a, w, upper, lower);
+          within_brake(a, upper, lower, low, high);
+        }
         tau = np_minimum(np_maximum(c, low), high);
         flows[b++] = (limited - tau) * w;
       }
@@ -454,7 +457,7 @@ namespace multibody_sim
   {
     step.h = h;
     step.iterations = 0;
-    bool within, brake;
+    bool within, brake, saturated;
     double low, high;
     for (size_t k = 0; k < terms.size(); ++k)
     {
@@ -462,9 +465,9 @@ namespace multibody_sim
       step.law[k] = law(a, q, v, u);
       step.w[k] = v[a.dof];
       step.saved[k] = armature[a.dof];
-      select(a, step.law[k], step.w[k], within, brake, step.side[k], low, high);
+      select(a, step.law[k], step.w[k], within, brake, saturated, step.side[k], low, high);
       step.free[k] = a.kind != ActuatorKind::torque && within;
-      step.braking[k] = brake;  // on its line even beyond the effort limit: it may reach its band in the step
+      step.braking[k] = brake || saturated;  // on its line even beyond the effort limit: it may reach its band
       step.clipped[k] = np_minimum(np_maximum(step.law[k], low), high);
     }
     step.active = true;
@@ -500,10 +503,10 @@ namespace multibody_sim
       const ActuatorTerm & a = terms[k];
       const double w = step.w[k], wn = v_next[a.dof];
       law_next[k] = step.law[k] - (h * a.kp) * w - (h * a.kp + a.kv) * (wn - w);  // the law at the step's end
-      bool in, on_brake;
-      select(a, law_next[k], wn, in, on_brake, side[k], low[k], high[k]);
+      bool in, on_brake, beyond_effort;
+      select(a, law_next[k], wn, in, on_brake, beyond_effort, side[k], low[k], high[k]);
       within[k] = in;
-      brake[k] = on_brake && !saturated(*this, a, wn, side[k]);
+      brake[k] = on_brake;
       beyond[k] = step.side[k] > 0 ? law_next[k] >= high[k] : law_next[k] <= low[k];
       const bool servo = a.kind != ActuatorKind::torque;
       ok[k] = step.free[k]      ? bool(within[k])
@@ -521,7 +524,9 @@ namespace multibody_sim
       const ActuatorTerm & a = terms[k];
       const bool servo = a.kind != ActuatorKind::torque;
       // a brake beyond the effort limit at the start that did not land on its line: held at the effort limit
-      const bool stays = step.braking[k] && saturated(*this, a, step.w[k], step.side[k]);
+      double upper, lower;
+      brakes(a, step.w[k], upper, lower);
+      const bool stays = step.braking[k] && (step.side[k] > 0 ? !(upper > -a.effort) : !(lower < a.effort));
       const bool freed = servo && !step.free[k] && !step.braking[k] && !beyond[k];
       step.free[k] = !stays && (freed || (servo && within[k]));
       step.braking[k] = !stays && brake[k] && !freed;

@@ -243,9 +243,10 @@ namespace multibody_sim
     void brakes(const ActuatorTerm & a, double w, double & upper, double & lower) const;
     // Actuators._interval for one actuator at speed w
     void interval(const ActuatorTerm & a, double w, double & low, double & high) const;
-    // Actuators._select for one actuator: within, on its brake's bound, side, the interval
-    void select(const ActuatorTerm & a, double law, double w, bool & within, bool & brake, int & side, double & low,
-                double & high) const;
+    // Actuators._select for one actuator: within, on its brake's bound (within ± the effort limit, or beyond it:
+    // saturated), side, the interval
+    void select(const ActuatorTerm & a, double law, double w, bool & within, bool & brake, bool & saturated, int & side,
+                double & low, double & high) const;
     // Actuators.joint_torques into out (nv): u with the actuators' dofs replaced (the step's held torques if active)
     void joint_torques(const Vec & q, const Vec & v, const Vec & u, const ServoStep * step, double * out) const;
     // Actuators.powers into out (n_flows())

@@ -394,13 +394,17 @@ class Actuators:
         """The torques each actuator can deliver at speeds w (n,): (low, high), each (n,): _limits, within the
         overspeed brakes' bounds where there are brakes (kept within ± the effort limit)."""
         low, high = self._limits(w)
-        k = self._braked
-        if k.size:
-            upper, lower = self._brakes(w)
-            effort = self._effort[k]
-            high[k] = np.maximum(-effort, np.minimum(high[k], upper[k]))
-            low[k] = np.minimum(effort, np.maximum(low[k], lower[k]))
+        if self._braked.size:
+            self._within_brakes(low, high, *self._brakes(w))
         return low, high
+
+    def _within_brakes(self, low: np.ndarray, high: np.ndarray, upper: np.ndarray, lower: np.ndarray) -> None:
+        """_interval's second half: the limits low, high (n,) bounded, in place, by the brakes' bounds upper, lower
+        (n,) where there are brakes, within ± the effort limit."""
+        k = self._braked
+        effort = self._effort[k]
+        high[k] = np.maximum(-effort, np.minimum(high[k], upper[k]))
+        low[k] = np.minimum(effort, np.maximum(low[k], lower[k]))
 
     def _select(
         self, law: np.ndarray, w: np.ndarray
@@ -408,16 +412,19 @@ class Actuators:
         """Which bound each actuator's torque takes under the law's torques `law` (n,) at speeds w (n,): (within: the
         law within the interval; brake: clipped at its brake's bound, within ± the effort limit; saturated: clipped
         where its brake's bound is beyond the effort limit (the torque is ∓ the effort limit); side: 1 above the
-        interval, −1 below; the interval's low, high), each (n,)."""
-        low, high = self._interval(w)
+        interval, −1 below; the interval's low, high), each (n,). The limits and the brakes' bounds are evaluated
+        once."""
+        limit_low, limit_high = self._limits(w)
+        low, high = limit_low.copy(), limit_high.copy()
+        upper, lower = self._brakes(w)
+        k = self._braked
+        if k.size:
+            self._within_brakes(low, high, upper, lower)
         within = (law >= low) & (law <= high)
         side = np.where(law > high, 1, -1)
         brake = np.zeros(len(law), dtype=bool)
         saturated = np.zeros(len(law), dtype=bool)
-        k = self._braked
         if k.size:
-            limit_low, limit_high = self._limits(w)
-            upper, lower = self._brakes(w)
             effort = self._effort[k]
             beyond = np.where(side[k] > 0, upper[k] < limit_high[k], lower[k] > limit_low[k]) & ~within[k]
             inside = np.where(side[k] > 0, upper[k] > -effort, lower[k] < effort)
@@ -443,8 +450,8 @@ class Actuators:
         out[:n] = c * w
         out[n:m] = ((c - limited) * w)[self._limited]
         k = self._braked
-        if k.size:
-            low, high = self._interval(w)
+        if k.size:  # the interval: the same limits within the brakes' bounds
+            self._within_brakes(low, high, *self._brakes(w))
             tau = np.minimum(np.maximum(c, low), high)
             out[m:] = ((limited - tau) * w)[k]
 
