@@ -737,3 +737,38 @@ def test_contact_chunks_in_order_read_as_written() -> None:
     everything = np.concatenate([s for s, _ in parts])
     np.testing.assert_array_equal(sample, everything[everything < 4])
     np.testing.assert_array_equal(rows, np.concatenate([r for _, r in parts])[everything < 4])
+
+
+def test_contacts_record_holds_the_kept_rows_columns() -> None:
+    """SampleStore.contacts_record copies each column block of the kept rows once, from the chunks themselves when
+    they are in order: its arrays are kept_contacts' columns (pairs as int64), C-contiguous, for chunks in order, a
+    sample written again, chunks out of order and truncations; and it owns its memory (not a view of a chunk)."""
+    from multibody_sim.recording import SampleStore, kept_contacts
+
+    system = make_scene(robot={"source": "double_pendulum"}, ground={})
+    rng = np.random.default_rng(9)
+    in_order = [
+        (np.arange(a, a + 3), np.repeat(np.arange(a, a + 3), [2, 0, 1]), rng.normal(size=(3, 11))) for a in (0, 3, 6)
+    ]
+    again = in_order + [(np.array([4]), np.array([4, 4]), rng.normal(size=(2, 11)))]  # sample 4 written again
+    reversed_ = in_order[::-1]
+    unwritten = [(np.array([0, 1]), np.array([1, 2]), rng.normal(size=(2, 11)))]  # a row of a sample not written
+    for chunks in (in_order, again, reversed_, unwritten):
+        for chunk in chunks:
+            chunk[2][:, :2] = rng.integers(0, 3, size=(len(chunk[2]), 2)) + 0.0
+        for n in (9, 5, 1):
+            store = SampleStore(1, 1, 1, 0, 0, 4)
+            store.contacts[0] = list(chunks)
+            record = store.contacts_record(0, n, system)
+            sample, rows = kept_contacts(chunks, n)
+            if not len(sample):
+                assert len(record.sample) == 0
+                continue
+            np.testing.assert_array_equal(record.sample, sample)
+            assert record.pair.dtype == np.int64
+            np.testing.assert_array_equal(record.pair, rows[:, :2].astype(np.int64))
+            for part, (lo, hi) in zip(
+                (record.point, record.normal, record.impulse), ((2, 5), (5, 8), (8, 11)), strict=True
+            ):
+                np.testing.assert_array_equal(part, rows[:, lo:hi])
+                assert part.flags.c_contiguous and not any(np.shares_memory(part, c[2]) for c in chunks)

@@ -545,3 +545,31 @@ def test_a_batch_that_cannot_fit_in_memory_is_refused_before_it_is_allocated() -
         r"parts$",
     ):
         ms.rollout(pendulum, np.zeros((B, 1)), np.zeros((B, 1)), duration=100.0, dt=1e-3)
+
+
+def test_ledger_sums_are_numpys_masked_column_sums_bit_for_bit() -> None:
+    """recording.ledger_sums (work and dissipated of the trajectories, without copies of the columns) against NumPy's
+    own masked sums, flows[..., mask].sum(-1), bit for bit (a NaN where NumPy's is NaN, whatever its sign and
+    payload): every layout the store gives (batch-major rows, one row, sample-major views), one sample, one or no
+    column, signed zeros, overflow, infinities and NaNs."""
+    from multibody_sim.recording import ledger_sums
+
+    rng = np.random.default_rng(11)
+    for trial in range(400):
+        m, B, capacity = int(rng.integers(1, 45)), int(rng.integers(1, 4)), int(rng.integers(1, 600))
+        N = int(rng.integers(0, capacity + 1))
+        store = rng.standard_normal((B, capacity, m)) * 10.0 ** rng.integers(-3, 300, size=(B, capacity, m))
+        if trial % 3 == 0:
+            special = rng.random(store.shape) < 0.1
+            store[special] = rng.choice([np.inf, -np.inf, np.nan, -0.0, 0.0], size=int(special.sum()))
+        is_work = rng.random(m) < rng.random()
+        sample_major = np.swapaxes(store, 0, 1)
+        for flows in (store[:, :N], store[0, :N], sample_major[:N], sample_major[:N, B - 1], store[:, N - 1 : N]):
+            with np.errstate(over="ignore", invalid="ignore"):
+                sums = ledger_sums(flows, is_work)
+                wanted = flows[..., is_work].sum(-1), flows[..., ~is_work].sum(-1)
+            for got, want in zip(sums, wanted, strict=True):
+                assert got.shape == want.shape and got.dtype == want.dtype
+                nan = np.isnan(want)
+                np.testing.assert_array_equal(np.isnan(got), nan)
+                np.testing.assert_array_equal(got[~nan].view(np.int64), want[~nan].view(np.int64))

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .recording import SampleStore
+from .recording import SampleStore, ledger_sums
 
 # Energy blow-up: |energy_error| beyond this many times the run's energy scale is divergence, not error.
 BLOWUP_FACTOR = 1e3
@@ -34,6 +34,7 @@ class Monitor:
         self._work_only = bool(self.is_work.all()) and len(self.is_work) == 1
         self._work_index = np.flatnonzero(self.is_work).tolist()
         self._dissipated_index = np.flatnonzero(~self.is_work).tolist()
+        self._sides = np.stack([self.is_work, ~self.is_work], axis=1).astype(float)  # (m, 2): Σ work, Σ dissipated
         self.initial = np.zeros(B)  # H at the start [J]
         self.scale = np.zeros(B)
         self.started = np.zeros(B, dtype=bool)
@@ -56,13 +57,15 @@ class Monitor:
         whole = len(rows) == store.B and (store.B == 1 or bool((rows == np.arange(store.B)).all()))
         index: Any = slice(None) if whole else rows  # every row in order (simulate, a rollout): views, not copies
         E = store.ENERGY[start:stop, index]
-        flows = store.FLOWS[start:stop, index]
         total = E[..., 0] + E[..., 1]
         if self._work_only:  # the ledger's one element: the joint torques' work
-            work, dissipated = flows[..., 0], None
+            work, dissipated = store.FLOWS[start:stop, index, 0], None
         else:
-            work = flows[..., self.is_work].sum(axis=-1)
-            dissipated = flows[..., ~self.is_work].sum(axis=-1)
+            # Both sums in one product, without copies of the columns (fresh memory: page faults), rounded otherwise
+            # than first_problem's sums (far within the factor 2 kept); a non-finite flow makes both sums, and so the
+            # error, non-finite (0 · inf is NaN): the row is then a suspect.
+            sums = store.batch_major("FLOWS")[index, start:stop] @ self._sides  # (rows, samples, 2)
+            work, dissipated = sums[..., 0].T, sums[..., 1].T
         with np.errstate(over="ignore", invalid="ignore"):
             error = total - self.initial[index] - work
             if dissipated is not None:
@@ -71,7 +74,7 @@ class Monitor:
             bound += self.scale[index]
             bound *= 0.5 * BLOWUP_FACTOR
             bad = np.abs(error) > bound
-            bad |= ~np.isfinite(total)
+            bad |= ~np.isfinite(error)  # (a non-finite total makes it so)
             if dissipated is not None:
                 bad |= dissipated > bound
         if (limits != stop).any():  # some rows hold fewer samples
@@ -98,9 +101,7 @@ class Monitor:
             return None
         E = store.ENERGY[start:stop, b]
         total = E[:, 0] + E[:, 1]
-        flows = store.FLOWS[start:stop, b]
-        work = flows[:, self.is_work].sum(axis=1)
-        dissipated = flows[:, ~self.is_work].sum(axis=1)
+        work, dissipated = ledger_sums(store.FLOWS[start:stop, b], self.is_work)
         with np.errstate(over="ignore", invalid="ignore"):
             error = total - self.initial[b] - work + dissipated
             bound = BLOWUP_FACTOR * (self.scale[b] + np.abs(work))

@@ -40,20 +40,53 @@ def contacts_at(chunks: list[ContactChunk], i: int) -> np.ndarray | None:
 def kept_contacts(chunks: list[ContactChunk], n: int) -> tuple[np.ndarray, np.ndarray]:
     """The contact rows of samples 0..n-1 from a row's chunks, in sample order (each sample's rows as written by the
     last chunk that wrote it): (sample (k,) [int64], rows (k, 11))."""
+    sample, blocks = _kept_blocks(chunks, n)
+    return sample, np.concatenate(blocks).reshape(-1, 11)
+
+
+def _kept_blocks(chunks: list[ContactChunk], n: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """kept_contacts' rows as blocks (k_i, 11) to be concatenated, with their samples (k,) [int64]: the chunks' own
+    rows where every row is kept in order (a native run's chunks: each writes samples after the last one's), so that
+    a caller copies each row once."""
     if not chunks:
-        return np.zeros(0, dtype=np.int64), np.zeros((0, 11))
+        return np.zeros(0, dtype=np.int64), [np.zeros((0, 11))]
+    sample = np.concatenate([s for _, s, _ in chunks]).astype(np.int64, copy=False)
+    if _in_order(chunks, n):
+        return sample, [r.reshape(-1, 11) for _, _, r in chunks]
     last = np.full(n, -1, dtype=np.int64)  # per sample, the last chunk that wrote it
     for c, (written, _, _) in enumerate(chunks):
         last[written[written < n]] = c
-    sample = np.concatenate([s for _, s, _ in chunks]).astype(np.int64, copy=False)
     origin = np.repeat(np.arange(len(chunks)), [len(s) for _, s, _ in chunks])
     rows = np.concatenate([r for _, _, r in chunks]).reshape(-1, 11)
     keep = sample < n
     keep[keep] = last[sample[keep]] == origin[keep]
     if keep.all() and np.all(sample[1:] >= sample[:-1]):  # nothing written again, in order: the arrays as they are
-        return sample, rows
+        return sample, [rows]
     order = np.argsort(sample[keep], kind="stable")
-    return sample[keep][order], rows[keep][order]
+    return sample[keep][order], [rows[keep][order]]
+
+
+def _in_order(chunks: list[ContactChunk], n: int) -> bool:
+    """Whether every row of the chunks is kept, in the order written: each chunk's written samples increase and
+    follow the previous chunk's, and its rows' samples, in order, are among them and below n (checked chunk by chunk:
+    no temporary the size of the whole record)."""
+    previous = -1
+    for written, sample, _ in chunks:
+        if not len(written):
+            if len(sample):
+                return False
+            continue
+        if written[0] <= previous or (len(written) > 1 and not np.all(written[1:] > written[:-1])):
+            return False
+        previous = int(written[-1])
+        if not len(sample):
+            continue
+        if sample[-1] >= n or (len(sample) > 1 and not np.all(sample[1:] >= sample[:-1])):
+            return False
+        at = np.searchsorted(written, sample)
+        if at[-1] >= len(written) or not np.array_equal(written[at], sample):
+            return False
+    return True
 
 
 class SampleStore:
@@ -220,11 +253,10 @@ class SampleStore:
         kinetic, potential = take(self.ENERGY[:n, b, 0]), take(self.ENERGY[:n, b, 1])
         flows = self.FLOWS[:n, b]
         ledger = {name: LedgerEntry(kind, take(flows[:, j])) for j, (name, kind) in enumerate(elements)}
-        potentials, constraints = split_records(system.record_fields, self.EXTRA[:n, b])
+        potentials, constraints = split_records(system.record_fields, self.EXTRA[:n, b], copy=copy)
         ledger.update(potentials)
-        delivered = delivered_torques(system.record_fields, self.EXTRA[:n, b])
-        work = flows[:, is_work].sum(axis=1)
-        dissipated = flows[:, ~is_work].sum(axis=1)
+        delivered = delivered_torques(system.record_fields, self.EXTRA[:n, b], copy=copy)
+        work, dissipated = ledger_sums(flows, is_work)
         total = kinetic + potential
         return Trajectory(
             t=t,
@@ -253,43 +285,69 @@ class SampleStore:
         contact = getattr(system, "contact", None)
         if contact is None:
             return None
-        sample, rows = kept_contacts(self.contacts.get(b, []), n)
+        sample, blocks = _kept_blocks(self.contacts.get(b, []), n)
         if not len(sample):
             return Contacts.empty(contact.body_names)
-        return Contacts(
-            list(contact.body_names),
-            sample,
-            rows[:, :2].astype(np.int64),
-            rows[:, 2:5].copy(),
-            rows[:, 5:8].copy(),
-            rows[:, 8:11].copy(),
-        )
+
+        def part(start: int, stop: int, dtype: Any = float) -> np.ndarray:  # columns start..stop-1, copied once
+            return np.concatenate([block[:, start:stop] for block in blocks], dtype=dtype, casting="unsafe")
+
+        return Contacts(list(contact.body_names), sample, part(0, 2, np.int64), part(2, 5), part(5, 8), part(8, 11))
+
+
+def ledger_sums(flows: np.ndarray, is_work: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(work, dissipated): the sums of the ledger's "work" columns of flows (..., m) [J] and of its other columns,
+    shape (...) each, bit for bit as ``flows[..., is_work].sum(-1)`` and ``flows[..., ~is_work].sum(-1)`` give them
+    (a NaN where theirs is NaN, its sign and payload aside), without their copies of the columns (fresh memory, paid
+    for in page faults)."""
+    return _columns_sum(flows, is_work), _columns_sum(flows, ~is_work)
+
+
+def _columns_sum(flows: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    # NumPy lays the columns that a boolean mask takes out of the last axis first in memory, and reduces them column
+    # by column from its identity +0.0: here, in place. (A single sum, or one column, is reduced as NumPy reduces it.)
+    columns = np.flatnonzero(mask).tolist()
+    if len(columns) < 2 or flows[..., 0].size <= 1:
+        return flows[..., mask].sum(axis=-1)
+    total = np.add(flows[..., columns[0]], 0.0)
+    for j in columns[1:]:
+        total += flows[..., j]
+    return total
 
 
 def split_records(
-    record_fields: tuple[tuple[str, str, int], ...], extra: np.ndarray
+    record_fields: tuple[tuple[str, str, int], ...], extra: np.ndarray, *, copy: bool = True
 ) -> tuple[dict[str, LedgerEntry], dict[str, ConstraintRecord]]:
     """A system's per-sample records (the last axis of `extra`, shape (..., Σ widths), as Robot.unchecked_record
-    writes them) as the Trajectory's ledger potentials and constraint records (copies, with extra's leading axes)."""
+    writes them) as the Trajectory's ledger potentials and constraint records, with extra's leading axes: copies, or
+    (copy=False) views of extra."""
+
+    def take(block: np.ndarray) -> np.ndarray:
+        return block.copy() if copy else block
+
     potentials, constraints = {}, {}
     column = 0
     for category, name, width in record_fields:
         block = extra[..., column : column + width]
         column += width
         if category == "potential":
-            potentials[name] = LedgerEntry("potential", block[..., 0].copy())
+            potentials[name] = LedgerEntry("potential", take(block[..., 0]))
         elif category == "constraint":  # the forces, then the drift and the velocity drift
-            constraints[name] = ConstraintRecord(block[..., :-2].copy(), block[..., -2].copy(), block[..., -1].copy())
+            constraints[name] = ConstraintRecord(take(block[..., :-2]), take(block[..., -2]), take(block[..., -1]))
     return potentials, constraints
 
 
-def delivered_torques(record_fields: tuple[tuple[str, str, int], ...], extra: np.ndarray) -> np.ndarray | None:
+def delivered_torques(
+    record_fields: tuple[tuple[str, str, int], ...], extra: np.ndarray, *, copy: bool = True
+) -> np.ndarray | None:
     """The joint torques a scene's actuators delivered at each sample (its "torque" record: the trajectory's tau, the
-    commands being its ctrl), a copy of shape (..., nv); None for a system without actuators."""
+    commands being its ctrl), shape (..., nv): a copy, or (copy=False) a view of extra; None for a system without
+    actuators."""
     column = 0
     for category, _, width in record_fields:
         if category == "torque":
-            return extra[..., column : column + width].copy()
+            block = extra[..., column : column + width]
+            return block.copy() if copy else block
         column += width
     return None
 

@@ -23,7 +23,7 @@ from .exceptions import InvalidArgumentError, SimulationInterrupted
 from .integrators import Integrator, get_integrator
 from .integrators.timestepping import SOLVER_COUNTS  # a contact scene's, in stats only when kept
 from .progress import ProgressBar
-from .recording import delivered_torques, limit_reports, sensor_arrays, split_records
+from .recording import delivered_torques, ledger_sums, limit_reports, sensor_arrays, split_records
 from .robot import Robot, check_system, real_array
 from .scenes import randomized_scene
 from .torques import Torques, controller_name
@@ -365,12 +365,14 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
         # run in memory; else its first N samples, copied.
         return np.ascontiguousarray(store.batch_major(name)[:, :N])
 
-    energy, flows = store.batch_major("ENERGY")[:, :N], store.batch_major("FLOWS")[:, :N]  # views: read once
+    # The energies, the ledger lines and the records are views of the store's memory too (the run ends here): a
+    # column of a sample-major block, not copied (each copy would be fresh memory, paid for in page faults).
+    energy, flows = store.batch_major("ENERGY")[:, :N], store.batch_major("FLOWS")[:, :N]
+    extra = store.batch_major("EXTRA")[:, :N]
     elements = system.ledger_elements
     is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
-    kinetic, potential = energy[:, :, 0].copy(), energy[:, :, 1].copy()
-    work = flows[:, :, is_work].sum(axis=2)
-    dissipated = flows[:, :, ~is_work].sum(axis=2)
+    kinetic, potential = energy[:, :, 0], energy[:, :, 1]
+    work, dissipated = ledger_sums(flows, is_work)
     total = kinetic + potential
     arrays = {
         "t": batch_major("T"),
@@ -384,10 +386,10 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
         "dissipated": dissipated,
         "energy_error": total - run.monitor.initial[:, None] - work + dissipated,
     }
-    ledger = {name: LedgerEntry(kind, flows[:, :, j].copy()) for j, (name, kind) in enumerate(elements)}
-    potentials, constraints = split_records(system.record_fields, store.batch_major("EXTRA")[:, :N])  # (copies)
+    ledger = {name: LedgerEntry(kind, flows[:, :, j]) for j, (name, kind) in enumerate(elements)}
+    potentials, constraints = split_records(system.record_fields, extra, copy=False)
     ledger.update(potentials)
-    delivered = delivered_torques(system.record_fields, store.batch_major("EXTRA")[:, :N])
+    delivered = delivered_torques(system.record_fields, extra, copy=False)
     ctrl = None
     if delivered is not None:  # actuators: tau is what they delivered, the commands are ctrl
         ctrl, arrays["tau"] = arrays["tau"], delivered
