@@ -848,23 +848,35 @@ class Sensing:
         before = stream.latest.copy()
         readings = store.batch_major("SENSORS")
         direct: dict[int, int] = {}  # per row whose ticks are its latest samples: where they start
+        capacity = store.capacity
 
         def into(b: int, times: np.ndarray) -> np.ndarray | None:
-            """Row b's ticks at `times` are its last len(times) new samples (sampling at every tick, the default):
-            their readings go straight into the store."""
+            """Row b's ticks at `times` up to its last new sample are its last new samples (sampling at every tick,
+            the default): their readings go straight into the store, and those of its later ticks (a run's last
+            tick, whose sample comes after) into the rows after them (taken later, or never)."""
             lo, hi = int(store.sensed[b]), store.samples_of(b)
-            start = hi - len(times)
+            if hi <= lo:
+                return None
             T = store.T[:, b]
-            if start < lo or not np.array_equal(T[start:hi], times) or (start > lo and T[start - 1] >= times[0]):
+            k = int(np.searchsorted(times, T[hi - 1], side="right"))  # the ticks at or before the last new sample
+            start = hi - k
+            if (
+                not k
+                or start < lo
+                or start + len(times) > capacity
+                or not np.array_equal(T[start:hi], times[:k])
+                or (start > lo and T[start - 1] >= times[0])
+            ):
                 return None
             direct[b] = start
-            return readings[b, start:hi]
+            return readings[b, start : start + len(times)]
 
         def spare(n: int) -> np.ndarray | None:
-            """Where the native engine may write its n ticks' measurements: a lone row's last n new samples (its
-            readings go there when it samples at its ticks, else they are written over)."""
+            """Where the native engine may write its n ticks' measurements: a lone row's rows where into() will most
+            likely put its readings (its last new samples, and the rows after them); else they are written over."""
             lo, hi = int(store.sensed[0]), store.samples_of(0)
-            return readings[0, hi - n : hi] if store.B == 1 and n and hi - n >= lo else None
+            start = max(lo, hi - n)
+            return readings[0, start : start + n] if store.B == 1 and n and start + n <= capacity else None
 
         fresh = stream.push(*self.ticks.take(spare), into=into)
         for b in range(store.B):
