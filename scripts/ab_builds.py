@@ -9,7 +9,12 @@ times `steps` calls of Stepper.step instead (one row, RK4, dt = 1 ms, zero torqu
 point that gym environments use) against 4 × `pin.aba` per step called from Python. With `--contact`, `--robots`
 names contact scenes and each process times their native timestepping step from the scene's start under its
 controller (a 10·steps run less a steps run, per step, as scripts/contact_mujoco.py does) against one `pin.aba` per
-step called from Python.
+step called from Python. With `--velocity-limits`, each process times go2_standing with its catalog motors and
+its velocity limits enforced, dropped 0.2 m under random torques within the effort limits (tests/test_velocity_limits.py's
+falling go2: the impacts drive joints into their limits, so steps select and re-solve velocity-limit rows), a
+`steps`-step native rollout of 4 episodes, against 4 × `steps` × one `pin.aba` called from Python (--robots unused);
+`--velocity-scale s` draws every joint's velocity limit as s times the catalog's ([randomize]), so that most steps
+hold joints at their limits.
 
 With `--reports`, each process runs instead one side's own copy of scripts/bench_step_cost.py and
 scripts/bench_rollout.py (the worktree that holds the interpreter's .venv) on the robots, and the figures of their
@@ -21,7 +26,7 @@ once those lines are out (its scaling sections are not compared); neither writes
 Usage:
     python scripts/ab_builds.py --a /work/main/.venv/bin/python --b /work/wt/mine/.venv/bin/python \\
         [--robots double_pendulum,solo12] [--pairs 6] [--rounds 7] [--steps 100] [--batch 256] [--stepper | --reports |
-        --contact]
+        --contact | --velocity-limits [--velocity-scale 0.3]]
 
 Prints each pair's ratios, then per robot the median ratio of each side and in how many pairs B read lower.
 Check each build's kernel first (`multibody-sim --version`): a stale editable build runs the Python kernel.
@@ -145,6 +150,51 @@ def measure_contact(name: str, rounds: int, steps: int) -> float:
     return median_ratio(lambda: cpu(10 * steps) - cpu(steps), floor, rounds)
 
 
+def measure_velocity_limits(rounds: int, steps: int, scale: float) -> float:
+    """Median over rounds of a falling go2's native timestepping rollout with its velocity limits (scaled by `scale`)
+    enforced (4 episodes of `steps` steps) / 4 x `steps` pin.aba calls on its model, CPU time."""
+    import tomllib
+
+    import numpy as np
+    import pinocchio as pin
+
+    import multibody_sim as ms
+
+    tables = tomllib.loads((Path(__file__).parent.parent / "models" / "scenes" / "go2_standing.toml").read_text())
+    for name in ("controller", "simulation", "description"):
+        tables.pop(name, None)
+    tables["actuators"] = "catalog"
+    tables["contact"] = {**tables.get("contact", {}), "velocity_limits": "enforce"}
+    if scale != 1.0:
+        drawn = {"name": "velocity_limit", "joints": "*", "distribution": "uniform", "scale": [scale, scale]}
+        tables["randomize"] = {"seed": 0, "parameter": [drawn]}
+    scene = ms.make_scene(**tables)
+    episodes = 4
+    limit = scene.effort_limit[6:]
+    taus = np.zeros((episodes, steps // 2, scene.nv))  # a new torque every 2 ms
+    for b in range(episodes):
+        taus[b, :, 6:] = np.random.default_rng(b).uniform(-limit, limit, size=(steps // 2, len(limit)))
+    Q0 = np.tile(scene.q0, (episodes, 1))
+    Q0[:, 2] += 0.2
+    V0 = np.zeros((episodes, scene.nv))
+    data = scene.model.createData()
+    q0, v0, tau = np.asarray(scene.q0), np.zeros(scene.nv), np.zeros(scene.nv)
+
+    def run() -> float:
+        start = time.process_time()
+        out = ms.rollout(scene, Q0, V0, duration=steps * 1e-3, dt=1e-3, integrator="timestepping", taus=taus,
+                         control_dt=2e-3, progress=False)  # fmt: skip
+        spent = time.process_time() - start
+        assert out.metadata["kernel"] == "native", "the native kernel is not built"
+        return spent
+
+    def floor() -> None:
+        for _ in range(4 * steps):
+            pin.aba(scene.model, data, q0, v0, tau)
+
+    return median_ratio(run, floor, rounds)
+
+
 def report_figures(python: str, robots: str, rounds: int, steps: int) -> dict[str, float]:
     """Run the side's own bench_step_cost.py and bench_rollout.py (in the worktree of its .venv) and return their
     figures as ratios to the floor measured in the same process, named "<robot> <figure>"."""
@@ -204,12 +254,16 @@ def main() -> None:
     parser.add_argument("--stepper", action="store_true", help="time Stepper.step instead of a rollout")
     parser.add_argument("--reports", action="store_true", help="run bench_step_cost.py and bench_rollout.py instead")
     parser.add_argument("--contact", action="store_true", help="time contact scenes' native steps (--robots: scenes)")
+    parser.add_argument("--velocity-limits", action="store_true", help="time a falling go2 into its velocity limits")
+    parser.add_argument("--velocity-scale", type=float, default=1.0, help="--velocity-limits: the limits' scale")
     parser.add_argument("--measure", action="store_true", help=argparse.SUPPRESS)  # one side's process
     args = parser.parse_args()
-    robots = args.robots.split(",")
+    robots = ["go2_velocity_limits"] if args.velocity_limits else args.robots.split(",")
     if args.measure:
         for name in robots:
-            if args.contact:
+            if args.velocity_limits:
+                ratio = measure_velocity_limits(args.rounds, args.steps, args.velocity_scale)
+            elif args.contact:
                 ratio = measure_contact(name, args.rounds, args.steps)
             elif args.stepper:
                 ratio = measure_stepper(name, args.rounds, args.steps)
@@ -225,6 +279,7 @@ def main() -> None:
         return
     inner = [__file__, "--measure", "--robots", args.robots, "--rounds", str(args.rounds), "--steps", str(args.steps)]
     inner += ["--batch", str(args.batch)] + (["--stepper"] if args.stepper else []) + (["--contact"] if args.contact else [])
+    inner += ["--velocity-limits", "--velocity-scale", str(args.velocity_scale)] if args.velocity_limits else []
     results: dict[str, dict[str, list[float]]] = {"a": {}, "b": {}}
     for pair in range(args.pairs):
         line = []
@@ -235,7 +290,7 @@ def main() -> None:
                 results[side].setdefault(name, []).append(float(ratio))
             line.append(f"{side}: {done.stdout.strip()}")
         print(f"pair {pair + 1}/{args.pairs}  " + "  |  ".join(line), flush=True)
-    timed = "contact step" if args.contact else "stepper" if args.stepper else "rollout"
+    timed = "velocity-limit rollout" if args.velocity_limits else "contact step" if args.contact else "stepper" if args.stepper else "rollout"
     for name in robots:
         a, b = results["a"][name], results["b"][name]
         lower = sum(y < x for x, y in zip(a, b, strict=True))
