@@ -635,6 +635,7 @@ class SensorStream:
         self.every_tick = all(stride == 1 for stride in strides)  # every sensor reads at every tick (the default)
         self._bias = np.concatenate([p.bias for p in sensors.placed]) if sensors.placed else np.zeros(0)
         self._scratch = np.zeros(0)  # the noise's draws (_draws)
+        self._columns = [sensors.columns(k) for k in range(len(sensors))]
 
     def _generators(self, b: int, entropy: int | None = None) -> list[np.random.Generator]:
         """Row b's generators: seeded with each sensor's seed + b, or with (its seed, entropy)."""
@@ -693,43 +694,49 @@ class SensorStream:
         views of it, the others into arrays of their own. Each reading is ((z + bias) + noise · draw) element by
         element, z the measurement `latency` readings before (the first one before that), the draws (readings,
         width) of the sensor's generator in order: the one place readings are made."""
-        sensors = self.sensors
+        placed, columns = self.sensors.placed, self._columns
         m = len(times)
         ticks = self.count[b] + np.arange(m) if not self.every_tick else None
         self.count[b] += m
         apart = {}  # the sensors at a rate or late: their readings' times and measurements (taken before Z is written)
-        for k, p in enumerate(sensors.placed):
+        for k, p in enumerate(placed):
             stride = self.strides[k]
             if stride == 1 and not p.spec.latency:
                 continue
-            due_times, z = times, Z[:, sensors.columns(k)]
+            due_times, z = times, Z[:, columns[k]]
             if stride != 1:
                 assert ticks is not None
                 due = ticks % stride == 0
-                due_times, z = times[due], Z[due, sensors.columns(k)]
+                due_times, z = times[due], Z[due, columns[k]]
             apart[k] = (due_times, self._delayed(b, k, z) if p.spec.latency and len(z) else z)
         whole = np.empty_like(Z) if out is None else out
         np.add(Z, self._bias, out=whole)  # z + bias of every component at once (strided columns cost more)
         result = []
-        for k, p in enumerate(sensors.placed):
+        for k, p in enumerate(placed):
             assert p.bias is not None and p.noise is not None
-            columns = sensors.columns(k)
             if k in apart:
                 due_times, z = apart[k]
                 if not len(z):
                     result.append((np.zeros(0), np.zeros((0, p.width))))
                     continue
-                readings = whole[:, columns] if self.strides[k] == 1 else z  # (z: a copy of its own)
+                readings = whole[:, columns[k]] if self.strides[k] == 1 else z  # (z: a copy of its own)
                 np.add(z, p.bias, out=readings)
             else:
-                due_times, readings = times, whole[:, columns]
+                due_times, readings = times, whole[:, columns[k]]
             if self._spoiled[k]:
                 draws = self._draws(readings.size).reshape(readings.shape)
                 self.generators[b][k].standard_normal(out=draws)
                 draws *= p.noise
                 readings += draws
-            self.latest[b, columns] = readings[-1]
+            if self.strides[k] != 1:
+                self.latest[b, columns[k]] = readings[-1]
             result.append((due_times, readings))
+        if self.every_tick:
+            self.latest[b] = whole[-1]
+        else:
+            for k in range(len(placed)):
+                if self.strides[k] == 1:
+                    self.latest[b, columns[k]] = whole[-1, columns[k]]
         return result
 
     def _delayed(self, b: int, k: int, z: np.ndarray) -> np.ndarray:
@@ -750,13 +757,11 @@ class SensorStream:
 
     def readings(self, b: int) -> dict[str, np.ndarray]:
         """Row b's current readings by sensor name (copies)."""
-        sensors = self.sensors
-        return {name: self.latest[b, sensors.columns(k)].copy() for k, name in enumerate(sensors.names)}
+        return {name: self.latest[b, self._columns[k]].copy() for k, name in enumerate(self.sensors.names)}
 
     def batch_readings(self, rows: np.ndarray) -> dict[str, np.ndarray]:
         """The rows' current readings by sensor name, shape (len(rows), width) each (copies)."""
-        sensors = self.sensors
-        return {name: self.latest[rows, sensors.columns(k)] for k, name in enumerate(sensors.names)}
+        return {name: self.latest[rows, self._columns[k]] for k, name in enumerate(self.sensors.names)}
 
     def snapshot(self) -> Any:
         return (
