@@ -15,7 +15,7 @@ scene, then its median):
 - both;
 - without a rate: the sensors without their noise, bias and latency (both scenes), and ur5's IMU alone, without
   noise; and per scene the CPU time of its sensor set's noise draws per reading, timed beside the runs in each round
-  (numpy PCG64 standard_normal, as SensorStream draws them), as a fraction of the bare step.
+  (noise.NormalStream.fill, as SensorStream draws them), as a fraction of the bare step.
 
 The workload is a rollout of one row on the native kernel, sampling every step at dt = 1 ms: ur5 with rk4,
 go2_standing with the time-stepper. A variant's time per step is a long run's CPU time minus a one-step run's (the
@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 import multibody_sim as ms
+from multibody_sim.noise import NormalStream
 from multibody_sim.scenes import make_scene, shipped_scenes
 from multibody_sim.scenes.parse import parse_toml
 
@@ -129,15 +130,16 @@ def variants(rate: float | None) -> dict[str, dict[str, Any]]:
 
 def draws_cost(scene: str, steps: int) -> float:
     """CPU time of the noise draws the scene's sensor set makes in `steps` readings [µs per reading], drawn as
-    SensorStream draws them (numpy PCG64 standard_normal, (steps, width) per noisy sensor)."""
+    SensorStream draws them (noise.NormalStream.fill, (steps, width) per noisy sensor)."""
     system = ur5(False, ur5_sensors(None)) if scene == "ur5" else go2(False, go2_sensors(None))
     sensors = system.sensors
     assert sensors is not None
     noisy = [p.width for p in sensors.placed if np.any(p.noise)]
-    generators = [np.random.default_rng(k) for k in range(len(noisy))]
+    streams = [NormalStream(k) for k in range(len(noisy))]
+    draws = [np.empty((steps, width)) for width in noisy]
     start = time.process_time()
-    for generator, width in zip(generators, noisy, strict=True):
-        generator.standard_normal((steps, width))
+    for stream, out in zip(streams, draws, strict=True):
+        stream.fill(out)
     return (time.process_time() - start) / steps * 1e6
 
 
@@ -246,7 +248,7 @@ def main() -> None:
         draws = times[(scene, "noise draws")]
         share = [a / b for a, b in zip(draws, reference, strict=True)]
         lines.append(
-            f"| {scene} | its sensors' noise draws alone (timed beside the runs) | numpy | "
+            f"| {scene} | its sensors' noise draws alone (timed beside the runs) | NormalStream | "
             f"{statistics.median(draws):.2f} | +{statistics.median(share):.3f} | | |"
         )
     lines += [
@@ -256,7 +258,7 @@ def main() -> None:
         "state; a little Python around each call), and that part's excess over the bare scene's, as a fraction of "
         "the bare step (the rest of the ratio's excess is Python after the engine: readings, recording, the "
         "trajectory). The last row of each scene is not a run: it is the CPU time of the noise draws its sensor "
-        "set makes per reading (numpy PCG64 standard_normal, one per noisy component, as SensorStream draws them), "
+        "set makes per reading (noise.NormalStream.fill, one per noisy component, as SensorStream draws them), "
         "timed in the same rounds, as a fraction of the bare step. Where the rest goes (perf profiles, and timers "
         "around the engine call apart from the Python around it): an IMU's "
         "(or frame_pose's) kinematics come from the next step's first ABA at the tick's state, which leaves each "

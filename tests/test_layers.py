@@ -18,7 +18,7 @@ SRC = Path(__file__).resolve().parent.parent / "src"
 
 # From the bottom up. A module may import from its own layer and the layers below it.
 LAYERS: list[tuple[str, list[str]]] = [
-    ("foundation", ["text", "exceptions", "ordered", "metadata", "progress", "step_control", "native"]),
+    ("foundation", ["text", "exceptions", "ordered", "metadata", "progress", "step_control", "native", "noise"]),
     ("files", ["safety", "files"]),
     ("maths", ["state", "integrators", "integrators.*", "robot"]),
     ("argument checks", ["validation"]),

@@ -15,6 +15,7 @@ import pytest
 
 import multibody_sim as ms
 from multibody_sim.exceptions import InvalidArgumentError, SceneError
+from multibody_sim.noise import NormalStream
 from multibody_sim.sensors import SensorStream
 
 G = 9.81
@@ -420,7 +421,8 @@ def test_latency_is_exact_in_readings_and_rate_holds_them_between(kernel: str) -
 def test_readings_are_late_biased_noisy_measurements_on_every_path(kernel: str, tmp_path: Path) -> None:
     """A joint_velocity sensor's readings, rebuilt from the velocity itself and the declared generator: reading j
     (at its j-th tick) is v at tick j − latency (the first tick's before that) + bias + noise · d_j, with d the
-    draws of numpy's default_rng(seed + row), (readings, components) in order; each sample holds the latest reading
+    draws of noise.NormalStream(seed + row) (its own draws: tests/test_noise.py), (readings, components) in order;
+    each sample holds the latest reading
     at or before it. Sensors at every step and at 250 Hz, sampled every step, every 2 and every 3 steps, in one
     piece and in chunks (simulate), in rows (rollout), and step by step (Stepper)."""
     spoil = {"kind": "joint_velocity", "noise": [0.01, 0.5], "bias": [0.25, -1.0], "latency": 3}
@@ -441,7 +443,8 @@ def test_readings_are_late_biased_noisy_measurements_on_every_path(kernel: str, 
         """Per step: the reading held there."""
         ticks = np.arange(0, steps + 1, stride)
         late = np.maximum(np.arange(len(ticks)) - latency, 0)
-        draws = np.random.default_rng(seed).standard_normal((len(ticks), 2))
+        draws = np.empty((len(ticks), 2))
+        NormalStream(seed).fill(draws)
         readings = V[ticks[late]] + np.asarray(bias, dtype=float) + np.asarray(noise, dtype=float) * draws
         return readings[np.arange(steps + 1) // stride]
 

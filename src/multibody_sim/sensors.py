@@ -27,8 +27,8 @@ Kinds (components; axes):
 
 Readings (SensorStream): a sensor reads at its own rate (every `stride` ticks of the run's clock); reading m is
 measurement m − latency (the first measurement before that) plus the bias plus Gaussian noise of the declared
-std, drawn from the sensor's own generator (numpy PCG64 seeded with ``seed + row``), one draw per component per
-reading, in order. Between its readings a sensor holds its latest one. The kernels measure (the Python kernel with
+std, drawn from the sensor's own stream (noise.NormalStream seeded with ``seed + row``), one draw per component
+per reading, in order. Between its readings a sensor holds its latest one. The kernels measure (the Python kernel with
 Sensors.measure, the native one with its rendering in src/native/measure.hpp, bit for bit); the readings are made
 here, in Python, for every kernel alike.
 """
@@ -45,6 +45,7 @@ import numpy as np
 import pinocchio as pin
 
 from .exceptions import InvalidArgumentError
+from .noise import NormalStream
 from .ordered import ordered_matvec
 from .scenes.spec import SensorSpec
 
@@ -637,11 +638,11 @@ class SensorStream:
         self._scratch = np.zeros(0)  # the noise's draws (_draws)
         self._columns = [sensors.columns(k) for k in range(len(sensors))]
 
-    def _generators(self, b: int, entropy: int | None = None) -> list[np.random.Generator]:
-        """Row b's generators: seeded with each sensor's seed + b, or with (its seed, entropy)."""
+    def _generators(self, b: int, entropy: int | None = None) -> list[NormalStream]:
+        """Row b's noise streams: seeded with each sensor's seed + b, or with (its seed, entropy)."""
         if entropy is None:
-            return [np.random.default_rng(p.spec.seed + self.seeds[b]) for p in self.sensors.placed]
-        return [np.random.default_rng([p.spec.seed, entropy]) for p in self.sensors.placed]
+            return [NormalStream(p.spec.seed + self.seeds[b]) for p in self.sensors.placed]
+        return [NormalStream([p.spec.seed, entropy]) for p in self.sensors.placed]
 
     def restart(self, rows: np.ndarray, entropy: Any = None) -> None:
         """Rows start afresh (a reset): no history, no readings yet. `entropy`: None (their generators go on), or
@@ -725,7 +726,7 @@ class SensorStream:
                 due_times, readings = times, whole[:, columns[k]]
             if self._spoiled[k]:
                 draws = self._draws(readings.size).reshape(readings.shape)
-                self.generators[b][k].standard_normal(out=draws)
+                self.generators[b][k].fill(draws)
                 draws *= p.noise
                 readings += draws
             if self.strides[k] != 1:
@@ -768,7 +769,7 @@ class SensorStream:
             self.latest.copy(),
             self.count.copy(),
             [list(h) for h in self.history],
-            [[g.bit_generator.state for g in row] for row in self.generators],
+            [[g.snapshot() for g in row] for row in self.generators],
         )
 
     def restore(self, snapshot: Any) -> None:
@@ -776,7 +777,7 @@ class SensorStream:
         self.latest, self.count, self.history = latest.copy(), count.copy(), [list(h) for h in history]
         for row, row_states in zip(self.generators, states, strict=True):
             for g, state in zip(row, row_states, strict=True):
-                g.bit_generator.state = state
+                g.restore(state)
 
 
 def strides(sensors: Sensors, dt: float, control_every: int) -> tuple[int, list[int]]:

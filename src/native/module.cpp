@@ -32,6 +32,7 @@
 #include "model.hpp"
 #ifdef MULTIBODY_SIM_WITH_KERNEL
 #include "kernel.hpp"
+#include "noise.hpp"
 #include "structs.hpp"
 #endif
 
@@ -332,6 +333,27 @@ namespace
 void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
 {
   using namespace multibody_sim;
+  Struct<ZigguratTables>(m, "ZigguratTables", "The noise's ziggurat tables (noise.native_tables(): multibody_sim/noise.py).")
+    .field("width", &ZigguratTables::width, "list[float]")
+    .field("inside", &ZigguratTables::inside, "list[int]")
+    .field("density", &ZigguratTables::density, "list[float]")
+    .field("rise", &ZigguratTables::rise, "list[float]")
+    .field("edge", &ZigguratTables::edge, "float")
+    .finish([](ZigguratTables & z) {
+      if (z.width.size() != 256 || z.inside.size() != 256 || z.density.size() != 257 || z.rise.size() != 256)
+        throw nb::value_error("ZigguratTables: width, inside and rise need 256 entries, density 257");
+    });
+  m.def(
+    "fill_normals",
+    [](nb::ndarray<uint64_t, nb::shape<4>, nb::c_contig, nb::device::cpu> state, Doubles out,
+       const ZigguratTables & tables) {
+      if (out.ndim() != 1)
+        throw nb::value_error("fill_normals: `out` must be one-dimensional");
+      fill_normals(state.data(), out.data(), out.shape(0), tables);
+    },
+    nb::arg("state").noconvert(), nb::arg("out").noconvert(), nb::arg("tables"),
+    "noise.NormalStream.fill: the next len(out) standard normal draws of the stream at `state` (4 uint64 words, "
+    "advanced in place) into `out` (float64, 1-d).");
   Struct<Method>(m, "Method", "A stepping method as the engine renders it (Integrator.native_data()).")
     .choice("kind", &Method::kind,
             {{"explicit_rk", Kind::explicit_rk}, {"embedded", Kind::embedded}, {"dop853", Kind::dop853},
