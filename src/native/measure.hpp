@@ -32,31 +32,28 @@ namespace multibody_sim
         Step::run(model.joints[i], data.joints[i], Step::ArgsType(model, data, q, v, a));
     }
 
-    // The same joints' velocities and accelerations when the thread's step has just run its first ABA at (q, v):
-    // ABA's first pass left each joint's calc (jdata: M, v, S, c), liMi and oMi exactly as forwardKinematics' step
-    // computes them (the same calls in the same order: pinocchio/algorithm/aba.hxx, kinematics.hxx), so only the
-    // rest of that step is done here, in its arithmetic: the readings are kinematics()' bit for bit, at a fraction
-    // of its cost (no sin/cos, no placement products). `velocities`: the step's data.v already holds them (a
-    // sample's energies computed them: Rows::settle, the same recursion).
+    // The same joints' velocities and accelerations when the thread's step has just run its first ABA at (q, v),
+    // written into that step's Data itself: ABA's first pass left each joint's calc (jdata: M, v, S, c), liMi and oMi
+    // exactly as forwardKinematics' step computes them (the same calls in the same order: pinocchio/algorithm/aba.hxx,
+    // kinematics.hxx), so only the rest of that step is done here, in its arithmetic: the readings are kinematics()'
+    // bit for bit, at a fraction of its cost (no sin/cos, no placement products, nothing copied). The world-convention
+    // ABA neither reads nor writes Data's v and a, which every other user of the step's Data computes before reading.
+    // `velocities`: the step's data.v already holds them (a sample's energies computed them: Rows::settle, the same
+    // recursion).
     struct AfterAba : pinocchio::fusion::JointUnaryVisitorBase<AfterAba>
     {
-      typedef boost::fusion::vector<const pinocchio::Model &, const pinocchio::Data &, pinocchio::Data &,
-                                    const Eigen::VectorXd &, bool>
+      typedef boost::fusion::vector<const pinocchio::Model &, pinocchio::Data &, const Eigen::VectorXd &, bool>
         ArgsType;
 
       template<typename JointModel>
       static void algo(const pinocchio::JointModelBase<JointModel> & jmodel,
                        pinocchio::JointDataBase<typename JointModel::JointDataDerived> & jdata,
-                       const pinocchio::Model & model, const pinocchio::Data & step, pinocchio::Data & data,
-                       const Eigen::VectorXd & a, bool velocities)
+                       const pinocchio::Model & model, pinocchio::Data & data, const Eigen::VectorXd & a,
+                       bool velocities)
       {
         const pinocchio::JointIndex i = jmodel.id();
         const pinocchio::JointIndex parent = model.parents[i];
-        data.liMi[i] = step.liMi[i];
-        data.oMi[i] = step.oMi[i];
-        if (velocities)
-          data.v[i] = step.v[i];
-        else
+        if (!velocities)
         {
           data.v[i] = jdata.v();
           if (parent > 0)
@@ -67,14 +64,13 @@ namespace multibody_sim
       }
     };
 
-    inline void kinematics_after_aba(const pinocchio::Model & model, pinocchio::Data & step, SensorWork & w,
+    inline void kinematics_after_aba(const pinocchio::Model & model, pinocchio::Data & step, const SensorWork & w,
                                      const Eigen::VectorXd & a, bool velocities)
     {
-      pinocchio::Data & data = w.data;
-      data.v[0].setZero();
-      data.a[0].setZero();
+      step.v[0].setZero();
+      step.a[0].setZero();
       for (pinocchio::JointIndex i : w.kinematic_joints)
-        AfterAba::run(model.joints[i], step.joints[i], AfterAba::ArgsType(model, step, data, a, velocities));
+        AfterAba::run(model.joints[i], step.joints[i], AfterAba::ArgsType(model, step, a, velocities));
     }
 
     // The sum of the contact impulses on `body` over h (Sensors._contact_force).
@@ -147,8 +143,8 @@ namespace multibody_sim
   } // namespace sensing
 
   // Which of a tick's sensors measure_sensors measures: all of them; all but the imu and frame_pose sensors (whose
-  // kinematics wait for the next step's first ABA: SensorWork::deferred); or only those, from w.data as
-  // sensing::kinematics_after_aba left it.
+  // kinematics wait for the next step's first ABA: SensorWork::deferred); or only those, from the step's Data as
+  // sensing::kinematics_after_aba left it (or w.data as sensing::kinematics did).
   enum class SensorPart
   {
     all,
@@ -167,9 +163,10 @@ namespace multibody_sim
     const ContactRows * contacts,
     double h,
     double * out,
-    SensorPart part = SensorPart::all)
+    SensorPart part = SensorPart::all,
+    pinocchio::Data * kinematics = nullptr)  // (SensorPart::kinematic: where the kinematics are; default w.data)
   {
-    pinocchio::Data & data = w.data;
+    pinocchio::Data & data = kinematics ? *kinematics : w.data;
     bool dynamics = false;
     if (part == SensorPart::all && !w.kinematic_joints.empty())
       sensing::kinematics(model, w, q, v, a);

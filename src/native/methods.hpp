@@ -789,17 +789,18 @@ namespace multibody_sim
       {
         SensorWork & sw_ = *sensw;
         sensing::kinematics_after_aba(*M, data, sw_, sw_.pending_a[j], sample);
-        measure_kinematic(j);
+        measure_kinematic(j, &data);
       }
     }
 
-    // Row j's waiting tick: its imu and frame_pose sensors from sensw->data's kinematics
-    void measure_kinematic(size_t j)
+    // Row j's waiting tick: its imu and frame_pose sensors from the kinematics in `kinematics` (the step's Data, or
+    // by default sensw->data)
+    void measure_kinematic(size_t j, pinocchio::Data * kinematics = nullptr)
     {
       SensorWork & w = *sensw;
       const Vec & a = w.pending_a[j];
       measure_sensors(*SS, *M, w, q[j], v[j], a, a, nullptr, 1.0,
-                      w.values.data() + w.pending[j], SensorPart::kinematic);
+                      w.values.data() + w.pending[j], SensorPart::kinematic, kinematics);
       w.pending[j] = -1;
     }
 
