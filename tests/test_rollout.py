@@ -573,3 +573,20 @@ def test_ledger_sums_are_numpys_masked_column_sums_bit_for_bit() -> None:
                 nan = np.isnan(want)
                 np.testing.assert_array_equal(np.isnan(got), nan)
                 np.testing.assert_array_equal(got[~nan].view(np.int64), want[~nan].view(np.int64))
+
+
+def test_limit_reports_extremes_are_numpys_min_and_max() -> None:
+    """recording._extremes (the lowest and highest value of each coordinate over each row's samples, folded into long
+    rows first) against Q.min(axis=1) and Q.max(axis=1): any number of samples (none to many, a multiple of the fold
+    or not) and coordinates, contiguous or not, zeros of both signs."""
+    from multibody_sim.recording import _extremes
+
+    rng = np.random.default_rng(12)
+    for _ in range(300):
+        B, N, nq = int(rng.integers(1, 4)), int(rng.integers(1, 400)), int(rng.integers(1, 80))
+        Q = rng.standard_normal((B, N + 3, nq)) * 10.0 ** rng.integers(-3, 5)
+        Q[rng.random(Q.shape) < 0.05] = rng.choice([0.0, -0.0])
+        for view in (Q[:, :N], np.ascontiguousarray(Q[:, :N])):
+            low, high = _extremes(view)
+            np.testing.assert_array_equal(low, view.min(axis=1))
+            np.testing.assert_array_equal(high, view.max(axis=1))
