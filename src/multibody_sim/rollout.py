@@ -365,10 +365,9 @@ def _from_run(run: Run, wall_time: float) -> BatchTrajectory:
         # run in memory; else its first N samples, copied.
         return np.ascontiguousarray(store.batch_major(name)[:, :N])
 
-    # The energies, the ledger lines and the records are views of the store's memory too (the run ends here): a
-    # column of a sample-major block, not copied (each copy would be fresh memory, paid for in page faults).
-    energy, flows = store.batch_major("ENERGY")[:, :N], store.batch_major("FLOWS")[:, :N]
-    extra = store.batch_major("EXTRA")[:, :N]
+    # The energies, the ledger lines and the records are views of those arrays too: columns of a sample-major block,
+    # not copied one by one (each copy would be fresh memory, paid for in page faults).
+    energy, flows, extra = batch_major("ENERGY"), batch_major("FLOWS"), batch_major("EXTRA")
     elements = system.ledger_elements
     is_work = np.array([kind == "work" for _, kind in elements], dtype=bool)
     kinetic, potential = energy[:, :, 0], energy[:, :, 1]
