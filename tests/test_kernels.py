@@ -165,6 +165,7 @@ def test_a_misnamed_missing_or_mistyped_field_fails_naming_it() -> None:
     scene = ms.load_scene("sliding_box")
     constants = native_kernel.contact_data(scene, ms.INTEGRATORS["timestepping"])["constants"]
     del constants["touching"]
+    constants["solver"] = module.SolverSettings(**constants["solver"])
     with pytest.raises(TypeError, match=r"^ContactConstants is missing the field 'touching'$"):
         module.ContactConstants(**constants)
 
@@ -205,6 +206,9 @@ def test_every_exporter_fills_its_struct_exactly() -> None:
     contact = native_kernel.contact_data(ms.load_scene("sliding_box"), ms.INTEGRATORS["timestepping"])
     assert set(contact) == set(module.ContactScene.fields)
     assert set(contact["constants"]) == set(module.ContactConstants.fields)
+    assert set(contact["constants"]["solver"]) == set(module.SolverSettings.fields)
+    solver = module.SolverSettings(**contact["constants"]["solver"])
+    assert module.ContactConstants(**{**contact["constants"], "solver": solver}).solver.tolerance == solver.tolerance
 
 
 def test_the_kernel_module_reads_no_private_attribute_of_another_object() -> None:

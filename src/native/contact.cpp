@@ -356,7 +356,7 @@ namespace multibody_sim
         request.enable_contact = true;  // without it box–box normals are NaN
         request.security_margin = scene.constants.speculative_margin;
       }
-      solver.settings = scene.constants.solver();
+      solver.settings = scene.constants.solver;
     }
 
     // The mesh hulls from their archives, once a pair needs coal with one (most hulls only ever meet the ground,
@@ -1444,7 +1444,25 @@ void multibody_sim::bind_contact(nb::module_ & m)  // called by module.cpp
       if (s.kind == ShapeKind::mesh && (s.vertices.rows() == 0 || s.archive.size() == 0))
         throw std::invalid_argument("a mesh ContactShape needs its hull's vertices and coal archive");
     });
-  Struct<ContactConstants>(m, "ContactConstants", "contact.py's, narrow_phase.py's and cone_solver.py's constants.")
+  Struct<cone::Settings>(m, "SolverSettings", "cone_solver.py's constants (TimeStepping.solver_data()'s solver).")
+    .field("tolerance", &cone::Settings::tolerance, "float")
+    .field("fallback_tolerance", &cone::Settings::fallback_tolerance, "float")
+    .field("regularization", &cone::Settings::regularization, "float")
+    .field("damping", &cone::Settings::damping, "float")
+    .field("armijo", &cone::Settings::armijo, "float")
+    .field("shortest_step", &cone::Settings::shortest_step, "float")
+    .field("proximal", &cone::Settings::proximal, "float")
+    .field("relaxation", &cone::Settings::relaxation, "float")
+    .field("rho_power", &cone::Settings::rho_power, "float")
+    .field("rho_step", &cone::Settings::rho_step, "float")
+    .field("rho_balance", &cone::Settings::rho_balance, "float")
+    .field("rho_min", &cone::Settings::rho_min, "float")
+    .field("rho_max", &cone::Settings::rho_max, "float")
+    .field("newton_iterations", &cone::Settings::newton_iterations, "int")
+    .field("fallback_rounds", &cone::Settings::fallback_rounds, "int")
+    .field("local_iterations", &cone::Settings::local_iterations, "int")
+    .finish();
+  Struct<ContactConstants>(m, "ContactConstants", "contact.py's and narrow_phase.py's constants, the solver's settings.")
     .field("speculative_margin", &ContactConstants::speculative_margin, "float")
     .field("penetration_correction", &ContactConstants::penetration_correction, "float")
     .field("penetration_slop", &ContactConstants::penetration_slop, "float")
@@ -1462,22 +1480,7 @@ void multibody_sim::bind_contact(nb::module_ & m)  // called by module.cpp
     .field("pgs", &ContactConstants::pgs, "bool")
     .field("gravity", &ContactConstants::gravity, "float")
     .field("max_iterations", &ContactConstants::max_iterations, "int")
-    .field("tolerance", &ContactConstants::tolerance, "float")
-    .field("fallback_tolerance", &ContactConstants::fallback_tolerance, "float")
-    .field("regularization", &ContactConstants::regularization, "float")
-    .field("damping", &ContactConstants::damping, "float")
-    .field("armijo", &ContactConstants::armijo, "float")
-    .field("shortest_step", &ContactConstants::shortest_step, "float")
-    .field("proximal", &ContactConstants::proximal, "float")
-    .field("relaxation", &ContactConstants::relaxation, "float")
-    .field("rho_power", &ContactConstants::rho_power, "float")
-    .field("rho_step", &ContactConstants::rho_step, "float")
-    .field("rho_balance", &ContactConstants::rho_balance, "float")
-    .field("rho_min", &ContactConstants::rho_min, "float")
-    .field("rho_max", &ContactConstants::rho_max, "float")
-    .field("newton_iterations", &ContactConstants::newton_iterations, "int")
-    .field("fallback_rounds", &ContactConstants::fallback_rounds, "int")
-    .field("local_iterations", &ContactConstants::local_iterations, "int")
+    .field("solver", &ContactConstants::solver, "SolverSettings")
     .finish();
   auto fields = std::make_shared<Fields<ContactData>>("ContactScene");
   fields->member("shapes", &ContactData::shapes, "list[ContactShape]")

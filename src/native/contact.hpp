@@ -51,7 +51,8 @@ namespace multibody_sim
   };
 
   // The Python modules' constants (ContactScene's constructor takes them from Python, by name): contact.py's and
-  // narrow_phase.py's, then the time-stepper's solver settings (cone_solver.py's, TimeStepping.max_iterations).
+  // narrow_phase.py's, then the time-stepper's (TimeStepping.solver_data: max_iterations and cone_solver.py's
+  // settings).
   struct ContactConstants
   {
     double speculative_margin = 0.0, penetration_correction = 0.0, penetration_slop = 0.0;
@@ -61,32 +62,7 @@ namespace multibody_sim
     int max_patch_points = 0, max_iterations = 0;
     bool pgs = false;      // Gauss–Seidel sweeps as the solver's fallback, and no Newton before them
     double gravity = 0.0;  // |g| [m/s²]: approaches slower than |g| dt never bounce
-    double tolerance = 0.0, fallback_tolerance = 0.0, regularization = 0.0, damping = 0.0, armijo = 0.0;
-    double shortest_step = 0.0, proximal = 0.0, relaxation = 0.0, rho_power = 0.0, rho_step = 0.0;
-    double rho_balance = 0.0, rho_min = 0.0, rho_max = 0.0;
-    int newton_iterations = 0, fallback_rounds = 0, local_iterations = 0;
-
-    cone::Settings solver() const
-    {
-      cone::Settings s;
-      s.tolerance = tolerance;
-      s.fallback_tolerance = fallback_tolerance;
-      s.regularization = regularization;
-      s.damping = damping;
-      s.armijo = armijo;
-      s.shortest_step = shortest_step;
-      s.proximal = proximal;
-      s.relaxation = relaxation;
-      s.rho_power = rho_power;
-      s.rho_step = rho_step;
-      s.rho_balance = rho_balance;
-      s.rho_min = rho_min;
-      s.rho_max = rho_max;
-      s.newton_iterations = newton_iterations;
-      s.fallback_rounds = fallback_rounds;
-      s.local_iterations = local_iterations;
-      return s;
-    }
+    cone::Settings solver;
   };
 
   // One row's solver state (timestepping.ContactState): warm-start impulses by block key, counts, landings and

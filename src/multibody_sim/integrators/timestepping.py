@@ -112,26 +112,28 @@ class TimeStepping(Integrator):
         return {"kind": "timestepping", "stages": 1, "a": [0.0], "b": [1.0], "c": [0.0], "chart_terms": 0}
 
     def solver_data(self) -> dict[str, Any]:
-        """The cone solver's settings as the native kernel takes them (_native.ContactConstants' solver fields):
-        cone_solver.py's constants and this time-stepper's max_iterations."""
+        """The solver's settings as the native kernel takes them (_native.ContactConstants' max_iterations and
+        solver, a _native.SolverSettings): this time-stepper's max_iterations and cone_solver.py's constants."""
         return {
             "max_iterations": self.max_iterations,
-            "tolerance": cone_solver.TOLERANCE,
-            "fallback_tolerance": cone_solver.FALLBACK_TOLERANCE,
-            "regularization": cone_solver.REGULARIZATION,
-            "damping": cone_solver.DAMPING,
-            "armijo": cone_solver.ARMIJO,
-            "shortest_step": cone_solver.SHORTEST_STEP,
-            "proximal": cone_solver.PROXIMAL,
-            "relaxation": cone_solver.RELAXATION,
-            "rho_power": cone_solver.RHO_POWER,
-            "rho_step": cone_solver.RHO_STEP,
-            "rho_balance": cone_solver.RHO_BALANCE,
-            "rho_min": cone_solver.RHO_MIN,
-            "rho_max": cone_solver.RHO_MAX,
-            "newton_iterations": cone_solver.NEWTON_ITERATIONS,
-            "fallback_rounds": cone_solver.FALLBACK_ROUNDS,
-            "local_iterations": cone_solver.LOCAL_ITERATIONS,
+            "solver": {
+                "tolerance": cone_solver.TOLERANCE,
+                "fallback_tolerance": cone_solver.FALLBACK_TOLERANCE,
+                "regularization": cone_solver.REGULARIZATION,
+                "damping": cone_solver.DAMPING,
+                "armijo": cone_solver.ARMIJO,
+                "shortest_step": cone_solver.SHORTEST_STEP,
+                "proximal": cone_solver.PROXIMAL,
+                "relaxation": cone_solver.RELAXATION,
+                "rho_power": cone_solver.RHO_POWER,
+                "rho_step": cone_solver.RHO_STEP,
+                "rho_balance": cone_solver.RHO_BALANCE,
+                "rho_min": cone_solver.RHO_MIN,
+                "rho_max": cone_solver.RHO_MAX,
+                "newton_iterations": cone_solver.NEWTON_ITERATIONS,
+                "fallback_rounds": cone_solver.FALLBACK_ROUNDS,
+                "local_iterations": cone_solver.LOCAL_ITERATIONS,
+            },
         }
 
     def init(self, system: System, q: np.ndarray, v: np.ndarray) -> ContactState:

@@ -176,7 +176,8 @@ def _contact_scene(data: dict[str, Any], model: Any) -> Any:
     """contact_data()'s dict as _native.ContactScene."""
     module = native.module
     shapes = [module.ContactShape(**shape) for shape in data["shapes"]]  # type: ignore[union-attr]
-    constants = module.ContactConstants(**data["constants"])  # type: ignore[union-attr]
+    solver = module.SolverSettings(**data["constants"]["solver"])  # type: ignore[union-attr]
+    constants = module.ContactConstants(**{**data["constants"], "solver": solver})  # type: ignore[union-attr]
     return module.ContactScene(model, **{**data, "shapes": shapes, "constants": constants})  # type: ignore[union-attr]
 
 
