@@ -268,8 +268,10 @@ def main() -> None:
         "of a scene with a force-torque sensor (which needs the whole pass and an RNEA), gets a pass of its own. "
         "Joint sensors copy numbers (a joint_torque sensor with actuators evaluates their law at the tick); a "
         "contact_force sensor sums the step's impulses on its body. The readings are made in Python once per "
-        "engine call, all sensors at once when they read at every tick: besides the noise, each component costs "
-        "its share of the copies into the samples and the trajectory (fresh memory: page faults included). "
+        "engine call: the engine hands a lone row's measurements over in its samples' rows, where bias, latency "
+        "and noise are applied in place (z + bias in one pass over every component), and the trajectory's sensors "
+        "are views of that memory; besides the noise draws, a component costs a pass or two over memory written "
+        "for the first time (page faults included). "
         "Actuators evaluate their law and limits once per stage for both the torque and the ledger, and add their "
         "ledger lines (work, limits, brakes) to the integrated and recorded flows, the commands and the delivered "
         "torque to every sample, and the catalog motors' armature (go2) to the kinetic energies.",
