@@ -76,6 +76,7 @@ namespace multibody_sim
     ServoStep servo;               // ... and that step's state
     bool dense_ready = false;
     bool no_armature;  // every armature exactly 0: kinetic_energy() needs no per-joint armature term
+    bool velocity_kinds;  // every joint of a kind velocity_calc knows: kinetic_at_same_q needs no forwardKinematics
     int extra_evaluations = 0;
     // The physics of the row being stepped or sampled (select(j)): the engine's, or the row's own (set_rows).
     std::vector<const RowPhysics *> own;  // per row: its own physics, or empty (the engine's for every row)
@@ -99,6 +100,7 @@ namespace multibody_sim
     , w(2 * engine.model_.nv + engine.n_ledger_)
     , rows(owned)
     , no_armature((engine.model_.armature.array() == 0.0).all())
+    , velocity_kinds(velocity_kinds_of(engine.model_))
     {
       const size_t n = rows.size();
       alive.assign(n, 1);
@@ -473,21 +475,40 @@ namespace multibody_sim
     {
       const pinocchio::Model & model = *M;
       const auto njoints = static_cast<pinocchio::JointIndex>(model.njoints);
-      for (pinocchio::JointIndex i = 1; i < njoints; ++i)
-        if (!velocity_calc(model.joints[i], data.joints[i], vx, false))
-        {
-          pinocchio::forwardKinematics(model, data, qx, vx);
-          return kinetic_energy(vx);
-        }
-      for (pinocchio::JointIndex i = 1; i < njoints; ++i)
+      if (!velocity_kinds)
       {
+        pinocchio::forwardKinematics(model, data, qx, vx);
+        return kinetic_energy(vx);
+      }
+      for (pinocchio::JointIndex i = 1; i < njoints; ++i)
         velocity_calc(model.joints[i], data.joints[i], vx, true);
+      velocities_from_placements();
+      return kinetic_energy(vx);
+    }
+
+    // forwardKinematics' velocity recursion, its arithmetic, on the joint placements (liMi) and joint velocities
+    // (each joint's calc) data holds: every joint's data.v
+    void velocities_from_placements()
+    {
+      const pinocchio::Model & model = e.model_;  // (the rows' models share its tree)
+      for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
+      {
         const pinocchio::JointIndex parent = model.parents[i];
         data.v[i] = data.joints[i].v();
         if (parent > 0)
           data.v[i] += data.liMi[i].actInv(data.v[parent]);
       }
-      return kinetic_energy(vx);
+    }
+
+    // Whether every joint of the model is of a kind velocity_calc knows (fixed by the model's tree: rows share it)
+    static bool velocity_kinds_of(const pinocchio::Model & model)
+    {
+      pinocchio::Data scratch(model);
+      const Vec zero = Vec::Zero(model.nv);
+      for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
+        if (!velocity_calc(model.joints[i], scratch.joints[i], zero, false))
+          return false;
+      return true;
     }
 
     // whether the joint is of a kind above (and, if run, its velocity-only calc at vx)
@@ -774,14 +795,7 @@ namespace multibody_sim
       const bool sample = pending[j] >= 0;
       if (sample)
       {
-        const pinocchio::Model & model = e.model_;
-        for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
-        {
-          const pinocchio::JointIndex parent = model.parents[i];
-          data.v[i] = data.joints[i].v();
-          if (parent > 0)
-            data.v[i] += data.liMi[i].actInv(data.v[parent]);
-        }
+        velocities_from_placements();
         write_energies(*pending_store, pending[j], q[j], v[j]);
         pending[j] = -1;
       }
