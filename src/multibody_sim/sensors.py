@@ -854,12 +854,14 @@ class Sensing:
         before = stream.latest.copy()
         readings = store.batch_major("SENSORS")
         direct: dict[int, int] = {}  # per row whose ticks are its latest samples: where they start
+        wholes: dict[int, np.ndarray] = {}  # per other row, when every sensor reads at every tick: its readings
         capacity = store.capacity
 
         def into(b: int, times: np.ndarray) -> np.ndarray | None:
             """Row b's ticks at `times` up to its last new sample are its last new samples (sampling at every tick,
             the default): their readings go straight into the store, and those of its later ticks (a run's last
-            tick, whose sample comes after) into the rows after them (taken later, or never)."""
+            tick, whose sample comes after) into the rows after them (taken later, or never). Else, when every
+            sensor reads at every tick, into an array of their own, whose rows the samples then take."""
             lo, hi = int(store.sensed[b]), store.samples_of(b)
             if hi <= lo:
                 return None
@@ -873,7 +875,10 @@ class Sensing:
                 or not np.array_equal(T[start:hi], times[:k])
                 or (start > lo and T[start - 1] >= times[0])
             ):
-                return None
+                if not stream.every_tick:
+                    return None
+                wholes[b] = np.empty((len(times), sensors.width))  # (the samples take rows of it below)
+                return wholes[b]
             direct[b] = start
             return readings[b, start : start + len(times)]
 
@@ -896,6 +901,14 @@ class Sensing:
                 store.sensed[b] = hi
                 continue
             T = store.T[lo:hi, b]
+            whole = wholes.get(b)
+            if whole is not None:  # every sensor read at its ticks: each sample's latest readings, all columns at once
+                index = np.searchsorted(new[0][0], T, side="right") - 1
+                held = int(np.searchsorted(index, 0))  # the samples before this call's first reading
+                block[:held] = before[b]
+                block[held:] = whole[index[held:]]
+                store.sensed[b] = hi
+                continue
             start = direct.get(b, hi) - lo  # the samples from here on hold the every-tick sensors' readings
             for k, (times, values) in enumerate(new):
                 columns = sensors.columns(k)
