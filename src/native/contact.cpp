@@ -210,131 +210,75 @@ namespace multibody_sim
       sizes.push_back(1);
     }
 
-    // J's rows r0.. of speeds[from:]: selection rows (±1 at the joint's dof) on the joint's support
-    void speed_rows(size_t from, int r0, const std::vector<std::vector<int>> & supports)
+    // The rows of speeds[from:] appended to the assembled problem (J, Z, W, G, g and its parts, the blocks), each
+    // entry as ContactModel.problem forms it with every row at once: a selection row's Z column by the same
+    // back substitution, G(a, r) = Σ_k Z(k, a) W(k, r) over the shared support in index order, u = v_max ± v⁺.
+    // Returns the problem's rows.
+    int append_speed_rows(size_t from, const std::vector<std::vector<int>> & supports, const Vec & v_free)
     {
-      for (size_t k = from; k < speeds.size(); ++k, ++r0)
+      const int old = static_cast<int>(g.size()), added = static_cast<int>(speeds.size() - from);
+      const int m = old + added, nv = static_cast<int>(v_free.size());
+      J.conservativeResize(m, nv);
+      J.bottomRows(added).setZero();
+      Z.conservativeResize(nv, m);
+      Z.rightCols(added).setZero();
+      W.conservativeResize(nv, m);
+      W.rightCols(added).setZero();
+      G.conservativeResize(m, m);
+      row_support.resize(static_cast<size_t>(m));
+      free.conservativeResize(m);
+      g.conservativeResize(m);
+      correction.conservativeResize(m);
+      restitution.conservativeResize(m);
+      for (int r = old; r < m; ++r)
       {
-        J(r0, speeds[k].iv) = speeds[k].sign;
-        row_support[static_cast<size_t>(r0)] = supports[static_cast<size_t>(speeds[k].joint)];
-      }
-    }
-
-    // Z = U⁻¹ Jᵀ and W = D⁻¹ Z in the columns of rows [r0, m) (their J rows and supports set, Z and W zero there),
-    // each on its row's support: consecutive rows with one support (a point's three, a foot's points) are
-    // substituted together, each column's sums in Python's order.
-    void substitute(int r0, int m)
-    {
-      acc.resize(m);
-      while (r0 < m)
-      {
-        const std::vector<int> & S = row_support[static_cast<size_t>(r0)];
-        int r1 = r0 + 1;
-        while (r1 < m && row_support[static_cast<size_t>(r1)] == S)
-          ++r1;
-        const int width = r1 - r0;
+        const Speed & sp = speeds[from + static_cast<size_t>(r - old)];
+        J(r, sp.iv) = sp.sign;
+        const std::vector<int> & S = row_support[static_cast<size_t>(r)] = supports[static_cast<size_t>(sp.joint)];
         for (int col : S)
-          for (int r = r0; r < r1; ++r)
-            Z(col, r) = J(r, col);
+          Z(col, r) = J(r, col);
         for (int a = static_cast<int>(S.size()) - 1; a >= 0; --a)
         {
           const int k = S[static_cast<size_t>(a)];
           const int end = k + data.nvSubtree_fromRow[static_cast<size_t>(k)];
-          double * zk = &Z(k, r0);
-          if (width == 1)  // a row alone (a joint's friction or limit): its sum in a register
-          {
-            double sum = 0.0;
-            for (size_t b = static_cast<size_t>(a) + 1; b < S.size() && S[b] < end; ++b)
-              sum += data.U(k, S[b]) * Z(S[b], r0);
-            zk[0] = zk[0] - sum;
-            continue;
-          }
-          for (int r = 0; r < width; ++r)
-            acc[r] = 0.0;
+          double s = 0.0;
           for (size_t b = static_cast<size_t>(a) + 1; b < S.size() && S[b] < end; ++b)
-          {
-            const double u = data.U(k, S[b]);
-            const double * zb = &Z(S[b], r0);
-            for (int r = 0; r < width; ++r)
-              acc[r] += u * zb[r];
-          }
-          for (int r = 0; r < width; ++r)
-            zk[r] = zk[r] - acc[r];
+            s += data.U(k, S[b]) * Z(S[b], r);
+          Z(k, r) = Z(k, r) - s;
         }
         for (int col : S)
-          for (int r = r0; r < r1; ++r)
-            W(col, r) = Dinv[col] * Z(col, r);
-        r0 = r1;
-      }
-    }
-
-    // G = Zᵀ W in its columns [b0, m): G(a, b) for a ≤ b, mirrored below the diagonal. Row a gathers Z(k, a) W(k, b)
-    // over k in a's support for every such b at once: a k off b's support adds an exact zero, which leaves a sum
-    // started at +0.0 as it was (Python adds them all).
-    void gather(int b0, int m)
-    {
-      last.assign(static_cast<size_t>(Z.rows()), 0);  // per dof: the last row whose support holds it (W(k, b) = 0 past it)
-      for (int r = 0; r < m; ++r)
-        for (int k : row_support[static_cast<size_t>(r)])
-          last[static_cast<size_t>(k)] = r;
-      for (int a = 0; a < m; ++a)
-      {
-        double * Ga = &G(a, 0);
-        const int first = std::max(a, b0);
-        for (int b = first; b < m; ++b)
-          Ga[b] = 0.0;
-        for (int k : row_support[static_cast<size_t>(a)])
+          W(col, r) = (1.0 / data.D[col]) * Z(col, r);
+        for (int a = 0; a <= r; ++a)
         {
-          const double z = Z(k, a);
-          const double * Wk = &W(k, 0);
-          const int end = last[static_cast<size_t>(k)];
-          for (int b = first; b <= end; ++b)
-            Ga[b] += z * Wk[b];
+          const std::vector<int> & Sa = row_support[static_cast<size_t>(a)];
+          double s = 0.0;
+          size_t i = 0, j = 0;
+          while (i < Sa.size() && j < S.size())
+          {
+            if (Sa[i] < S[j])
+              ++i;
+            else if (S[j] < Sa[i])
+              ++j;
+            else
+            {
+              s += Z(Sa[i], a) * W(Sa[i], r);
+              ++i;
+              ++j;
+            }
+          }
+          G(a, r) = s;
+          G(r, a) = s;
         }
-        for (int b = std::max(a + 1, b0); b < m; ++b)
-          G(b, a) = Ga[b];
-      }
-    }
-
-    // free = J v_free in rows [r0, m), each row's products on its support in index order from +0.0
-    void free_velocity(int r0, int m, const Vec & v_free)
-    {
-      for (int r = r0; r < m; ++r)
-      {
         double s = 0.0;
-        for (int col : row_support[static_cast<size_t>(r)])
+        for (int col : S)
           s += J(r, col) * v_free[col];
         free[r] = s;
+        g[r] = s + sp.vmax;
+        correction[r] = 0.0;
+        restitution[r] = 0.0;
+        blocks.push_back(cone::Block{cone::HALFLINE, r, 0.0});
       }
-    }
-
-    // The right-hand side's and the blocks' part of the rows r0.. of speeds[from:]: u = v_max ± v⁺ ≥ 0, λ ≥ 0
-    void speed_bias(size_t from, int r0)
-    {
-      for (size_t k = from; k < speeds.size(); ++k, ++r0)
-      {
-        g[r0] += speeds[k].vmax;
-        blocks.push_back(cone::Block{cone::HALFLINE, r0, 0.0});
-      }
-    }
-
-    // The assembled problem grown from `old` to m rows (a velocity-limit re-solve): the new rows and columns zero
-    void extend(int old, int m)
-    {
-      const int added = m - old;
-      J.conservativeResize(m, J.cols());
-      J.bottomRows(added).setZero();
-      Z.conservativeResize(Z.rows(), m);
-      Z.rightCols(added).setZero();
-      W.conservativeResize(W.rows(), m);
-      W.rightCols(added).setZero();
-      G.conservativeResize(m, m);
-      row_support.resize(static_cast<size_t>(m));
-      for (Eigen::VectorXd * x : {&free, &g, &correction, &restitution})
-      {
-        x->conservativeResize(m);
-        x->tail(added).setZero();
-      }
+      return m;
     }
 
     ContactWork(const pinocchio::Model & model, const ContactScene & scene)
@@ -1119,7 +1063,7 @@ namespace multibody_sim
       w.keys.push_back({2, jid, 0});
       w.sizes.push_back(1);
     }
-    w.speeds.clear();  // the velocity limits the free velocity comes within the band of
+    w.speeds.clear();  // the velocity limits the free velocity comes within the band of (appended after assembly)
     w.select_speeds(*this, v_free, c.speed_band);
     speed_work.clear();
     if (w.keys.empty())  // nothing to solve: TimeStepping.attempt's `problem is None`
@@ -1134,8 +1078,7 @@ namespace multibody_sim
     }
     const int n_points = static_cast<int>(w.points.size());
     const int n_limits = static_cast<int>(w.limits.size());
-    const int n_fixed = 3 * n_points + n_limits + static_cast<int>(friction_joints.size());  // then the speeds' rows
-    int m = n_fixed + static_cast<int>(w.speeds.size());
+    int m = 3 * n_points + n_limits + static_cast<int>(friction_joints.size());  // then the speeds' rows
     pinocchio::crba(model, data, q, pinocchio::Convention::WORLD);
     pinocchio::cholesky::decompose(model, data);
     // ---- J, row by row on its support (ContactModel._point_rows)
@@ -1191,20 +1134,85 @@ namespace multibody_sim
       w.row_support[static_cast<size_t>(r0)] = supports[static_cast<size_t>(jid)];
       ++r0;
     }
-    w.speed_rows(0, r0, supports);
     // ---- G = Zᵀ D⁻¹ Z, Z = U⁻¹ Jᵀ on each row's support. Z and W = D⁻¹ Z are nv x m, row-major and zero off the
-    // supports.
+    // supports; consecutive rows with one support (a point's three, a foot's points) are substituted together, each
+    // column's sums in Python's order. G's row a gathers Z(k, a) W(k, b) over k in a's support for every b >= a at
+    // once: a k off b's support adds an exact zero, which leaves a sum started at +0.0 as it was (Python adds them all).
     w.Z.setZero(nv, m);
     w.W.setZero(nv, m);
     w.Dinv.resize(nv);
+    w.acc.resize(m);
     for (int k = 0; k < nv; ++k)
       w.Dinv[k] = 1.0 / data.D[k];
-    w.substitute(0, m);
-    w.G.resize(m, m);
-    w.gather(0, m);
+    for (int r0 = 0; r0 < m;)
+    {
+      const std::vector<int> & S = w.row_support[static_cast<size_t>(r0)];
+      int r1 = r0 + 1;
+      while (r1 < m && w.row_support[static_cast<size_t>(r1)] == S)
+        ++r1;
+      const int width = r1 - r0;
+      for (int col : S)
+        for (int r = r0; r < r1; ++r)
+          w.Z(col, r) = w.J(r, col);
+      double * acc = w.acc.data();
+      for (int a = static_cast<int>(S.size()) - 1; a >= 0; --a)
+      {
+        const int k = S[static_cast<size_t>(a)];
+        const int end = k + data.nvSubtree_fromRow[static_cast<size_t>(k)];
+        double * zk = &w.Z(k, r0);
+        if (width == 1)  // a row alone (a joint's friction or limit): its sum in a register
+        {
+          double sum = 0.0;
+          for (size_t b = static_cast<size_t>(a) + 1; b < S.size() && S[b] < end; ++b)
+            sum += data.U(k, S[b]) * w.Z(S[b], r0);
+          zk[0] = zk[0] - sum;
+          continue;
+        }
+        for (int r = 0; r < width; ++r)
+          acc[r] = 0.0;
+        for (size_t b = static_cast<size_t>(a) + 1; b < S.size() && S[b] < end; ++b)
+        {
+          const double u = data.U(k, S[b]);
+          const double * zb = &w.Z(S[b], r0);
+          for (int r = 0; r < width; ++r)
+            acc[r] += u * zb[r];
+        }
+        for (int r = 0; r < width; ++r)
+          zk[r] = zk[r] - acc[r];
+      }
+      for (int col : S)
+        for (int r = r0; r < r1; ++r)
+          w.W(col, r) = w.Dinv[col] * w.Z(col, r);
+      r0 = r1;
+    }
+    w.last.assign(static_cast<size_t>(nv), 0);  // per dof: the last row whose support holds it (W(k, b) = 0 past it)
+    for (int r = 0; r < m; ++r)
+      for (int k : w.row_support[static_cast<size_t>(r)])
+        w.last[static_cast<size_t>(k)] = r;
+    w.G.setZero(m, m);
+    for (int a = 0; a < m; ++a)
+    {
+      double * Ga = &w.G(a, 0);
+      for (int k : w.row_support[static_cast<size_t>(a)])
+      {
+        const double z = w.Z(k, a);
+        const double * Wk = &w.W(k, 0);
+        const int last = w.last[static_cast<size_t>(k)];
+        for (int b = a; b <= last; ++b)
+          Ga[b] += z * Wk[b];
+      }
+      for (int b = a + 1; b < m; ++b)
+        w.G(b, a) = Ga[b];
+    }
     // ---- g = J v_free + b
     w.free.resize(m);
-    w.free_velocity(0, m, v_free);
+    for (int r = 0; r < m; ++r)
+    {
+      double s = 0.0;
+      for (int col : w.row_support[static_cast<size_t>(r)])
+        s += w.J(r, col) * v_free[col];
+      w.free[r] = s;
+    }
     w.g = w.free;
     w.correction.setZero(m);
     w.restitution.setZero(m);
@@ -1272,7 +1280,8 @@ namespace multibody_sim
       w.blocks.push_back(cone::Block{
         cone::INTERVAL, 3 * n_points + n_limits + static_cast<int>(k),
         friction_force[model.joints[static_cast<size_t>(friction_joints[k])].idx_v()] * h});
-    w.speed_bias(0, n_fixed);  // the velocity-limit rows, last
+    if (!w.speeds.empty())  // the velocity-limit rows, last
+      m = w.append_speed_rows(0, supports, v_free);
     double scale = velocity_scale(w.free, c.gravity * h);
     // ---- TimeStepping._solve: warm-started from the blocks seen last step -----------------------------------
     w.guess.setZero(m);
@@ -1310,17 +1319,9 @@ namespace multibody_sim
     for (;;)
     {
       const size_t selected = w.speeds.size();
-      const int old = m;
-      m += static_cast<int>(w.select_speeds(*this, v_next, 0.0));
-      if (m == old)
+      if (w.select_speeds(*this, v_next, 0.0) == 0)
         break;
-      w.extend(old, m);  // the same assembly, in the new rows and columns
-      w.speed_rows(selected, old, supports);
-      w.substitute(old, m);
-      w.gather(old, m);
-      w.free_velocity(old, m, v_free);
-      w.g.tail(m - old) = w.free.tail(m - old);
-      w.speed_bias(selected, old);
+      m = w.append_speed_rows(selected, supports, v_free);
       scale = velocity_scale(w.free, c.gravity * h);
       w.guess.setZero(m);
       w.guess.head(w.impulses.size()) = w.impulses;
@@ -1343,6 +1344,7 @@ namespace multibody_sim
       }
     }
     // ---- TimeStepping.attempt: the contact's energies; each velocity-limit row's work for its actuator's line ----
+    const int n_fixed = m - static_cast<int>(w.speeds.size());
     for (size_t k = 0; k < w.speeds.size(); ++k)
     {
       const ContactWork::Speed & sp = w.speeds[k];
