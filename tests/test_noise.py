@@ -97,3 +97,10 @@ def test_the_extension_refuses_what_it_could_not_write_in_place(state: np.ndarra
     tables = native.module.ZigguratTables(**noise.native_tables())
     with pytest.raises(TypeError):
         native.module.fill_normals(state, out, tables)
+
+
+def test_the_specification_refuses_what_it_could_not_write_in_place() -> None:
+    state = noise.NormalStream(1).state
+    for out in (np.empty(3, dtype=np.float32), np.empty((4, 2))[:, 0]):
+        with pytest.raises(TypeError):
+            noise.fill_python(state, out)

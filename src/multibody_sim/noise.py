@@ -75,14 +75,15 @@ class NormalStream:
         self.state = np.array(self._bits.state["state"]["state"], dtype=np.uint64)  # (4,): the stream's position
 
     def fill(self, out: np.ndarray) -> None:
-        """The next out.size draws into `out` (float64), in its C order, through the extension when it is available
-        (the same numbers)."""
-        if out.flags.c_contiguous and out.dtype == np.float64:
-            _filler()(self.state, out.reshape(-1))
-            return
-        flat = np.empty(out.size)
-        _filler()(self.state, flat)
-        out[...] = flat.reshape(out.shape)
+        """The next out.size draws into `out`, in its C order, through the extension when it is available (the same
+        numbers)."""
+        fill = _FILL or _filler()
+        try:
+            fill(self.state, out)
+        except TypeError:  # not float64 in C order: drawn into such an array, then copied
+            flat = np.empty(out.size)
+            fill(self.state, flat)
+            out[...] = flat.reshape(out.shape)
 
     def snapshot(self) -> np.ndarray:
         return self.state.copy()
@@ -92,8 +93,15 @@ class NormalStream:
 
 
 def fill_python(state: np.ndarray, out: np.ndarray) -> None:
-    """The specification: the next len(out) draws of the stream at `state` (4,) uint64 into out (n,); state is
-    advanced past every output they used."""
+    """The specification: the next out.size draws of the stream at `state` (4,) uint64 into `out` (float64, C
+    order); state is advanced past every output they used.
+
+    Raises:
+        TypeError: out is not float64 in C order (as the extension's fill_normals: its draws would be lost in a copy).
+    """
+    if out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise TypeError("fill_python: `out` must be float64 in C order")
+    out = out.reshape(-1)
     n = len(out)
     bits = np.random.SFC64(0)
     start = {"bit_generator": "SFC64", "state": {"state": state.copy()}, "has_uint32": 0, "uinteger": 0}

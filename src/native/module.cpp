@@ -347,13 +347,11 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
     "fill_normals",
     [](nb::ndarray<uint64_t, nb::shape<4>, nb::c_contig, nb::device::cpu> state, Doubles out,
        const ZigguratTables & tables) {
-      if (out.ndim() != 1)
-        throw nb::value_error("fill_normals: `out` must be one-dimensional");
-      fill_normals(state.data(), out.data(), out.shape(0), tables);
+      fill_normals(state.data(), out.data(), out.size(), tables);
     },
     nb::arg("state").noconvert(), nb::arg("out").noconvert(), nb::arg("tables"),
-    "noise.NormalStream.fill: the next len(out) standard normal draws of the stream at `state` (4 uint64 words, "
-    "advanced in place) into `out` (float64, 1-d).");
+    "noise.NormalStream.fill: the next out.size standard normal draws of the stream at `state` (4 uint64 words, "
+    "advanced in place) into `out` (float64, C order).");
   Struct<Method>(m, "Method", "A stepping method as the engine renders it (Integrator.native_data()).")
     .choice("kind", &Method::kind,
             {{"explicit_rk", Kind::explicit_rk}, {"embedded", Kind::embedded}, {"dop853", Kind::dop853},
