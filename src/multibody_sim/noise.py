@@ -26,7 +26,6 @@ LAYERS = 256
 #: The rightmost layer's edge for 256 layers under exp(−x²/2) (Marsaglia and Tsang, 2000).
 R = 3.6541528853610088
 _SCALE = 2.0**-53
-_MASK53 = (1 << 53) - 1
 
 
 def _tables() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -903,10 +903,7 @@ class Sensing:
             T = store.T[lo:hi, b]
             whole = wholes.get(b)
             if whole is not None:  # every sensor read at its ticks: each sample's latest readings, all columns at once
-                index = np.searchsorted(new[0][0], T, side="right") - 1
-                held = int(np.searchsorted(index, 0))  # the samples before this call's first reading
-                block[:held] = before[b]
-                block[held:] = whole[index[held:]]
+                _hold_latest(block, before[b], new[0][0], T, whole)
                 store.sensed[b] = hi
                 continue
             start = direct.get(b, hi) - lo  # the samples from here on hold the every-tick sensors' readings
@@ -915,12 +912,17 @@ class Sensing:
                 if start < len(T) and stream.strides[k] == 1:
                     block[:start, columns] = before[b, columns]  # the samples before this call's first reading
                     continue
-                # the latest reading at or before each sample (times ascend, so index does too)
-                index = np.searchsorted(times, T, side="right") - 1
-                held = int(np.searchsorted(index, 0))  # the samples before this call's first reading
-                block[:held, columns] = before[b, columns]
-                block[held:, columns] = values[index[held:]]
+                _hold_latest(block[:, columns], before[b, columns], times, T, values)
             store.sensed[b] = hi
+
+
+def _hold_latest(block: np.ndarray, before: np.ndarray, times: np.ndarray, T: np.ndarray, values: np.ndarray) -> None:
+    """Samples at times T (n,) into block (n, w): each one the latest of `values` (k, w), read at `times`
+    (k,; ascending) at or before it; `before` (w,) where no reading of this call came yet."""
+    index = np.searchsorted(times, T, side="right") - 1  # (times ascend, so index does too)
+    held = int(np.searchsorted(index, 0))  # the samples before this call's first reading
+    block[:held] = before
+    block[held:] = values[index[held:]]
 
 
 def run_sensing(system: Any, method: Any, dt: float, control_every: int, rows: np.ndarray) -> Sensing | None:
