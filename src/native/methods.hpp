@@ -100,7 +100,7 @@ namespace multibody_sim
     , w(2 * engine.model_.nv + engine.n_ledger_)
     , rows(owned)
     , no_armature((engine.model_.armature.array() == 0.0).all())
-    , velocity_kinds(velocity_kinds_of(engine.model_))
+    , velocity_kinds(velocity_kinds_of(engine.model_, data))
     {
       const size_t n = rows.size();
       alive.assign(n, 1);
@@ -500,13 +500,13 @@ namespace multibody_sim
       }
     }
 
-    // Whether every joint of the model is of a kind velocity_calc knows (fixed by the model's tree: rows share it)
-    static bool velocity_kinds_of(const pinocchio::Model & model)
+    // Whether every joint of the model is of a kind velocity_calc knows (fixed by the model's tree: rows share it;
+    // only the kinds are looked at, `data` is not written)
+    static bool velocity_kinds_of(const pinocchio::Model & model, pinocchio::Data & data)
     {
-      pinocchio::Data scratch(model);
       const Vec zero = Vec::Zero(model.nv);
       for (pinocchio::JointIndex i = 1; i < static_cast<pinocchio::JointIndex>(model.njoints); ++i)
-        if (!velocity_calc(model.joints[i], scratch.joints[i], zero, false))
+        if (!velocity_calc(model.joints[i], data.joints[i], zero, false))
           return false;
       return true;
     }
