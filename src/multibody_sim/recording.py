@@ -89,6 +89,29 @@ def _in_order(chunks: list[ContactChunk], n: int) -> bool:
     return True
 
 
+def _block(shapes: dict[str, tuple[int, ...]], dtypes: dict[str, Any]) -> dict[str, np.ndarray]:
+    """Zero arrays of these shapes (float64 unless `dtypes` names another 8-byte type), C-ordered, each a view of
+    one block of memory at a 64-byte boundary.
+
+    One block rather than an array each: a run's store is then one allocation, which the C library keeps and hands
+    out again from one run to the next, where arrays of a few hundred KiB to a few MiB each are returned to the
+    system and their pages faulted in afresh by every run (go2_standing with actuators and sensors: ~1000 page
+    faults, ~0.3 µs a step, measured with getrusage in scripts/bench_sensors.py's pattern of runs)."""
+    sizes = {name: 8 * math.prod(shape) for name, shape in shapes.items()}
+    starts, total = {}, 0
+    for name, size in sizes.items():
+        starts[name] = total
+        total += -(-size // 64) * 64
+    memory = np.zeros(total + 64, dtype=np.uint8)
+    skip = -memory.ctypes.data % 64
+    return {
+        name: memory[skip + starts[name] : skip + starts[name] + sizes[name]]
+        .view(dtypes.get(name, np.float64))
+        .reshape(shape)
+        for name, shape in shapes.items()
+    }
+
+
 class SampleStore:
     """Growable per-sample arrays for B rows.
 
@@ -123,23 +146,25 @@ class SampleStore:
         self._allocate(capacity)
 
     def _allocate(self, capacity: int) -> None:
+        """The arrays for `capacity` samples, zeros, as views of one block of memory (see _block)."""
         nq, nv, m, e = self._shapes
         B = self.B
-        self._batch = {
-            "T": np.zeros((B, capacity)),
-            "Q": np.empty((B, capacity, nq)),
-            "V": np.empty((B, capacity, nv)),
-            "TAU": np.empty((B, capacity, nv)),
-            "ENERGY": np.zeros((B, capacity, 2)),
-            "FLOWS": np.zeros((B, capacity, m)),
-            "EXTRA": np.zeros((B, capacity, e)),
-            "COUNTS": np.zeros((B, capacity, len(COUNTERS)), dtype=np.int64),
+        shapes = {
+            "T": (B, capacity),
+            "Q": (B, capacity, nq),
+            "V": (B, capacity, nv),
+            "TAU": (B, capacity, nv),
+            "ENERGY": (B, capacity, 2),
+            "FLOWS": (B, capacity, m),
+            "EXTRA": (B, capacity, e),
+            "COUNTS": (B, capacity, len(COUNTERS)),
+            "SENSORS": (B, capacity, self.sensor_width),
         }
+        self._batch = _block(shapes, {"COUNTS": np.int64})
         self.T, self.Q, self.V, self.TAU, self.ENERGY, self.FLOWS, self.COUNTS, self.EXTRA = (
             np.swapaxes(self._batch[name], 0, 1) for name in STORE_ARRAYS
         )
         self.batch_arrays = tuple(self._batch[name] for name in STORE_ARRAYS)  # (B, capacity, ...) each
-        self._batch["SENSORS"] = np.zeros((B, capacity, self.sensor_width))
         self.SENSORS = np.swapaxes(self._batch["SENSORS"], 0, 1)  # (capacity, B, sensor_width): sensor readings
 
     def batch_major(self, name: str) -> np.ndarray:
