@@ -4,9 +4,11 @@
 // the slow paths. The tables come from Python (noise.native_tables()).
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <cstring>
 #include <vector>
 
 namespace multibody_sim
@@ -46,11 +48,16 @@ namespace multibody_sim
     {
       const uint64_t r = bits.next();
       const size_t layer = static_cast<size_t>(r & 255);
-      const bool negative = (r >> 8) & 1;
+      const uint64_t sign = (r >> 8 & 1) << 63;  // the sign bit: x negated without a branch (half the draws)
+      const bool negative = sign != 0;
       const uint64_t u = r >> 11;
-      double x = static_cast<double>(u) * z.width[layer];
-      if (negative)
-        x = -x;
+      // u < 2⁵³ converts exactly through int64 (one instruction; uint64's conversion takes a branch)
+      const double magnitude = static_cast<double>(static_cast<int64_t>(u)) * z.width[layer];
+      uint64_t word;
+      std::memcpy(&word, &magnitude, sizeof word);
+      word ^= sign;
+      double x;
+      std::memcpy(&x, &word, sizeof x);
       if (u < z.inside[layer])
         return x;
       if (layer == 0)  // the tail beyond R
@@ -70,8 +77,10 @@ namespace multibody_sim
   // NormalStream.fill: the next n draws of the stream at `state` (4 words, advanced) into out
   inline void fill_normals(uint64_t * state, double * out, size_t n, const ZigguratTables & z)
   {
-    Sfc64 bits{state};
+    uint64_t words[4] = {state[0], state[1], state[2], state[3]};  // (kept in registers, written back once)
+    Sfc64 bits{words};
     for (size_t i = 0; i < n; ++i)
       out[i] = standard_normal(bits, z);
+    std::copy(words, words + 4, state);
   }
 } // namespace multibody_sim
