@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import needs_native
 
 import multibody_sim as ms
 from multibody_sim.exceptions import InvalidArgumentError, SceneError
@@ -371,6 +372,126 @@ def test_readings_written_into_a_given_array_equal_those_made_apart() -> None:
         np.testing.assert_array_equal(direct.latest, apart.latest)
     assert not np.isnan(store[:, :, every]).any()
     assert np.abs(direct.latest[0] - Z[-1]).max() > 0.0  # spoiled: not the measurement
+
+
+def _spoiled_ur5() -> ms.Scene:
+    """ur5 with sensors of every reading feature: bias (one or per component), latency 1 to 4, noise (some
+    components without), and a wide one (frame_pose)."""
+    return ms.make_scene(
+        robot={"source": "ur5"},
+        sensor=[
+            {
+                "name": "imu",
+                "kind": "imu",
+                "frame": "tool0",
+                "noise": 0.01,
+                "bias": [0.1, 0, 0, 0, 0, -0.2],
+                "latency": 2,
+            },
+            {"name": "enc", "kind": "joint_position", "bias": 0.001, "latency": 1},
+            {"name": "gyro", "kind": "joint_velocity", "noise": [1e-3, 2e-3, 0, 0, 1e-3, 1.0]},
+            {"name": "tq", "kind": "joint_torque", "noise": 0.5, "latency": 3, "seed": 11},
+            {"name": "pose", "kind": "frame_pose", "frame": "tool0", "noise": 0.2, "bias": -3.0, "latency": 4},
+        ],
+    )
+
+
+@needs_native
+@pytest.mark.parametrize("strides", [[1, 1, 1, 1, 1], [1, 2, 1, 3, 5], [4, 2, 2, 3, 1]])
+def test_native_readings_are_the_specifications_bit_for_bit(strides: list[int]) -> None:
+    """The extension's make_readings (one call per row and push) against _read_python, the specification: three
+    rows at random, chunks of 1 to 12 ticks, sensors at rates and late, a reset with entropy and one without, a
+    snapshot restored: the same readings, times, latest readings, histories and stream states, bit for bit. Both
+    are also checked against the readings written out from the module docstring's definition, sensor by sensor
+    (measurement `latency` readings before, the first before that, + bias + noise · the stream's next draws)."""
+    sensors = _spoiled_ur5().sensors
+    seeds = np.array([0, 3, 8])
+    native = SensorStream(sensors, strides, seeds)
+    python = SensorStream(sensors, strides, seeds, native=False)
+    assert native._native is not None and python._native is None
+    rng = np.random.default_rng(5)
+    got: dict[int, list[list[np.ndarray]]] = {b: [[] for _ in strides] for b in range(3)}
+    measured: dict[int, list[np.ndarray]] = {b: [] for b in range(3)}  # each row's measurements since its start
+    calls: list[tuple[np.ndarray, np.ndarray, np.ndarray, dict]] = []  # calls 40 to 44: inputs and readings
+    snapshots = None
+    t = 0
+    for call in range(60):
+        m = int(rng.integers(1, 13))
+        rows = rng.integers(0, 3, m)
+        times, t = np.arange(t, t + m) * 1e-3, t + m
+        Z = rng.normal(size=(m, sensors.width))
+        if call == 40:
+            snapshots = (native.snapshot(), python.snapshot())
+        a, b = native.push(times, rows, Z.copy()), python.push(times, rows, Z.copy())
+        assert a.keys() == b.keys() == set(rows.tolist())
+        for row in a:
+            for k, ((t1, r1), (t2, r2)) in enumerate(zip(a[row], b[row], strict=True)):
+                np.testing.assert_array_equal(t1, t2)
+                np.testing.assert_array_equal(r1, r2)
+                got[row][k].append(r1.copy())
+            measured[row].append(Z[rows == row])
+        for name in ("latest", "count", "history", "states"):
+            np.testing.assert_array_equal(getattr(native, name), getattr(python, name), err_msg=name)
+        if 40 <= call < 45:
+            calls.append((times, rows, Z, {row: [r.copy() for _, r in a[row]] for row in a}))
+        if call == 20:  # no row has reset yet: each one's readings so far by the definition
+            for row in range(3):
+                reference = _readings_by_definition(sensors, strides, np.concatenate(measured[row]), int(seeds[row]))
+                for k in range(len(strides)):
+                    np.testing.assert_array_equal(np.concatenate(got[row][k]), reference[k])
+        if call == 30:  # row 1 resets with new streams, row 2 with the streams it has
+            for stream in (native, python):
+                stream.restart(np.array([1]), 99)
+                stream.restart(np.array([2]))
+    assert snapshots is not None and len(calls) == 5
+    for stream, snapshot in zip((native, python), snapshots, strict=True):
+        stream.restore(snapshot)
+        for times, rows, Z, readings in calls:  # calls 40 to 44 again: the same readings (draws, histories)
+            again = stream.push(times, rows, Z.copy())
+            for row, values in readings.items():
+                for (_, r1), r2 in zip(again[row], values, strict=True):
+                    np.testing.assert_array_equal(r1, r2)
+
+
+@needs_native
+@pytest.mark.parametrize("shift", [-1, 0, 1])
+def test_native_readings_written_over_their_own_measurements_are_the_specifications(shift: int) -> None:
+    """The native engine may leave its measurements in the rows of the store where the readings then go, or a row
+    off (Sensing.update's spare and into): readings written over them, from the same row or a row before or after,
+    are those made from a copy, bit for bit."""
+    sensors = _spoiled_ur5().sensors
+    strides = [1, 1, 1, 2, 1]
+    native = SensorStream(sensors, strides, np.array([2]))
+    python = SensorStream(sensors, strides, np.array([2]), native=False)
+    rng = np.random.default_rng(8)
+    buffer = np.empty((40, sensors.width))
+    t = 0
+    for m in (1, 7, 12, 3):
+        times, t = np.arange(t, t + m) * 1e-3, t + m
+        Z = rng.normal(size=(m, sensors.width))
+        buffer[5 : 5 + m] = Z
+        rows = np.zeros(m, dtype=np.int64)
+        got = native.push(times, rows, buffer[5 : 5 + m], into=lambda b, t, m=m: buffer[5 + shift : 5 + shift + m])
+        expected = python.push(times, rows, Z)
+        for (t1, r1), (t2, r2) in zip(got[0], expected[0], strict=True):
+            np.testing.assert_array_equal(t1, t2)
+            np.testing.assert_array_equal(r1, r2)
+        np.testing.assert_array_equal(native.latest, python.latest)
+
+
+def _readings_by_definition(sensors: Any, strides: list[int], Z: np.ndarray, seed: int) -> list[np.ndarray]:
+    """Each sensor's readings from a row's measurements Z (n, width) since its start (its streams never reset), by
+    the definition: at every `stride`-th tick from the first, reading r is measurement r − latency (the first one
+    before that) + bias + noise · draws of NormalStream(the sensor's seed + the row's `seed`), in reading and
+    component order."""
+    out = []
+    for k, p in enumerate(sensors.placed):
+        z = Z[:: strides[k], sensors.columns(k)]
+        late = z[np.maximum(np.arange(len(z)) - p.spec.latency, 0)]
+        draws = np.empty(late.shape)
+        NormalStream(p.spec.seed + seed).fill(draws)
+        out.append((late + p.bias) + p.noise * draws if np.any(p.noise) else late + p.bias)
+    return out
 
 
 def test_ticks_keep_what_the_engines_buffer_held_before_it_is_reused() -> None:

@@ -68,10 +68,12 @@ class NormalStream:
     """A seeded stream of standard normal draws (module docstring). Its state is four 64-bit words (numpy's SFC64:
     three words and a counter)."""
 
-    def __init__(self, seed: Any):
-        """seed: anything numpy.random.SeedSequence takes (an int, a list of ints)."""
-        self._bits = np.random.SFC64(seed)
-        self.state = np.array(self._bits.state["state"]["state"], dtype=np.uint64)  # (4,): the stream's position
+    def __init__(self, seed: Any, state: np.ndarray | None = None):
+        """seed: anything numpy.random.SeedSequence takes (an int, a list of ints); state: where the stream keeps its
+        position, a (4,) uint64 array written in place (e.g. a view into the states of many streams), or None: its
+        own."""
+        self.state = np.empty(4, dtype=np.uint64) if state is None else state  # (4,): the stream's position
+        self.state[:] = np.random.SFC64(seed).state["state"]["state"]
 
     def fill(self, out: np.ndarray) -> None:
         """The next out.size draws into `out`, in its C order, through the extension when it is available (the same

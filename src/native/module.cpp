@@ -33,6 +33,7 @@
 #ifdef MULTIBODY_SIM_WITH_KERNEL
 #include "kernel.hpp"
 #include "noise.hpp"
+#include "readings.hpp"
 #include "structs.hpp"
 #endif
 
@@ -352,6 +353,44 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
     nb::arg("state").noconvert(), nb::arg("out").noconvert(), nb::arg("tables"),
     "noise.NormalStream.fill: the next out.size standard normal draws of the stream at `state` (4 uint64 words, "
     "advanced in place) into `out` (float64, C order).");
+  Struct<ReadingItem>(m, "ReadingItem", "One sensor as SensorStream reads it (SensorStream.native_data()'s items).")
+    .field("offset", &ReadingItem::offset, "int")
+    .field("width", &ReadingItem::width, "int")
+    .field("stride", &ReadingItem::stride, "int")
+    .field("latency", &ReadingItem::latency, "int")
+    .field("history", &ReadingItem::history, "int")
+    .field("spoiled", &ReadingItem::spoiled, "bool")
+    .field("bias", &ReadingItem::bias, "list[float]")
+    .field("noise", &ReadingItem::noise, "list[float]")
+    .finish();
+  Struct<ReadingLayout>(m, "ReadingLayout", "A run's sensors as SensorStream reads them (SensorStream.native_data()).")
+    .field("width", &ReadingLayout::width, "int")
+    .field("history", &ReadingLayout::history, "int")
+    .field("items", &ReadingLayout::items, "list[ReadingItem]")
+    .field("tables", &ReadingLayout::tables, "ZigguratTables")
+    .finish(check_readings);
+  m.def(
+    "make_readings",
+    [](const ReadingLayout & layout, nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cpu> measurements,
+       Doubles out, Doubles apart, int64_t count, Doubles latest, Doubles history,
+       nb::ndarray<uint64_t, nb::c_contig, nb::device::cpu> states) {
+      const size_t m = measurements.shape(0), w = static_cast<size_t>(layout.width);
+      if (measurements.shape(1) != w || out.size() != m * w || latest.size() != w
+          || history.size() != static_cast<size_t>(layout.history) || states.size() != 4 * layout.items.size()
+          || count < 0)
+        throw nb::value_error("make_readings: measurements and out (m, width), latest (width,), history (the layout's "
+                              "history), states (one stream of 4 words per sensor) and count >= 0");
+      if (apart.size() != strided_readings(layout, count, m))
+        throw nb::value_error("make_readings: `apart` must hold the strided sensors' readings of these ticks");
+      make_readings(layout, measurements.data(), m, out.data(), apart.data(), count, latest.data(), history.data(),
+                    states.data());
+    },
+    nb::arg("layout"), nb::arg("measurements"), nb::arg("out").noconvert(), nb::arg("apart").noconvert(),
+    nb::arg("count"), nb::arg("latest").noconvert(), nb::arg("history").noconvert(), nb::arg("states").noconvert(),
+    "sensors.SensorStream._read for one row (src/native/readings.hpp): its m new ticks' measurements (m, width), "
+    "the first `count` ticks after the row's start, into readings: the every-tick sensors' in their columns of "
+    "`out` (m, width; it may be the measurements), the strided ones' one after the other in `apart`; the row's "
+    "`latest` readings, `history` and streams' `states` advanced in place.");
   Struct<Method>(m, "Method", "A stepping method as the engine renders it (Integrator.native_data()).")
     .choice("kind", &Method::kind,
             {{"explicit_rk", Kind::explicit_rk}, {"embedded", Kind::embedded}, {"dop853", Kind::dop853},
