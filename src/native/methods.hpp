@@ -280,7 +280,7 @@ namespace multibody_sim
       for (int i = start; i < stop; ++i)
       {
         const double * ai = a + i * lda;
-        for (int col = 0; col < w; ++col)
+        for (int col = 0; col < 2 * nv; ++col)  // (the stage's state; its ledger columns are only combined at the end)
         {
           double s = ai[0] * K(0, col);
           for (int j = 1; j < i; ++j)

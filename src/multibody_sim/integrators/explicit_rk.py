@@ -166,7 +166,7 @@ def _fill_stages(
     q_stage, v_stage = q, v
     for i in range(start, stop):
         row = K[i]
-        y = ordered_sum(a[i, :i], K[:i]) * h
+        y = ordered_sum(a[i, :i], K[:i, : 2 * nv]) * h  # (the ledger's columns are combined at the step's end)
         xi = y[:nv]
         v_stage = v + y[nv : 2 * nv]
         q_stage = space.integrate(q, xi)
