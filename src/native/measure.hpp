@@ -64,13 +64,73 @@ namespace multibody_sim
       }
     };
 
+    // AfterAba's acceleration for a revolute joint about axis k (JointModelRevoluteTpl<double, 0, k>) whose velocity
+    // data.v[i] is in place, written out: the visitor's operations in its order (S·q̈ + c + v ^ v_J, then liMi⁻¹ a_λ:
+    // each of R's transposed products summed (r₀x₀ + r₁x₁) + r₂x₂, as Eigen evaluates them), without its temporaries
+    // (ur5's tool0 IMU: six such joints per tick). tests/test_sensors.py compares the readings bit for bit with
+    // forwardKinematics in the Python kernel.
+    template<int k>
+    inline void revolute_acceleration(const pinocchio::SE3 & liMi, const pinocchio::Motion & vi, double w, double qdd,
+                                      const pinocchio::Motion & ap, pinocchio::Motion & out)
+    {
+      const double s = -w;  // v ^ v_J is v_J's motionAction on v: alphaCross(−w, ·) on both parts
+      double y[6];
+      const auto alpha_cross = [s](const double * in, double * o)
+      {
+        if constexpr (k == 0)
+        {
+          o[0] = 0.;
+          o[1] = -s * in[2];
+          o[2] = s * in[1];
+        }
+        else if constexpr (k == 1)
+        {
+          o[0] = s * in[2];
+          o[1] = 0.;
+          o[2] = -s * in[0];
+        }
+        else
+        {
+          o[0] = -s * in[1];
+          o[1] = s * in[0];
+          o[2] = 0.;
+        }
+      };
+      alpha_cross(vi.linear().data(), y);
+      alpha_cross(vi.angular().data(), y + 3);
+      y[3 + k] += qdd;
+      const Eigen::Vector3d & t = liMi.translation();
+      const Eigen::Matrix3d & R = liMi.rotation();
+      const double * l = ap.linear().data();
+      const double * g = ap.angular().data();
+      const double d[3] = {l[0] - (t[1] * g[2] - t[2] * g[1]), l[1] - (t[2] * g[0] - t[0] * g[2]),
+                           l[2] - (t[0] * g[1] - t[1] * g[0])};
+      for (int i = 0; i < 3; ++i)
+      {
+        out.linear()[i] = y[i] + ((R(0, i) * d[0] + R(1, i) * d[1]) + R(2, i) * d[2]);
+        out.angular()[i] = y[3 + i] + ((R(0, i) * g[0] + R(1, i) * g[1]) + R(2, i) * g[2]);
+      }
+    }
+
     inline void kinematics_after_aba(const pinocchio::Model & model, pinocchio::Data & step, const SensorWork & w,
-                                     const Eigen::VectorXd & a, bool velocities)
+                                     const Eigen::VectorXd & v, const Eigen::VectorXd & a, bool velocities)
     {
       step.v[0].setZero();
       step.a[0].setZero();
       for (pinocchio::JointIndex i : w.kinematic_joints)
-        AfterAba::run(model.joints[i], step.joints[i], AfterAba::ArgsType(model, step, a, velocities));
+      {
+        const auto & joint = model.joints[i].toVariant();
+        const pinocchio::JointIndex parent = model.parents[i];
+        const int iv = model.joints[i].idx_v();
+        if (velocities && boost::get<pinocchio::JointModelRX>(&joint))
+          revolute_acceleration<0>(step.liMi[i], step.v[i], v[iv], a[iv], step.a[parent], step.a[i]);
+        else if (velocities && boost::get<pinocchio::JointModelRY>(&joint))
+          revolute_acceleration<1>(step.liMi[i], step.v[i], v[iv], a[iv], step.a[parent], step.a[i]);
+        else if (velocities && boost::get<pinocchio::JointModelRZ>(&joint))
+          revolute_acceleration<2>(step.liMi[i], step.v[i], v[iv], a[iv], step.a[parent], step.a[i]);
+        else
+          AfterAba::run(model.joints[i], step.joints[i], AfterAba::ArgsType(model, step, a, velocities));
+      }
     }
 
     // The sum of the contact impulses on `body` over h (Sensors._contact_force).

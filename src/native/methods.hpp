@@ -802,7 +802,7 @@ namespace multibody_sim
       if (sensw && sensw->waits(j))
       {
         SensorWork & sw_ = *sensw;
-        sensing::kinematics_after_aba(*M, data, sw_, sw_.pending_a[j], sample);
+        sensing::kinematics_after_aba(*M, data, sw_, v[j], sw_.pending_a[j], sample);
         measure_kinematic(j, &data);
       }
     }
