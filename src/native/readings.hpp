@@ -36,97 +36,102 @@ namespace multibody_sim
     ZigguratTables tables;
   };
 
-  // How many of m ticks, the first `count` ticks after the row's start, a sensor reading every `stride` reads at
-  inline int64_t due_ticks(int64_t count, std::size_t m, int stride)
-  {
-    const int64_t s = stride, first = (s - count % s) % s, n = static_cast<int64_t>(m);
-    return first < n ? (n - first + s - 1) / s : 0;
-  }
-
-  // The numbers the strided sensors read at m ticks, the first `count` ticks after the row's start
+  // The numbers the strided sensors read at m ticks, the first `count` ticks after the row's start (a sensor reads
+  // at the ticks whose count is a multiple of its stride)
   inline std::size_t strided_readings(const ReadingLayout & layout, int64_t count, std::size_t m)
   {
     std::size_t n = 0;
     for (const ReadingItem & p : layout.items)
       if (p.stride != 1)
-        n += static_cast<std::size_t>(due_ticks(count, m, p.stride) * p.width);
+      {
+        const int64_t s = p.stride, first = (s - count % s) % s, ticks = static_cast<int64_t>(m);
+        n += static_cast<std::size_t>(first < ticks ? (ticks - first + s - 1) / s * p.width : 0);
+      }
     return n;
   }
 
   // The readings of one row's m new ticks, measurements Z (m, width), the first at `count` ticks since the row's
   // start: the sensors that read at every tick into their columns of out (m, width; it may be Z, or overlap it), each
   // other sensor's readings into `apart` after the previous ones' (its n due ticks: n × width), with the others'
-  // columns of out the measurements plus the bias (as the specification leaves them). Updates the row's latest
+  // columns of out the measurements plus the bias (as the specification leaves them). Sensor by sensor, tick by
+  // tick: each sensor's draws come from its own stream, in reading then component order, as the specification's. Updates the row's latest
   // readings (width,), its history (the ring of each late sensor's last measurements: reading n's in slot
   // n % latency, all the first one's before it) and its streams' states (one per sensor, 4 words each).
   inline void make_readings(const ReadingLayout & layout, const double * Z, std::size_t m, double * out, double * apart,
                             int64_t count, double * latest, double * history, uint64_t * states)
   {
-    const auto & items = layout.items;
-    const std::size_t numbers = m * static_cast<std::size_t>(layout.width);
+    const std::size_t w = static_cast<std::size_t>(layout.width), numbers = m * w;
     std::vector<double> measured;  // Z, when out overlaps it from another row (its rows would be written before read)
     if (Z != out && Z < out + numbers && out < Z + numbers)
     {
       measured.assign(Z, Z + numbers);
       Z = measured.data();
     }
-    std::vector<double *> to(items.size(), nullptr);  // each strided sensor's next reading in `apart`
-    double * next = apart;
-    for (std::size_t k = 0; k < items.size(); ++k)
-      if (items[k].stride != 1)
-      {
-        to[k] = next;
-        next += due_ticks(count, m, items[k].stride) * items[k].width;
-      }
-    std::vector<double> z(layout.width), delayed(layout.width);  // a tick's measurements (out may be Z); a late one
-    for (std::size_t i = 0; i < m; ++i)
+    std::vector<double> delayed(w);  // a late sensor's measurement
+    double * to = apart;             // the strided sensors' next reading
+    for (std::size_t k = 0; k < layout.items.size(); ++k)  // sensor by sensor (each one's draws in their order)
     {
-      const int64_t tick = count + static_cast<int64_t>(i);
-      const double * row = Z + i * layout.width;
-      double * written = out + i * layout.width;
-      std::copy(row, row + layout.width, z.begin());
-      for (std::size_t k = 0; k < items.size(); ++k)
+      const ReadingItem & p = layout.items[k];
+      const double *bias = p.bias.data(), *noise = p.noise.data();
+      uint64_t * state = states + 4 * k;
+      uint64_t words[4] = {state[0], state[1], state[2], state[3]};  // (kept in registers, written back once)
+      Sfc64 bits{words};
+      const double * last = nullptr;  // its latest reading
+      // (counted along, without a division per tick:) ticks since its last reading, its readings so far, and the
+      // ring's slot of the next reading's measurement (reading n's in slot n % latency)
+      int64_t since = count % p.stride;
+      int64_t n = (count + p.stride - 1) / p.stride;
+      int64_t slot = p.latency ? n % p.latency : 0;
+      for (std::size_t i = 0; i < m; ++i)
       {
-        const ReadingItem & p = items[k];
-        const double * zk = z.data() + p.offset;
-        double * target = written + p.offset;
-        if (p.stride != 1)
+        const double * zk = Z + i * w + p.offset;
+        double * written = out + i * w + p.offset;  // (zk itself when out is Z: each number read before written)
+        const bool due = since == 0;
+        if (++since == p.stride)
+          since = 0;
+        if (due)
         {
-          for (int j = 0; j < p.width; ++j)
-            target[j] = zk[j] + p.bias[j];
-          if (tick % p.stride != 0)
-            continue;
-          target = to[k];
-          to[k] += p.width;
-        }
-        if (p.latency)
-        {
-          const int64_t n = tick / p.stride;  // readings before this one
-          double * ring = history + p.history;
-          if (n == 0)
-            for (int l = 0; l < p.latency; ++l)
-              std::copy(zk, zk + p.width, ring + l * p.width);
-          double * slot = ring + (n % p.latency) * p.width;
-          for (int j = 0; j < p.width; ++j)
+          double * target = written;
+          if (p.stride != 1)
           {
-            delayed[j] = slot[j];
-            slot[j] = zk[j];
+            target = to;
+            to += p.width;
           }
-          zk = delayed.data();
-        }
-        for (int j = 0; j < p.width; ++j)
-          target[j] = zk[j] + p.bias[j];
-        if (p.spoiled)
-        {
-          Sfc64 bits{states + 4 * k};
-          for (int j = 0; j < p.width; ++j)
+          const double * z = zk;
+          if (p.latency)
           {
-            const double noise = standard_normal(bits, layout.tables) * p.noise[j];
-            target[j] = target[j] + noise;
+            double * ring = history + p.history;
+            if (n == 0)  // its first reading: the first measurement stands for those before it
+              for (int l = 0; l < p.latency; ++l)
+                std::copy(zk, zk + p.width, ring + l * p.width);
+            double * held = ring + slot * p.width;
+            for (int j = 0; j < p.width; ++j)
+            {
+              delayed[j] = held[j];
+              held[j] = zk[j];
+            }
+            z = delayed.data();
+            if (++slot == p.latency)
+              slot = 0;
           }
+          ++n;
+          for (int j = 0; j < p.width; ++j)
+            target[j] = z[j] + bias[j];
+          if (p.spoiled)
+            for (int j = 0; j < p.width; ++j)
+            {
+              const double spoil = standard_normal(bits, layout.tables) * noise[j];
+              target[j] = target[j] + spoil;
+            }
+          last = target;
         }
-        std::copy(target, target + p.width, latest + p.offset);
+        if (p.stride != 1)  // its columns of out: the measurement plus the bias, as the specification leaves them
+          for (int j = 0; j < p.width; ++j)
+            written[j] = zk[j] + bias[j];
       }
+      std::copy(words, words + 4, state);
+      if (last != nullptr)
+        std::copy(last, last + p.width, latest + p.offset);
     }
   }
 

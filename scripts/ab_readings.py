@@ -1,0 +1,76 @@
+"""In-process A/B of the sensors' readings on scripts/bench_sensors.py's workloads: made by the extension
+(make_readings, one call per row and engine call) against the Python specification (SensorStream._read_python),
+the two paths interleaved round by round in one process, so that both see the same machine load.
+
+Each round runs every variant once per path (the order of the paths alternating between rounds); a variant's time
+per step is a long run's CPU time minus a one-step run's, over the steps between them (as bench_sensors.py). The
+two paths' readings are first checked equal, bit for bit, on every variant.
+
+Usage:
+    .venv/bin/python scripts/ab_readings.py [--rounds 15] [--steps 4000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+from typing import Any
+
+import numpy as np
+from bench_sensors import cpu, variants
+
+from multibody_sim import sensors
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=15)
+    parser.add_argument("--steps", type=int, default=4000)
+    args = parser.parse_args()
+    native = sensors._native_readings
+    paths: dict[str, Any] = {"native": native, "python": lambda stream: None}
+    chosen = ("bare", "sensors", "actuators + sensors")
+    runs = {scene: {label: table[label] for label in chosen} for scene, table in variants(None).items()}
+    for scene, table in runs.items():  # warm up, and the same readings on both paths
+        for label, run in table.items():
+            made = {}
+            for path, factory in paths.items():
+                sensors._native_readings = factory
+                made[path] = run(200)
+            assert made["native"].metadata["kernel"] == "native"
+            for name, values in made["python"].sensors.items():
+                np.testing.assert_array_equal(made["native"].sensors[name], values, err_msg=f"{scene} {label} {name}")
+    times: dict[tuple[str, str, str], list[float]] = {}
+    load = os.getloadavg()[0]
+    for r in range(args.rounds):
+        for scene, table in runs.items():
+            for label, run in table.items():
+                for path in list(paths) if r % 2 == 0 else list(paths)[::-1]:
+                    sensors._native_readings = paths[path]
+                    (long, _), (short, _) = cpu(run, args.steps), cpu(run, 1)
+                    times.setdefault((scene, label, path), []).append((long - short) / (args.steps - 1) * 1e6)
+    sensors._native_readings = native
+    print(f"rounds {args.rounds}, steps {args.steps}, 1-minute load {load:.1f} -> {os.getloadavg()[0]:.1f}")
+    print(
+        "| scene | variant | µs/step native | µs/step python | ratio to bare, native | ratio to bare, python "
+        "| python − native, per bare step (median of per-round) |"
+    )
+    print("|---|---|---:|---:|---:|---:|---:|")
+    for scene, table in runs.items():
+        bare = [
+            (a + b) / 2 for a, b in zip(times[(scene, "bare", "native")], times[(scene, "bare", "python")], strict=True)
+        ]
+        for label in table:
+            n, p = times[(scene, label, "native")], times[(scene, label, "python")]
+            rn = statistics.median(a / b for a, b in zip(n, bare, strict=True))
+            rp = statistics.median(a / b for a, b in zip(p, bare, strict=True))
+            gain = statistics.median((b - a) / c for a, b, c in zip(n, p, bare, strict=True))
+            print(
+                f"| {scene} | {label} | {statistics.median(n):.2f} | {statistics.median(p):.2f} | {rn:.3f} | "
+                f"{rp:.3f} | {gain:+.3f} |"
+            )
+
+
+if __name__ == "__main__":
+    main()
