@@ -551,8 +551,12 @@ def test_ledger_sums_are_numpys_masked_column_sums_bit_for_bit() -> None:
     """recording.ledger_sums (work and dissipated of the trajectories, without copies of the columns) against NumPy's
     own masked sums, flows[..., mask].sum(-1), bit for bit (a NaN where NumPy's is NaN, whatever its sign and
     payload): every layout the store gives (batch-major rows, one row, sample-major views), one sample, one or no
-    column, signed zeros, overflow, infinities and NaNs."""
+    column, signed zeros, overflow, infinities and NaNs. With the extension built, contiguous flows of several rows
+    and columns go through its one-pass ledger_sums."""
+    from multibody_sim import native, recording
     from multibody_sim.recording import ledger_sums
+
+    assert (recording._summer() is not None) == (native.available and hasattr(native.module, "ledger_sums"))
 
     rng = np.random.default_rng(11)
     for trial in range(400):

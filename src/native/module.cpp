@@ -353,6 +353,31 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
     nb::arg("state").noconvert(), nb::arg("out").noconvert(), nb::arg("tables"),
     "noise.NormalStream.fill: the next out.size standard normal draws of the stream at `state` (4 uint64 words, "
     "advanced in place) into `out` (float64, C order).");
+  m.def(
+    "ledger_sums",
+    [](Doubles flows, nb::ndarray<const bool, nb::ndim<1>, nb::c_contig, nb::device::cpu> is_work, Doubles work,
+       Doubles dissipated) {
+      const size_t width = is_work.shape(0);
+      const size_t rows = width ? flows.size() / width : 0;
+      if (!width || flows.size() != rows * width || work.size() != rows || dissipated.size() != rows)
+        throw nb::value_error("ledger_sums: flows (..., m), is_work (m,), work and dissipated (...,)");
+      const bool * mask = is_work.data();
+      for (size_t r = 0; r < rows; ++r)  // each side's columns added in order from +0.0 (recording._columns_sum)
+      {
+        const double * row = flows.data() + r * width;
+        double w = 0.0, d = 0.0;
+        for (size_t j = 0; j < width; ++j)
+          if (mask[j])
+            w = w + row[j];
+          else
+            d = d + row[j];
+        work.data()[r] = w;
+        dissipated.data()[r] = d;
+      }
+    },
+    nb::arg("flows").noconvert(), nb::arg("is_work").noconvert(), nb::arg("work").noconvert(),
+    nb::arg("dissipated").noconvert(),
+    "recording.ledger_sums' column sums in one pass over C-ordered flows (..., m): into work and dissipated (...,).");
   Struct<ReadingItem>(m, "ReadingItem", "One sensor as SensorStream reads it (SensorStream.native_data()'s items).")
     .field("offset", &ReadingItem::offset, "int")
     .field("width", &ReadingItem::width, "int")
