@@ -617,3 +617,55 @@ def test_native_arithmetic_of_the_actuators() -> None:
         scene.actuators.powers(q, v, u, expected)
         np.testing.assert_array_equal(torques, scene.actuators.joint_torques(q, v, u))
         np.testing.assert_array_equal(flows, expected)
+
+
+@needs_native
+def test_native_actuators_at_the_edges_of_their_shortcuts() -> None:
+    """_native.SceneActuators takes shortcuts below speeds where the limits provably are ± the effort limit (half the
+    curve's knee, the velocity limit, half the brake's start): at and beside those speeds, the knee, the brake's start
+    and band and the no-load speed, under laws at and beside the effort limits, the same torques and ledger powers
+    as Actuators.joint_torques and powers."""
+    from multibody_sim.kernels.native import _scene_actuators
+
+    scene = make_scene(
+        robot={"source": "go2"},
+        actuators="catalog",
+        actuator=[
+            {"joints": "FL_calf_joint", "kind": "position", "kp": 40.0, "kv": 1.0},
+            {"joints": "FR_hip_joint", "kind": "velocity", "kv": 2.0},
+            {"joints": "RL_hip_joint", "overspeed": "none"},
+            # a curve too close to its effort limit to shortcut
+            {"joints": "RR_hip_joint", "stall_torque": 23.7 * 1.0005, "no_load_speed": 30.0},
+        ],
+    )
+    rendered = _scene_actuators(scene.actuators, ms.native.load_model(scene.model))
+    items = scene.actuators.items
+    edges = []
+    for a in items:
+        marks = [a.velocity_limit, a.no_load_speed, a.no_load_speed * (1.0 - a.effort_limit / a.stall_torque)]
+        if a.brake_gain > 0.0:
+            start = a.velocity_limit - a.effort_limit / a.brake_gain
+            marks += [start, (1.0 + a.overspeed_band) * a.velocity_limit]
+        marks += [0.5 * x for x in marks]
+        near = [y for x in marks if np.isfinite(x) for y in (np.nextafter(x, 0.0), x, np.nextafter(x, np.inf))]
+        near += [x * (1.0 + d) for x in marks if np.isfinite(x) for d in (-1e-9, 1e-9)]
+        edges.append(np.array([0.0, *near, *(-y for y in near)]))
+    rng = np.random.default_rng(3)
+    q0 = scene.q0
+    for _ in range(3000):
+        v = np.zeros(scene.nv)
+        u = np.zeros(scene.nv)
+        for a, speeds in zip(items, edges, strict=True):
+            v[a.dof] = speeds[rng.integers(len(speeds))]
+            target = a.effort_limit * rng.choice([-1.0, 1.0]) * (1.0 + rng.choice([-1e-12, 0.0, 1e-12, 0.3, -0.3]))
+            if a.kind == "torque":
+                u[a.dof] = target
+            elif a.kind == "velocity":
+                u[a.dof] = target / a.kv + v[a.dof]
+            else:
+                u[a.dof] = (target + a.kv * v[a.dof]) / a.kp + q0[a.iq]
+        torques, flows = rendered.evaluate(q0, v, u)
+        expected = np.empty(len(scene.actuators.ledger))
+        scene.actuators.powers(q0, v, u, expected)
+        np.testing.assert_array_equal(torques, scene.actuators.joint_torques(q0, v, u))
+        np.testing.assert_array_equal(flows, expected)

@@ -56,7 +56,7 @@ namespace multibody_sim
           if (defer)
           {
             const int64_t at = store.at(i, rows[j]);
-            write_state(store, at, q[j], v[j], tau[j], flows[j].data());
+            write_state(store, at, q[j], v[j], tau[j], flows[j].data(), true);
             pending[j] = at;
             pending_store = &store;
           }

@@ -47,6 +47,7 @@ namespace multibody_sim
     std::vector<Vec> q, v, flows, tau, qn, vn, fn, first;
     std::vector<char> has_first;
     std::vector<int64_t> pending;  // per row: the store cell whose energies wait for the next ABA at this state (-1)
+                                   // (and its delivered torques, with actuators: the next step's first evaluation)
     const Store * pending_store = nullptr;
     // workspace (no allocation in the step loop)
     RowMatrix K;  // stage derivatives (xi', v', ledger power), one row per stage
@@ -711,16 +712,21 @@ namespace multibody_sim
       write_energies(store, at, qx, vx);
     }
 
+    // deferred: the delivered torques are left to settle() or flush() (a pending sample of this state)
     void write_state(const Store & store, int64_t at, const Vec & qx, const Vec & vx, const Vec & tx,
-                     const double * fl) const
+                     const double * fl, bool deferred = false) const
     {
       std::copy(qx.data(), qx.data() + nq, store.Q + at * nq);
       std::copy(vx.data(), vx.data() + nv, store.V + at * nv);
       std::copy(tx.data(), tx.data() + nv, store.TAU + at * nv);
       std::copy(fl, fl + m, store.FLOWS + at * m);
-      if (A)  // Scene.unchecked_record: the torques delivered, after the springs' energies
-        A->joint_torques(
-          qx, vx, tx, nullptr, store.EXTRA + at * store.extra_width + (e.scene_ ? e.scene_->n_records() : 0));
+      if (A && !deferred)  // Scene.unchecked_record: the torques delivered, after the springs' energies
+        A->joint_torques(qx, vx, tx, nullptr, delivered_cell(store, at));
+    }
+
+    double * delivered_cell(const Store & store, int64_t at) const
+    {
+      return store.EXTRA + at * store.extra_width + (e.scene_ ? e.scene_->n_records() : 0);
     }
 
     // pinocchio::computeKineticEnergy(model, data) at velocity vx: the same sum in the same order without its
@@ -797,6 +803,8 @@ namespace multibody_sim
       {
         velocities_from_placements();
         write_energies(*pending_store, pending[j], q[j], v[j]);
+        if (A)  // the delivered torques at the sample: this step's first evaluation computed them there
+          delivered_at_start(j, delivered_cell(*pending_store, pending[j]));
         pending[j] = -1;
       }
       if (sensw && sensw->waits(j))
@@ -805,6 +813,17 @@ namespace multibody_sim
         sensing::kinematics_after_aba(*M, data, sw_, v[j], sw_.pending_a[j], sample);
         measure_kinematic(j, &data);
       }
+    }
+
+    // Actuators.joint_torques at row j's state under its command, as the step from it has evaluated them there (at
+    // its first evaluation, before any revision): the fused stage's or the actuated() torques (tact), or while a
+    // step takes servos inside, the torques its begin() clipped (Actuators.evaluate's, from the same law and interval)
+    void delivered_at_start(size_t j, double * out) const
+    {
+      if (servo.active)
+        A->clipped_torques(servo, tau[j], out);
+      else
+        std::copy(tact.data(), tact.data() + nv, out);
     }
 
     // Row j's waiting tick: its imu and frame_pose sensors from the kinematics in `kinematics` (the step's Data, or
@@ -834,6 +853,8 @@ namespace multibody_sim
           select(j);
           pinocchio::forwardKinematics(*M, data, q[j], v[j]);
           write_energies(*pending_store, pending[j], q[j], v[j]);
+          if (A)
+            A->joint_torques(q[j], v[j], tau[j], nullptr, delivered_cell(*pending_store, pending[j]));
           pending[j] = -1;
         }
     }

@@ -309,13 +309,50 @@ namespace multibody_sim
     }
   }
 
+  void SceneActuators::prepare(int nv_, int nq)
+  {
+    nv = nv_;
+    servos = false;
+    n_limited = n_braked = 0;
+    constexpr double inf = std::numeric_limits<double>::infinity();
+    for (ActuatorTerm & a : terms)
+    {
+      if (!(0 <= a.dof && a.dof < nv && 0 <= a.iq && a.iq < nq))
+        throw std::invalid_argument("SceneActuators: an actuator's dof or coordinate out of range");
+      a.servo = a.kind != ActuatorKind::torque;
+      a.curve = std::isfinite(a.stall);
+      a.speed_limited = std::isfinite(a.velocity_limit);
+      a.braked = a.brake_gain > 0.0;
+      // With |w| < (1 - band) v_max / 2 the brake's upper bound k (v_max - w) >= effort (1 + band) / (2 band),
+      // above the limits' high (at most the effort limit) with a margin round-off cannot cross while the band
+      // is at most 0.9; the lower bound likewise: Actuators._interval's clamps change nothing there, and _select
+      // finds no torque on a brake's bound.
+      const double start = a.braked ? a.velocity_limit - a.effort / a.brake_gain : 0.0;
+      a.brake_from = start >= 0.1 * a.velocity_limit ? 0.5 * start : 0.0;
+      // The curve stall (1 - s / no_load) stays above the effort limit, by at least half their difference (with
+      // stall >= 1.001 effort: far beyond round-off), for s below half its knee no_load (1 - effort / stall); the
+      // drive limit is then the effort limit itself (np.minimum of it and a larger number).
+      double plain = inf;
+      if (a.curve)
+        plain = a.stall >= 1.001 * a.effort ? 0.5 * (a.no_load * (1.0 - a.effort / a.stall)) : 0.0;
+      if (a.speed_limited)
+        plain = std::min(plain, a.velocity_limit);  // below it: speed >= velocity_limit is false
+      if (a.braked)
+        plain = std::min(plain, a.brake_from);
+      a.plain_below = plain >= 0.0 ? plain : 0.0;  // (NaN: 0)
+      servos = servos || a.servo || a.braked;
+      n_limited += a.limited ? 1 : 0;
+      n_braked += a.braked ? 1 : 0;
+    }
+  }
+
   void SceneActuators::limits(const ActuatorTerm & a, double w, double & low, double & high) const
   {
     double drive = a.effort;
     const double speed = std::abs(w);
-    if (std::isfinite(a.stall))
+    if (a.curve)
       drive = np_minimum(drive, a.stall * np_maximum(0.0, 1.0 - speed / a.no_load));
-    if (std::isfinite(a.velocity_limit) && speed >= a.velocity_limit)
+    if (a.speed_limited && speed >= a.velocity_limit)
       drive = 0.0;
     low = w > 0.0 ? -a.effort : -drive;
     high = w < 0.0 ? a.effort : drive;
@@ -323,7 +360,7 @@ namespace multibody_sim
 
   void SceneActuators::brakes(const ActuatorTerm & a, double w, double & upper, double & lower) const
   {
-    const double limit = a.brake_gain > 0.0 ? a.velocity_limit : 0.0;
+    const double limit = a.braked ? a.velocity_limit : 0.0;
     upper = a.brake_gain * (limit - w);
     lower = -(a.brake_gain * (limit + w));
   }
@@ -340,8 +377,14 @@ namespace multibody_sim
 
   void SceneActuators::interval(const ActuatorTerm & a, double w, double & low, double & high) const
   {
+    if (std::abs(w) < a.plain_below)  // (NaN: no) limits() and the brake's clamps would give ± the effort limit
+    {
+      low = -a.effort;
+      high = a.effort;
+      return;
+    }
     limits(a, w, low, high);
-    if (a.brake_gain > 0.0 && !(std::abs(w) < a.brake_from))
+    if (a.braked && !(std::abs(w) < a.brake_from))
     {
       double upper, lower;
       brakes(a, w, upper, lower);
@@ -354,10 +397,19 @@ namespace multibody_sim
   void SceneActuators::select(const ActuatorTerm & a, double law, double w, bool & within, bool & brake,
                               bool & saturated, int & side, double & low, double & high) const
   {
+    brake = saturated = false;
+    if (std::abs(w) < a.plain_below)  // the interval ± the effort limit, no torque on a brake's bound (prepare())
+    {
+      low = -a.effort;
+      high = a.effort;
+      within = law >= low && law <= high;
+      side = law > high ? 1 : -1;
+      return;
+    }
     limits(a, w, low, high);
     const double limit_low = low, limit_high = high;
     double upper = 0.0, lower = 0.0;
-    const bool braked = a.brake_gain > 0.0;
+    const bool braked = a.braked;
     if (braked)
     {
       brakes(a, w, upper, lower);
@@ -366,7 +418,6 @@ namespace multibody_sim
     }
     within = law >= low && law <= high;
     side = law > high ? 1 : -1;
-    brake = saturated = false;
     if (braked && !within && (side > 0 ? upper < limit_high : lower > limit_low))
     {
       const bool inside = side > 0 ? upper > -a.effort : lower < a.effort;
@@ -410,13 +461,24 @@ namespace multibody_sim
       const ActuatorTerm & a = terms[k];
       const double c = law(a, q, v, u);
       const double w = v[a.dof];
+      flows[k] = c * w;
+      if (std::abs(w) < a.plain_below)  // the interval ± the effort limit, the brake's clamps idle (prepare())
+      {
+        const double limited = np_minimum(np_maximum(c, -a.effort), a.effort);
+        if (a.limited)
+          flows[m++] = (c - limited) * w;
+        if (a.braked)  // the brake's torque is the limited one itself: (limited - tau) w as below
+          flows[b++] = (limited - limited) * w;
+        if (torques)
+          torques[a.dof] = limited;
+        continue;
+      }
       limits(a, w, low, high);
       const double limited = np_minimum(np_maximum(c, low), high);  // evaluate's torque without a brake
-      flows[k] = c * w;
       if (a.limited)
         flows[m++] = (c - limited) * w;
       double tau = limited;
-      if (a.brake_gain > 0.0)  // evaluate's interval: the limits within the brake's bounds from brake_from on
+      if (a.braked)  // evaluate's interval: the limits within the brake's bounds from brake_from on
       {
         if (!(std::abs(w) < a.brake_from))
         {
@@ -466,7 +528,7 @@ namespace multibody_sim
       step.w[k] = v[a.dof];
       step.saved[k] = armature[a.dof];
       select(a, step.law[k], step.w[k], within, brake, saturated, step.side[k], low, high);
-      step.free[k] = a.kind != ActuatorKind::torque && within;
+      step.free[k] = a.servo && within;
       step.braking[k] = brake || saturated;  // on its line even beyond the effort limit: it may reach its band
       step.clipped[k] = np_minimum(np_maximum(step.law[k], low), high);
     }
@@ -477,16 +539,27 @@ namespace multibody_sim
   void SceneActuators::hold(ServoStep & step, Vec & armature) const
   {
     const double h = step.h;
-    double upper, lower;
     for (size_t k = 0; k < terms.size(); ++k)
     {
       const ActuatorTerm & a = terms[k];
-      const double hkp = h * a.kp;
-      armature[a.dof] = step.saved[k] + (step.free[k] ? h * a.kv + h * hkp : step.braking[k] ? h * a.brake_gain : 0.0);
-      brakes(a, step.w[k], upper, lower);
-      step.held[k] = step.free[k]      ? step.law[k] - hkp * step.w[k]
-                     : step.braking[k] ? (step.side[k] > 0 ? upper : lower)
-                                       : step.clipped[k];
+      if (step.free[k])
+      {
+        const double hkp = h * a.kp;
+        armature[a.dof] = step.saved[k] + (h * a.kv + h * hkp);
+        step.held[k] = step.law[k] - hkp * step.w[k];
+      }
+      else if (step.braking[k])
+      {
+        double upper, lower;
+        brakes(a, step.w[k], upper, lower);
+        armature[a.dof] = step.saved[k] + h * a.brake_gain;
+        step.held[k] = step.side[k] > 0 ? upper : lower;
+      }
+      else
+      {
+        armature[a.dof] = step.saved[k] + 0.0;  // (as np.where's 0: -0 becomes +0)
+        step.held[k] = step.clipped[k];
+      }
     }
   }
 
@@ -502,16 +575,22 @@ namespace multibody_sim
     {
       const ActuatorTerm & a = terms[k];
       const double w = step.w[k], wn = v_next[a.dof];
+      // A torque actuator held at its clipped torque stays consistent unless its torque lands on a brake's bound,
+      // which select() finds nowhere below brake_from (prepare()): its law and interval are not needed
+      if (!a.servo && !step.braking[k] && (!a.braked || std::abs(wn) < a.brake_from))
+      {
+        ok[k] = 1;
+        continue;
+      }
       law_next[k] = step.law[k] - (h * a.kp) * w - (h * a.kp + a.kv) * (wn - w);  // the law at the step's end
       bool in, on_brake, beyond_effort;
       select(a, law_next[k], wn, in, on_brake, beyond_effort, side[k], low[k], high[k]);
       within[k] = in;
       brake[k] = on_brake;
       beyond[k] = step.side[k] > 0 ? law_next[k] >= high[k] : law_next[k] <= low[k];
-      const bool servo = a.kind != ActuatorKind::torque;
       ok[k] = step.free[k]      ? bool(within[k])
               : step.braking[k] ? brake[k] && side[k] == step.side[k]
-                                : !brake[k] && (!servo || beyond[k]);
+                                : !brake[k] && (!a.servo || beyond[k]);
       consistent = consistent && ok[k];
     }
     if (consistent || step.iterations >= max_revisions)
@@ -522,7 +601,7 @@ namespace multibody_sim
       if (ok[k])
         continue;
       const ActuatorTerm & a = terms[k];
-      const bool servo = a.kind != ActuatorKind::torque;
+      const bool servo = a.servo;
       // a brake beyond the effort limit at the start that did not land on its line: held at the effort limit
       double upper, lower;
       brakes(a, step.w[k], upper, lower);
@@ -539,6 +618,14 @@ namespace multibody_sim
     }
     hold(step, armature);
     return true;
+  }
+
+  void SceneActuators::clipped_torques(const ServoStep & step, const Vec & u, double * out) const
+  {
+    for (int i = 0; i < nv; ++i)
+      out[i] = u[i];
+    for (size_t k = 0; k < terms.size(); ++k)
+      out[terms[k].dof] = step.clipped[k];
   }
 
   void SceneActuators::end(ServoStep & step, Vec & armature) const
@@ -804,21 +891,7 @@ void multibody_sim::bind_scene(nb::module_ & m)  // called by module.cpp
       "__init__",
       [actuators](SceneActuators * self, const NativeModel & model, nb::kwargs kwargs) {
         SceneActuators s = actuators->parse(kwargs);
-        const pinocchio::Model & robot = model.model;
-        s.nv = robot.nv;
-        for (ActuatorTerm & a : s.terms)
-        {
-          // With |w| < (1 - band) v_max / 2 the brake's upper bound k (v_max - w) >= effort (1 + band) / (2 band),
-          // above the limits' high (at most the effort limit) with a margin round-off cannot cross while the band
-          // is at most 0.9; the lower bound likewise: Actuators._interval's clamps change nothing there.
-          const double start = a.brake_gain > 0.0 ? a.velocity_limit - a.effort / a.brake_gain : 0.0;
-          a.brake_from = start >= 0.1 * a.velocity_limit ? 0.5 * start : 0.0;
-          if (!(0 <= a.dof && a.dof < robot.nv && 0 <= a.iq && a.iq < robot.nq))
-            throw std::invalid_argument("SceneActuators: an actuator's dof or coordinate out of range");
-          s.servos = s.servos || a.kind != ActuatorKind::torque || a.brake_gain > 0.0;
-          s.n_limited += a.limited ? 1 : 0;
-          s.n_braked += a.brake_gain > 0.0 ? 1 : 0;
-        }
+        s.prepare(model.model.nv, model.model.nq);
         new (self) SceneActuators(std::move(s));
       },
       nb::arg("model"), nb::arg("kwargs"), "From the scene's model and the actuators' named data.")

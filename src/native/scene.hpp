@@ -195,9 +195,14 @@ namespace multibody_sim
     double kp = 0.0, kv = 0.0, effort = 0.0, velocity_limit = 0.0, stall = 0.0, no_load = 0.0;
     bool limited = false;     // it has an actuator_limit ledger line
     double brake_gain = 0.0;  // its overspeed brake's gain k (0: none; it then has an actuator_overspeed line)
-    // Below this |speed| the brake's bounds provably leave the limits as they are (set by SceneActuators' binding:
-    // half the speed where its band starts, if that band is at most 0.9 of the limit, else 0: always applied).
+    // Set by SceneActuators::prepare() from the fields above:
+    // Below this |speed| the brake's bounds provably leave the limits as they are and no torque lands on them (half
+    // the speed where its band starts, if that band is at most 0.9 of the limit, else 0: always evaluated).
     double brake_from = 0.0;
+    // Below this |speed| the interval is exactly ± the effort limit: the curve (with a margin), the velocity limit
+    // and the brake (brake_from) cut nothing there (0: never taken as such).
+    double plain_below = 0.0;
+    bool servo = false, curve = false, speed_limited = false, braked = false;
   };
 
   // One row's velocity update while it takes the servos and brakes implicitly (Actuators.begin_implicit ..
@@ -232,6 +237,9 @@ namespace multibody_sim
     {
       return static_cast<int>(terms.size()) + n_limited + n_braked;
     }
+    // Each term's derived fields (brake_from, plain_below and the flags), servos, n_limited and n_braked from the
+    // terms' data; throws if an actuator's dof or coordinate is out of range for a model of nv, nq
+    void prepare(int nv_, int nq);
     // Actuators.evaluate for one actuator: its law's torque c and the torque after the limits and the brake
     void evaluate(const ActuatorTerm & a, const Vec & q, const Vec & v, const Vec & u, double & law,
                   double & tau) const;
@@ -259,6 +267,9 @@ namespace multibody_sim
     // Actuators.begin_implicit / revise / end_implicit on `armature`, the model copy's that the step's ABA uses
     void begin(ServoStep & step, const Vec & q, const Vec & v, const Vec & u, double h, Vec & armature) const;
     bool revise(ServoStep & step, const Vec & v_next, Vec & armature) const;
+    // After begin() (before any revision): u (nv) with the actuators' dofs replaced by their torques at the step's
+    // start (joint_torques' at the state begin() was given, from the same law and interval)
+    void clipped_torques(const ServoStep & step, const Vec & u, double * out) const;
     void end(ServoStep & step, Vec & armature) const;
 
   private:
