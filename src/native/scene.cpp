@@ -431,14 +431,20 @@ namespace multibody_sim
   {
     for (int i = 0; i < nv; ++i)
       out[i] = u[i];
-    double law, tau;
-    for (size_t k = 0; k < terms.size(); ++k)
+    const ActuatorTerm * a = terms.data();
+    const size_t n = terms.size();
+    if (step && step->active)
     {
-      if (step && step->active)
-        tau = step->held[k];
-      else
-        evaluate(terms[k], q, v, u, law, tau);
-      out[terms[k].dof] = tau;
+      const double * held = step->held.data();
+      for (size_t k = 0; k < n; ++k)
+        out[a[k].dof] = held[k];
+      return;
+    }
+    double law, tau;
+    for (size_t k = 0; k < n; ++k)
+    {
+      evaluate(a[k], q, v, u, law, tau);
+      out[a[k].dof] = tau;
     }
   }
 
@@ -521,16 +527,25 @@ namespace multibody_sim
     step.iterations = 0;
     bool within, brake, saturated;
     double low, high;
-    for (size_t k = 0; k < terms.size(); ++k)
+    // the step's arrays through local pointers: stores to the char arrays may alias anything, and would make the
+    // compiler reload each vector's data pointer at every actuator
+    const size_t n = terms.size();
+    const ActuatorTerm * terms_ = terms.data();
+    double *law_ = step.law.data(), *w_ = step.w.data(), *saved = step.saved.data(), *clipped = step.clipped.data();
+    int * side = step.side.data();
+    char *free_ = step.free.data(), *braking = step.braking.data();
+    double * arm = armature.data();
+    for (size_t k = 0; k < n; ++k)
     {
-      const ActuatorTerm & a = terms[k];
-      step.law[k] = law(a, q, v, u);
-      step.w[k] = v[a.dof];
-      step.saved[k] = armature[a.dof];
-      select(a, step.law[k], step.w[k], within, brake, saturated, step.side[k], low, high);
-      step.free[k] = a.servo && within;
-      step.braking[k] = brake || saturated;  // on its line even beyond the effort limit: it may reach its band
-      step.clipped[k] = np_minimum(np_maximum(step.law[k], low), high);
+      const ActuatorTerm & a = terms_[k];
+      const double c = law(a, q, v, u), w = v[a.dof];
+      law_[k] = c;
+      w_[k] = w;
+      saved[k] = arm[a.dof];
+      select(a, c, w, within, brake, saturated, side[k], low, high);
+      free_[k] = a.servo && within;
+      braking[k] = brake || saturated;  // on its line even beyond the effort limit: it may reach its band
+      clipped[k] = np_minimum(np_maximum(c, low), high);
     }
     step.active = true;
     hold(step, armature);
@@ -539,26 +554,33 @@ namespace multibody_sim
   void SceneActuators::hold(ServoStep & step, Vec & armature) const
   {
     const double h = step.h;
-    for (size_t k = 0; k < terms.size(); ++k)
+    const size_t n = terms.size();
+    const ActuatorTerm * terms_ = terms.data();  // (local pointers, as in begin())
+    const double *law = step.law.data(), *w = step.w.data(), *saved = step.saved.data();
+    const double * clipped = step.clipped.data();
+    const int * side = step.side.data();
+    const char *free_ = step.free.data(), *braking = step.braking.data();
+    double *held = step.held.data(), *arm = armature.data();
+    for (size_t k = 0; k < n; ++k)
     {
-      const ActuatorTerm & a = terms[k];
-      if (step.free[k])
+      const ActuatorTerm & a = terms_[k];
+      if (free_[k])
       {
         const double hkp = h * a.kp;
-        armature[a.dof] = step.saved[k] + (h * a.kv + h * hkp);
-        step.held[k] = step.law[k] - hkp * step.w[k];
+        arm[a.dof] = saved[k] + (h * a.kv + h * hkp);
+        held[k] = law[k] - hkp * w[k];
       }
-      else if (step.braking[k])
+      else if (braking[k])
       {
         double upper, lower;
-        brakes(a, step.w[k], upper, lower);
-        armature[a.dof] = step.saved[k] + h * a.brake_gain;
-        step.held[k] = step.side[k] > 0 ? upper : lower;
+        brakes(a, w[k], upper, lower);
+        arm[a.dof] = saved[k] + h * a.brake_gain;
+        held[k] = side[k] > 0 ? upper : lower;
       }
       else
       {
-        armature[a.dof] = step.saved[k] + 0.0;  // (as np.where's 0: -0 becomes +0)
-        step.held[k] = step.clipped[k];
+        arm[a.dof] = saved[k] + 0.0;  // (as np.where's 0: -0 becomes +0)
+        held[k] = clipped[k];
       }
     }
   }
@@ -571,27 +593,42 @@ namespace multibody_sim
     std::vector<double> &law_next = step.law_next, &low = step.low, &high = step.high;
     std::vector<char> &ok = step.ok, &within = step.within, &brake = step.brake, &beyond = step.beyond;
     std::vector<int> & side = step.side_next;
-    for (size_t k = 0; k < n; ++k)
     {
-      const ActuatorTerm & a = terms[k];
-      const double w = step.w[k], wn = v_next[a.dof];
-      // A torque actuator held at its clipped torque stays consistent unless its torque lands on a brake's bound,
-      // which select() finds nowhere below brake_from (prepare()): its law and interval are not needed
-      if (!a.servo && !step.braking[k] && (!a.braked || std::abs(wn) < a.brake_from))
+      const ActuatorTerm * terms_ = terms.data();  // (local pointers, as in begin())
+      const double *law = step.law.data(), *w_ = step.w.data(), *vn = v_next.data();
+      const int * side_ = step.side.data();
+      const char *free_ = step.free.data(), *braking = step.braking.data();
+      double *law_next_ = law_next.data(), *low_ = low.data(), *high_ = high.data();
+      char *ok_ = ok.data(), *within_ = within.data(), *brake_ = brake.data(), *beyond_ = beyond.data();
+      int * side_next = side.data();
+      for (size_t k = 0; k < n; ++k)
       {
-        ok[k] = 1;
-        continue;
+        const ActuatorTerm & a = terms_[k];
+        const double w = w_[k], wn = vn[a.dof];
+        // A torque actuator held at its clipped torque stays consistent unless its torque lands on a brake's
+        // bound, which select() finds nowhere below brake_from (prepare()): its law and interval are not needed
+        if (!a.servo && !braking[k] && (!a.braked || std::abs(wn) < a.brake_from))
+        {
+          ok_[k] = 1;
+          continue;
+        }
+        const double c = law[k] - (h * a.kp) * w - (h * a.kp + a.kv) * (wn - w);  // the law at the step's end
+        law_next_[k] = c;
+        bool in, on_brake, beyond_effort;
+        double lo, hi;
+        int s;
+        select(a, c, wn, in, on_brake, beyond_effort, s, lo, hi);
+        low_[k] = lo;
+        high_[k] = hi;
+        side_next[k] = s;
+        within_[k] = in;
+        brake_[k] = on_brake;
+        const bool past = side_[k] > 0 ? c >= hi : c <= lo;
+        beyond_[k] = past;
+        const bool fine = free_[k] ? in : braking[k] ? on_brake && s == side_[k] : !on_brake && (!a.servo || past);
+        ok_[k] = fine;
+        consistent = consistent && fine;
       }
-      law_next[k] = step.law[k] - (h * a.kp) * w - (h * a.kp + a.kv) * (wn - w);  // the law at the step's end
-      bool in, on_brake, beyond_effort;
-      select(a, law_next[k], wn, in, on_brake, beyond_effort, side[k], low[k], high[k]);
-      within[k] = in;
-      brake[k] = on_brake;
-      beyond[k] = step.side[k] > 0 ? law_next[k] >= high[k] : law_next[k] <= low[k];
-      ok[k] = step.free[k]      ? bool(within[k])
-              : step.braking[k] ? brake[k] && side[k] == step.side[k]
-                                : !brake[k] && (!a.servo || beyond[k]);
-      consistent = consistent && ok[k];
     }
     if (consistent || step.iterations >= max_revisions)
       return false;
@@ -624,8 +661,10 @@ namespace multibody_sim
   {
     for (int i = 0; i < nv; ++i)
       out[i] = u[i];
+    const ActuatorTerm * a = terms.data();
+    const double * clipped = step.clipped.data();
     for (size_t k = 0; k < terms.size(); ++k)
-      out[terms[k].dof] = step.clipped[k];
+      out[a[k].dof] = clipped[k];
   }
 
   void SceneActuators::end(ServoStep & step, Vec & armature) const
