@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import re
+from typing import Any
 
 import numpy as np
 import pytest
@@ -592,6 +593,16 @@ def test_native_stepper_and_controllers_with_actuators(monkeypatch: pytest.Monke
     assert_same_stepper(*both(step, monkeypatch))
 
 
+def assert_rendered(scene: ms.Scene, rendered: Any, q: np.ndarray, v: np.ndarray, u: np.ndarray) -> None:
+    """The native actuators (_native.SceneActuators) give Actuators' torques and ledger powers at (q, v) under u, bit
+    for bit."""
+    torques, flows = rendered.evaluate(q, v, u)
+    expected = np.empty(len(scene.actuators.ledger))
+    scene.actuators.powers(q, v, u, expected)
+    np.testing.assert_array_equal(torques, scene.actuators.joint_torques(q, v, u))
+    np.testing.assert_array_equal(flows, expected)
+
+
 @needs_native
 def test_native_arithmetic_of_the_actuators() -> None:
     """_native.SceneActuators.evaluate against Actuators.joint_torques and powers at random states and commands."""
@@ -612,11 +623,7 @@ def test_native_arithmetic_of_the_actuators() -> None:
         v = rng.normal(0.0, 20.0, scene.nv)
         u = rng.normal(0.0, 30.0, scene.nv)
         u[:6] = 0.0
-        torques, flows = rendered.evaluate(q, v, u)
-        expected = np.empty(len(scene.actuators.ledger))
-        scene.actuators.powers(q, v, u, expected)
-        np.testing.assert_array_equal(torques, scene.actuators.joint_torques(q, v, u))
-        np.testing.assert_array_equal(flows, expected)
+        assert_rendered(scene, rendered, q, v, u)
 
 
 @needs_native
@@ -664,8 +671,4 @@ def test_native_actuators_at_the_edges_of_their_shortcuts() -> None:
                 u[a.dof] = target / a.kv + v[a.dof]
             else:
                 u[a.dof] = (target + a.kv * v[a.dof]) / a.kp + q0[a.iq]
-        torques, flows = rendered.evaluate(q0, v, u)
-        expected = np.empty(len(scene.actuators.ledger))
-        scene.actuators.powers(q0, v, u, expected)
-        np.testing.assert_array_equal(torques, scene.actuators.joint_torques(q0, v, u))
-        np.testing.assert_array_equal(flows, expected)
+        assert_rendered(scene, rendered, q0, v, u)
