@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from bench_sensors import cpu, variants
 
-from multibody_sim import sensors
+from multibody_sim import readings
 
 
 def main() -> None:
@@ -28,7 +28,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--steps", type=int, default=4000)
     args = parser.parse_args()
-    native = sensors._native_readings
+    native = readings._native_readings
     paths: dict[str, Any] = {"native": native, "python": lambda stream: None}
     chosen = ("bare", "sensors", "actuators + sensors")
     runs = {scene: {label: table[label] for label in chosen} for scene, table in variants(None).items()}
@@ -36,7 +36,7 @@ def main() -> None:
         for label, run in table.items():
             made = {}
             for path, factory in paths.items():
-                sensors._native_readings = factory
+                readings._native_readings = factory
                 made[path] = run(200)
             assert made["native"].metadata["kernel"] == "native"
             for name, values in made["python"].sensors.items():
@@ -47,10 +47,10 @@ def main() -> None:
         for scene, table in runs.items():
             for label, run in table.items():
                 for path in list(paths) if r % 2 == 0 else list(paths)[::-1]:
-                    sensors._native_readings = paths[path]
+                    readings._native_readings = paths[path]
                     (long, _), (short, _) = cpu(run, args.steps), cpu(run, 1)
                     times.setdefault((scene, label, path), []).append((long - short) / (args.steps - 1) * 1e6)
-    sensors._native_readings = native
+    readings._native_readings = native
     print(f"rounds {args.rounds}, steps {args.steps}, 1-minute load {load:.1f} -> {os.getloadavg()[0]:.1f}")
     print(
         "| scene | variant | µs/step native | µs/step python | ratio to bare, native | ratio to bare, python "

@@ -17,7 +17,7 @@ from conftest import needs_native
 import multibody_sim as ms
 from multibody_sim.exceptions import InvalidArgumentError, SceneError
 from multibody_sim.noise import NormalStream
-from multibody_sim.sensors import SensorStream
+from multibody_sim.readings import SensorStream
 
 G = 9.81
 
@@ -327,53 +327,6 @@ def test_readings_in_one_call_or_many_are_the_same() -> None:
     np.testing.assert_array_equal(values, whole[0][0][1])
 
 
-def test_readings_written_into_a_given_array_equal_those_made_apart() -> None:
-    """SensorStream.push with `into` (a run's samples at its ticks: the every-tick sensors' readings go straight into
-    the store's rows) makes the same numbers, bit for bit, as without (new arrays): bias, latency, per-component
-    noise, a sensor at a rate, two rows, a run cut into pieces; and the same latest readings."""
-    scene = ms.make_scene(
-        robot={"source": "ur5"},
-        sensor=[
-            {
-                "name": "imu",
-                "kind": "imu",
-                "frame": "tool0",
-                "noise": 0.01,
-                "bias": [0.1, 0, 0, 0, 0, -0.2],
-                "latency": 2,
-            },
-            {"name": "enc", "kind": "joint_position", "bias": 0.001, "latency": 1},
-            {"name": "gyro", "kind": "joint_velocity", "noise": [1e-3, 2e-3, 0, 0, 1e-3, 1.0]},
-            {"name": "tq", "kind": "joint_torque", "noise": 0.5, "latency": 3},  # every 3rd tick
-        ],
-    )
-    sensors = scene.sensors
-    rng = np.random.default_rng(3)
-    Z = rng.normal(size=(60, sensors.width))
-    strides = [1, 1, 1, 3]
-    direct = SensorStream(sensors, strides, np.array([4, 9]))
-    apart = SensorStream(sensors, strides, np.array([4, 9]))
-    store = np.full((2, 60, sensors.width), np.nan)
-    every = [c for k in range(3) for c in range(sensors.width)[sensors.columns(k)]]
-    for a, b in ((0, 1), (1, 17), (17, 60)):
-        times = np.repeat(np.arange(a, b) * 1e-3, 2)
-        rows = np.tile([0, 1], b - a)
-        values = np.repeat(Z[a:b], 2, axis=0)
-        values[1::2] *= 2.0
-        got = direct.push(times, rows, values, into=lambda row, t, a=a, b=b: store[row, a:b])
-        expected = apart.push(times, rows, values)
-        assert got.keys() == expected.keys() == {0, 1}
-        for row in (0, 1):
-            for k, ((t1, r1), (t2, r2)) in enumerate(zip(got[row], expected[row], strict=True)):
-                np.testing.assert_array_equal(t1, t2)
-                np.testing.assert_array_equal(r1, r2)
-                if strides[k] == 1:
-                    np.testing.assert_array_equal(store[row, a:b, sensors.columns(k)], r2)
-        np.testing.assert_array_equal(direct.latest, apart.latest)
-    assert not np.isnan(store[:, :, every]).any()
-    assert np.abs(direct.latest[0] - Z[-1]).max() > 0.0  # spoiled: not the measurement
-
-
 def _spoiled_ur5() -> ms.Scene:
     """ur5 with sensors of every reading feature: bias (one or per component), latency 1 to 4, noise (some
     components without), and a wide one (frame_pose)."""
@@ -394,6 +347,38 @@ def _spoiled_ur5() -> ms.Scene:
             {"name": "pose", "kind": "frame_pose", "frame": "tool0", "noise": 0.2, "bias": -3.0, "latency": 4},
         ],
     )
+
+
+def test_readings_written_into_a_given_array_equal_those_made_apart() -> None:
+    """SensorStream.push with `into` (a run's samples at its ticks: the every-tick sensors' readings go straight into
+    the store's rows) makes the same numbers, bit for bit, as without (new arrays): bias, latency, per-component
+    noise, a sensor at a rate, two rows, a run cut into pieces; and the same latest readings (with the extension:
+    made natively into the given array, and by the specification apart)."""
+    sensors = _spoiled_ur5().sensors
+    rng = np.random.default_rng(3)
+    Z = rng.normal(size=(60, sensors.width))
+    strides = [1, 1, 1, 3, 1]  # tq every 3rd tick
+    direct = SensorStream(sensors, strides, np.array([4, 9]))
+    apart = SensorStream(sensors, strides, np.array([4, 9]), native=False)  # (the specification, in Python)
+    store = np.full((2, 60, sensors.width), np.nan)
+    every = [c for k in (0, 1, 2, 4) for c in range(sensors.width)[sensors.columns(k)]]
+    for a, b in ((0, 1), (1, 17), (17, 60)):
+        times = np.repeat(np.arange(a, b) * 1e-3, 2)
+        rows = np.tile([0, 1], b - a)
+        values = np.repeat(Z[a:b], 2, axis=0)
+        values[1::2] *= 2.0
+        got = direct.push(times, rows, values, into=lambda row, t, a=a, b=b: store[row, a:b])
+        expected = apart.push(times, rows, values)
+        assert got.keys() == expected.keys() == {0, 1}
+        for row in (0, 1):
+            for k, ((t1, r1), (t2, r2)) in enumerate(zip(got[row], expected[row], strict=True)):
+                np.testing.assert_array_equal(t1, t2)
+                np.testing.assert_array_equal(r1, r2)
+                if strides[k] == 1:
+                    np.testing.assert_array_equal(store[row, a:b, sensors.columns(k)], r2)
+        np.testing.assert_array_equal(direct.latest, apart.latest)
+    assert not np.isnan(store[:, :, every]).any()
+    assert np.abs(direct.latest[0] - Z[-1]).max() > 0.0  # spoiled: not the measurement
 
 
 @needs_native

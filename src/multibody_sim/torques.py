@@ -137,7 +137,7 @@ class Torques:
     ) -> tuple[np.ndarray, list[tuple[int, BaseException, bool]]]:
         """The torques of the running rows at time t (control instant number `instant`), shape (n, nv), and the
         rows whose controller failed: (position, exception, is_bad_output). `readings`: the sensors' readings
-        (sensors.SensorStream), for controllers that read them."""
+        (readings.SensorStream), for controllers that read them."""
         n, nv = len(rows), system.nv
         failures: list[tuple[int, BaseException, bool]] = []
         if self.kind == "taus":
