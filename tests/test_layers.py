@@ -23,7 +23,7 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("maths", ["state", "integrators", "integrators.*", "robot"]),
     ("argument checks", ["validation"]),
     ("robots, controllers, results", ["catalog", "catalog.*", "controllers", "trajectory"]),
-    ("scenes", ["scenes", "scenes.*", "sensors"]),
+    ("scenes", ["scenes", "scenes.*", "sensors", "readings"]),
     ("stepping", ["recording", "kernels", "kernels.*", "core", "monitor", "torques", "driver"]),
     ("entry points", ["simulation", "rollout", "stepper", "gym"]),
     ("studies", ["derivatives", "stability", "analysis", "bench", "bench.*"]),
