@@ -4,7 +4,9 @@ the two paths interleaved round by round in one process, so that both see the sa
 
 Each round runs every variant once per path (the order of the paths alternating between rounds); a variant's time
 per step is a long run's CPU time minus a one-step run's, over the steps between them (as bench_sensors.py). The
-two paths' readings are first checked equal, bit for bit, on every variant.
+two paths' readings are first checked equal, bit for bit, on every variant. Then the same for a Stepper that
+steps the "actuators + sensors" scenes one step at a time (a push per step, as a controller or a gym environment at
+every step makes): CPU time per step() over `--stepper-steps` steps, the paths interleaved the same way.
 
 Usage:
     .venv/bin/python scripts/ab_readings.py [--rounds 15] [--steps 4000]
@@ -15,11 +17,13 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import time
 from typing import Any
 
 import numpy as np
-from bench_sensors import cpu, variants
+from bench_sensors import DT, cpu, go2, go2_sensors, ur5, ur5_sensors, variants
 
+import multibody_sim as ms
 from multibody_sim import readings
 
 
@@ -27,6 +31,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--steps", type=int, default=4000)
+    parser.add_argument("--stepper-steps", type=int, default=1000)
     args = parser.parse_args()
     native = readings._native_readings
     paths: dict[str, Any] = {"native": native, "python": lambda stream: None}
@@ -70,6 +75,36 @@ def main() -> None:
                 f"| {scene} | {label} | {statistics.median(n):.2f} | {statistics.median(p):.2f} | {rn:.3f} | "
                 f"{rp:.3f} | {gain:+.3f} |"
             )
+    stepping(paths, args.rounds, args.stepper_steps)
+
+
+def stepping(paths: dict[str, Any], rounds: int, steps: int) -> None:
+    """Stepper.step's CPU time [µs] on ur5 (rk4) and go2_standing (time-stepper) with actuators and sensors, per
+    readings path, medians over the rounds."""
+    scenes = {
+        "ur5": (ur5(True, ur5_sensors(None)), "rk4"),
+        "go2_standing": (go2(True, go2_sensors(None)), "timestepping"),
+    }
+    times: dict[tuple[str, str], list[float]] = {}
+    for r in range(rounds):
+        for scene, (system, integrator) in scenes.items():
+            for path in list(paths) if r % 2 == 0 else list(paths)[::-1]:
+                readings._native_readings = paths[path]
+                stepper = ms.Stepper(system, dt=DT, integrator=integrator, q0=system.q0, v0=np.zeros(system.nv))
+                tau = np.zeros(system.nv)
+                for _ in range(50):  # warm up
+                    stepper.step(tau)
+                start = time.process_time()
+                for _ in range(steps):
+                    stepper.step(tau)
+                times.setdefault((scene, path), []).append((time.process_time() - start) / steps * 1e6)
+    readings._native_readings = paths["native"]
+    print()
+    print("| scene (actuators + sensors) | Stepper.step µs, native readings | Stepper.step µs, python readings |")
+    print("|---|---:|---:|")
+    for scene in scenes:
+        native, python = (statistics.median(times[(scene, path)]) for path in ("native", "python"))
+        print(f"| {scene} | {native:.1f} | {python:.1f} |")
 
 
 if __name__ == "__main__":
