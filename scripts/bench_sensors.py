@@ -226,8 +226,8 @@ def main() -> None:
         "- Workload: a one-row `rollout` at dt = 1 ms sampling every step: ur5 with rk4 under a constant command "
         "(bare: a torque; with servos: their target, the start pose), go2_standing with the time-stepper under its "
         f"PD + gravity controller (in the engine); CPU time of a {args.steps}-step run minus a one-step run, per step. "
-        "Sensors read at every step unless a rate is given (the readings' noise, bias and latency are made in "
-        "Python once per call of the engine).",
+        "Sensors read at every step unless a rate is given (the readings' noise, bias and latency are made once "
+        "per call of the engine, by the extension's make_readings).",
         "",
         "| scene | variant | kernel | µs per step (median) | ratio to bare (median of per-round ratios) "
         "| of the µs, in the engine's calls | of the ratio's excess, in the engine's calls |",
@@ -262,19 +262,23 @@ def main() -> None:
         "timed in the same rounds, as a fraction of the bare step. Where the rest goes (perf profiles, and timers "
         "around the engine call apart from the Python around it): an IMU's "
         "(or frame_pose's) kinematics come from the next step's first ABA at the tick's state, which leaves each "
-        "joint's calc, liMi and oMi as forwardKinematics computes them, so the engine adds only the velocity and "
-        "acceleration recursion on the joints from the root to the sensor (ur5's tool0: all 6; go2's base: 1 of "
-        "13) and the frame's quantities; a tick whose row takes no further step in the engine call, and every tick "
-        "of a scene with a force-torque sensor (which needs the whole pass and an RNEA), gets a pass of its own. "
-        "Joint sensors copy numbers (a joint_torque sensor with actuators evaluates their law at the tick); a "
-        "contact_force sensor sums the step's impulses on its body. The readings are made in Python once per "
-        "engine call: the engine hands a lone row's measurements over in its samples' rows, where bias, latency "
-        "and noise are applied in place (z + bias in one pass over every component), and the trajectory's sensors "
-        "are views of that memory; besides the noise draws, a component costs a pass or two over memory written "
-        "for the first time (page faults included). "
-        "Actuators evaluate their law and limits once per stage for both the torque and the ledger, and add their "
-        "ledger lines (work, limits, brakes) to the integrated and recorded flows, the commands and the delivered "
-        "torque to every sample, and the catalog motors' armature (go2) to the kinetic energies.",
+        "joint's calc, liMi and oMi as forwardKinematics computes them, so the engine adds only the acceleration "
+        "recursion on the joints from the root to the sensor (ur5's tool0: all 6, written out for revolute joints "
+        "about X, Y or Z; go2's base: 1 of 13) and the frame's quantities; a tick whose row takes no further step in "
+        "the engine call, and every tick of a scene with a force-torque sensor (which needs the whole pass and an "
+        "RNEA), gets a pass of its own. Joint sensors copy numbers (a joint_torque sensor with actuators evaluates "
+        "their law at the tick); a contact_force sensor sums the step's impulses on its body. The readings are made "
+        "once per engine call and row by the extension (readings.SensorStream, src/native/readings.hpp: latency, "
+        "bias and noise sensor by sensor, the noise drawn by noise.hpp's ziggurat at ~1.6 ns a draw), in the "
+        "samples' rows when the engine handed a lone row's measurements over there; the trajectory's sensors are "
+        "views of that memory. The run's store is one block of memory that the C library reuses from run to run "
+        "(no page faults in this benchmark's pattern of runs). "
+        "Actuators evaluate their law and limits once per stage for both the torque and the ledger (below the "
+        "speed where their limits are provably ± the effort limit without the curve's division or the brake's "
+        "bounds), a sample's delivered torque comes from the next step's first evaluation, and they add their "
+        "ledger lines (work, limits, brakes) to the integrated and recorded flows (summed per sample in one pass "
+        "by the extension), the commands and the delivered torque to every sample, and the catalog motors' "
+        "armature (go2) to the kinetic energies.",
         "",
         "Actuators (ur5): position servos on every joint, kp = 1e3, kv = 30; (go2_standing): the catalog's motors.",
         "Sensors (ur5): " + ", ".join(f"{s['name']} ({s['kind']})" for s in ur5_sensors(None)) + ".",
