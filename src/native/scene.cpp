@@ -348,6 +348,12 @@ namespace multibody_sim
 
   void SceneActuators::limits(const ActuatorTerm & a, double w, double & low, double & high) const
   {
+    if (std::abs(w) < a.plain_below)  // (NaN: no) the curve and the velocity limit cut nothing here (prepare())
+    {
+      low = -a.effort;
+      high = a.effort;
+      return;
+    }
     double drive = a.effort;
     const double speed = std::abs(w);
     if (a.curve)
@@ -377,12 +383,6 @@ namespace multibody_sim
 
   void SceneActuators::interval(const ActuatorTerm & a, double w, double & low, double & high) const
   {
-    if (std::abs(w) < a.plain_below)  // (NaN: no) limits() and the brake's clamps would give ± the effort limit
-    {
-      low = -a.effort;
-      high = a.effort;
-      return;
-    }
     limits(a, w, low, high);
     if (a.braked && !(std::abs(w) < a.brake_from))
     {
@@ -392,24 +392,25 @@ namespace multibody_sim
     }
   }
 
+  namespace
+  {
+    // Whether an actuator's brake's bound on `side` (upper, lower: brakes()) lies beyond its effort limit
+    bool beyond_effort(const ActuatorTerm & a, double upper, double lower, int side)
+    {
+      return side > 0 ? !(upper > -a.effort) : !(lower < a.effort);
+    }
+  } // namespace
+
   // Actuators._select for one actuator: its limits and its brake's bounds evaluated once; brake: clipped at its
   // brake's bound within ± the effort limit, saturated: clipped at its brake's bound beyond it
   void SceneActuators::select(const ActuatorTerm & a, double law, double w, bool & within, bool & brake,
                               bool & saturated, int & side, double & low, double & high) const
   {
-    brake = saturated = false;
-    if (std::abs(w) < a.plain_below)  // the interval ± the effort limit, no torque on a brake's bound (prepare())
-    {
-      low = -a.effort;
-      high = a.effort;
-      within = law >= low && law <= high;
-      side = law > high ? 1 : -1;
-      return;
-    }
     limits(a, w, low, high);
     const double limit_low = low, limit_high = high;
     double upper = 0.0, lower = 0.0;
-    const bool braked = a.braked;
+    // below plain_below the brake's bounds cut nothing and hold no torque (prepare()): not evaluated
+    const bool braked = a.braked && !(std::abs(w) < a.plain_below);
     if (braked)
     {
       brakes(a, w, upper, lower);
@@ -418,11 +419,11 @@ namespace multibody_sim
     }
     within = law >= low && law <= high;
     side = law > high ? 1 : -1;
+    brake = saturated = false;
     if (braked && !within && (side > 0 ? upper < limit_high : lower > limit_low))
     {
-      const bool inside = side > 0 ? upper > -a.effort : lower < a.effort;
-      brake = inside;
-      saturated = !inside;
+      saturated = beyond_effort(a, upper, lower, side);
+      brake = !saturated;
     }
   }
 
@@ -468,7 +469,7 @@ namespace multibody_sim
       const double c = law(a, q, v, u);
       const double w = v[a.dof];
       flows[k] = c * w;
-      if (std::abs(w) < a.plain_below)  // the interval ± the effort limit, the brake's clamps idle (prepare())
+      if (std::abs(w) < a.plain_below)  // (rk4's four stages: the interval ± the effort limit, the brake idle)
       {
         const double limited = np_minimum(np_maximum(c, -a.effort), a.effort);
         if (a.limited)
@@ -486,13 +487,13 @@ namespace multibody_sim
       double tau = limited;
       if (a.braked)  // evaluate's interval: the limits within the brake's bounds from brake_from on
       {
-        if (!(std::abs(w) < a.brake_from))
+        if (!(std::abs(w) < a.brake_from))  // (below it the clamps leave the limits: tau is `limited`)
         {
           double upper, lower;
           brakes(a, w, upper, lower);
           within_brake(a, upper, lower, low, high);
+          tau = np_minimum(np_maximum(c, low), high);
         }
-        tau = np_minimum(np_maximum(c, low), high);
         flows[b++] = (limited - tau) * w;
       }
       if (torques)
@@ -640,9 +641,13 @@ namespace multibody_sim
       const ActuatorTerm & a = terms[k];
       const bool servo = a.servo;
       // a brake beyond the effort limit at the start that did not land on its line: held at the effort limit
-      double upper, lower;
-      brakes(a, step.w[k], upper, lower);
-      const bool stays = step.braking[k] && (step.side[k] > 0 ? !(upper > -a.effort) : !(lower < a.effort));
+      bool stays = false;
+      if (step.braking[k])
+      {
+        double upper, lower;
+        brakes(a, step.w[k], upper, lower);
+        stays = beyond_effort(a, upper, lower, step.side[k]);
+      }
       const bool freed = servo && !step.free[k] && !step.braking[k] && !beyond[k];
       step.free[k] = !stays && (freed || (servo && within[k]));
       step.braking[k] = !stays && brake[k] && !freed;
