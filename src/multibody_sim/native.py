@@ -141,6 +141,12 @@ def kernel() -> str:
     return f"native (C++, Pinocchio {pinocchio_version})" if available else f"python ({why_unavailable})"
 
 
+def function(name: str) -> Any:
+    """The extension's function (or class) `name`, or None where the extension is not available (or was built
+    without it)."""
+    return getattr(module, name, None) if available else None
+
+
 def model_bytes(model: pin.Model) -> bytes:
     """The model as Pinocchio's binary archive (what `_native.Model(bytes)` rebuilds in C++)."""
     buffer = pin.serialization.StreamBuffer()

@@ -167,8 +167,9 @@ def _filler() -> Any:
     if _FILL is None:
         from . import native  # (the extension loads on first use)
 
-        if native.available and hasattr(native.module, "fill_normals"):
-            tables, fill = native.module.ZigguratTables(**native_tables()), native.module.fill_normals
+        fill = native.function("fill_normals")
+        if fill is not None:
+            tables = native.module.ZigguratTables(**native_tables())  # type: ignore[union-attr]
             _FILL = lambda state, out: fill(state, out, tables)  # noqa: E731
         else:
             _FILL = fill_python

@@ -262,10 +262,11 @@ def _native_readings(stream: SensorStream) -> tuple[Any, Any] | None:
     extension."""
     from . import native  # (the extension loads on first use)
 
-    module = native.module if native.available else None
-    if module is None or not hasattr(module, "make_readings"):
+    make = native.function("make_readings")
+    if make is None:
         return None
+    module = native.module
     data = stream.native_data()
     items = [module.ReadingItem(**item) for item in data["items"]]
     layout = module.ReadingLayout(**{**data, "items": items, "tables": module.ZigguratTables(**data["tables"])})
-    return module.make_readings, layout
+    return make, layout

@@ -8,6 +8,7 @@ samples (``n_samples[b]``).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -325,7 +326,7 @@ def ledger_sums(flows: np.ndarray, is_work: np.ndarray) -> tuple[np.ndarray, np.
     shape (...) each, bit for bit as ``flows[..., is_work].sum(-1)`` and ``flows[..., ~is_work].sum(-1)`` give them
     (a NaN where theirs is NaN, its sign and payload aside), without their copies of the columns (fresh memory, paid
     for in page faults)."""
-    sums = _SUMS or _summer()
+    sums = _summer()
     sides = min(int(is_work.sum()), int((~is_work).sum()))
     if sums is not None and flows.flags.c_contiguous and flows[..., 0].size > 1 and sides > 1:
         work, dissipated = np.empty(flows.shape[:-1]), np.empty(flows.shape[:-1])
@@ -334,18 +335,13 @@ def ledger_sums(flows: np.ndarray, is_work: np.ndarray) -> tuple[np.ndarray, np.
     return _columns_sum(flows, is_work), _columns_sum(flows, ~is_work)
 
 
-_SUMS: Any = None
-
-
+@functools.cache
 def _summer() -> Any:
     """The extension's ledger_sums (row by row, each side's columns in order from +0.0: _columns_sum's numbers in one
     pass over the flows' memory instead of one per column), or None without it."""
-    global _SUMS
-    if _SUMS is None:
-        from . import native  # (the extension loads on first use)
+    from . import native  # (the extension loads on first use)
 
-        _SUMS = native.module.ledger_sums if native.available and hasattr(native.module, "ledger_sums") else False
-    return _SUMS or None
+    return native.function("ledger_sums")
 
 
 def _columns_sum(flows: np.ndarray, mask: np.ndarray) -> np.ndarray:

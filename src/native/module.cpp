@@ -412,7 +412,8 @@ void multibody_sim::bind_kernel(nb::module_ & m)  // called by NB_MODULE below
     },
     nb::arg("layout"), nb::arg("measurements"), nb::arg("out").noconvert(), nb::arg("apart").noconvert(),
     nb::arg("count"), nb::arg("latest").noconvert(), nb::arg("history").noconvert(), nb::arg("states").noconvert(),
-    "sensors.SensorStream._read for one row (src/native/readings.hpp): its m new ticks' measurements (m, width), "
+    "readings.SensorStream._read_python for one row (src/native/readings.hpp): its m new ticks' measurements "
+    "(m, width), "
     "the first `count` ticks after the row's start, into readings: the every-tick sensors' in their columns of "
     "`out` (m, width; it may be the measurements), the strided ones' one after the other in `apart`; the row's "
     "`latest` readings, `history` and streams' `states` advanced in place.");

@@ -1,7 +1,7 @@
-// sensors.SensorStream._read in C++: one row's new readings from its new ticks' measurements, in one pass (stride,
-// latency, bias, noise), each number as the Python specification makes it, bit for bit: reading n of a sensor is
-// ((z + bias) + noise · draw) component by component, z its measurement `latency` readings before (the first one
-// before that), the draws from the sensor's own stream (noise.hpp) in reading order then component order.
+// readings.SensorStream._read_python in C++: one row's new readings from its new ticks' measurements, in one pass
+// (stride, latency, bias, noise), each number as the Python specification makes it, bit for bit: reading n of a
+// sensor is ((z + bias) + noise · draw) component by component, z its measurement `latency` readings before (the
+// first one before that), the draws from the sensor's own stream (noise.hpp) in reading order then component order.
 #pragma once
 
 #include <algorithm>
@@ -54,9 +54,10 @@ namespace multibody_sim
   // start: the sensors that read at every tick into their columns of out (m, width; it may be Z, or overlap it), each
   // other sensor's readings into `apart` after the previous ones' (its n due ticks: n × width), with the others'
   // columns of out the measurements plus the bias (as the specification leaves them). Sensor by sensor, tick by
-  // tick: each sensor's draws come from its own stream, in reading then component order, as the specification's. Updates the row's latest
-  // readings (width,), its history (the ring of each late sensor's last measurements: reading n's in slot
-  // n % latency, all the first one's before it) and its streams' states (one per sensor, 4 words each).
+  // tick: each sensor's draws come from its own stream, in reading then component order, as the specification's.
+  // Updates the row's latest readings (width,), its history (the ring of each late sensor's last measurements:
+  // reading n's in slot n % latency, all the first one's before it) and its streams' states (one per sensor, 4 words
+  // each).
   inline void make_readings(const ReadingLayout & layout, const double * Z, std::size_t m, double * out, double * apart,
                             int64_t count, double * latest, double * history, uint64_t * states)
   {
